@@ -1,0 +1,1 @@
+"""Thin click commands: read inputs, call one stage, write artifacts."""
