@@ -1,13 +1,135 @@
-"""The ``spctool`` command group: global options, error handling, subcommand registry."""
+"""The ``spctool`` command group: global options, error handling, subcommand registry.
+
+Errors a user can cause (bad files, bad usage) end as ONE stderr line
+``spctool: error: …`` with exit code 2 (1 when a requested check failed);
+``--debug`` shows the traceback instead.  Commands register themselves from
+their own modules (``spctool/cli/*.py``) in :data:`COMMAND_MODULES`.
+"""
 
 from __future__ import annotations
+
+import importlib
+import sys
+import traceback
 
 import click
 
 from spctool import __version__
+from spctool.cli.common import Context
+from spctool.errors import SpcError
+
+#: modules whose ``register(cli)`` adds commands, in --help order
+COMMAND_MODULES = (
+    "spctool.cli.select",  # lithos-select
+    "spctool.cli.appearance",  # predict, extract
+    "spctool.cli.register",  # correlate, register
+    "spctool.cli.pose",  # solve-pose
+    "spctool.cli.files",  # info, validate, convert
+    "spctool.cli.project",  # project
+    "spctool.cli.sim",  # simulate, make-maplets, render, demo
+    "spctool.cli.montecarlo",  # montecarlo
+    "spctool.cli.batch",  # batch
+)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.version_option(__version__, prog_name="spctool")
-def cli():
-    """spctool — surface-feature optical navigation the SPC way."""
+class SpcGroup(click.Group):
+    """A click group that reports every error as one line (cli-contract.md exit codes)."""
+
+    def list_commands(self, ctx):
+        return list(self.commands)  # registration order, mission stages first
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        args = list(sys.argv[1:] if args is None else args)
+        debug = "--debug" in args[: _first_command_index(self, args)]
+        try:
+            rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
+        except click.exceptions.Exit as exc:
+            sys.exit(exc.exit_code)
+        except click.exceptions.Abort:
+            click.echo("spctool: error: aborted", err=True)
+            sys.exit(1)
+        except click.ClickException as exc:
+            if debug:
+                traceback.print_exc()
+            hint = ""
+            if isinstance(exc, click.UsageError) and exc.ctx is not None:
+                hint = f" (see '{exc.ctx.command_path} --help')"
+            click.echo(f"spctool: error: {_one_line(exc.format_message())}{hint}", err=True)
+            sys.exit(exc.exit_code)
+        except SpcError as exc:
+            if debug:
+                traceback.print_exc()
+            click.echo(f"spctool: error: {_one_line(str(exc))}", err=True)
+            sys.exit(exc.exit_code)
+        except BrokenPipeError:
+            sys.exit(0)
+        except KeyboardInterrupt:
+            click.echo("spctool: error: interrupted", err=True)
+            sys.exit(130)
+        except Exception as exc:  # a bug: still one line unless --debug
+            if debug:
+                traceback.print_exc()
+            click.echo(
+                f"spctool: error: internal error: {type(exc).__name__}: {_one_line(str(exc))} "
+                "(rerun with --debug for a traceback and please report it)",
+                err=True,
+            )
+            sys.exit(1)
+        if standalone_mode:
+            sys.exit(rv if isinstance(rv, int) else 0)
+        return rv
+
+
+def _first_command_index(group, args):
+    for i, a in enumerate(args):
+        if a in group.commands:
+            return i
+    return len(args)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+@click.group(cls=SpcGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, "-V", "--version", prog_name="spctool")
+@click.option("-C", "workdir", default=".", metavar="DIR", type=click.Path(file_okay=False),
+              help="SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...). Default: current directory.")
+@click.option("--settings", "settings", metavar="FILE", type=click.Path(dir_okay=False),
+              help="INIT_LITHOS settings file. Default: DIR/INIT_LITHOS.TXT when present.")
+@click.option("-v", "--verbose", count=True, help="More messages on stderr (repeatable).")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
+@click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
+@click.pass_context
+def cli(ctx, workdir, settings, verbose, quiet, debug):
+    """spctool — surface-feature optical navigation the SPC way.
+
+    Stages chain through landmark tables (text or --json):
+
+    \b
+      spctool -C WORKDIR lithos-select P0001 > sel.txt
+      spctool -C WORKDIR register P0001 --landmarks sel.txt > reg.txt
+      spctool -C WORKDIR solve-pose P0001 --measurements reg.txt --output new.SUM
+
+    Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
+    centres at integers, line 1 = first stored row.
+    """
+    ctx.obj = Context(workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug)
+
+
+def _register_all():
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:
+                continue
+            raise
+        module.register(cli)
+
+
+_register_all()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    cli()

@@ -1,0 +1,116 @@
+"""Man pages generated from the click commands, so that ``man/`` never drifts from ``--help``.
+
+``python -m spctool.cli.manpages man/`` rewrites ``man/spctool.1`` and one
+``man/spctool-COMMAND.1`` per command; ``tests/test_cli_manpages.py`` fails
+when a committed page differs from what the current ``--help`` text gives.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from spctool import __version__
+
+
+def _escape(text: str) -> str:
+    out = []
+    for line in text.splitlines():
+        line = line.replace("\\", "\\e")
+        if line.startswith((".", "'")):
+            line = "\\&" + line
+        out.append(line)
+    return "\n".join(out)
+
+
+def _paragraphs(help_text: str) -> str:
+    """click help text -> troff: blank lines become .PP, \\b blocks become .nf/.fi."""
+    lines = help_text.strip("\n").splitlines()
+    out: list[str] = []
+    verbatim = False
+    for line in lines:
+        stripped = line.strip()
+        if stripped == "\b":
+            out.append(".nf")
+            verbatim = True
+            continue
+        if not stripped:
+            if verbatim:
+                out.append(".fi")
+                verbatim = False
+            out.append(".PP")
+            continue
+        out.append(_escape(line if verbatim else stripped))
+    if verbatim:
+        out.append(".fi")
+    return "\n".join(out)
+
+
+def render(command: click.Command, path: list[str]) -> str:
+    name = "-".join(path)
+    ctx = click.Context(command, info_name=" ".join(path))
+    summary = command.get_short_help_str(limit=120)
+    usage = " ".join(command.collect_usage_pieces(ctx))
+    parts = [
+        f'.TH {name.upper()} 1 "" "spctool {__version__}" "spctool manual"',
+        ".SH NAME",
+        f"{_escape(name)} \\- {_escape(summary)}",
+        ".SH SYNOPSIS",
+        f".B {_escape(' '.join(path))}",
+        _escape(usage),
+        ".SH DESCRIPTION",
+        _paragraphs(command.help or ""),
+    ]
+    params = [p for p in command.get_params(ctx) if isinstance(p, click.Option) and not p.hidden]
+    if params:
+        parts.append(".SH OPTIONS")
+        for p in params:
+            record = p.get_help_record(ctx)
+            if record is None:
+                continue
+            opts, text = record
+            parts.append(".TP")
+            parts.append(f".B {_escape(opts)}")
+            parts.append(_escape(text or ""))
+    if isinstance(command, click.Group):
+        parts.append(".SH COMMANDS")
+        for sub in command.list_commands(ctx):
+            c = command.get_command(ctx, sub)
+            parts.append(".TP")
+            parts.append(f".B {sub}")
+            parts.append(_escape(c.get_short_help_str(limit=120)))
+            parts.append(f"See \\fB{name}-{sub}\\fR(1).")
+    parts.append(".SH SEE ALSO")
+    parts.append("\\fBspctool\\fR(1)" if len(path) > 1 else "spctool-COMMAND(1) for each command")
+    return "\n".join(parts) + "\n"
+
+
+def all_pages() -> dict[str, str]:
+    from spctool.cli.main import cli
+
+    pages = {"spctool.1": render(cli, ["spctool"])}
+    ctx = click.Context(cli, info_name="spctool")
+    for sub in cli.list_commands(ctx):
+        command = cli.get_command(ctx, sub)
+        pages[f"spctool-{sub}.1"] = render(command, ["spctool", sub])
+    return pages
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    folder = Path(argv[0] if argv else "man")
+    folder.mkdir(parents=True, exist_ok=True)
+    pages = all_pages()
+    for old in folder.glob("spctool*.1"):
+        if old.name not in pages:
+            old.unlink()
+    for name, text in pages.items():
+        (folder / name).write_text(text)
+    print(f"wrote {len(pages)} man pages to {folder}/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

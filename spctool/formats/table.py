@@ -1,0 +1,292 @@
+"""The landmark table: the text (or JSON) file that chains the stages.
+
+cli-contract.md "Landmark tables": a few ``#`` comment lines (tool version,
+picture, command), one header line of column names, then one
+whitespace-aligned row per landmark.  ``--json`` gives one document
+``{"command", "picture", "spctool_version", "landmarks": [...], ...}`` with the
+same column names as keys.  Pixel columns are SPC pixels (1-based sample/line).
+
+The table is column-oriented: ``table["sample"]`` is a numpy array (or a list
+for text columns), so stages read it without per-row loops.  Number formatting
+lives here, never in the command line.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import re
+import sys
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from spctool import __version__
+from spctool.errors import SpcFormatError
+
+#: Decimal places used for well-known columns; other floats use ``%.6g``.
+COLUMN_DECIMALS: dict[str, int] = {
+    "sample": 4, "line": 4, "predicted_sample": 4, "predicted_line": 4,
+    "apriori_sample": 4, "apriori_line": 4, "measured_sample": 4, "measured_line": 4,
+    "dsample": 4, "dline": 4, "true_sample": 4, "true_line": 4,
+    "error_sample": 4, "error_line": 4,
+    "residual_sample_before": 4, "residual_line_before": 4,
+    "residual_sample_after": 4, "residual_line_after": 4,
+    "correlation": 4, "emission": 3, "incidence": 3, "phase": 3,
+    "range_km": 6, "fraction_in_photo": 4, "lambda": 5, "phi": 5,
+}
+
+_INT = re.compile(r"^[+-]?\d+$")
+
+
+def _format_value(column: str, value) -> str:
+    if value is None:
+        return "nan"
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        if column in COLUMN_DECIMALS:
+            return f"{v:.{COLUMN_DECIMALS[column]}f}"
+        return f"{v:.6g}"
+    text = str(value)
+    if not text:
+        return "-"
+    return re.sub(r"\s+", "_", text)
+
+
+def _parse_value(text: str):
+    if _INT.match(text):
+        return int(text)
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _json_value(value):
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return None if not math.isfinite(v) else v
+    if value is None:
+        return None
+    return value
+
+
+@dataclass
+class LandmarkTable:
+    """Columns of equal length; ``name`` first by convention."""
+
+    columns: dict[str, object] = field(default_factory=dict)
+    picture: str | None = None
+    command: str | None = None
+    comments: list[str] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_rows(cls, rows: Iterable[Mapping], **kw) -> LandmarkTable:
+        rows = list(rows)
+        names: list[str] = []
+        for r in rows:
+            for k in r:
+                if k not in names:
+                    names.append(k)
+        cols = {k: _column([r.get(k) for r in rows]) for k in names}
+        return cls(columns=cols, **kw)
+
+    def __post_init__(self):
+        self.columns = {k: _column(v) for k, v in self.columns.items()}
+        lengths = {len(v) for v in self.columns.values()}
+        if len(lengths) > 1:
+            raise ValueError(f"table columns differ in length: {lengths}")
+
+    # -- access -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(next(iter(self.columns.values()))) if self.columns else 0
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.columns
+
+    def __getitem__(self, name: str):
+        return self.columns[name]
+
+    def __setitem__(self, name: str, values) -> None:
+        values = _column(values)
+        if self.columns and len(values) != len(self):
+            raise ValueError(f"column {name!r} has {len(values)} values, table has {len(self)} rows")
+        self.columns[name] = values
+
+    def get(self, name: str, default=None):
+        return self.columns.get(name, default)
+
+    @property
+    def names(self) -> list[str]:
+        return [str(n) for n in self.columns.get("name", [])]
+
+    def rows(self) -> list[dict]:
+        keys = list(self.columns)
+        return [{k: _scalar(self.columns[k][i]) for k in keys} for i in range(len(self))]
+
+    def select(self, mask) -> LandmarkTable:
+        mask = np.asarray(mask, bool)
+        cols = {}
+        for k, v in self.columns.items():
+            cols[k] = v[mask] if isinstance(v, np.ndarray) else [x for x, m in zip(v, mask) if m]
+        return LandmarkTable(cols, self.picture, self.command, list(self.comments), dict(self.meta))
+
+    # -- text ---------------------------------------------------------------------------------
+    def to_text(self) -> str:
+        out = io.StringIO()
+        out.write(f"# spctool {__version__}\n")
+        if self.picture:
+            out.write(f"# picture: {self.picture}\n")
+        if self.command:
+            out.write(f"# command: {self.command}\n")
+        for c in self.comments:
+            out.write(f"# {c}\n")
+        keys = list(self.columns)
+        if not keys:
+            return out.getvalue()
+        cells = [[_format_value(k, self.columns[k][i]) for k in keys] for i in range(len(self))]
+        widths = [max([len(k)] + [len(r[j]) for r in cells]) for j, k in enumerate(keys)]
+        numeric = [isinstance(self.columns[k], np.ndarray) and self.columns[k].dtype.kind in "fiu" for k in keys]
+
+        def fmt(items):
+            parts = []
+            for j, text in enumerate(items):
+                parts.append(text.rjust(widths[j]) if numeric[j] else text.ljust(widths[j]))
+            return "  ".join(parts).rstrip()
+
+        out.write(fmt(keys) + "\n")
+        for r in cells:
+            out.write(fmt(r) + "\n")
+        return out.getvalue()
+
+    @classmethod
+    def parse_text(cls, text: str, path=None) -> LandmarkTable:
+        picture = command = None
+        comments: list[str] = []
+        header: list[str] | None = None
+        rows: list[list[str]] = []
+        for lineno, raw in enumerate(text.splitlines(), start=1):
+            line = raw.strip()
+            if not line:
+                continue
+            if line.startswith("#"):
+                body = line[1:].strip()
+                if body.startswith("picture:"):
+                    picture = body.split(":", 1)[1].strip()
+                elif body.startswith("command:"):
+                    command = body.split(":", 1)[1].strip()
+                elif not body.startswith("spctool "):
+                    comments.append(body)
+                continue
+            parts = line.split()
+            if header is None:
+                header = parts
+                if "name" not in header:
+                    raise SpcFormatError(path, lineno, "expected a header line of column names including 'name'")
+                continue
+            if len(parts) != len(header):
+                raise SpcFormatError(path, lineno, f"expected {len(header)} columns, found {len(parts)}")
+            rows.append(parts)
+        if header is None:
+            raise SpcFormatError(path, None, "expected a landmark table (header line with a 'name' column)")
+        cols = {}
+        for j, key in enumerate(header):
+            values = [_parse_value(r[j]) for r in rows]
+            if key == "name":
+                values = [str(r[j]) for r in rows]
+            cols[key] = values
+        return cls(cols, picture, command, comments)
+
+    # -- json ---------------------------------------------------------------------------------
+    def to_json_dict(self) -> dict:
+        doc = {
+            "command": self.command,
+            "picture": self.picture,
+            "spctool_version": __version__,
+        }
+        doc.update({k: _jsonify(v) for k, v in self.meta.items()})
+        doc["landmarks"] = [{k: _json_value(v) for k, v in r.items()} for r in self.rows()]
+        return doc
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_json_dict(), indent=2, allow_nan=False) + "\n"
+
+    @classmethod
+    def from_json(cls, text: str, path=None) -> LandmarkTable:
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SpcFormatError(path, exc.lineno, f"expected JSON ({exc.msg})") from None
+        if not isinstance(doc, dict) or not isinstance(doc.get("landmarks"), list):
+            raise SpcFormatError(path, None, "expected a JSON object with a 'landmarks' list")
+        rows = [{k: (math.nan if v is None else v) for k, v in r.items()} for r in doc["landmarks"]]
+        meta = {k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")}
+        return cls.from_rows(rows, picture=doc.get("picture"), command=doc.get("command"), meta=meta)
+
+
+def _jsonify(v):
+    if isinstance(v, np.ndarray):
+        return _jsonify(v.tolist())
+    if isinstance(v, dict):
+        return {k: _jsonify(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonify(x) for x in v]
+    return _json_value(v)
+
+
+def _scalar(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _column(values):
+    if isinstance(values, np.ndarray):
+        return values
+    values = list(values)
+    if values and all(isinstance(v, (bool, np.bool_)) for v in values):
+        return np.asarray(values, bool)
+    if values and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in values):
+        return np.asarray(values, np.int64)
+    if values and all(
+        (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)) or v is None
+        for v in values
+    ):
+        return np.asarray([math.nan if v is None else v for v in values], np.float64)
+    return ["" if v is None else str(v) if not isinstance(v, str) else v for v in values]
+
+
+def read_table(path) -> LandmarkTable:
+    """Read a landmark table (text or JSON) from ``path``; ``-`` is stdin."""
+    if str(path) == "-":
+        text = sys.stdin.read()
+        name = "<stdin>"
+    else:
+        p = Path(path)
+        if not p.exists():
+            raise SpcFormatError(path, None, "expected a landmark table file (not found)")
+        text = p.read_text(encoding="utf-8", errors="replace")
+        name = str(path)
+    if text.lstrip().startswith("{"):
+        return LandmarkTable.from_json(text, name)
+    return LandmarkTable.parse_text(text, name)

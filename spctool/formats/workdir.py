@@ -1,0 +1,168 @@
+"""An SPC working directory: picture and landmark names -> files, by SPC's conventions.
+
+spc-formats.md §0.1 and §7; cli-contract.md "Invocation".  ``SUMFILES/<PIC>.SUM``,
+``NOMINALS/<PIC>.NOM``, ``IMAGEFILES[1-9]/<PIC>.DAT`` (searched in that order;
+FITS/PGM/PNG photos with the same stem are accepted too), ``MAPFILES/<LMK>.MAP``
+(then ``EXTFILES/``), ``LMKFILES/<LMK>.LMK``, ``SHAPEFILES/SHAPE.TXT``,
+``PICTLIST.TXT`` (``PICTLISTX.TXT`` preferred when present), ``LMRKLIST.TXT``,
+``INIT_LITHOS.TXT``.  Explicit paths given by the user override every rule.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from spctool.errors import SpcFormatError
+
+PHOTO_SUFFIXES = (".DAT", ".dat", ".FITS", ".fits", ".FIT", ".fit", ".PGM", ".pgm", ".PNG", ".png")
+IMAGE_DIRS = ("IMAGEFILES",) + tuple(f"IMAGEFILES{k}" for k in range(1, 10))
+
+
+def _missing(path: Path, what: str) -> SpcFormatError:
+    return SpcFormatError(path, None, f"expected {what} (file not found)")
+
+
+@dataclass
+class WorkDir:
+    """Resolve SPC names to paths below ``root`` (the ``-C DIR`` of the command line)."""
+
+    root: Path = Path(".")
+
+    def __post_init__(self):
+        self.root = Path(self.root)
+
+    # -- paths ----------------------------------------------------------------------------------
+    def sum_path(self, picture: str) -> Path:
+        return self.root / "SUMFILES" / f"{picture.strip()}.SUM"
+
+    def nom_path(self, picture: str) -> Path:
+        return self.root / "NOMINALS" / f"{picture.strip()}.NOM"
+
+    def map_path(self, landmark: str) -> Path:
+        name = landmark.strip()
+        for folder in ("MAPFILES", "EXTFILES"):
+            p = self.root / folder / f"{name}.MAP"
+            if p.exists():
+                return p
+        return self.root / "MAPFILES" / f"{name}.MAP"
+
+    def lmk_path(self, landmark: str) -> Path:
+        return self.root / "LMKFILES" / f"{landmark.strip()}.LMK"
+
+    def photo_path(self, picture: str) -> Path | None:
+        """The photo of ``picture``: IMAGEFILES/, IMAGEFILES1/ … IMAGEFILES9/, first match wins."""
+        name = picture.strip()
+        for folder in IMAGE_DIRS:
+            for suffix in PHOTO_SUFFIXES:
+                p = self.root / folder / f"{name}{suffix}"
+                if p.exists():
+                    return p
+        return None
+
+    @property
+    def shape_path(self) -> Path:
+        return self.root / "SHAPEFILES" / "SHAPE.TXT"
+
+    @property
+    def settings_path(self) -> Path:
+        return self.root / "INIT_LITHOS.TXT"
+
+    @property
+    def pictlist_path(self) -> Path:
+        x = self.root / "PICTLISTX.TXT"
+        return x if x.exists() else self.root / "PICTLIST.TXT"
+
+    @property
+    def lmrklist_path(self) -> Path:
+        return self.root / "LMRKLIST.TXT"
+
+    # -- readers ----------------------------------------------------------------------------------
+    def read_picture(self, picture: str):
+        """The SUM of ``picture``; ``picture`` may also be a path to a SUM file."""
+        from spctool.formats.sumfile import read_sum
+
+        p = Path(picture)
+        if p.suffix.upper() == ".SUM" and p.exists():
+            return read_sum(p)
+        path = self.sum_path(picture)
+        if not path.exists():
+            raise _missing(path, f"the SUM file of picture {picture}")
+        return read_sum(path)
+
+    def read_settings(self, path=None):
+        """INIT_LITHOS.TXT (or ``path``), or ``None`` when the working directory has none."""
+        from spctool.formats.lithos import read_lithos
+
+        p = Path(path) if path else self.settings_path
+        if not p.exists():
+            if path:
+                raise _missing(p, "an INIT_LITHOS settings file")
+            return None
+        return read_lithos(p)
+
+    def read_landmark(self, landmark: str):
+        from spctool.formats.landmark import read_lmk
+
+        p = Path(landmark)
+        if p.suffix.upper() == ".LMK" and p.exists():
+            return read_lmk(p)
+        path = self.lmk_path(landmark)
+        if not path.exists():
+            raise _missing(path, f"the LMK file of landmark {landmark}")
+        return read_lmk(path)
+
+    def read_maplet(self, landmark: str):
+        from spctool.formats.maplet import read_map
+
+        p = Path(landmark)
+        if p.suffix.upper() == ".MAP" and p.exists():
+            m = read_map(p)
+        else:
+            path = self.map_path(landmark)
+            if not path.exists():
+                raise _missing(path, f"the MAP file of landmark {landmark}")
+            m = read_map(path)
+        return m
+
+    def read_photo(self, picture: str, npx: int | None = None, nln: int | None = None, **kw):
+        from spctool.formats.photo import read_photo
+
+        path = self.photo_path(picture)
+        if path is None:
+            raise _missing(self.root / "IMAGEFILES" / f"{picture.strip()}.DAT", f"the photo of picture {picture}")
+        return read_photo(path, npx=npx, nln=nln, **kw)
+
+    def read_shape(self, path=None):
+        """The global shape (ICQ, OBJ or VTK), or ``None`` when there is none."""
+        from spctool.formats.mesh import read_shape
+
+        p = Path(path) if path else self.shape_path
+        if not p.exists():
+            if path:
+                raise _missing(p, "a shape model")
+            return None
+        return read_shape(p)
+
+    # -- lists ----------------------------------------------------------------------------------
+    def landmark_names(self) -> list[str]:
+        """Candidate landmarks: LMRKLIST.TXT's active names, else every LMKFILES/*.LMK."""
+        if self.lmrklist_path.exists():
+            from spctool.formats.lists import read_lmrklist
+
+            return list(read_lmrklist(self.lmrklist_path).active_names)
+        folder = self.root / "LMKFILES"
+        if folder.is_dir():
+            return sorted(p.stem for p in folder.glob("*.LMK") if not p.stem.startswith("X"))
+        return []
+
+    def picture_names(self) -> list[str]:
+        """Pictures in use from PICTLIST.TXT (PICTLISTX.TXT preferred), else every SUMFILES/*.SUM."""
+        if self.pictlist_path.exists():
+            from spctool.formats.lists import read_pictlist
+
+            return list(read_pictlist(self.pictlist_path).active_names)
+        folder = self.root / "SUMFILES"
+        if folder.is_dir():
+            return sorted(p.stem for p in folder.glob("*.SUM"))
+        return []

@@ -1,0 +1,68 @@
+"""The landmark table that chains the stages (cli-contract.md)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from spctool.errors import SpcFormatError
+from spctool.formats.table import LandmarkTable, read_table
+
+names = st.text(alphabet="ABCDEFGHJKLMNPQRSTUVWXYZ0123456789", min_size=6, max_size=6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(names, st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.integers(0, 50),
+                          st.sampled_from(["ok", "outside", "edge-peak"])), min_size=1, max_size=12))
+def test_text_and_json_round_trip(rows):
+    t = LandmarkTable.from_rows(
+        [{"name": n, "sample": s, "line": ln, "iterations": k, "status": st_} for n, s, ln, k, st_ in rows],
+        picture="P0001", command="register P0001")
+    back = LandmarkTable.parse_text(t.to_text())
+    assert back.picture == "P0001" and back.command == "register P0001"
+    assert back.names == [r[0] for r in rows]
+    np.testing.assert_allclose(back["sample"], [r[1] for r in rows], atol=5e-5)
+    assert list(back["iterations"]) == [r[3] for r in rows]
+    assert back["status"] == [r[4] for r in rows]
+    j = LandmarkTable.from_json(t.to_json())
+    np.testing.assert_array_equal(j["sample"], t["sample"])
+
+
+def test_nan_is_null_in_json_and_nan_in_text():
+    t = LandmarkTable.from_rows([{"name": "AB0001", "sample": math.nan, "line": 1.0, "status": "not-found"}])
+    doc = json.loads(t.to_json())
+    assert doc["landmarks"][0]["sample"] is None
+    assert "nan" in t.to_text()
+    assert math.isnan(LandmarkTable.parse_text(t.to_text())["sample"][0])
+
+
+def test_json_has_contract_keys_and_meta():
+    t = LandmarkTable.from_rows([{"name": "AB0001", "sample": 1.0, "line": 2.0}], picture="P", command="c",
+                                meta={"pose": {"position": np.array([1.0, 2.0, 3.0])}})
+    doc = json.loads(t.to_json())
+    assert set(doc) >= {"command", "picture", "spctool_version", "landmarks", "pose"}
+    assert doc["pose"]["position"] == [1.0, 2.0, 3.0]
+
+
+def test_bad_tables_name_the_line(tmp_path):
+    p = tmp_path / "t.txt"
+    p.write_text("# spctool 0.1\nname sample line\nAB0001 1.0\n")
+    with pytest.raises(SpcFormatError, match=r"t.txt:3: expected 3 columns"):
+        read_table(p)
+    p.write_text("sample line\n1 2\n")
+    with pytest.raises(SpcFormatError, match="'name'"):
+        read_table(p)
+    with pytest.raises(SpcFormatError, match="not found"):
+        read_table(tmp_path / "missing.txt")
+
+
+def test_select_and_set_column():
+    t = LandmarkTable.from_rows([{"name": f"AB000{i}", "sample": float(i)} for i in range(4)])
+    t["status"] = ["ok", "x", "ok", "x"]
+    s = t.select(np.array(t["status"]) == "ok")
+    assert s.names == ["AB0000", "AB0002"]
+    with pytest.raises(ValueError):
+        t["bad"] = [1, 2]
