@@ -1,0 +1,400 @@
+"""Numba kernels behind :mod:`spctool.geometry.heightfield` (private).
+
+Everything here works on 0-based *index* coordinates of a maplet grid:
+``u`` runs along NumPy axis 0 (maplet x, along UX, SPC's J + q) and ``w``
+along axis 1 (maplet y, along UY, SPC's I + q).  Heights are in cells and
+missing heights have already been set to 0 by the caller, so a zero bilinear
+weight never multiplies garbage.  The public wrappers (with the conventions
+documented for users) live in ``heightfield.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def bilinear_index(h, valid, u, w):
+    """Bilinear height at index coordinates (u, w); returns (value, ok).
+
+    Inside means 0 <= u <= n0-1 and 0 <= w <= n1-1 (the last node row/column
+    included: the base index is clamped to n-2, giving fraction 1).  The sample
+    is ok when every corner with a non-zero weight is valid.
+    """
+    n0, n1 = h.shape
+    if not (u >= 0.0 and u <= n0 - 1.0 and w >= 0.0 and w <= n1 - 1.0):
+        return 0.0, False
+    i = int(math.floor(u))
+    if i > n0 - 2:
+        i = n0 - 2
+    j = int(math.floor(w))
+    if j > n1 - 2:
+        j = n1 - 2
+    fu = u - i
+    fw = w - j
+    gu = 1.0 - fu
+    gw = 1.0 - fw
+    if gu != 0.0 and gw != 0.0 and not valid[i, j]:
+        return 0.0, False
+    if fu != 0.0 and gw != 0.0 and not valid[i + 1, j]:
+        return 0.0, False
+    if gu != 0.0 and fw != 0.0 and not valid[i, j + 1]:
+        return 0.0, False
+    if fu != 0.0 and fw != 0.0 and not valid[i + 1, j + 1]:
+        return 0.0, False
+    value = gw * (gu * h[i, j] + fu * h[i + 1, j]) + fw * (gu * h[i, j + 1] + fu * h[i + 1, j + 1])
+    return value, True
+
+
+@njit(cache=True)
+def _quadrant_max(h, valid, su, sw):
+    """Highest valid corner height of all cells "ahead" of each cell.
+
+    out[i, j] = max over cells (i', j') with su*(i' - i) >= 0 and sw*(j' - j) >= 0 of the valid
+    corner heights of cell (i', j') (-inf if none).  su, sw are +1 or -1.  A march whose cell indices
+    move monotonically in the directions (su, sw) only ever samples cells of that quadrant, and a
+    bilinear sample never exceeds its corners.
+    """
+    n0, n1 = h.shape
+    m0 = n0 - 1
+    m1 = n1 - 1
+    out = np.empty((m0, m1))
+    for a in range(m0):
+        i = m0 - 1 - a if su > 0 else a
+        for b in range(m1):
+            j = m1 - 1 - b if sw > 0 else b
+            x = -np.inf
+            if valid[i, j] and h[i, j] > x:
+                x = h[i, j]
+            if valid[i + 1, j] and h[i + 1, j] > x:
+                x = h[i + 1, j]
+            if valid[i, j + 1] and h[i, j + 1] > x:
+                x = h[i, j + 1]
+            if valid[i + 1, j + 1] and h[i + 1, j + 1] > x:
+                x = h[i + 1, j + 1]
+            if a > 0:
+                prev = out[i + su, j]
+                if prev > x:
+                    x = prev
+            if b > 0:
+                prev = out[i, j + sw]
+                if prev > x:
+                    x = prev
+            out[i, j] = x
+    return out
+
+
+@njit(cache=True)
+def march_blocked(h, valid, nodes, du, dw, rise, tol, out):
+    """Horizon march from every selected valid node (spc-algorithms.md §5.3).
+
+    Step k = 1, 2, ... moves (k*du, k*dw) cells ((du, dw) a unit horizontal
+    direction); the ray height there is ``h0 + k*rise - tol``; the node is
+    blocked at the first in-grid, valid sample whose terrain height exceeds the
+    ray (``bilinear_index`` rule).  Samples with missing data block nothing; the
+    march stops at the grid edge.
+
+    Early exit (result identical to visiting every step): once a non-descending
+    ray is at or above the highest terrain of every cell still ahead of it
+    (``_quadrant_max``), no later sample can exceed it.
+    """
+    n0, n1 = h.shape
+    climbing = rise >= 0.0
+    ahead = _quadrant_max(h, valid, 1 if du >= 0.0 else -1, 1 if dw >= 0.0 else -1)
+    # cells whose four corners are valid: the common, fast case of the sampling rule
+    full = np.empty((n0 - 1, n1 - 1), dtype=np.bool_)
+    for i in range(n0 - 1):
+        for j in range(n1 - 1):
+            full[i, j] = valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]
+    umax = n0 - 1.0
+    wmax = n1 - 1.0
+    for r in range(n0):
+        for c in range(n1):
+            out[r, c] = False
+            if not nodes[r, c] or not valid[r, c]:
+                continue
+            h0 = h[r, c]
+            k = 1.0
+            while True:
+                ray = h0 + k * rise - tol
+                u = r + k * du
+                w = c + k * dw
+                if not (u >= 0.0 and u <= umax and w >= 0.0 and w <= wmax):
+                    break
+                i = min(int(u), n0 - 2)  # u >= 0, so int() is floor()
+                j = min(int(w), n1 - 2)
+                if climbing and ray >= ahead[i, j]:
+                    break
+                if full[i, j]:
+                    fu = u - i
+                    fw = w - j
+                    gu = 1.0 - fu
+                    gw = 1.0 - fw
+                    terrain = gw * (gu * h[i, j] + fu * h[i + 1, j]) + fw * (
+                        gu * h[i, j + 1] + fu * h[i + 1, j + 1]
+                    )
+                    if terrain > ray:
+                        out[r, c] = True
+                        break
+                else:
+                    terrain, ok = bilinear_index(h, valid, u, w)
+                    if ok and terrain > ray:
+                        out[r, c] = True
+                        break
+                k += 1.0
+
+
+@njit(cache=True, inline="always")
+def _stencil(vm2, vm1, v0, vp1, vp2, hm2, hm1, h0, hp1, hp2):
+    """One HGT2SLP derivative: the first applicable row of spc-algorithms.md §3.1; returns (d, ok)."""
+    if vm1 and vp1:
+        return (hp1 - hm1) / 2.0, True
+    if v0 and vm1 and vp2:
+        return (hp2 + 3.0 * h0 - 4.0 * hm1) / 6.0, True
+    if v0 and vp1 and vm2:
+        return (4.0 * hp1 - 3.0 * h0 - hm2) / 6.0, True
+    if v0 and vm1 and vm2:
+        return (3.0 * h0 - 4.0 * hm1 + hm2) / 2.0, True
+    if v0 and vp1 and vp2:
+        return (-3.0 * h0 + 4.0 * hp1 - hp2) / 2.0, True
+    if v0 and vm1:
+        return h0 - hm1, True
+    if v0 and vp1:
+        return hp1 - h0, True
+    return 0.0, False
+
+
+@njit(cache=True)
+def slopes(h, valid, hx, hy, usable):
+    """HGT2SLP slopes along axis 0 (hx) and axis 1 (hy); 0 and unusable unless both directions work."""
+    n0, n1 = h.shape
+    for r in range(n0):
+        for c in range(n1):
+            # Neighbours outside the grid count as missing.
+            vm2 = r >= 2 and valid[r - 2, c]
+            vm1 = r >= 1 and valid[r - 1, c]
+            vp1 = r + 1 < n0 and valid[r + 1, c]
+            vp2 = r + 2 < n0 and valid[r + 2, c]
+            dx, okx = _stencil(
+                vm2,
+                vm1,
+                valid[r, c],
+                vp1,
+                vp2,
+                h[r - 2, c] if vm2 else 0.0,
+                h[r - 1, c] if vm1 else 0.0,
+                h[r, c],
+                h[r + 1, c] if vp1 else 0.0,
+                h[r + 2, c] if vp2 else 0.0,
+            )
+            vm2 = c >= 2 and valid[r, c - 2]
+            vm1 = c >= 1 and valid[r, c - 1]
+            vp1 = c + 1 < n1 and valid[r, c + 1]
+            vp2 = c + 2 < n1 and valid[r, c + 2]
+            dy, oky = _stencil(
+                vm2,
+                vm1,
+                valid[r, c],
+                vp1,
+                vp2,
+                h[r, c - 2] if vm2 else 0.0,
+                h[r, c - 1] if vm1 else 0.0,
+                h[r, c],
+                h[r, c + 1] if vp1 else 0.0,
+                h[r, c + 2] if vp2 else 0.0,
+            )
+            if okx and oky:
+                hx[r, c] = dx
+                hy[r, c] = dy
+                usable[r, c] = True
+            else:
+                hx[r, c] = 0.0
+                hy[r, c] = 0.0
+                usable[r, c] = False
+
+
+@njit(cache=True)
+def normals(hx, hy, ux, uy, uz, out):
+    """out[m] = normalise(-hx[m]*ux - hy[m]*uy + uz) over flat arrays hx, hy."""
+    for m in range(hx.shape[0]):
+        a = -hx[m]
+        b = -hy[m]
+        n0 = a * ux[0] + b * uy[0] + uz[0]
+        n1 = a * ux[1] + b * uy[1] + uz[1]
+        n2 = a * ux[2] + b * uy[2] + uz[2]
+        inv = 1.0 / math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        out[m, 0] = n0 * inv
+        out[m, 1] = n1 * inv
+        out[m, 2] = n2 * inv
+
+
+@njit(cache=True, inline="always")
+def _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t):
+    """Ray height minus bilinear terrain height of cell (i, j) at parameter t."""
+    fu = u0 + t * du - i
+    fw = w0 + t * dw - j
+    gu = 1.0 - fu
+    gw = 1.0 - fw
+    terrain = gw * (gu * h[i, j] + fu * h[i + 1, j]) + fw * (gu * h[i, j + 1] + fu * h[i + 1, j + 1])
+    return z0 + t * dz - terrain
+
+
+@njit(cache=True)
+def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
+    """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none)."""
+    n0, n1 = h.shape
+    t_lo = t_min
+    t_hi = t_max
+    # Clip to the grid box 0 <= u <= n0-1, 0 <= w <= n1-1 ...
+    if du == 0.0:
+        if u0 < 0.0 or u0 > n0 - 1.0:
+            return np.nan
+    else:
+        ta = (0.0 - u0) / du
+        tb = (n0 - 1.0 - u0) / du
+        if ta > tb:
+            ta, tb = tb, ta
+        t_lo = max(t_lo, ta)
+        t_hi = min(t_hi, tb)
+    if dw == 0.0:
+        if w0 < 0.0 or w0 > n1 - 1.0:
+            return np.nan
+    else:
+        ta = (0.0 - w0) / dw
+        tb = (n1 - 1.0 - w0) / dw
+        if ta > tb:
+            ta, tb = tb, ta
+        t_lo = max(t_lo, ta)
+        t_hi = min(t_hi, tb)
+    # ... and to z <= hmax: above the highest node nothing can be hit.
+    if dz == 0.0:
+        if z0 > hmax:
+            return np.nan
+        if du == 0.0 and dw == 0.0:
+            return np.nan  # zero direction
+    elif dz > 0.0:
+        t_hi = min(t_hi, (hmax - z0) / dz)
+    else:
+        t_lo = max(t_lo, (hmax - z0) / dz)
+    if not (t_lo <= t_hi):
+        return np.nan
+    if dz < 0.0 and du == 0.0 and dw == 0.0:
+        # a vertical ray stays in one cell: one cell below the lowest node it is inside any terrain
+        # (keep at least the start point: a ray starting deep below the surface hits there)
+        t_hi = max(t_lo, min(t_hi, (hmin - 1.0 - z0) / dz))
+
+    # Grid-line crossings ahead, tracked by integer counters (robust to rounding).
+    u_start = u0 + t_lo * du
+    w_start = w0 + t_lo * dw
+    if du > 0.0:
+        iu_next = math.floor(u_start) + 1.0
+        su = 1.0
+    elif du < 0.0:
+        iu_next = math.ceil(u_start) - 1.0
+        su = -1.0
+    else:
+        iu_next = 0.0
+        su = 0.0
+    if dw > 0.0:
+        iw_next = math.floor(w_start) + 1.0
+        sw = 1.0
+    elif dw < 0.0:
+        iw_next = math.ceil(w_start) - 1.0
+        sw = -1.0
+    else:
+        iw_next = 0.0
+        sw = 0.0
+
+    t_a = t_lo
+    while True:
+        tu = (iu_next - u0) / du if su != 0.0 else np.inf
+        tw = (iw_next - w0) / dw if sw != 0.0 else np.inf
+        t_b = min(tu, tw, t_hi)
+        if t_b >= t_a:
+            tm = 0.5 * (t_a + t_b)
+            i = int(math.floor(u0 + tm * du))
+            i = min(max(i, 0), n0 - 2)
+            j = int(math.floor(w0 + tm * dw))
+            j = min(max(j, 0), n1 - 2)
+            if valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
+                fa = _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_a)
+                if fa < 0.0:
+                    return t_a
+                # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
+                h00 = h[i, j]
+                a_lin = h[i + 1, j] - h00
+                b_lin = h[i, j + 1] - h00
+                twist = h[i + 1, j + 1] - h[i + 1, j] - h[i, j + 1] + h00
+                pa = u0 + t_a * du - i
+                qa = w0 + t_a * dw - j
+                a_coef = -twist * du * dw
+                b_coef = dz - a_lin * du - b_lin * dw - twist * (pa * dw + qa * du)
+                hi = np.nan
+                if a_coef > 0.0:
+                    # convex: the minimum may lie strictly inside the segment
+                    s_v = -b_coef / (2.0 * a_coef)
+                    if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
+                        hi = t_a + s_v
+                if math.isnan(hi) and _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
+                    hi = t_b
+                if not math.isnan(hi):
+                    # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
+                    # there).  Numerically stable closed form of the smaller root; bisection only if
+                    # rounding makes it unusable.
+                    disc = b_coef * b_coef - 4.0 * a_coef * fa
+                    den = -b_coef + math.sqrt(max(disc, 0.0))
+                    if den > 0.0:
+                        t_root = t_a + 2.0 * fa / den
+                        if t_root >= t_a and t_root <= hi:
+                            return t_root
+                    lo = t_a
+                    for _ in range(80):
+                        mid = 0.5 * (lo + hi)
+                        if mid <= lo or mid >= hi:
+                            break
+                        if _cell_f(h, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
+                            hi = mid
+                        else:
+                            lo = mid
+                    return 0.5 * (lo + hi)
+        if t_b >= t_hi:
+            return np.nan
+        if tu <= t_b:
+            iu_next += su
+        if tw <= t_b:
+            iw_next += sw
+        t_a = max(t_a, t_b)
+
+
+@njit(cache=True)
+def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
+    """First crossing of each ray (index coordinates u, w and height z) with the terrain."""
+    n0, n1 = h.shape
+    hmin = np.inf
+    hmax = -np.inf
+    for r in range(n0):
+        for c in range(n1):
+            if valid[r, c]:
+                hmax = max(hmax, h[r, c])
+                hmin = min(hmin, h[r, c])
+    if hmax < hmin:  # no valid node: no terrain
+        out[:] = np.nan
+        return
+    for m in range(origins.shape[0]):
+        out[m] = _first_crossing(
+            h,
+            valid,
+            hmin,
+            hmax,
+            origins[m, 0],
+            origins[m, 1],
+            origins[m, 2],
+            directions[m, 0],
+            directions[m, 1],
+            directions[m, 2],
+            t_min[m],
+            t_max[m],
+        )
