@@ -1,0 +1,603 @@
+"""Photos: the pixel arrays of pictures, in FITS, PGM, PNG and SPC ``.DAT`` form.
+
+Specification: ``spc-formats.md`` §0.4 (pixels), §7.4 (``IMAGEFILES/<PICNM>.DAT``:
+size rule, Laplacian byte-order detection, RAW2PGM header), §8 items 12–13, the
+DAT checklist of §9, and ``cli-contract.md`` "Pixel convention".
+
+Pixel convention
+----------------
+A :class:`Photo` holds ``data`` with shape ``(NLN, NPX)`` and SPC's 1-based
+pixel coordinates ``(sample, line)`` with pixel centres at integers:
+
+* ``data[line - 1, sample - 1]`` is the DN of pixel (sample, line);
+* line 1 is the **first stored row** of every format: the first record of a
+  ``.DAT``, the first raster row of a PGM or PNG, and row 0 of a FITS data
+  array (whatever a FITS viewer shows, which usually puts row 0 at the bottom);
+* sample 1 is the first stored column;
+* a continuous position converts as ``x_spc = x_py + 1``:
+  :func:`spc_to_index` gives the 0-based (row, col) of (sample, line) and
+  :func:`index_to_spc` the inverse.
+
+Photos stored bottom-up relative to SPC's line order are read (and written)
+with ``flip_rows=True``, the explicit, tested option asked for by §7.4's
+"orientation trap".
+
+DN types: ``uint8`` (8-bit), ``uint16`` (16-bit stays 16-bit, unsigned, §8
+item 12), ``float32`` (FITS only) and ``float64`` (FITS BITPIX −64 or integer
+FITS beyond 16 bits).  DN = 0 means "no data" to SPC's sampler; that is the
+sampler's business, not this module's.
+
+``.DAT`` files are headerless: NPX and NLN come from the SUM; the pixel size is
+2 bytes when the file holds NLN records of 2·NPX bytes, 1 byte when it holds
+NLN records of NPX bytes (anything else is an error here); the 16-bit byte
+order is detected with SPC's Laplacian-energy test (``xPicInpt``) unless given.
+16-bit ``.DAT`` files are written big-endian (MSB first, SPC's normal).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from spctool.errors import SpcFormatError, SpcUsageError
+from spctool.formats.atomic import write_bytes
+
+_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32), np.dtype(np.float64))
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_FITS_SIGNATURE = b"SIMPLE  ="
+_WHITESPACE = b" \t\n\r\v\f"
+_EXT_FORMAT = {
+    ".fits": "fits",
+    ".fit": "fits",
+    ".fts": "fits",
+    ".pgm": "pgm",
+    ".png": "png",
+    ".dat": "dat",
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# pixel convention
+# ----------------------------------------------------------------------------------------------
+
+
+def spc_to_index(sample, line):
+    """0-based array position (row, col) of SPC pixel coordinates (sample, line).
+
+    ``row = line − 1``, ``col = sample − 1`` (floats; arrays broadcast).  SPC's pixel
+    (1, 1) is ``data[0, 0]``; (sample, line) = (1.5, 1) lies halfway between
+    ``data[0, 0]`` and ``data[0, 1]``.
+    """
+    line = np.asarray(line, dtype=np.float64)
+    sample = np.asarray(sample, dtype=np.float64)
+    return line - 1.0, sample - 1.0
+
+
+def index_to_spc(row, col):
+    """SPC pixel coordinates (sample, line) of a 0-based array position (row, col).
+
+    ``sample = col + 1``, ``line = row + 1``; the inverse of :func:`spc_to_index`.
+    """
+    row = np.asarray(row, dtype=np.float64)
+    col = np.asarray(col, dtype=np.float64)
+    return col + 1.0, row + 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# the dataclass
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class Photo:
+    """A photo's pixel array in SPC order: ``data[line − 1, sample − 1]`` (module docstring).
+
+    ``bits`` is the bit size of one stored DN: 8 (uint8), 16 (uint16), 32 (float32)
+    or 64 (float64); it is derived from ``data`` when not given.
+    """
+
+    data: np.ndarray
+    name: str = ""
+    bits: int = 0
+
+    def __post_init__(self) -> None:
+        data = np.asarray(self.data)
+        if data.ndim != 2:
+            raise ValueError(f"photo data must be 2-D (NLN, NPX), got shape {data.shape}")
+        if data.dtype.newbyteorder("=") not in _DTYPES:
+            raise ValueError(f"photo data must be uint8, uint16, float32 or float64, got {data.dtype}")
+        if not data.dtype.isnative:
+            data = data.astype(data.dtype.newbyteorder("="))
+        self.data = data
+        bits = 8 * data.dtype.itemsize
+        if self.bits == 0:
+            self.bits = bits
+        elif self.bits != bits:
+            raise ValueError(f"bits={self.bits} does not match data type {data.dtype}")
+
+    @property
+    def npx(self) -> int:
+        """Samples per line (number of columns)."""
+        return int(self.data.shape[1])
+
+    @property
+    def nln(self) -> int:
+        """Number of lines (rows)."""
+        return int(self.data.shape[0])
+
+    def dn(self, sample, line):
+        """DN at integer SPC pixel(s) (sample, line), 1-based: ``data[line − 1, sample − 1]``."""
+        s = np.asarray(sample)
+        ln = np.asarray(line)
+        if s.dtype.kind not in "iu" or ln.dtype.kind not in "iu":
+            raise TypeError("dn() takes integer sample and line (use a sampler for fractional pixels)")
+        if np.any((s < 1) | (s > self.npx) | (ln < 1) | (ln > self.nln)):
+            raise IndexError(f"pixel outside the photo (1..{self.npx}, 1..{self.nln})")
+        return self.data[ln - 1, s - 1]
+
+    def flipped(self) -> Photo:
+        """The same photo with the line order reversed (line 1 ↔ line NLN)."""
+        return Photo(np.ascontiguousarray(self.data[::-1]), name=self.name)
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Photo):
+            return NotImplemented
+        return (
+            self.name == other.name
+            and self.data.dtype == other.data.dtype
+            and self.data.shape == other.data.shape
+            and np.array_equal(self.data, other.data, equal_nan=self.data.dtype.kind == "f")
+        )
+
+    __hash__ = None  # mutable array
+
+
+# ----------------------------------------------------------------------------------------------
+# DAT
+# ----------------------------------------------------------------------------------------------
+
+
+def _normalise_order(byte_order: str | None) -> str:
+    key = "auto" if byte_order is None else str(byte_order).strip().lower()
+    if key == "auto":
+        return "auto"
+    if key in ("big", "msb", ">", "be"):
+        return "big"
+    if key in ("little", "lsb", "<", "le"):
+        return "little"
+    raise SpcUsageError(f"byte order must be auto, big or little, not {byte_order!r}")
+
+
+def _grid(n: int) -> np.ndarray:
+    """SPC's 50 sample positions along an axis of n pixels, 0-based, kept one pixel inside.
+
+    xPicInpt uses i = (5 + i1·n)/100 (integer division, 1-based) for i1 = 1, 3, …, 99.
+    The clip only matters for axes under 195 pixels (and i1 = 99 never reaches n),
+    where SPC itself would read outside the image.
+    """
+    k = np.arange(1, 100, 2)
+    i = (5 + k * n) // 100
+    return np.clip(i, 2, n - 1) - 1
+
+
+def detect_dat_byte_order(raw, npx: int | None = None, nln: int | None = None) -> str:
+    """Byte order of a 16-bit raw image by SPC's Laplacian-energy test (§7.4, §8 item 13).
+
+    ``raw``: the file bytes (give ``npx`` and ``nln``), or a uint8 array of shape
+    (NLN, NPX, 2) or (NLN, 2·NPX).  At SPC's 50×50 grid the squared discrete
+    Laplacian 4·c − (4 neighbours) is summed over the first byte of each pixel
+    (z1) and over the second (z2); the plane with more high-frequency energy is
+    the low-order byte: z1 > z2 → ``"little"``, z2 > z1 → ``"big"``.  A tie (e.g. a
+    flat image, or an image under 3×3) gives ``"big"``, SPC's normal order.
+    """
+    if isinstance(raw, bytes | bytearray | memoryview):
+        if npx is None or nln is None:
+            raise TypeError("detect_dat_byte_order(bytes) needs npx and nln")
+        buf = np.frombuffer(raw, dtype=np.uint8)
+        if buf.size < 2 * npx * nln:
+            raise ValueError(f"{buf.size} bytes cannot hold {nln} lines of {npx} 16-bit pixels")
+        planes = buf[: 2 * npx * nln].reshape(nln, npx, 2)
+    else:
+        arr = np.asarray(raw)
+        if arr.dtype != np.uint8:
+            raise TypeError("detect_dat_byte_order expects bytes or a uint8 array")
+        if arr.ndim == 3 and arr.shape[2] == 2:
+            planes = arr
+        elif arr.ndim == 2 and arr.shape[1] % 2 == 0:
+            planes = arr.reshape(arr.shape[0], arr.shape[1] // 2, 2)
+        else:
+            raise ValueError(f"expected a (NLN, NPX, 2) or (NLN, 2*NPX) uint8 array, got shape {arr.shape}")
+    z1, z2 = dat_byte_plane_energies(planes)
+    return "little" if z1 > z2 else "big"
+
+
+def dat_byte_plane_energies(planes: np.ndarray) -> tuple[int, int]:
+    """SPC's (z1, z2): summed squared Laplacians of byte planes 1 and 2 at the 50×50 grid.
+
+    ``planes``: uint8 (NLN, NPX, 2).  Grid and stencil as in SPC ``xPicInpt``:
+    sample i = (5 + i1·NPX)/100, line j = (5 + j1·NLN)/100 (integer division,
+    1-based) for i1, j1 = 1, 3, …, 99, stencil 4·c − left − right − up − down.
+    Below 195 pixels along an axis SPC's first grid point is pixel 1, whose stencil
+    leaves the image; there the points are clipped one pixel inside.  Images under
+    3×3 give (0, 0).
+    """
+    nl, ns = planes.shape[:2]
+    if nl < 3 or ns < 3:
+        return 0, 0
+    rows = _grid(nl)[:, None]
+    cols = _grid(ns)[None, :]
+    z = []
+    for b in (0, 1):
+        d = planes[:, :, b]
+        lap = (
+            4 * d[rows, cols].astype(np.int64)
+            - d[rows, cols - 1]
+            - d[rows, cols + 1]
+            - d[rows - 1, cols]
+            - d[rows + 1, cols]
+        )
+        z.append(int(np.sum(lap * lap)))
+    return z[0], z[1]
+
+
+def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str) -> np.ndarray:
+    if npx is None or nln is None:
+        raise SpcUsageError(f"{path}: a .DAT photo needs NPX and NLN (from the picture's SUM)")
+    npx, nln = int(npx), int(nln)
+    if npx < 1 or nln < 1:
+        raise SpcUsageError(f"NPX and NLN must be positive, got {npx} {nln}")
+    order = _normalise_order(byte_order)
+    size = len(data)
+    if size == 2 * npx * nln:
+        if order == "auto":
+            order = detect_dat_byte_order(data, npx, nln)
+        dt = ">u2" if order == "big" else "<u2"
+        return np.frombuffer(data, dtype=dt).reshape(nln, npx).astype(np.uint16)
+    if size == npx * nln:
+        return np.frombuffer(data, dtype=np.uint8).reshape(nln, npx).copy()
+    raise SpcFormatError(
+        path,
+        f"byte {size}",
+        f"{npx * nln} bytes (8-bit) or {2 * npx * nln} bytes (16-bit) for NPX={npx} NLN={nln} "
+        f"(spc-formats §7.4); the file has {size} bytes",
+    )
+
+
+def read_dat(path, npx: int, nln: int, byte_order: str = "auto") -> Photo:
+    """Read an SPC raw image ``IMAGEFILES/<PICNM>.DAT`` (§7.4); line 1 = first record."""
+    path = Path(path)
+    data = _read_bytes(path)
+    return Photo(_dat_from_bytes(data, path, npx, nln, byte_order), name=path.stem)
+
+
+# ----------------------------------------------------------------------------------------------
+# PGM
+# ----------------------------------------------------------------------------------------------
+
+
+def _pgm_header(data: bytes, path) -> tuple[str, int, int, int, int]:
+    """(magic, width, height, maxval, offset of the raster) of a PGM (netpbm rules)."""
+    magic = data[:2].decode("latin-1")
+    pos = 2
+    values = []
+    starts = []
+    while len(values) < 3:
+        # skip whitespace and comments
+        while pos < len(data):
+            c = data[pos : pos + 1]
+            if c not in _WHITESPACE + b"#":
+                break
+            if c == b"#":
+                end = data.find(b"\n", pos)
+                end2 = data.find(b"\r", pos)
+                ends = [e for e in (end, end2) if e >= 0]
+                pos = min(ends) if ends else len(data)
+            else:
+                pos += 1
+        start = pos
+        while pos < len(data) and data[pos : pos + 1].isdigit():
+            pos += 1
+        if pos == start:
+            what = ("the width", "the height", "the maximum value")[len(values)]
+            raise SpcFormatError(path, f"byte {start}", f"{what} of the PGM header (a decimal integer)")
+        values.append(int(data[start:pos]))
+        starts.append(start)
+    if pos >= len(data) or data[pos : pos + 1] not in _WHITESPACE:
+        raise SpcFormatError(path, f"byte {pos}", "one whitespace character after the PGM maximum value")
+    width, height, maxval = values
+    if width < 1 or height < 1:
+        raise SpcFormatError(path, "byte 2", f"a positive PGM width and height, got {width} {height}")
+    if not 1 <= maxval <= 65535:
+        raise SpcFormatError(path, f"byte {starts[2]}", f"a PGM maximum value 1..65535, got {maxval}")
+    return magic, width, height, maxval, pos + 1
+
+
+def _pgm_from_bytes(data: bytes, path) -> np.ndarray:
+    magic, width, height, maxval, off = _pgm_header(data, path)
+    npix = width * height
+    dtype = np.uint8 if maxval < 256 else np.uint16
+    if magic == "P5":
+        nbytes = 1 if maxval < 256 else 2
+        need = npix * nbytes
+        if len(data) - off < need:
+            raise SpcFormatError(
+                path,
+                f"byte {len(data)}",
+                f"{need} raster bytes for a {width}x{height} PGM with maximum {maxval} after byte {off}; "
+                f"the file ends after {len(data) - off}",
+            )
+        raw = np.frombuffer(data, dtype=np.uint8 if nbytes == 1 else ">u2", count=npix, offset=off)
+        vals = raw.astype(dtype)
+    else:  # P2: plain (ASCII) PGM
+        lines = [ln.split(b"#", 1)[0] for ln in data[off:].splitlines()]
+        toks = b" ".join(lines).split()
+        if len(toks) < npix:
+            raise SpcFormatError(
+                path,
+                f"byte {len(data)}",
+                f"{npix} pixel values for a {width}x{height} plain PGM, found {len(toks)}",
+            )
+        if not all(t.isdigit() for t in toks[:npix]):
+            raise SpcFormatError(path, f"byte {off}", "non-negative decimal pixel values in a plain PGM")
+        vals = np.array([int(t) for t in toks[:npix]], dtype=np.int64)
+    above = np.flatnonzero(vals > maxval)
+    if above.size:
+        k = int(above[0])
+        where = f"byte {off + k * (1 if maxval < 256 else 2)}" if magic == "P5" else f"byte {off}"
+        raise SpcFormatError(path, where, f"pixel values <= the PGM maximum value {maxval} (pixel {k + 1})")
+    return vals.astype(dtype, copy=False).reshape(height, width)
+
+
+def format_pgm(data: np.ndarray) -> bytes:
+    """Binary PGM (P5) bytes: 8-bit with SPC RAW2PGM's header ``P5\\n#.\\nNPX NLN\\n255\\n`` (§7.4);
+    16-bit with maximum 65535 and big-endian samples (netpbm)."""
+    nln, npx = data.shape
+    if data.dtype == np.uint8:
+        return b"P5\n#.\n%d %d\n255\n" % (npx, nln) + np.ascontiguousarray(data).tobytes()
+    if data.dtype == np.uint16:
+        return b"P5\n#.\n%d %d\n65535\n" % (npx, nln) + data.astype(">u2").tobytes()
+    raise SpcUsageError(f"PGM holds 8- or 16-bit integers, not {data.dtype}; use FITS for floating point")
+
+
+# ----------------------------------------------------------------------------------------------
+# PNG
+# ----------------------------------------------------------------------------------------------
+
+
+def _png_from_bytes(data: bytes, path) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(io.BytesIO(data)) as im:
+                im.load()
+                mode = im.mode
+                arr = np.asarray(im)
+    except Exception as exc:  # pillow raises many kinds (OSError, SyntaxError, ValueError…)
+        raise SpcFormatError(path, None, f"a readable PNG image ({type(exc).__name__}: {exc})") from None
+    if mode == "L":
+        return np.ascontiguousarray(arr, dtype=np.uint8)
+    if mode in ("I;16", "I;16B", "I;16L", "I;16N"):
+        return arr.astype(np.uint16)
+    if mode == "I":
+        if arr.size and (arr.min() < 0 or arr.max() > 65535):
+            raise SpcFormatError(path, None, "a grayscale PNG with 16-bit values")
+        return arr.astype(np.uint16)
+    raise SpcFormatError(path, None, f"a grayscale PNG (8 or 16 bit); found PIL mode {mode!r}")
+
+
+def format_png(data: np.ndarray) -> bytes:
+    """PNG bytes of an 8-bit (gray) or 16-bit (gray, 16-bit) array."""
+    from PIL import Image
+
+    if data.dtype == np.uint8:
+        im = Image.fromarray(np.ascontiguousarray(data))
+    elif data.dtype == np.uint16:
+        im = Image.fromarray(np.ascontiguousarray(data, dtype=np.uint16))
+    else:
+        raise SpcUsageError(f"PNG holds 8- or 16-bit integers, not {data.dtype}; use FITS for floating point")
+    buf = io.BytesIO()
+    im.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------------------------
+# FITS
+# ----------------------------------------------------------------------------------------------
+
+
+def _fits_dn(arr: np.ndarray) -> np.ndarray:
+    """FITS data → one of the Photo DN types, exactly (no value changes)."""
+    arr = arr.astype(arr.dtype.newbyteorder("="), copy=False)
+    kind, size = arr.dtype.kind, arr.dtype.itemsize
+    if arr.dtype in _DTYPES:
+        return np.ascontiguousarray(arr)
+    if kind == "i" and size == 2:
+        # signed 16-bit without BZERO: DN are unsigned in SPC (§8 item 12)
+        return arr.astype(np.uint16) if not np.any(arr < 0) else arr.astype(np.float32)
+    if kind in "iu":
+        return arr.astype(np.float64)
+    if kind == "f":
+        return arr.astype(np.float64)
+    raise ValueError(f"unsupported FITS data type {arr.dtype}")
+
+
+def _fits_from_bytes(data: bytes, path) -> np.ndarray:
+    from astropy.io import fits
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with fits.open(io.BytesIO(data), memmap=False) as hdul:
+                for k, hdu in enumerate(hdul):
+                    arr = hdu.data
+                    if arr is None or not isinstance(arr, np.ndarray) or arr.dtype.names:
+                        continue
+                    shape = arr.shape
+                    while arr.ndim > 2 and arr.shape[0] == 1:
+                        arr = arr[0]
+                    if arr.ndim != 2:
+                        if len(shape) > 2:
+                            raise SpcFormatError(path, f"HDU {k}", f"a 2-D image, found shape {shape}")
+                        continue
+                    return _fits_dn(np.array(arr))
+    except SpcFormatError:
+        raise
+    except Exception as exc:  # astropy raises OSError, TypeError, ValueError, VerifyError…
+        raise SpcFormatError(path, None, f"a readable FITS file ({type(exc).__name__}: {exc})") from None
+    raise SpcFormatError(path, None, "a FITS file with a 2-D image HDU")
+
+
+def format_fits(data: np.ndarray, header: dict | None = None) -> bytes:
+    """FITS bytes with ``data`` as the primary HDU (row 0 = line 1); ``header``: extra cards.
+
+    uint16 is written as BITPIX 16 with BZERO 32768 (the FITS unsigned convention).
+    Values of ``header`` may be ``value`` or ``(value, comment)``.
+    """
+    from astropy.io import fits
+
+    if data.dtype not in _DTYPES:
+        raise SpcUsageError(f"cannot write {data.dtype} pixels to FITS")
+    hdu = fits.PrimaryHDU(data=np.ascontiguousarray(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for key, value in (header or {}).items():
+            hdu.header[key] = value
+        buf = io.BytesIO()
+        hdu.writeto(buf, output_verify="fix")
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------------------------
+# dispatch
+# ----------------------------------------------------------------------------------------------
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except IsADirectoryError:
+        raise SpcFormatError(path, None, "a photo file, found a directory") from None
+
+
+def detect_format(path, head: bytes, *, have_size: bool = False) -> str:
+    """Photo format of a file from its first bytes, then its extension: fits, pgm, png or dat."""
+    ext = Path(os.fspath(path)).suffix.lower()
+    if ext == ".dat":  # raw DN could start with any bytes: the extension decides
+        return "dat"
+    if head.startswith(_FITS_SIGNATURE):
+        return "fits"
+    if head.startswith(_PNG_SIGNATURE):
+        return "png"
+    if head[:2] in (b"P5", b"P2") and (len(head) < 3 or head[2:3] in _WHITESPACE + b"#"):
+        return "pgm"
+    if head[:1] == b"P" and head[1:2] in b"134567" and head[1:2] != b"":
+        raise SpcFormatError(path, "byte 0", f"a grayscale PGM (P5 or P2), found netpbm type {head[:2]!r}")
+    if ext in _EXT_FORMAT:
+        return _EXT_FORMAT[ext]
+    if have_size:
+        return "dat"
+    raise SpcFormatError(path, "byte 0", "a FITS, PGM (P5/P2), PNG or SPC .DAT photo")
+
+
+def read_photo(
+    path,
+    *,
+    flip_rows: bool = False,
+    npx: int | None = None,
+    nln: int | None = None,
+    byte_order: str = "auto",
+) -> Photo:
+    """Read a photo in SPC pixel order (module docstring "Pixel convention").
+
+    The format is detected from the content (FITS, PNG, PGM signatures) and the
+    extension (``.DAT`` always raw; a file with another extension is raw when
+    ``npx`` and ``nln`` are given and no signature matches).  ``.DAT`` needs
+    ``npx``/``nln`` (SUM line 3) and honours ``byte_order`` (auto, big, little).
+    ``flip_rows=True`` reverses the line order (for bottom-up photos).
+    """
+    path = Path(path)
+    data = _read_bytes(path)
+    fmt = detect_format(path, data[:16], have_size=npx is not None and nln is not None)
+    if fmt == "fits":
+        arr = _fits_from_bytes(data, path)
+    elif fmt == "png":
+        arr = _png_from_bytes(data, path)
+    elif fmt == "pgm":
+        if not data.startswith((b"P5", b"P2")):
+            raise SpcFormatError(path, "byte 0", "a PGM magic number P5 or P2")
+        arr = _pgm_from_bytes(data, path)
+    else:
+        arr = _dat_from_bytes(data, path, npx, nln, byte_order)
+    if flip_rows:
+        arr = np.ascontiguousarray(arr[::-1])
+    return Photo(arr, name=path.stem)
+
+
+def format_photo(photo: Photo | np.ndarray, fmt: str, *, flip_rows: bool = False, header=None) -> bytes:
+    """The bytes of ``photo`` in ``fmt`` (fits, pgm, png, dat); see :func:`write_photo`."""
+    if not isinstance(photo, Photo):
+        photo = Photo(np.asarray(photo))
+    data = photo.data[::-1] if flip_rows else photo.data
+    fmt = fmt.lower().lstrip(".")
+    if fmt in ("fits", "fit", "fts"):
+        return format_fits(data, header)
+    if fmt == "pgm":
+        return format_pgm(data)
+    if fmt == "png":
+        return format_png(data)
+    if fmt == "dat":
+        if data.dtype == np.uint8:
+            return np.ascontiguousarray(data).tobytes()
+        if data.dtype == np.uint16:
+            return data.astype(">u2").tobytes()  # MSB first, SPC's normal order
+        raise SpcUsageError(f".DAT holds 8- or 16-bit integers, not {data.dtype}; use FITS for floats")
+    raise SpcUsageError(f"unknown photo format {fmt!r} (fits, pgm, png or dat)")
+
+
+def write_photo(
+    path,
+    photo: Photo | np.ndarray,
+    *,
+    fmt: str | None = None,
+    flip_rows: bool = False,
+    overwrite: bool = True,
+    backup: bool = False,
+    header: dict | None = None,
+):
+    """Write a photo atomically; the format comes from ``fmt`` or the extension.
+
+    ``.fits``/``.fit`` (any DN type; ``header`` adds cards), ``.pgm`` (8-bit with the
+    RAW2PGM header, 16-bit big-endian), ``.png`` (8/16-bit gray), ``.dat`` (raw,
+    16-bit big-endian).  ``header`` is ignored for formats other than FITS.
+    ``flip_rows=True`` writes the lines in reverse order.
+    """
+    path = Path(path)
+    if fmt is None:
+        ext = path.suffix.lower()
+        if ext not in _EXT_FORMAT:
+            raise SpcUsageError(f"{path}: cannot tell the photo format from the extension (use fmt=)")
+        fmt = _EXT_FORMAT[ext]
+    return write_bytes(
+        path, format_photo(photo, fmt, flip_rows=flip_rows, header=header), overwrite=overwrite, backup=backup
+    )
+
+
+__all__ = [
+    "Photo",
+    "dat_byte_plane_energies",
+    "detect_dat_byte_order",
+    "detect_format",
+    "format_photo",
+    "index_to_spc",
+    "read_dat",
+    "read_photo",
+    "spc_to_index",
+    "write_photo",
+]
