@@ -66,3 +66,9 @@ def test_select_and_set_column():
     assert s.names == ["AB0000", "AB0002"]
     with pytest.raises(ValueError):
         t["bad"] = [1, 2]
+
+
+def test_tiny_negative_values_print_without_sign():
+    t = LandmarkTable.from_rows([{"name": "AB0001", "residual_sample_after": -1e-9, "x": -1e-30}])
+    row = t.to_text().splitlines()[-1].split()
+    assert row[1] == "0.0000" and row[2] == "-1e-30"

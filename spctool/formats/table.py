@@ -55,9 +55,10 @@ def _format_value(column: str, value) -> str:
             return "nan"
         if math.isinf(v):
             return "inf" if v > 0 else "-inf"
-        if column in COLUMN_DECIMALS:
-            return f"{v:.{COLUMN_DECIMALS[column]}f}"
-        return f"{v:.6g}"
+        text = f"{v:.{COLUMN_DECIMALS[column]}f}" if column in COLUMN_DECIMALS else f"{v:.6g}"
+        if text.startswith("-") and float(text) == 0.0:
+            text = text[1:]  # a value that rounds to zero prints without a sign
+        return text
     text = str(value)
     if not text:
         return "-"

@@ -1,0 +1,394 @@
+"""``solve-pose``: spacecraft position and attitude from measured landmark pixels (Stage I).
+
+Loads the picture (SUM) and INIT_LITHOS (camera distortion), the measured landmark pixels (a landmark
+table from ``register`` or the SUM's own LANDMARKS section) and the landmark positions (LMK VLM and
+SIGMA_LMK), runs :func:`spctool.stages.pose.solve_pose` and writes the residual table of
+cli-contract.md; ``--output``/``--in-place`` write the SUM with the solved SCOBJ, CX/CY/CZ and
+SIGMA_VSO/SIGMA_PTG (every other line byte-identical).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import click
+import numpy as np
+
+from spctool.cli.common import Context, emit_table, json_option, pass_context
+from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
+
+# ------------------------------------------------------------------------------------------------
+# inputs
+
+
+@dataclasses.dataclass
+class Measurements:
+    """Measured landmark pixels (table rows or SUM LANDMARKS rows), with the status of each row."""
+
+    names: list[str]
+    sample: np.ndarray
+    line: np.ndarray
+    status: list[str]  # "ok" = to be used; anything else is passed through to the output
+
+
+def measurements_from_table(path) -> Measurements:
+    from spctool.formats.table import read_table
+
+    table = read_table(path)
+    missing = [c for c in ("name", "sample", "line") if c not in table]
+    if missing:
+        raise SpcFormatError(
+            "<stdin>" if str(path) == "-" else path,
+            None,
+            f"expected a landmark table with columns name, sample, line (missing: {', '.join(missing)})",
+        )
+    try:
+        smp = np.asarray(table["sample"], dtype=np.float64)
+        lin = np.asarray(table["line"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SpcFormatError(path, None, "expected numbers in the sample and line columns") from None
+    if "status" in table:
+        status = ["ok" if str(s) == "ok" else str(s) for s in table["status"]]
+    else:
+        status = ["ok"] * len(table)
+    return Measurements(table.names, smp, lin, status)
+
+
+def measurements_from_sum(pic) -> Measurements:
+    rows = pic.landmarks
+    status = ["flagged" if lm.flag.strip() == "*" else "ok" for lm in rows]
+    return Measurements(
+        [lm.name for lm in rows],
+        np.array([lm.sample for lm in rows], dtype=np.float64),
+        np.array([lm.line for lm in rows], dtype=np.float64),
+        status,
+    )
+
+
+def load_landmarks(ctx: Context, names, lmk_dir):
+    """(positions (N, 3), sigmas (N, 3), found (N,)) from LMK files; missing files give NaN rows."""
+    from spctool.formats.landmark import read_lmk
+
+    n = len(names)
+    pos = np.full((n, 3), np.nan)
+    sig = np.full((n, 3), np.nan)
+    found = np.zeros(n, dtype=bool)
+    cache: dict[str, tuple] = {}
+    for i, name in enumerate(names):  # file I/O per landmark; the numerics are vectorised
+        key = name.strip()
+        if key not in cache:
+            path = Path(lmk_dir) / f"{key}.LMK" if lmk_dir else ctx.wd.lmk_path(key)
+            if path.exists():
+                lmk = read_lmk(path)
+                cache[key] = (lmk.vlm, lmk.sigma_lmk)
+            else:
+                cache[key] = None
+        if cache[key] is not None:
+            pos[i], sig[i] = cache[key]
+            found[i] = True
+    return pos, sig, found
+
+
+def _sum_path_of(ctx: Context, picture: str, sum_path) -> Path:
+    if sum_path:
+        return Path(sum_path)
+    p = Path(picture)
+    if p.suffix.upper() == ".SUM" and p.exists():
+        return p
+    return ctx.wd.sum_path(picture)
+
+
+# ------------------------------------------------------------------------------------------------
+# command
+
+
+@click.command("solve-pose")
+@click.argument("picture")
+@click.option(
+    "--sum",
+    "sum_path",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    help="The picture's SUM file (default: PIC itself if it is a .SUM path, else DIR/SUMFILES/PIC.SUM).",
+)
+@click.option(
+    "--measurements",
+    "measurements",
+    metavar="TABLE",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    help="Landmark table with name, sample, line (and optionally status: only 'ok' rows are used); "
+    "'-' = stdin.  Default: the SUM's own LANDMARKS section.",
+)
+@click.option(
+    "--lmk-dir",
+    "lmk_dir",
+    metavar="DIR",
+    type=click.Path(file_okay=False),
+    help="Folder of the LMK files giving landmark positions (VLM) and sigmas (SIGMA_LMK).  "
+    "[default: DIR/LMKFILES]",
+)
+@click.option(
+    "--sigma-px",
+    type=float,
+    default=0.1,
+    show_default=True,
+    metavar="PX",
+    help="1-sigma measurement noise per pixel component (S16: 0.1 px; 1 px is conservative).",
+)
+@click.option(
+    "--no-prior",
+    is_flag=True,
+    help="Ignore the SUM's SIGMA_VSO / SIGMA_PTG a-priori constraint (needs >= 3 landmarks).",
+)
+@click.option(
+    "--estimate-landmarks",
+    is_flag=True,
+    help="Also estimate landmark positions, with the LMK SIGMA_LMK as a-priori sigmas.",
+)
+@click.option(
+    "--consider-landmarks",
+    is_flag=True,
+    help="Keep landmark positions fixed but inflate the covariance by their SIGMA_LMK (consider parameters).",
+)
+@click.option(
+    "--max-iter",
+    type=click.IntRange(min=1),
+    default=10,
+    show_default=True,
+    metavar="N",
+    help="Maximum Gauss-Newton iterations.",
+)
+@click.option(
+    "--tol",
+    type=float,
+    default=1e-8,
+    show_default=True,
+    metavar="F",
+    help="Convergence: step below F x its 1-sigma, or relative cost change below F.",
+)
+@click.option(
+    "--reject-sigma",
+    type=float,
+    default=5.0,
+    show_default=True,
+    metavar="K",
+    help="Reject a landmark whose normalised residual exceeds K (times the robust residual scale), "
+    "worst first, then refit.",
+)
+@click.option(
+    "--reject-px",
+    type=float,
+    default=None,
+    metavar="PX",
+    help="Reject on an absolute pixel residual above PX instead of --reject-sigma.",
+)
+@click.option("--no-reject", is_flag=True, help="No outlier rejection.")
+@click.option(
+    "--min-landmarks",
+    type=click.IntRange(min=0),
+    default=3,
+    show_default=True,
+    metavar="N",
+    help="Fewer usable landmarks is an error (exit 1).",
+)
+@click.option(
+    "--output",
+    "sum_output",
+    metavar="FILE.SUM",
+    type=click.Path(dir_okay=False),
+    help="Write a SUM with the solved SCOBJ, CX, CY, CZ, SIGMA_VSO, SIGMA_PTG (all other lines unchanged).",
+)
+@click.option(
+    "--in-place", is_flag=True, help="Rewrite the picture's SUM file itself, keeping the old one as FILE.bak."
+)
+@click.option(
+    "-o",
+    "--table-output",
+    "table_output",
+    metavar="FILE",
+    help="Write the residual table to FILE instead of stdout ('-' = stdout).",
+)
+@json_option
+@pass_context
+def solve_pose_cmd(
+    ctx: Context,
+    picture,
+    sum_path,
+    measurements,
+    lmk_dir,
+    sigma_px,
+    no_prior,
+    estimate_landmarks,
+    consider_landmarks,
+    max_iter,
+    tol,
+    reject_sigma,
+    reject_px,
+    no_reject,
+    min_landmarks,
+    sum_output,
+    in_place,
+    table_output,
+    as_json,
+):
+    """Solve the spacecraft position and camera attitude from measured landmark pixels.
+
+    Minimises the weighted pixel residuals (1/sigma_px^2) of the landmarks' LMK positions
+    projected with the picture's camera (SUM + INIT_LITHOS distortion), plus the a-priori term
+    from the SUM's SIGMA_VSO (km, body axes) and SIGMA_PTG (rad, camera axes), by Gauss-Newton
+    with step halving (spc-algorithms.md 10).  The attitude change is the rotation vector
+    theta with [CX;CY;CZ]_new = Rot(-theta) [CX;CY;CZ]_old, in camera axes.  Outliers are
+    rejected worst first and named on stderr, in the status column and in the JSON.
+
+    Columns: name, sample and line (measured), apriori_sample/apriori_line (predicted with the
+    SUM's pose), predicted_sample/predicted_line (with the solved pose),
+    residual_sample_before/residual_line_before and residual_sample_after/residual_line_after
+    (measured - predicted, px), and status: ok, rejected-outlier, no-lmk (no LMK file),
+    behind-camera, no-measurement, flagged ('*' in the SUM), or the status of the input row.
+    With --estimate-landmarks also dx_km, dy_km, dz_km (landmark corrections, body axes).
+
+    --json adds a top-level "pose" object: position, scobj, rotation, delta_position,
+    delta_attitude, covariance (6x6, km then rad), sigma_position, sigma_attitude, correlation,
+    condition_number, iterations, converged, rejected, chi2, dof, rms before/after.  A summary goes
+    to stderr (with --json only with -v).  Too few landmarks, degenerate geometry or no
+    convergence: exit 1 (no SUM is written).  --output writes SIGMA_VSO/SIGMA_PTG as the solved
+    1-sigma values.
+
+    Example:
+
+    \b
+      spctool -C WORKDIR solve-pose P0001 --measurements reg.txt --output new.SUM
+      spctool -C WORKDIR register P0001 | spctool -C WORKDIR solve-pose P0001 --measurements - --in-place
+      spctool solve-pose fixtures/W48230079013.SUM --lmk-dir fixtures --no-prior --json
+    """
+    from spctool.geometry.camera import Camera
+    from spctool.stages.pose import PoseOptions, solve_pose
+
+    if estimate_landmarks and consider_landmarks:
+        raise SpcUsageError("give --estimate-landmarks or --consider-landmarks, not both")
+    if in_place and sum_output:
+        raise SpcUsageError("give --output FILE.SUM or --in-place, not both")
+    mode = "estimate" if estimate_landmarks else "consider" if consider_landmarks else "fixed"
+    options = PoseOptions(
+        max_iter=max_iter,
+        tol=tol,
+        sigma_px=sigma_px,
+        use_prior=not no_prior,
+        landmark_mode=mode,
+        reject_outliers=not no_reject,
+        reject_sigma=reject_sigma,
+        reject_px=reject_px,
+        min_landmarks=min_landmarks,
+    )
+
+    src_path = _sum_path_of(ctx, picture, sum_path)
+    if not src_path.exists():
+        raise SpcFormatError(src_path, None, f"expected the SUM file of picture {picture} (file not found)")
+    from spctool.formats.sumfile import read_sum
+
+    pic = read_sum(src_path)
+    camera = Camera.from_picture(pic, ctx.settings())
+    meas = measurements_from_table(measurements) if measurements else measurements_from_sum(pic)
+    pos, lsig, found = load_landmarks(ctx, meas.names, lmk_dir)
+    use = np.array([s == "ok" for s in meas.status], dtype=bool) & found
+    missing = [n for n, s, f in zip(meas.names, meas.status, found) if s == "ok" and not f]
+    if missing:
+        where = lmk_dir or ctx.wd.root / "LMKFILES"
+        ctx.note_once(f"no LMK file in {where} for {len(missing)} landmark(s): {', '.join(missing)}")
+    ctx.info(f"picture {pic.name}: {int(use.sum())} measured landmarks with positions, landmarks {mode}")
+
+    idx = np.flatnonzero(use)
+    y = np.stack([meas.sample[idx], meas.line[idx]], axis=-1)
+    result = solve_pose(
+        camera,
+        pos[idx],
+        y,
+        options,
+        prior_sigma_position=pic.sigma_vso,
+        prior_sigma_attitude=pic.sigma_ptg,
+        landmark_sigmas=lsig[idx] if mode != "fixed" else None,
+        names=[meas.names[i] for i in idx],
+    )
+
+    # ---- residual table (every input row; unused rows keep their reason) ------------------------
+    n = len(meas.names)
+    cols = {"name": list(meas.names), "sample": meas.sample, "line": meas.line}
+    # rows left out of the solve (e.g. 'not-found' in a register table) still get predictions when
+    # their LMK exists; solved rows take the stage's values (with landmark corrections, if estimated)
+    pred0 = np.full((n, 2), np.nan)
+    pred1 = np.full((n, 2), np.nan)
+    solved = camera.with_pose(scobj=result.scobj, rotation=result.rotation)
+    for cam_, pred in ((camera, pred0), (solved, pred1)):
+        s_, l_, front = cam_.project_with_mask(pos[found])
+        pred[found] = np.where(front[:, None], np.stack([s_, l_], axis=-1), np.nan)
+    pred0[idx], pred1[idx] = result.predicted_before, result.predicted_after
+    y_all = np.stack([meas.sample, meas.line], axis=-1)
+    res0, res1 = y_all - pred0, y_all - pred1
+    cols.update(
+        apriori_sample=pred0[:, 0],
+        apriori_line=pred0[:, 1],
+        predicted_sample=pred1[:, 0],
+        predicted_line=pred1[:, 1],
+        residual_sample_before=res0[:, 0],
+        residual_line_before=res0[:, 1],
+        residual_sample_after=res1[:, 0],
+        residual_line_after=res1[:, 1],
+    )
+    status = list(meas.status)
+    for i in range(n):  # status words only (no numerics)
+        if status[i] == "ok" and not found[i]:
+            status[i] = "no-lmk"
+    for k, i in enumerate(idx):
+        status[i] = result.status[k]
+    if result.landmark_corrections is not None:
+        corr = np.full((n, 3), np.nan)
+        corr[idx] = result.landmark_corrections
+        cols.update(dx_km=corr[:, 0], dy_km=corr[:, 1], dz_km=corr[:, 2])
+    cols["status"] = status
+
+    from spctool.formats.table import LandmarkTable
+
+    wrote = None
+    write_target = src_path if in_place else Path(sum_output) if sum_output else None
+    if write_target is not None and result.converged:
+        from spctool.formats.sumfile import write_sum
+
+        rot = result.rotation
+        new_pic = dataclasses.replace(
+            pic,
+            scobj=result.scobj,
+            cx=rot[0],
+            cy=rot[1],
+            cz=rot[2],
+            sigma_vso=result.sigma_position,
+            sigma_ptg=result.sigma_attitude,
+        )
+        backup = write_sum(write_target, new_pic, overwrite=True, backup=in_place)
+        wrote = str(write_target)
+        ctx.info(f"wrote {write_target}" + (f" (old file kept as {backup})" if backup else ""))
+
+    meta = {
+        "pose": result.pose_dict(),
+        "sum_written": wrote,
+        "options": {k: v for k, v in dataclasses.asdict(options).items()},
+    }
+    table = LandmarkTable(cols, picture=pic.name, command="solve-pose", meta=meta)
+    table.comments.append(
+        f"solved with {result.n_used} landmarks, {result.iterations} iterations, "
+        f"{'converged' if result.converged else 'NOT converged'}; residuals measured - predicted (px)"
+    )
+    emit_table(table, as_json=as_json, output=table_output)
+
+    if ctx.verbosity >= (1 if as_json else 0):
+        for line in result.summary_lines():
+            click.echo(f"spctool: {line}", err=True)
+    if not result.converged:
+        raise SpcResultError(
+            f"{pic.name}: pose did not converge in {options.max_iter} iterations"
+            + ("; no SUM written" if write_target is not None else "")
+        )
+
+
+def register(cli):
+    cli.add_command(solve_pose_cmd)

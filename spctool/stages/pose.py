@@ -1,0 +1,787 @@
+"""Stage I — ``solve-pose``: spacecraft position and camera attitude from measured landmark pixels.
+
+Specification: spc-algorithms.md §10 (L15 §2 with errata 1–4 of §11) and §13 (defaults); pixel and
+frame conventions from spc-formats.md §0.4, §2.5 (SUM SCOBJ, CX/CY/CZ, SIGMA_VSO, SIGMA_PTG) and §4
+(LMK VLM, SIGMA_LMK).
+
+Problem.  Given N landmarks at body-fixed positions Vᵢ (km) measured at SPC pixels yᵢ = (sample, line)
+(1-based, spc-formats.md §0.4), find the spacecraft position p (= −SCOBJ, body frame, km) and the
+body→camera rotation T (rows CX, CY, CZ) that minimise
+
+    Σᵢ (yᵢ − h(p, T, Vᵢ))ᵀ Wᵢ (yᵢ − h(p, T, Vᵢ))  +  ‖P₀^(−1/2) (χ − χ₀)‖²          (spc-algorithms.md §10.3)
+
+with h the full SPC camera model (:class:`spctool.geometry.camera.Camera`: distortion, legacy D terms,
+K matrix), Wᵢ = diag(1/σ_sample², 1/σ_line²) (default σ = ``sigma_px`` = 0.1 px, the S16 achieved
+accuracy, spc-algorithms.md §13; 1 px is the conservative choice) and the a-priori term built from the
+SUM's SIGMA_VSO (km) and SIGMA_PTG (rad) about the a-priori pose χ₀.
+
+State and conventions (everything downstream relies on these):
+
+* χ = [Δp; θ] with Δp = p − p₀ (km, **body frame**, the axes of SIGMA_VSO) and θ the attitude offset
+  defined by **T = Rot(−θ)·T₀** (rad, **camera frame**, the axes of SIGMA_PTG — per camera axis as
+  spc-formats.md §2.1 infers).  Rot is the exact exponential map (frames.rot_from_rotvec); to first order
+  T = (I − [θ×])·T₀, L15 footnote 13.  Because Rot(θ)·θ = θ, θ has the same components in the a-priori
+  and the solved camera frame.
+* Gauss–Newton steps δθ use the update T⁺ = Rot(−δθ)·T (frames.apply_attitude_update) with
+  ∂x_C/∂δθ = [x_C×] and ∂x_C/∂p = −T — spc-algorithms.md erratum 3 (L15 Eq. 2.26/2.27/2.30 use the
+  transposed rotation); the focal-plane derivative has third column −x_C, −y_C (erratum 2, L15 Eq. 2.24);
+  the distortion derivative is written from the SPC-order OWEN formula (erratum 4 does not arise).
+  These Jacobians come from :meth:`Camera.project_with_jacobians`, vectorised over landmarks.
+* The a-priori attitude residual is θ itself; its derivative with respect to a step δθ is the inverse
+  right Jacobian of SO(3), J_r(θ)⁻¹ (θ⁺ = θ + J_r(θ)⁻¹·δθ + O(δθ²)), so the prior term is exact, not a
+  small-angle approximation.
+* Normal equations (L15 Eq. 2.19 with erratum 1, Δχ = χ⁺ − χ⁻, weighted and with the prior):
+  (HᵀWH + P₀⁻¹)·Δχ = HᵀW·Δy − P₀⁻¹·(χ − χ₀).  They are solved after Jacobi scaling (unit diagonal); the
+  **condition number** reported is that of the scaled matrix, and above ``max_condition`` the geometry is
+  declared degenerate (:class:`PoseError`, never a singular-matrix traceback).
+* Steps are applied with a **pivot retraction**: the camera-frame vector t = T·(c − p) from the camera to
+  the landmark centroid c is updated by δt = [t×]·δθ − T·δp (the same step to first order), so a finite
+  step orbits the camera about the landmarks.  This follows the nearly degenerate position/attitude
+  valley of small landmark clusters (e.g. the real Rosetta picture: 3 landmarks within 40 px, no prior:
+  4 iterations instead of 10 with step halving).  The Gauss–Newton system, the covariance and the
+  reported state stay in (Δp, θ).
+* Each step is safeguarded by backtracking (step halving until the cost does not increase).  Convergence:
+  the largest step component is below ``tol`` times its own 1σ, or the relative cost change is below
+  ``tol`` (spc-algorithms.md §10.3: 1e-8, at most 10 iterations, §13).
+* Covariance (HᵀWH + P₀⁻¹)⁻¹ at the solution, order [Δp (km, body), θ (rad, camera)]; 1σ, correlation.
+* Residuals are **measured − predicted** (pixels), before (a-priori pose) and after (solved pose).
+
+Landmark positions (``landmark_mode``):
+
+* ``"fixed"`` — Vᵢ exact (SPC's usual geometry solve);
+* ``"estimate"`` — Vᵢ + dᵢ estimated with a-priori dᵢ ~ N(0, diag(σᵢ²)) from the LMK SIGMA_LMK (km,
+  body frame), L15 Eq. 2.8 second state form.  The 3×3 landmark blocks are eliminated per landmark
+  (Schur complement, vectorised), so the cost stays linear in N;
+* ``"consider"`` — Vᵢ fixed in the estimate but their uncertainty inflates the covariance (L15 footnote
+  14): P_c = P + P·(Σᵢ Bᵢ Σᵢ Bᵢᵀ)·P with Bᵢ = Hₓ,ᵢᵀ Wᵢ H_V,ᵢ.
+
+Outliers: after a fit, a landmark whose normalised residual ρᵢ = ‖Wᵢ^(1/2) rᵢ‖ (in ``"estimate"`` mode
+plus its position-prior term, ρᵢ² += dᵢᵀΣᵢ⁻¹dᵢ) exceeds ``reject_sigma``
+times a robust scale c = max(1, median(ρ)/√(2 ln 2)) (the median of a 2-D Gaussian residual norm is
+σ√(2 ln 2)) — or, when ``reject_px`` is given, whose pixel residual exceeds ``reject_px`` — is rejected,
+worst first, one at a time, and the pose is refitted from the a-priori pose.  Every rejection is named
+with its reason in :attr:`PoseResult.rejected`; nothing is dropped silently.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spctool.errors import SpcResultError, SpcUsageError
+from spctool.geometry.frames import apply_attitude_update, rotvec_from_rot, skew
+
+__all__ = [
+    "PoseError",
+    "PoseOptions",
+    "PoseResult",
+    "Rejection",
+    "LANDMARK_MODES",
+    "solve_pose",
+    "so3_right_jacobian_inv",
+]
+
+LANDMARK_MODES = ("fixed", "estimate", "consider")
+#: median of the norm of a 2-D standard normal vector, √(2 ln 2)
+_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+#: landmark sigmas ≤ 0 are held (effectively) fixed at this 1σ (km) in "estimate" mode
+_TINY_SIGMA_KM = 1e-9
+
+
+class PoseError(SpcResultError):
+    """The pose cannot be solved: too few landmarks or degenerate geometry (exit code 1)."""
+
+
+@dataclass
+class PoseOptions:
+    """Settings of :func:`solve_pose` (defaults: spc-algorithms.md §10.3 and §13).
+
+    * ``max_iter`` / ``tol`` — Gauss–Newton iterations and convergence tolerance (10 / 1e-8, §13).
+    * ``sigma_px`` — 1σ measurement noise per pixel component (0.1 px: S16's achieved accuracy; §13
+      lists 1 px as the conservative alternative).
+    * ``use_prior`` — use the a-priori sigmas (SUM SIGMA_VSO / SIGMA_PTG) passed to :func:`solve_pose`.
+    * ``landmark_mode`` — ``"fixed"``, ``"estimate"`` or ``"consider"`` (module docstring);
+      ``estimate_landmarks=True`` is a shortcut for ``landmark_mode="estimate"``.
+    * ``reject_outliers``, ``reject_sigma`` (k in the k·σ test, 5), ``reject_px`` (absolute pixel
+      threshold replacing the k·σ test when given), ``robust_scale`` (scale the k·σ threshold by the
+      robust residual scale, so a too-optimistic ``sigma_px`` does not reject every landmark),
+      ``max_reject_fraction`` (at most this fraction of the usable landmarks is rejected).
+    * ``min_landmarks`` — fewer usable landmarks is a :class:`PoseError` (3; without a prior at least 3
+      are always required: 6 unknowns).
+    * ``max_condition`` — Jacobi-scaled normal-matrix condition number above which the geometry is
+      degenerate (:class:`PoseError`).
+    * ``max_halvings`` — step halvings allowed by the backtracking safeguard.
+    """
+
+    max_iter: int = 10
+    tol: float = 1e-8
+    sigma_px: float = 0.1
+    use_prior: bool = True
+    landmark_mode: str = "fixed"
+    estimate_landmarks: bool = False
+    reject_outliers: bool = True
+    reject_sigma: float = 5.0
+    reject_px: float | None = None
+    robust_scale: bool = True
+    max_reject_fraction: float = 0.5
+    min_landmarks: int = 3
+    max_condition: float = 1e12
+    max_halvings: int = 30
+
+    def __post_init__(self):
+        if self.estimate_landmarks:
+            if self.landmark_mode not in ("fixed", "estimate"):
+                raise SpcUsageError(
+                    f"estimate_landmarks=True conflicts with landmark_mode={self.landmark_mode!r}"
+                )
+            self.landmark_mode = "estimate"
+        if self.landmark_mode not in LANDMARK_MODES:
+            raise SpcUsageError(
+                f"landmark_mode must be one of {', '.join(LANDMARK_MODES)}, got {self.landmark_mode!r}"
+            )
+        if int(self.max_iter) < 1:
+            raise SpcUsageError(f"max_iter must be at least 1, got {self.max_iter}")
+        if not (self.tol > 0):
+            raise SpcUsageError(f"tol must be positive, got {self.tol}")
+        if not (self.sigma_px > 0 and math.isfinite(self.sigma_px)):
+            raise SpcUsageError(f"sigma_px must be a positive number of pixels, got {self.sigma_px}")
+        if not (self.reject_sigma > 0):
+            raise SpcUsageError(f"reject_sigma must be positive, got {self.reject_sigma}")
+        if self.reject_px is not None and not (self.reject_px > 0):
+            raise SpcUsageError(f"reject_px must be positive, got {self.reject_px}")
+        if not (0.0 <= self.max_reject_fraction <= 1.0):
+            raise SpcUsageError(f"max_reject_fraction must be in [0, 1], got {self.max_reject_fraction}")
+        if int(self.min_landmarks) < 0:
+            raise SpcUsageError(f"min_landmarks must be >= 0, got {self.min_landmarks}")
+        if not (self.max_condition > 1):
+            raise SpcUsageError(f"max_condition must be > 1, got {self.max_condition}")
+        self.max_iter = int(self.max_iter)
+        self.min_landmarks = int(self.min_landmarks)
+        self.max_halvings = int(self.max_halvings)
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """One landmark left out of the solution, and why."""
+
+    name: str
+    index: int
+    reason: str  # short word: "outlier", "no-measurement", "behind-camera", "no-position"
+    detail: str
+    residual_px: float = math.nan
+
+    def as_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "index": self.index,
+            "reason": self.reason,
+            "detail": self.detail,
+            "residual_px": self.residual_px,
+        }
+
+
+@dataclass
+class PoseResult:
+    """Solved pose, its covariance and per-landmark residuals (module docstring for conventions)."""
+
+    scobj: np.ndarray  # (3,) solved SCOBJ = −position (km, body)
+    rotation: np.ndarray  # (3, 3) solved body→camera rotation (rows CX, CY, CZ)
+    position: np.ndarray  # (3,) solved spacecraft position (km, body)
+    delta_position: np.ndarray  # (3,) position − a-priori position (km, body)
+    delta_attitude: np.ndarray  # (3,) θ with T = Rot(−θ)·T₀ (rad, camera frame)
+    covariance: np.ndarray  # (6, 6) [Δp km, θ rad]; consider-inflated in "consider" mode
+    sigmas: np.ndarray  # (6,) √diag(covariance)
+    correlation: np.ndarray  # (6, 6)
+    condition_number: float  # of the Jacobi-scaled normal matrix
+    iterations: int
+    converged: bool
+    names: list[str]
+    measured: np.ndarray  # (N, 2) measured (sample, line)
+    predicted_before: np.ndarray  # (N, 2) at the a-priori pose (NaN where not computable)
+    predicted_after: np.ndarray  # (N, 2) at the solved pose (with estimated landmark corrections)
+    residuals_before: np.ndarray  # (N, 2) measured − predicted_before
+    residuals_after: np.ndarray  # (N, 2) measured − predicted_after
+    used: np.ndarray  # (N,) bool
+    status: list[str]  # per landmark: "ok", "rejected-outlier", "no-measurement", ...
+    rejected: list[Rejection]
+    chi2: float  # measurement part of the cost at the solution (used landmarks)
+    cost: float  # full cost (measurements + a-priori terms)
+    dof: int  # 2·used + prior equations − unknowns
+    rms_before: float  # rms pixel residual norm of the used landmarks, a-priori pose
+    rms_after: float  # same at the solved pose
+    landmark_mode: str = "fixed"
+    prior_used: bool = False
+    covariance_no_consider: np.ndarray | None = None  # (6, 6) in "consider" mode: before inflation
+    landmark_corrections: np.ndarray | None = None  # (N, 3) km ("estimate" mode; 0 for unused)
+    landmark_covariances: np.ndarray | None = None  # (N, 3, 3) a-posteriori ("estimate" mode)
+    cost_history: list[float] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    # ---- convenience ------------------------------------------------------------------------------
+    @property
+    def sigma_position(self) -> np.ndarray:
+        return self.sigmas[:3].copy()
+
+    @property
+    def sigma_attitude(self) -> np.ndarray:
+        return self.sigmas[3:].copy()
+
+    @property
+    def n_used(self) -> int:
+        return int(np.count_nonzero(self.used))
+
+    @property
+    def reduced_chi2(self) -> float:
+        return self.cost / self.dof if self.dof > 0 else math.nan
+
+    @property
+    def landmark_sigmas(self) -> np.ndarray | None:
+        if self.landmark_covariances is None:
+            return None
+        return np.sqrt(np.clip(np.diagonal(self.landmark_covariances, axis1=-2, axis2=-1), 0, None))
+
+    def pose_dict(self) -> dict:
+        """The ``"pose"`` object of the solve-pose JSON document (cli-contract.md)."""
+        out = {
+            "position": self.position,
+            "scobj": self.scobj,
+            "rotation": self.rotation,
+            "delta_position": self.delta_position,
+            "delta_attitude": self.delta_attitude,
+            "attitude_frame": "camera",
+            "state_order": ["dx_km", "dy_km", "dz_km", "tx_rad", "ty_rad", "tz_rad"],
+            "covariance": self.covariance,
+            "sigma_position": self.sigma_position,
+            "sigma_attitude": self.sigma_attitude,
+            "correlation": self.correlation,
+            "condition_number": self.condition_number,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "landmarks_used": self.n_used,
+            "chi2": self.chi2,
+            "cost": self.cost,
+            "dof": self.dof,
+            "reduced_chi2": self.reduced_chi2,
+            "rms_before_px": self.rms_before,
+            "rms_after_px": self.rms_after,
+            "landmark_mode": self.landmark_mode,
+            "prior_used": self.prior_used,
+            "rejected": [r.as_dict() for r in self.rejected],
+            "warnings": list(self.warnings),
+        }
+        if self.landmark_corrections is not None:
+            out["landmark_corrections"] = {
+                n: c for n, c, u in zip(self.names, self.landmark_corrections.tolist(), self.used) if u
+            }
+        return out
+
+    def summary_lines(self) -> list[str]:
+        """Human summary (pose change, 1σ, rms before/after) for stderr."""
+        dp = self.delta_position
+        th = self.delta_attitude
+        sp = self.sigma_position
+        sa = self.sigma_attitude
+        lines = [
+            f"solved with {self.n_used} landmarks in {self.iterations} iterations"
+            f" ({'converged' if self.converged else 'NOT converged'}), landmarks {self.landmark_mode},"
+            f" prior {'on' if self.prior_used else 'off'}",
+            f"position change (km, body)   {dp[0]:+.6f} {dp[1]:+.6f} {dp[2]:+.6f}"
+            f"  |d| = {np.linalg.norm(dp):.6f}",
+            f"1-sigma position (km)        {sp[0]:.6f} {sp[1]:.6f} {sp[2]:.6f}",
+            f"attitude change (rad, cam)   {th[0]:+.3e} {th[1]:+.3e} {th[2]:+.3e}"
+            f"  |t| = {np.linalg.norm(th):.3e}",
+            f"1-sigma attitude (rad)       {sa[0]:.3e} {sa[1]:.3e} {sa[2]:.3e}",
+            f"rms residual (px) before {self.rms_before:.4f} after {self.rms_after:.4f};"
+            f" chi2 {self.chi2:.4g} + prior {self.cost - self.chi2:.4g}, dof {self.dof},"
+            f" cost/dof {self.reduced_chi2:.3g}, condition {self.condition_number:.3g}",
+        ]
+        for r in self.rejected:
+            lines.append(f"rejected {r.name}: {r.reason} ({r.detail})")
+        lines.extend(f"warning: {w}" for w in self.warnings)
+        return lines
+
+
+# ------------------------------------------------------------------------------------------------
+# SO(3) helper
+# ------------------------------------------------------------------------------------------------
+
+
+def so3_right_jacobian_inv(theta) -> np.ndarray:
+    """J_r(θ)⁻¹ = I + ½[θ×] + (1/t² − (1 + cos t)/(2 t sin t))·[θ×]², t = |θ| (series below 1e-4 rad).
+
+    With T = Rot(−θ)·T₀ and the step T⁺ = Rot(−δθ)·T, the offset becomes θ⁺ = θ + J_r(θ)⁻¹·δθ + O(δθ²).
+    """
+    th = np.asarray(theta, dtype=np.float64)
+    t2 = float(th @ th)
+    t = math.sqrt(t2)
+    if t < 1e-4:
+        c = 1.0 / 12.0 + t2 / 720.0
+    else:
+        c = 1.0 / t2 - (1.0 + math.cos(t)) / (2.0 * t * math.sin(t))
+    k = skew(th)
+    return np.eye(3) + 0.5 * k + c * (k @ k)
+
+
+# ------------------------------------------------------------------------------------------------
+# internals
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Prior:
+    """A-priori information on [Δp; θ]: inverse variances (0 = unconstrained component)."""
+
+    info: np.ndarray  # (6,)
+
+    @property
+    def n_equations(self) -> int:
+        return int(np.count_nonzero(self.info))
+
+
+def _prior_info(sig, n, what, warnings) -> np.ndarray:
+    if sig is None:
+        return np.zeros(n)
+    s = np.asarray(sig, dtype=np.float64).reshape(-1)
+    if s.size == 1:
+        s = np.full(n, s[0])
+    if s.shape != (n,):
+        raise SpcUsageError(f"{what} must have {n} components, got shape {np.shape(sig)}")
+    ok = np.isfinite(s) & (s > 0)
+    if not ok.all():
+        warnings.append(
+            f"{what} components {np.flatnonzero(~ok).tolist()} are not positive finite numbers:"
+            " no a-priori constraint on them"
+        )
+    info = np.zeros(n)
+    info[ok] = 1.0 / (s[ok] * s[ok])
+    return info
+
+
+@dataclass
+class _State:
+    camera: object
+    dpos: np.ndarray  # (3,)
+    theta: np.ndarray  # (3,)
+    dlmk: np.ndarray | None  # (M, 3)
+
+
+class _Problem:
+    """The least-squares problem over a fixed set of used landmarks (M of them)."""
+
+    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts: PoseOptions):
+        self.camera0 = camera0
+        self.p0 = camera0.position.copy()
+        self.t0 = np.array(camera0.rotation)
+        self.points = points  # (M, 3)
+        self.meas = meas  # (M, 2)
+        self.wts = wts  # (M, 2)
+        self.prior = prior
+        self.mode = mode
+        self.lmk_info = lmk_info  # (M, 3) inverse variances, "estimate" mode
+        self.opts = opts
+        self.pivot = points.mean(axis=0) if points.shape[0] else self.p0.copy()
+
+    # -- state helpers ------------------------------------------------------------------------------
+    def start(self) -> _State:
+        d = np.zeros_like(self.points) if self.mode == "estimate" else None
+        return _State(self.camera0, np.zeros(3), np.zeros(3), d)
+
+    def moved(self, s: _State, dx, dd, alpha) -> _State:
+        """Apply a step (δp, δθ) with the pivot retraction (module docstring).
+
+        The step is converted to t = T·(c − p), the camera-frame vector from the camera to the pivot
+        c (landmark centroid): δt = [t×]·δθ − T·δp, equal to (δp, δθ) to first order, then
+        T⁺ = Rot(−δθ)·T, t⁺ = t + δt, p⁺ = c − T⁺ᵀ·t⁺.  A finite step thus orbits the camera about
+        the landmarks instead of moving it along a straight line, which follows the nearly
+        degenerate position/attitude valley of small landmark clusters (few iterations, no halving).
+        """
+        rot0 = np.asarray(s.camera.rotation)
+        dp = alpha * dx[:3]
+        dth = alpha * dx[3:]
+        t = rot0 @ (self.pivot - s.camera.position)
+        t_new = t + np.cross(t, dth) - rot0 @ dp
+        rot = apply_attitude_update(rot0, dth)
+        pos = self.pivot - rot.T @ t_new
+        dpos = pos - self.p0
+        theta = -rotvec_from_rot(rot @ self.t0.T)
+        cam = s.camera.with_pose(position=pos, rotation=rot)
+        d = None if s.dlmk is None else s.dlmk + alpha * dd
+        return _State(cam, dpos, theta, d)
+
+    def pts(self, s: _State) -> np.ndarray:
+        return self.points if s.dlmk is None else self.points + s.dlmk
+
+    def cost(self, s: _State) -> tuple[float, float]:
+        smp, lin = s.camera.project(self.pts(s))
+        r = self.meas - np.stack([smp, lin], axis=-1)
+        chi2 = float(np.sum(self.wts * r * r))
+        e = np.concatenate([s.dpos, s.theta])
+        total = chi2 + float(np.sum(self.prior.info * e * e))
+        if s.dlmk is not None:
+            total += float(np.sum(self.lmk_info * s.dlmk * s.dlmk))
+        return total, chi2
+
+    # -- linear algebra -----------------------------------------------------------------------------
+    def normal(self, s: _State):
+        """Reduced normal matrix N (6×6), right-hand side g, and the pieces needed afterwards."""
+        j = s.camera.project_with_jacobians(self.pts(s))
+        pred = np.stack([j.sample, j.line], axis=-1)
+        r = self.meas - pred
+        hx = np.concatenate([j.position, j.attitude], axis=-1)  # (M, 2, 6)
+        hw = hx * self.wts[..., None]
+        h2 = hx.reshape(-1, 6)
+        hw2 = hw.reshape(-1, 6)
+        n = hw2.T @ h2
+        g = hw2.T @ r.reshape(-1)
+        # a-priori term: residual e = [Δp; θ], de/dχ = diag(I, J_r(θ)⁻¹)
+        jp = np.eye(6)
+        jp[3:, 3:] = so3_right_jacobian_inv(s.theta)
+        e = np.concatenate([s.dpos, s.theta])
+        jpi = jp.T * self.prior.info  # Jᵀ·P₀⁻¹
+        n = n + jpi @ jp
+        g = g - jpi @ e
+        extra = {"hx": hx, "pred": pred, "r": r, "hl": j.point, "g_full": g}
+        if self.mode == "estimate":
+            hl = j.point  # (M, 2, 3)
+            b = np.einsum("mki,mkj->mij", hw, hl)  # (M, 6, 3)
+            d = np.einsum("mki,mkj->mij", hl * self.wts[..., None], hl)
+            d[:, [0, 1, 2], [0, 1, 2]] += self.lmk_info
+            gl = np.einsum("mki,mk->mi", hl * self.wts[..., None], r) - self.lmk_info * s.dlmk
+            dinv = np.linalg.inv(d)
+            bdinv = b @ dinv  # (M, 6, 3)
+            n = n - np.einsum("mij,mkj->ik", bdinv, b)
+            g = g - np.einsum("mij,mj->i", bdinv, gl)
+            extra.update(b=b, dinv=dinv, gl=gl)
+        return n, g, extra
+
+    def solve_scaled(self, n, g, n_used):
+        """Δχ = N⁻¹g and N⁻¹ with Jacobi scaling; PoseError if degenerate."""
+        diag = np.diag(n).copy()
+        if not np.all(np.isfinite(n)):
+            raise PoseError(
+                f"degenerate geometry: the normal matrix of {n_used} landmark(s) is not finite"
+                " (a landmark in the camera's focal plane?)"
+            )
+        if np.any(diag <= 0.0):
+            raise PoseError(
+                f"degenerate geometry: {n_used} landmark(s) leave pose component(s) "
+                f"{np.flatnonzero(~(diag > 0)).tolist()} without information"
+            )
+        sc = 1.0 / np.sqrt(diag)
+        ns = n * sc[:, None] * sc[None, :]
+        ns = 0.5 * (ns + ns.T)
+        ev = np.linalg.eigvalsh(ns)
+        cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+        if not cond <= self.opts.max_condition:
+            raise PoseError(
+                f"degenerate geometry: {n_used} landmark(s) give a normal-matrix condition number "
+                f"{cond:.3g} > {self.opts.max_condition:.3g} (collinear or too few landmarks, or no prior)"
+            )
+        cov = np.linalg.inv(ns) * sc[:, None] * sc[None, :]
+        cov = 0.5 * (cov + cov.T)
+        dx = cov @ g
+        return dx, cov, cond
+
+    def landmark_step(self, extra, dx):
+        if self.mode != "estimate":
+            return None
+        return np.einsum("mij,mj->mi", extra["dinv"], extra["gl"] - np.einsum("mji,j->mi", extra["b"], dx))
+
+    # -- Gauss–Newton -------------------------------------------------------------------------------
+    def fit(self):
+        opts = self.opts
+        m = self.points.shape[0]
+        s = self.start()
+        cost, _ = self.cost(s)
+        history = [cost]
+        converged = False
+        iterations = 0
+        for it in range(1, opts.max_iter + 1):
+            iterations = it
+            n, g, extra = self.normal(s)
+            dx, cov, _ = self.solve_scaled(n, g, m)
+            dd = self.landmark_step(extra, dx)
+            # predicted cost decrease /2 along the full step: (full gradient)ᵀ·(full step)
+            predicted = float(extra["g_full"] @ dx) + (0.0 if dd is None else float(np.sum(extra["gl"] * dd)))
+            alpha = 1.0
+            accepted = False
+            for _ in range(opts.max_halvings + 1):
+                trial = self.moved(s, dx, dd, alpha)
+                c_new, _ = self.cost(trial)
+                if c_new <= cost * (1.0 + 1e-12) + 1e-300:
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if not accepted:
+                # numerical floor: no decrease is possible any more
+                converged = predicted <= 1e-6 * max(1.0, cost)
+                break
+            sig = np.sqrt(np.diag(cov))
+            step = float(np.max(np.abs(alpha * dx) / sig))
+            rel = abs(cost - c_new) / cost if cost > 0 else 0.0
+            s, cost = trial, c_new
+            history.append(cost)
+            if step <= opts.tol or rel <= opts.tol:
+                converged = True
+                break
+        return s, iterations, converged, history
+
+
+# ------------------------------------------------------------------------------------------------
+# public entry point
+# ------------------------------------------------------------------------------------------------
+
+
+def _per_landmark(a, n, what, allow_scalar=True, width=None) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if width is None:
+        return arr
+    if allow_scalar and arr.ndim == 0:
+        return np.full((n, width), float(arr))
+    if arr.shape == (n,):
+        return np.repeat(arr[:, None], width, axis=1)
+    if arr.shape != (n, width):
+        raise SpcUsageError(f"{what} must have shape ({n},) or ({n}, {width}), got {arr.shape}")
+    return arr
+
+
+def solve_pose(
+    camera,
+    landmark_positions,
+    measured,
+    options: PoseOptions | None = None,
+    prior_sigma_position=None,
+    prior_sigma_attitude=None,
+    landmark_sigmas=None,
+    names=None,
+    pixel_sigmas=None,
+) -> PoseResult:
+    """Solve spacecraft position and attitude from N landmark measurements (module docstring).
+
+    * ``camera`` — :class:`spctool.geometry.camera.Camera` holding the a-priori pose and intrinsics.
+    * ``landmark_positions`` (N, 3) — body-fixed km (LMK VLM); NaN rows are left out ("no-position").
+    * ``measured`` (N, 2) — measured (sample, line), SPC 1-based pixels; NaN rows left out.
+    * ``prior_sigma_position`` (3,) km, body frame (SUM SIGMA_VSO) and ``prior_sigma_attitude`` (3,)
+      rad, camera frame (SUM SIGMA_PTG); used when ``options.use_prior``.  None = no prior on that part.
+    * ``landmark_sigmas`` (N, 3) km (LMK SIGMA_LMK) — required for ``"estimate"`` / ``"consider"``.
+    * ``pixel_sigmas`` — optional per-landmark 1σ in pixels, (N,) or (N, 2); default ``sigma_px``.
+
+    Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
+    """
+    opts = options or PoseOptions()
+    pts_all = np.asarray(landmark_positions, dtype=np.float64)
+    meas_all = np.asarray(measured, dtype=np.float64)
+    if pts_all.ndim != 2 or pts_all.shape[1] != 3:
+        raise SpcUsageError(f"landmark_positions must have shape (N, 3), got {pts_all.shape}")
+    n_all = pts_all.shape[0]
+    if meas_all.shape != (n_all, 2):
+        raise SpcUsageError(f"measured must have shape ({n_all}, 2), got {meas_all.shape}")
+    names = [f"#{i + 1}" for i in range(n_all)] if names is None else [str(x) for x in names]
+    if len(names) != n_all:
+        raise SpcUsageError(f"names has {len(names)} entries for {n_all} landmarks")
+    sig_px = _per_landmark(
+        opts.sigma_px if pixel_sigmas is None else pixel_sigmas, n_all, "pixel_sigmas", width=2
+    )
+    if np.any(~(sig_px > 0)):
+        raise SpcUsageError("pixel sigmas must be positive")
+    wts_all = 1.0 / (sig_px * sig_px)
+    mode = opts.landmark_mode
+    lmk_sig = None
+    if mode != "fixed":
+        if landmark_sigmas is None:
+            raise SpcUsageError(f"landmark_mode {mode!r} needs landmark sigmas (LMK SIGMA_LMK)")
+        lmk_sig = _per_landmark(landmark_sigmas, n_all, "landmark_sigmas", width=3)
+        if not np.all(np.isfinite(lmk_sig)):
+            raise SpcUsageError("landmark sigmas must be finite")
+
+    warnings: list[str] = []
+    if opts.use_prior:
+        info = np.concatenate(
+            [
+                _prior_info(prior_sigma_position, 3, "prior position sigma", warnings),
+                _prior_info(prior_sigma_attitude, 3, "prior attitude sigma", warnings),
+            ]
+        )
+    else:
+        info = np.zeros(6)
+    prior = _Prior(info)
+    prior_used = prior.n_equations > 0
+
+    # ---- usable landmarks and a-priori residuals ------------------------------------------------
+    status = ["ok"] * n_all
+    rejected: list[Rejection] = []
+    pts_finite = np.all(np.isfinite(pts_all), axis=1)
+    meas_finite = np.all(np.isfinite(meas_all), axis=1)
+    safe_pts = np.where(pts_finite[:, None], pts_all, 0.0)
+    smp0, lin0, front0 = camera.project_with_mask(safe_pts)
+    pred0 = np.stack([smp0, lin0], axis=-1)
+    pred0[~(pts_finite & front0)] = np.nan
+    usable = pts_finite & meas_finite & front0
+    for i in np.flatnonzero(~usable):  # only the unusable few
+        i = int(i)
+        if not pts_finite[i]:
+            word, detail = "no-position", "landmark position unknown"
+        elif not meas_finite[i]:
+            word, detail = "no-measurement", "measured pixel is not a number"
+        else:
+            word, detail = "behind-camera", "landmark behind the a-priori camera"
+        status[i] = word
+        rejected.append(Rejection(names[i], i, word, detail))
+    resid0 = meas_all - pred0
+
+    def check_count(count):
+        need = opts.min_landmarks if prior_used else max(opts.min_landmarks, 3)
+        if count < need:
+            why = "" if prior_used else " (6 unknowns and no a-priori pose)"
+            raise PoseError(f"too few landmarks: {count} usable, at least {need} needed{why}")
+
+    check_count(int(np.count_nonzero(usable)))
+
+    lmk_info_all = None
+    if mode == "estimate":
+        s = np.where(lmk_sig > 0, lmk_sig, _TINY_SIGMA_KM)
+        lmk_info_all = 1.0 / (s * s)
+
+    def build(mask):
+        return _Problem(
+            camera,
+            pts_all[mask],
+            meas_all[mask],
+            wts_all[mask],
+            prior,
+            mode,
+            None if lmk_info_all is None else lmk_info_all[mask],
+            opts,
+        )
+
+    # ---- fit, reject, refit -------------------------------------------------------------------------
+    used = usable.copy()
+    n_usable = int(np.count_nonzero(usable))
+    max_reject = int(math.floor(opts.max_reject_fraction * n_usable))
+    n_unknowns = 6
+    while True:
+        problem = build(used)
+        state, iterations, converged, history = problem.fit()
+        if not opts.reject_outliers:
+            break
+        idx = np.flatnonzero(used)
+        m = idx.size
+        dof = 2 * m + prior.n_equations - n_unknowns
+        if dof <= 0:
+            break
+        smp, lin = state.camera.project(problem.pts(state))
+        r = problem.meas - np.stack([smp, lin], axis=-1)
+        rho2 = np.sum(problem.wts * r * r, axis=1)
+        if state.dlmk is not None:  # "estimate": a landmark's cost also has its position-prior term
+            rho2 = rho2 + np.sum(problem.lmk_info * state.dlmk * state.dlmk, axis=1)
+        rho = np.sqrt(rho2)
+        rpx = np.sqrt(np.sum(r * r, axis=1))
+        if opts.reject_px is not None:
+            score, limit = rpx, float(opts.reject_px)
+            unit = "px"
+        else:
+            c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if opts.robust_scale else 1.0
+            score, limit = rho / c, float(opts.reject_sigma)
+            unit = "sigma"
+        worst = int(np.argmax(score))
+        if not score[worst] > limit:
+            break
+        n_rej = int(np.count_nonzero(usable & ~used))
+        if m - 1 < max(opts.min_landmarks, 0 if prior_used else 3) or n_rej + 1 > max_reject:
+            bad = [names[idx[k]] for k in np.flatnonzero(score > limit)]
+            warnings.append(
+                f"outlier test fails for {', '.join(bad)} but no more landmarks may be rejected"
+                f" ({m} used, min_landmarks {opts.min_landmarks}, max_reject_fraction"
+                f" {opts.max_reject_fraction})"
+            )
+            break
+        k = int(idx[worst])
+        detail = (
+            f"residual {rpx[worst]:.3f} px ({score[worst]:.1f} {unit}) > {limit:g} {unit}"
+            if unit == "px"
+            else f"residual {rpx[worst]:.3f} px = {score[worst]:.1f} sigma > {limit:g} sigma"
+        )
+        rejected.append(Rejection(names[k], k, "outlier", detail, float(rpx[worst])))
+        status[k] = "rejected-outlier"
+        used[k] = False
+
+    # ---- final linearisation: covariance, residuals -----------------------------------------------
+    m = int(np.count_nonzero(used))
+    n, g, extra = problem.normal(state)
+    _, cov, cond = problem.solve_scaled(n, g, m)
+    cost, chi2 = problem.cost(state)
+    cov_plain = None
+    lmk_corr = None
+    lmk_cov = None
+    pts_after = pts_all.copy()
+    if mode == "estimate":
+        b, dinv = extra["b"], extra["dinv"]
+        bd = b @ dinv  # (M, 6, 3)
+        cov_l = dinv + np.einsum("mji,jk,mkl->mil", bd, cov, bd)
+        lmk_corr = np.zeros((n_all, 3))
+        lmk_corr[used] = state.dlmk
+        lmk_cov = np.full((n_all, 3, 3), np.nan)
+        lmk_cov[used] = cov_l
+        pts_after[used] = pts_all[used] + state.dlmk
+    elif mode == "consider":
+        hx = extra["hx"]
+        hl = extra["hl"]
+        b = np.einsum("mki,mkj->mij", hx * problem.wts[..., None], hl)  # (M, 6, 3)
+        sl = lmk_sig[used] ** 2
+        c = np.einsum("mij,mj,mkj->ik", b, sl, b)
+        cov_plain = cov
+        cov = cov + cov @ c @ cov
+        cov = 0.5 * (cov + cov.T)
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sig, sig)
+    smp1, lin1, front1 = state.camera.project_with_mask(np.where(pts_finite[:, None], pts_after, 0.0))
+    pred1 = np.stack([smp1, lin1], axis=-1)
+    pred1[~(pts_finite & front1)] = np.nan
+    resid1 = meas_all - pred1
+    # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
+    dof = 2 * m + prior.n_equations - 6
+    if not converged:
+        warnings.append(f"did not converge in {opts.max_iter} iterations")
+
+    def rms(res):
+        if m == 0:
+            return math.nan
+        return float(np.sqrt(np.mean(np.sum(res[used] ** 2, axis=1))))
+
+    return PoseResult(
+        scobj=state.camera.scobj.copy(),
+        rotation=np.array(state.camera.rotation),
+        position=state.camera.position.copy(),
+        delta_position=state.dpos.copy(),
+        delta_attitude=state.theta.copy(),
+        covariance=cov,
+        sigmas=sig,
+        correlation=corr,
+        condition_number=cond,
+        iterations=iterations,
+        converged=bool(converged),
+        names=names,
+        measured=meas_all.copy(),
+        predicted_before=pred0,
+        predicted_after=pred1,
+        residuals_before=resid0,
+        residuals_after=resid1,
+        used=used,
+        status=status,
+        rejected=rejected,
+        chi2=chi2,
+        cost=cost,
+        dof=int(dof),
+        rms_before=rms(resid0),
+        rms_after=rms(resid1),
+        landmark_mode=mode,
+        prior_used=prior_used,
+        covariance_no_consider=cov_plain,
+        landmark_corrections=lmk_corr,
+        landmark_covariances=lmk_cov,
+        cost_history=history,
+        warnings=warnings,
+    )
