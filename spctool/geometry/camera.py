@@ -1,0 +1,760 @@
+"""The SPC camera model of a picture: projection, inverse and analytic Jacobians.
+
+Forward model (spc-formats.md §2.5 steps 1–5 and §6.4; spc-algorithms.md §1.3), for a body-fixed
+point P (km):
+
+1. u = SCOBJ + P (SCOBJ: spacecraft → body centre, body frame; the spacecraft position is −SCOBJ);
+2. z = R·u with R = rows (CX, CY, CZ), the body→camera rotation;
+3. normalised focal plane (x̄, ȳ) = (z₁/z₃, z₂/z₃); the distortion model maps it to the distorted
+   focal plane in mm (undistorted → distorted).  Without a ``DISTORT=`` model: (x, y) = MMFL·(x̄, ȳ).
+   With one, the common step is (x, y) = (1 + P0)·MMFL·(x̄, ȳ) followed by the model (§6.4):
+
+   * ``OWEN`` (SPC order P1…P6, spc-algorithms.md §1.4):
+     Δx = −P1·y·r + P2·x·r² − P3·y·r³ + P4·x·r⁴ + P5·x·y + P6·x²,
+     Δy = +P1·x·r + P2·y·r² + P3·x·r³ + P4·y·r⁴ + P5·y² + P6·x·y;
+   * ``RADIAL``: (x, y)·(1 + P1·r² + P2·r⁴);
+   * ``CUBIC``: x' = Σₖ₌₁..₁₀ Pₖ·mₖ, y' = Σₖ₌₁..₁₀ Pₖ₊₁₀·mₖ, m = (1, x, y, x², xy, y², x³, x²y, xy², y³);
+   * ``APOLLO``: ρ = r²; (x, y)·(1 + P1ρ + P2ρ² + P3ρ³), then t = P4ρ + P5ρ², x' += t·sin P6, y' −= t·cos P6;
+   * ``HIRISE``: (x − P1, y − P2);
+   * ``LINESCAN`` (focal-plane part only): x = (1 + P0)·MMFL·x̄, R = √(x² + P1²), x' = x(1 + P2R² + P3R³),
+     y' = MMFL·ȳ (unscaled).  The per-line pose polynomials of line-scan pictures (spc-formats.md §2.4)
+     are **not** modelled: a :class:`Camera` has one pose.
+4. legacy SUM ``DISTORTION`` terms: (x, y)·(1 + D1), then (x, y)·(1 + D2·r² + D3·y + D4·x) with r, x, y
+   taken after the D1 scaling;
+5. sample = CTR1 + K11·x + K12·y + K13·x·y, line = CTR2 + K21·x + K22·y + K23·x·y (1-based SPC pixels,
+   no clipping; the K x·y column is kept, spc-formats.md §8 item 8).
+
+The whole chain (x̄, ȳ) → (sample, line) is evaluated per point, with its 2×2 derivative, in small
+numba kernels; the Jacobians are chained from it:
+
+* ∂(x̄, ȳ)/∂x_C = (1/z₃)·[[1, 0, −x̄], [0, 1, −ȳ]] — L15 Eq. 2.24 with erratum 2 (third column −x_C, −y_C);
+* ∂x_C/∂P = R; ∂x_C/∂(spacecraft position) = −R (L15 Eq. 2.26/2.27 with erratum 3: −T_C^B);
+* ∂x_C/∂δθ = [x_C×] for the update T⁺ = Rot(−δθ)·T (erratum 3; :func:`frames.apply_attitude_update`);
+* the distortion derivative is written directly from the SPC-order formulas (erratum 4 does not arise).
+
+The inverse (:meth:`Camera.pixel_to_focal`) replaces SPC's 20-step fixed-point PXMM iteration
+(spc-formats.md §2.5 step 6) by a damped Newton iteration on the full 2×2 map, run per point until the
+pixel residual is below ``tol`` (default 1e-10 px); points that do not converge are reported.
+
+Speed: the kernels are compiled by numba on first use and cached (``cache=True``) in ``__pycache__``;
+a cold compile of the three kernels takes roughly 10–15 s once per machine and source change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from spctool.errors import SpcUsageError
+from spctool.geometry.frames import apply_attitude_update, skew
+
+__all__ = ["Camera", "MODELS", "ProjectionJacobians", "model_code"]
+
+#: distortion models implemented, with the kernel code of each
+MODELS = {"NONE": 0, "OWEN": 1, "RADIAL": 2, "CUBIC": 3, "APOLLO": 4, "HIRISE": 5, "LINESCAN": 6}
+#: coefficients handed to the kernels (CUBIC uses P0…P20); missing coefficients count as 0
+_NCOEF = 21
+# The kernels receive every constant as one tuple of floats ``q`` (scalars, so that LLVM keeps them in
+# registers; array loads inside the loops could not be hoisted because the outputs might alias them):
+#   q[0] MMFL, q[1:3] CTR, q[3:9] K11 K12 K13 K21 K22 K23, q[9:13] D1…D4, q[13 + k] = P_k (k = 0…20).
+_NQ = 13 + _NCOEF
+
+
+def model_code(name: str) -> int:
+    """Kernel code of a distortion-model name (case-insensitive); SpcUsageError if not implemented."""
+    key = (name or "NONE").strip().upper()
+    if key not in MODELS:
+        raise SpcUsageError(
+            f"camera distortion model {name!r} is not implemented (known: {', '.join(MODELS)}); "
+            "SPC's USGS, OPENCV and HAYA2 models have no public equations"
+        )
+    return MODELS[key]
+
+
+# --------------------------------------------------------------------------------------------------
+# numba kernels: scalar per-point model + loops over points
+# --------------------------------------------------------------------------------------------------
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@numba.njit(inline="always", **_JIT)
+def _focal_value(model, q, xn, yn):
+    """(x̄, ȳ) → distorted focal plane (x, y) in mm (value only; see :func:`_focal_jac`)."""
+    mmfl = q[0]
+    if model == 0:
+        return mmfl * xn, mmfl * yn
+    c = (1.0 + q[13]) * mmfl
+    x = c * xn
+    y = c * yn
+    if model == 1:  # OWEN, SPC order P1…P6 = q[14…19]
+        r2 = x * x + y * y
+        r = math.sqrt(r2)
+        a = q[15] * r2 + q[17] * r2 * r2  # radial P2 r² + P4 r⁴
+        b = q[14] * r + q[16] * r2 * r  # pinwheel P1 r + P3 r³
+        return (
+            x + x * a - y * b + q[18] * x * y + q[19] * x * x,
+            y + y * a + x * b + q[18] * y * y + q[19] * x * y,
+        )
+    if model == 2:  # RADIAL
+        r2 = x * x + y * y
+        g = 1.0 + q[14] * r2 + q[15] * r2 * r2
+        return x * g, y * g
+    if model == 3:  # CUBIC: x' = Σ P1…P10 · m, y' = Σ P11…P20 · m
+        x2 = x * x
+        y2 = y * y
+        xy = x * y
+        return (
+            (
+                q[14]
+                + q[15] * x
+                + q[16] * y
+                + q[17] * x2
+                + q[18] * xy
+                + q[19] * y2
+                + q[20] * x2 * x
+                + q[21] * x2 * y
+                + q[22] * x * y2
+                + q[23] * y2 * y
+            ),
+            (
+                q[24]
+                + q[25] * x
+                + q[26] * y
+                + q[27] * x2
+                + q[28] * xy
+                + q[29] * y2
+                + q[30] * x2 * x
+                + q[31] * x2 * y
+                + q[32] * x * y2
+                + q[33] * y2 * y
+            ),
+        )
+    if model == 4:  # APOLLO
+        rho = x * x + y * y
+        g = 1.0 + q[14] * rho + q[15] * rho * rho + q[16] * rho * rho * rho
+        t = q[17] * rho + q[18] * rho * rho
+        return g * x + t * math.sin(q[19]), g * y - t * math.cos(q[19])
+    if model == 5:  # HIRISE
+        return x - q[14], y - q[15]
+    # model 6, LINESCAN (focal plane only): y' = MMFL·ȳ, unscaled
+    rr2 = x * x + q[14] * q[14]
+    return x * (1.0 + q[15] * rr2 + q[16] * rr2 * math.sqrt(rr2)), mmfl * yn
+
+
+@numba.njit(inline="always", **_JIT)
+def _focal_jac(model, q, xn, yn):
+    """(x̄, ȳ) → (x, y) mm and a = ∂(x, y)/∂(x̄, ȳ), differentiated term by term from §6.4."""
+    mmfl = q[0]
+    if model == 0:
+        return mmfl * xn, mmfl * yn, mmfl, 0.0, 0.0, mmfl
+    c = (1.0 + q[13]) * mmfl
+    x = c * xn
+    y = c * yn
+    if model == 1:  # OWEN
+        p1, p2, p3, p4, p5, p6 = q[14], q[15], q[16], q[17], q[18], q[19]
+        r2 = x * x + y * y
+        r = math.sqrt(r2)
+        a = p2 * r2 + p4 * r2 * r2  # radial factor A(r)
+        b = p1 * r + p3 * r2 * r  # pinwheel factor B(r)
+        da = 2.0 * p2 + 4.0 * p4 * r2  # ∂A/∂x = da·x, ∂A/∂y = da·y
+        # ∂B/∂x = B'(r)·x/r with B' = P1 + 3·P3·r²; at r = 0 the products y·B, x·B have zero derivative
+        if r > 0.0:
+            bp = p1 + 3.0 * p3 * r2
+            dbx = bp * (x / r)  # |x/r| ≤ 1: no overflow even for subnormal r
+            dby = bp * (y / r)
+        else:
+            dbx = 0.0
+            dby = 0.0
+        xd = x + x * a - y * b + p5 * x * y + p6 * x * x
+        yd = y + y * a + x * b + p5 * y * y + p6 * x * y
+        j11 = 1.0 + a + x * da * x - y * dbx + p5 * y + 2.0 * p6 * x
+        j12 = x * da * y - b - y * dby + p5 * x
+        j21 = y * da * x + b + x * dbx + p6 * y
+        j22 = 1.0 + a + y * da * y + x * dby + 2.0 * p5 * y + p6 * x
+        return xd, yd, c * j11, c * j12, c * j21, c * j22
+    if model == 2:  # RADIAL
+        r2 = x * x + y * y
+        g = 1.0 + q[14] * r2 + q[15] * r2 * r2
+        dg = 2.0 * q[14] + 4.0 * q[15] * r2  # ∂g/∂x = dg·x
+        return x * g, y * g, c * (g + x * dg * x), c * (x * dg * y), c * (y * dg * x), c * (g + y * dg * y)
+    if model == 3:  # CUBIC
+        x2 = x * x
+        y2 = y * y
+        xy = x * y
+        xd = (
+            q[14]
+            + q[15] * x
+            + q[16] * y
+            + q[17] * x2
+            + q[18] * xy
+            + q[19] * y2
+            + q[20] * x2 * x
+            + q[21] * x2 * y
+            + q[22] * x * y2
+            + q[23] * y2 * y
+        )
+        yd = (
+            q[24]
+            + q[25] * x
+            + q[26] * y
+            + q[27] * x2
+            + q[28] * xy
+            + q[29] * y2
+            + q[30] * x2 * x
+            + q[31] * x2 * y
+            + q[32] * x * y2
+            + q[33] * y2 * y
+        )
+        j11 = q[15] + 2.0 * q[17] * x + q[18] * y + 3.0 * q[20] * x2 + 2.0 * q[21] * xy + q[22] * y2
+        j12 = q[16] + q[18] * x + 2.0 * q[19] * y + q[21] * x2 + 2.0 * q[22] * xy + 3.0 * q[23] * y2
+        j21 = q[25] + 2.0 * q[27] * x + q[28] * y + 3.0 * q[30] * x2 + 2.0 * q[31] * xy + q[32] * y2
+        j22 = q[26] + q[28] * x + 2.0 * q[29] * y + q[31] * x2 + 2.0 * q[32] * xy + 3.0 * q[33] * y2
+        return xd, yd, c * j11, c * j12, c * j21, c * j22
+    if model == 4:  # APOLLO
+        rho = x * x + y * y
+        g = 1.0 + q[14] * rho + q[15] * rho * rho + q[16] * rho * rho * rho
+        dg = 2.0 * (q[14] + 2.0 * q[15] * rho + 3.0 * q[16] * rho * rho)  # ∂g/∂x = dg·x
+        t = q[17] * rho + q[18] * rho * rho
+        dt = 2.0 * (q[17] + 2.0 * q[18] * rho)  # ∂t/∂x = dt·x
+        s6 = math.sin(q[19])
+        c6 = math.cos(q[19])
+        j11 = g + x * dg * x + s6 * dt * x
+        j12 = x * dg * y + s6 * dt * y
+        j21 = y * dg * x - c6 * dt * x
+        j22 = g + y * dg * y - c6 * dt * y
+        return g * x + t * s6, g * y - t * c6, c * j11, c * j12, c * j21, c * j22
+    if model == 5:  # HIRISE
+        return x - q[14], y - q[15], c, 0.0, 0.0, c
+    # LINESCAN
+    rr2 = x * x + q[14] * q[14]
+    rr = math.sqrt(rr2)
+    g = 1.0 + q[15] * rr2 + q[16] * rr2 * rr
+    dgx = (2.0 * q[15] + 3.0 * q[16] * rr) * x  # ∂g/∂x
+    return x * g, mmfl * yn, c * (g + x * dgx), 0.0, 0.0, mmfl
+
+
+@numba.njit(inline="always", **_JIT)
+def _pixel_value(model, q, xn, yn):
+    """(x̄, ȳ) → (sample, line): distortion model, legacy D terms (MMPX), K-matrix with x·y column."""
+    x, y = _focal_value(model, q, xn, yn)
+    f = 1.0 + q[9]
+    x *= f
+    y *= f
+    s = 1.0 + q[10] * (x * x + y * y) + q[11] * y + q[12] * x  # exactly 1 when D2…D4 = 0
+    x *= s
+    y *= s
+    return q[1] + q[3] * x + q[4] * y + q[5] * x * y, q[2] + q[6] * x + q[7] * y + q[8] * x * y
+
+
+@numba.njit(inline="always", **_JIT)
+def _pixel_jac(model, q, xn, yn):
+    """(x̄, ȳ) → (sample, line) and the chained 2×2 derivative ∂(sample, line)/∂(x̄, ȳ)."""
+    x, y, a11, a12, a21, a22 = _focal_jac(model, q, xn, yn)
+    # legacy D terms: ×(1 + D1), then ×s with s = 1 + D2 r² + D3 y + D4 x
+    f = 1.0 + q[9]
+    x *= f
+    y *= f
+    d2, d3, d4 = q[10], q[11], q[12]
+    s = 1.0 + d2 * (x * x + y * y) + d3 * y + d4 * x
+    sx = 2.0 * d2 * x + d4
+    sy = 2.0 * d2 * y + d3
+    m11 = f * (s + x * sx)
+    m12 = f * (x * sy)
+    m21 = f * (y * sx)
+    m22 = f * (s + y * sy)
+    b11 = m11 * a11 + m12 * a21
+    b12 = m11 * a12 + m12 * a22
+    b21 = m21 * a11 + m22 * a21
+    b22 = m21 * a12 + m22 * a22
+    x *= s
+    y *= s
+    k11, k12, k13, k21, k22, k23 = q[3], q[4], q[5], q[6], q[7], q[8]
+    q11 = k11 + k13 * y
+    q12 = k12 + k13 * x
+    q21 = k21 + k23 * y
+    q22 = k22 + k23 * x
+    return (
+        q[1] + k11 * x + k12 * y + k13 * x * y,
+        q[2] + k21 * x + k22 * y + k23 * x * y,
+        q11 * b11 + q12 * b21,
+        q11 * b12 + q12 * b22,
+        q21 * b11 + q22 * b21,
+        q21 * b12 + q22 * b22,
+    )
+
+
+@numba.njit(**_JIT)
+def _k_project_body(points, rot, scobj, q, model, smp, lin, front):
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    s0, s1, s2 = scobj[0], scobj[1], scobj[2]
+    for i in range(points.shape[0]):
+        u0 = points[i, 0] + s0
+        u1 = points[i, 1] + s1
+        u2 = points[i, 2] + s2
+        z0 = r00 * u0 + r01 * u1 + r02 * u2
+        z1 = r10 * u0 + r11 * u1 + r12 * u2
+        z2 = r20 * u0 + r21 * u1 + r22 * u2
+        smp[i], lin[i] = _pixel_value(model, q, z0 / z2, z1 / z2)
+        front[i] = z2 > 0.0
+
+
+@numba.njit(**_JIT)
+def _k_jac_camera(zc, q, model, smp, lin, jac):
+    """Pixel and ∂(sample, line)/∂x_C (2×3) of camera-frame points."""
+    for i in range(zc.shape[0]):
+        w = 1.0 / zc[i, 2]
+        xn = zc[i, 0] * w
+        yn = zc[i, 1] * w
+        s, l, j11, j12, j21, j22 = _pixel_jac(model, q, xn, yn)
+        smp[i] = s
+        lin[i] = l
+        # ∂(x̄, ȳ)/∂x_C = (1/z)·[[1, 0, −x̄], [0, 1, −ȳ]]  (L15 Eq. 2.24 with erratum 2)
+        jac[i, 0, 0] = j11 * w
+        jac[i, 0, 1] = j12 * w
+        jac[i, 0, 2] = -(j11 * xn + j12 * yn) * w
+        jac[i, 1, 0] = j21 * w
+        jac[i, 1, 1] = j22 * w
+        jac[i, 1, 2] = -(j21 * xn + j22 * yn) * w
+
+
+@numba.njit(**_JIT)
+def _k_invert(smp, lin, q, model, guess, tol, max_iter, rot, xn_out, yn_out, dirs, niter_out):
+    """Newton on (x̄, ȳ) ↦ (sample, line), per point, with step halving.
+
+    ``guess`` = (G11, G12, G21, G22, g) gives the start (x̄, ȳ) = g·G·(sample − CTR1, line − CTR2) (the
+    inverse of the linear part).  Writes x̄, ȳ, the unit direction Rᵀ·(x̄, ȳ, 1)/‖·‖ and the Newton step
+    count; NaN where the residual max(|Δsample|, |Δline|) does not reach ``tol`` within ``max_iter``
+    steps.  The model is evaluated at one call site only (it is inlined; this keeps compile time low).
+    """
+    g11, g12, g21, g22, gs = guess
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    for i in range(smp.shape[0]):
+        ts = smp[i]
+        tl = lin[i]
+        ds = ts - q[1]
+        dl = tl - q[2]
+        xt = gs * (g11 * ds + g12 * dl)  # trial point
+        yt = gs * (g21 * ds + g22 * dl)
+        xn = xt  # last accepted point
+        yn = yt
+        err = np.inf
+        dx = 0.0
+        dy = 0.0
+        step = 1.0
+        halvings = 0
+        it = 0
+        ok = False
+        while True:
+            s, l, j11, j12, j21, j22 = _pixel_jac(model, q, xt, yt)
+            fs = s - ts
+            fl = l - tl
+            e = max(abs(fs), abs(fl))
+            if e < err or e <= tol:  # accept the trial point
+                xn = xt
+                yn = yt
+                err = e
+                if e <= tol:
+                    ok = True
+                    break
+                if it >= max_iter:
+                    break
+                det = j11 * j22 - j12 * j21
+                if det == 0.0 or det != det:
+                    break
+                dx = (j12 * fl - j22 * fs) / det
+                dy = (j21 * fs - j11 * fl) / det
+                step = 1.0
+                halvings = 0
+                it += 1
+            else:  # residual grew (or is NaN): halve the step
+                halvings += 1
+                if halvings > 30:
+                    break
+                step *= 0.5
+            xt = xn + step * dx
+            yt = yn + step * dy
+        niter_out[i] = it
+        if not ok:
+            xn = np.nan
+            yn = np.nan
+        xn_out[i] = xn
+        yn_out[i] = yn
+        nrm = 1.0 / math.sqrt(xn * xn + yn * yn + 1.0)
+        cx = xn * nrm
+        cy = yn * nrm
+        dirs[i, 0] = r00 * cx + r10 * cy + r20 * nrm
+        dirs[i, 1] = r01 * cx + r11 * cy + r21 * nrm
+        dirs[i, 2] = r02 * cx + r12 * cy + r22 * nrm
+
+
+# --------------------------------------------------------------------------------------------------
+# Camera
+# --------------------------------------------------------------------------------------------------
+
+
+class ProjectionJacobians(NamedTuple):
+    """Everything a pose or landmark solver needs from one pass over N points."""
+
+    sample: np.ndarray  # (N,)
+    line: np.ndarray  # (N,)
+    camera_points: np.ndarray  # (N, 3) x_C = R·(P + SCOBJ)
+    camera: np.ndarray  # (N, 2, 3) ∂(sample, line)/∂x_C
+    position: np.ndarray  # (N, 2, 3) ∂/∂(spacecraft position, body frame) = −camera·R
+    attitude: np.ndarray  # (N, 2, 3) ∂/∂δθ for T⁺ = Rot(−δθ)·T, = camera·[x_C×]
+    point: np.ndarray  # (N, 2, 3) ∂/∂(landmark body position) = camera·R
+
+
+_EYE = np.eye(3)
+_ZERO3 = np.zeros(3)
+# read-only like the Camera's own arrays, so the kernels see one array type (one compilation)
+_EYE.flags.writeable = False
+_ZERO3.flags.writeable = False
+
+
+def _f64(a, shape=None, name="array") -> np.ndarray:
+    out = np.array(a, dtype=np.float64, copy=True)
+    if shape is not None and out.shape != shape:
+        raise SpcUsageError(f"camera {name} must have shape {shape}, got {out.shape}")
+    out.flags.writeable = False
+    return out
+
+
+def _flat(a) -> np.ndarray:
+    """1-D, C-contiguous, writable float64 (one array type for the kernels: one compilation)."""
+    out = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1))
+    return out if out.flags.writeable else out.copy()
+
+
+def _points(points) -> tuple[np.ndarray, tuple]:
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[-1:] != (3,):
+        raise ValueError(f"expected points with a last axis of length 3, got shape {p.shape}")
+    lead = p.shape[:-1]
+    p = np.ascontiguousarray(p.reshape(-1, 3))
+    if not p.flags.writeable:  # keep one array type for the kernels (avoids a second compilation)
+        p = p.copy()
+    return p, lead
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """Intrinsics and pose of one SPC picture (spc-formats.md §2.5, §6.4).
+
+    Arrays are stored as read-only float64 copies.  ``rotation`` is body→camera (rows CX, CY, CZ);
+    ``scobj`` is the SUM SCOBJ (spacecraft → body centre, body frame, km); ``coefficients`` are the
+    ``DISTORT=`` values P0…PJ in SPC order (missing trailing coefficients count as 0).
+    """
+
+    mmfl: float
+    ctr: np.ndarray
+    kmatrix: np.ndarray
+    rotation: np.ndarray
+    scobj: np.ndarray
+    npx: int
+    nln: int
+    legacy_d: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    model: str = "NONE"
+    coefficients: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    name: str = ""
+
+    def __post_init__(self):
+        set_ = object.__setattr__
+        set_(self, "mmfl", float(self.mmfl))
+        set_(self, "ctr", _f64(self.ctr, (2,), "ctr"))
+        set_(self, "kmatrix", _f64(self.kmatrix, (2, 3), "kmatrix"))
+        set_(self, "rotation", _f64(self.rotation, (3, 3), "rotation"))
+        set_(self, "scobj", _f64(self.scobj, (3,), "scobj"))
+        set_(self, "npx", int(self.npx))
+        set_(self, "nln", int(self.nln))
+        d = np.zeros(4) if self.legacy_d is None else self.legacy_d
+        set_(self, "legacy_d", _f64(d, (4,), "legacy_d"))
+        code = model_code(self.model)
+        set_(self, "model", (self.model or "NONE").strip().upper())
+        coef = _f64(np.zeros(0) if self.coefficients is None else self.coefficients, None, "coefficients")
+        if coef.ndim != 1 or coef.size > 101:
+            raise SpcUsageError(f"camera coefficients must be P0…PJ with J ≤ 100, got shape {coef.shape}")
+        set_(self, "coefficients", coef)
+        packed = np.zeros(_NCOEF)
+        if code != 0:
+            used = min(coef.size, _NCOEF)
+            packed[:used] = coef[:used]
+        q = np.concatenate([[self.mmfl], self.ctr, self.kmatrix.reshape(6), self.legacy_d, packed])
+        set_(self, "_code", code)
+        set_(self, "_q", tuple(float(v) for v in q))
+        # start of the inverse: (x̄, ȳ) = g·K₂⁻¹·(sample − CTR1, line − CTR2), K₂ = K's 2×2 block
+        k2 = self.kmatrix[:, :2]
+        if np.linalg.det(k2) == 0.0:
+            raise SpcUsageError("camera K-matrix 2×2 block is singular")
+        kinv = np.linalg.inv(k2)
+        g = 1.0 / (self.mmfl * (1.0 + self.legacy_d[0]) * (1.0 + packed[0] if code != 0 else 1.0))
+        set_(self, "_guess", (float(kinv[0, 0]), float(kinv[0, 1]), float(kinv[1, 0]), float(kinv[1, 1]), g))
+
+    # ---- construction ---------------------------------------------------------------------------
+
+    @classmethod
+    def from_picture(cls, picture, settings=None) -> Camera:
+        """Camera of a SUM ``Picture``; ``settings`` (INIT_LITHOS) supplies a matching ``DISTORT=`` model.
+
+        The legacy SUM ``DISTORTION`` values (``picture.distortion``, None when the line is absent)
+        are applied as well (spc-formats.md §2.5 step 4).
+        """
+        model, coef = "NONE", np.zeros(0)
+        if settings is not None:
+            dm = settings.distortion_for(picture.name)
+            if dm is not None:
+                model, coef = dm.model, np.asarray(dm.coefficients, dtype=np.float64)
+        d = getattr(picture, "distortion", None)
+        return cls(
+            mmfl=picture.mmfl,
+            ctr=picture.ctr,
+            kmatrix=picture.kmatrix,
+            rotation=picture.rotation,
+            scobj=picture.scobj,
+            npx=picture.npx,
+            nln=picture.nln,
+            legacy_d=np.zeros(4) if d is None else d,
+            model=model,
+            coefficients=coef,
+            name=getattr(picture, "name", ""),
+        )
+
+    @property
+    def position(self) -> np.ndarray:
+        """Body-frame spacecraft position (km) = −SCOBJ."""
+        return -self.scobj
+
+    def with_pose(self, *, scobj=None, rotation=None, position=None) -> Camera:
+        """Copy with a new pose: give ``scobj`` or ``position`` (= −scobj), and/or ``rotation``."""
+        if scobj is not None and position is not None:
+            raise SpcUsageError("give scobj or position, not both")
+        changes = {}
+        if position is not None:
+            changes["scobj"] = -np.asarray(position, dtype=np.float64)
+        if scobj is not None:
+            changes["scobj"] = scobj
+        if rotation is not None:
+            changes["rotation"] = rotation
+        return dataclasses.replace(self, **changes)
+
+    def updated(self, dposition=None, dtheta=None) -> Camera:
+        """Copy after a pose-solver step: position += dposition; T⁺ = Rot(−δθ)·T.
+
+        The attitude update is :func:`spctool.geometry.frames.apply_attitude_update`, the convention of
+        :meth:`jacobian_attitude`.
+        """
+        pos = self.position if dposition is None else self.position + np.asarray(dposition, dtype=np.float64)
+        rot = self.rotation if dtheta is None else apply_attitude_update(self.rotation, dtheta)
+        return self.with_pose(position=pos, rotation=rot)
+
+    # ---- derived quantities ---------------------------------------------------------------------
+
+    @property
+    def ifov(self) -> float:
+        """Instantaneous field of view (rad/px) = 1/(MMFL·√|K11·K22|) (spc-formats.md §2.5 step 7)."""
+        return 1.0 / (self.mmfl * math.sqrt(abs(self.kmatrix[0, 0] * self.kmatrix[1, 1])))
+
+    @property
+    def half_fov(self) -> tuple[float, float]:
+        """Approximate half field of view (rad): (NPX/(2·|K11|·MMFL), NLN/(2·|K22|·MMFL)) (§2.5 step 7)."""
+        return (
+            self.npx / (2.0 * abs(self.kmatrix[0, 0]) * self.mmfl),
+            self.nln / (2.0 * abs(self.kmatrix[1, 1]) * self.mmfl),
+        )
+
+    @property
+    def boresight(self) -> np.ndarray:
+        """Camera +z axis (CZ) in the body frame."""
+        return self.rotation[2].copy()
+
+    def resolution(self, points, normals=None) -> np.ndarray:
+        """Ground resolution (km/px) = range·IFOV / cos(emission); cos(emission) = 1 when normals is None."""
+        p, lead = _points(points)
+        los = p - self.position
+        rng = np.linalg.norm(los, axis=-1)
+        res = rng * self.ifov
+        if normals is not None:
+            n = np.broadcast_to(np.asarray(normals, dtype=np.float64), lead + (3,)).reshape(-1, 3)
+            mu = -np.sum(n * los, axis=-1) / (rng * np.linalg.norm(n, axis=-1))
+            res = res / mu
+        return res.reshape(lead)
+
+    def in_image(self, sample, line) -> np.ndarray:
+        """1 ≤ sample ≤ NPX and 1 ≤ line ≤ NLN (spc-formats.md §2.5 step 5)."""
+        s = np.asarray(sample)
+        ln = np.asarray(line)
+        return (s >= 1.0) & (s <= self.npx) & (ln >= 1.0) & (ln <= self.nln)
+
+    # ---- frames ---------------------------------------------------------------------------------
+
+    def to_camera(self, points) -> np.ndarray:
+        """Camera-frame vectors x_C = R·(P + SCOBJ) of body-fixed points (..., 3)."""
+        p = np.asarray(points, dtype=np.float64)
+        return (p + self.scobj) @ self.rotation.T
+
+    def in_front(self, points) -> np.ndarray:
+        """z_C > 0 for body-fixed points (..., 3)."""
+        p = np.asarray(points, dtype=np.float64)
+        return (p + self.scobj) @ self.rotation[2] > 0.0
+
+    # ---- forward --------------------------------------------------------------------------------
+
+    def project_with_mask(self, points):
+        """(sample, line, in_front) of body-fixed points (..., 3); no clipping."""
+        p, lead = _points(points)
+        n = p.shape[0]
+        smp = np.empty(n)
+        lin = np.empty(n)
+        front = np.empty(n, dtype=np.bool_)
+        _k_project_body(p, self.rotation, self.scobj, self._q, self._code, smp, lin, front)
+        return smp.reshape(lead), lin.reshape(lead), front.reshape(lead)
+
+    def project(self, points):
+        """(sample, line) of body-fixed points (..., 3): 1-based SPC pixels, no clipping.
+
+        Points behind the camera still get a (meaningless) pixel; use :meth:`project_with_mask` or
+        :meth:`in_front` to tell them apart.
+        """
+        smp, lin, _ = self.project_with_mask(points)
+        return smp, lin
+
+    def project_camera_frame(self, points_cam):
+        """(sample, line) of camera-frame vectors (..., 3)."""
+        z, lead = _points(points_cam)
+        n = z.shape[0]
+        smp = np.empty(n)
+        lin = np.empty(n)
+        front = np.empty(n, dtype=np.bool_)
+        _k_project_body(z, _EYE, _ZERO3, self._q, self._code, smp, lin, front)
+        return smp.reshape(lead), lin.reshape(lead)
+
+    def focal_to_pixel(self, xn, yn, *, jacobian: bool = False):
+        """Normalised focal plane (x̄, ȳ) = (z₁/z₃, z₂/z₃) → (sample, line).
+
+        With ``jacobian=True`` also returns ∂(sample, line)/∂(x̄, ȳ) with shape (..., 2, 2).
+        """
+        xn, yn = np.broadcast_arrays(np.asarray(xn, dtype=np.float64), np.asarray(yn, dtype=np.float64))
+        lead = xn.shape
+        z = np.empty(xn.shape + (3,))
+        z[..., 0] = xn
+        z[..., 1] = yn
+        z[..., 2] = 1.0
+        if not jacobian:
+            return self.project_camera_frame(z)
+        smp, lin, jac = self._camera_jacobian_flat(z.reshape(-1, 3))
+        return smp.reshape(lead), lin.reshape(lead), jac[:, :, :2].reshape(lead + (2, 2))
+
+    # ---- inverse --------------------------------------------------------------------------------
+
+    def _invert(self, sample, line, rot, tol, max_iter):
+        s, ln = np.broadcast_arrays(np.asarray(sample, dtype=np.float64), np.asarray(line, dtype=np.float64))
+        lead = s.shape
+        sf = _flat(s)
+        lf = _flat(ln)
+        n = sf.size
+        xn = np.empty(n)
+        yn = np.empty(n)
+        dirs = np.empty((n, 3))
+        nit = np.empty(n, dtype=np.int64)
+        _k_invert(sf, lf, self._q, self._code, self._guess, float(tol), int(max_iter), rot, xn, yn, dirs, nit)
+        return xn.reshape(lead), yn.reshape(lead), dirs.reshape(lead + (3,)), nit.reshape(lead)
+
+    def pixel_to_focal(
+        self, sample, line, *, tol: float = 1e-10, max_iter: int = 50, return_iterations: bool = False
+    ):
+        """Normalised focal plane (x̄, ȳ) whose projection is (sample, line); vectorised.
+
+        Replaces SPC's fixed-point PXMM (spc-formats.md §2.5 step 6) by Newton on the full 2×2 map
+        (distortion + legacy D + K) per point, with step halving, until the pixel residual
+        max(|Δsample|, |Δline|) ≤ ``tol``.  Points that do not converge within ``max_iter`` steps (no
+        preimage: the model folds there) give NaN.  ``return_iterations`` adds the step count per point.
+        """
+        xn, yn, _, nit = self._invert(sample, line, _EYE, tol, max_iter)
+        return (xn, yn, nit) if return_iterations else (xn, yn)
+
+    def pixel_to_camera_direction(
+        self, sample, line, *, tol: float = 1e-10, max_iter: int = 50
+    ) -> np.ndarray:
+        """Unit line of sight (..., 3) in the camera frame (z_C > 0); NaN where not invertible."""
+        return self._invert(sample, line, _EYE, tol, max_iter)[2]
+
+    def pixel_to_direction(self, sample, line, *, tol: float = 1e-10, max_iter: int = 50) -> np.ndarray:
+        """Unit line of sight (..., 3) in the body frame for pixels (sample, line); NaN where not invertible.
+
+        The ray is P(t) = position + t·direction, t > 0.
+        """
+        return self._invert(sample, line, self.rotation, tol, max_iter)[2]
+
+    # ---- Jacobians ------------------------------------------------------------------------------
+
+    def _camera_jacobian_flat(self, zc):
+        n = zc.shape[0]
+        smp = np.empty(n)
+        lin = np.empty(n)
+        jac = np.empty((n, 2, 3))
+        _k_jac_camera(zc, self._q, self._code, smp, lin, jac)
+        return smp, lin, jac
+
+    def pixel_jacobian_camera(self, points_cam) -> np.ndarray:
+        """∂(sample, line)/∂x_C (..., 2, 3) for camera-frame points, distortion and K included."""
+        z, lead = _points(points_cam)
+        return self._camera_jacobian_flat(z)[2].reshape(lead + (2, 3))
+
+    def project_with_jacobians(self, points) -> ProjectionJacobians:
+        """Pixels and every pose/point Jacobian of body-fixed points (N, 3) in one pass."""
+        p, lead = _points(points)
+        zc = (p + self.scobj) @ self.rotation.T
+        smp, lin, jc = self._camera_jacobian_flat(np.ascontiguousarray(zc))
+        jp = jc @ self.rotation
+        ja = jc @ skew(zc)
+        return ProjectionJacobians(
+            smp.reshape(lead),
+            lin.reshape(lead),
+            zc.reshape(lead + (3,)),
+            jc.reshape(lead + (2, 3)),
+            (-jp).reshape(lead + (2, 3)),
+            ja.reshape(lead + (2, 3)),
+            jp.reshape(lead + (2, 3)),
+        )
+
+    def jacobian_point(self, points) -> np.ndarray:
+        """∂(sample, line)/∂P (..., 2, 3) for the landmark's body-fixed position P (km)."""
+        p, lead = _points(points)
+        zc = (p + self.scobj) @ self.rotation.T
+        return (self._camera_jacobian_flat(zc)[2] @ self.rotation).reshape(lead + (2, 3))
+
+    def jacobian_position(self, points) -> np.ndarray:
+        """∂(sample, line)/∂(spacecraft position, body frame, km) (..., 2, 3); SCOBJ = −position."""
+        return -self.jacobian_point(points)
+
+    def jacobian_attitude(self, points) -> np.ndarray:
+        """∂(sample, line)/∂δθ (..., 2, 3) for T⁺ = Rot(−δθ)·T (frames.apply_attitude_update): J_C·[x_C×]."""
+        p, lead = _points(points)
+        zc = (p + self.scobj) @ self.rotation.T
+        return (self._camera_jacobian_flat(zc)[2] @ skew(zc)).reshape(lead + (2, 3))
+
+    def jacobian_pose(self, points) -> np.ndarray:
+        """[∂/∂position | ∂/∂δθ] (..., 2, 6): the pose-solve design matrix block per point."""
+        j = self.project_with_jacobians(points)
+        return np.concatenate([j.position, j.attitude], axis=-1)
+
+    def jacobian_maplet(self, points, ux, uy, scale) -> np.ndarray:
+        """J_xy = ∂(sample, line)/∂(x, y) (..., 2, 2) in px per maplet cell (spc-algorithms.md §7.3, §8.3).
+
+        x is the offset along UX (J, axis 0), y along UY (I, axis 1); a cell is ``scale`` km, so
+        ∂P/∂x = scale·UX and ∂P/∂y = scale·UY.  ``ux``, ``uy``, ``scale`` broadcast against the points.
+        """
+        p = np.asarray(points, dtype=np.float64)
+        jp = self.jacobian_point(p)
+        s = np.asarray(scale, dtype=np.float64)[..., None]
+        cols = np.stack([s * np.asarray(ux, dtype=np.float64), s * np.asarray(uy, dtype=np.float64)], axis=-1)
+        return jp @ cols
