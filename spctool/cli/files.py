@@ -485,6 +485,8 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
         else:
             written = _map_images(obj, dst_p, out_kind, True, backup)
     elif kind in ("icq", "obj", "vtk"):
+        if out_kind in ("", "icq", kind) and dst_p.suffix.lower() in (".txt", ".icq"):
+            out_kind = "icq"  # SPC keeps shapes as SHAPEFILES/*.TXT
         from spctool.formats import icq as icqmod
         from spctool.formats import mesh as meshmod
 

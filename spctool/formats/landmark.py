@@ -1,0 +1,463 @@
+"""SPC landmark files (``LMKFILES/<NAME>.LMK``) <-> :class:`Landmark`.
+
+Specification: ``shared/docs/spc-formats.md`` §4 (layout, notes, example), §0.3 (Fortran numbers, byte-exact
+round trip), §8 items 6, 7, 17, 18 and §9 (checklist).
+
+Lines 1-9 are read by position, list-directed; the sections (``PICTURES``, ``MAP OVERLAPS``, ``LIMB FITS``)
+are found by their leading characters and may be missing (the real Rosetta files are trimmed to ``PICTURES`` +
+``END FILE``).  Writing is byte-exact: a parsed line keeps its text unless its values change, and is then
+regenerated with the LITHOS formats of §4.1 (tags at column 64) in the padding style of the line it replaces.
+New files are written in the LITHOS layout of §4.3 (lines 2-9 blank-padded to 80 columns by the ``A20`` tags).
+
+UX, UY, UZ are the COLUMNS of the maplet->body rotation (UY ~ East, UX ~ South; §8 item 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spctool.errors import SpcFormatError
+from spctool.formats import atomic
+from spctool.formats.sumfile import (
+    _dvec,
+    _emit_rows,
+    _fields_equal,
+    _fixed,
+    _floats,
+    _int_field,
+    _is_integral,
+    _join_lines,
+    _letter_of,
+    _majority_padded,
+    _pad,
+    _parse_limb,
+    _row_text,
+    _scan_numbers,
+    _scan_row,
+    _Slot,
+    _split_lines,
+    _src_path,
+    _tag_line,
+    _vector,
+)
+
+__all__ = [
+    "LandmarkPicture",
+    "MapOverlap",
+    "LandmarkLimb",
+    "Landmark",
+    "parse_lmk",
+    "read_lmk",
+    "format_lmk",
+    "write_lmk",
+]
+
+
+@dataclass
+class LandmarkPicture:
+    """A ``PICTURES`` row: picture name, predicted/measured sample and line (may be negative), flag
+    (``*``)."""
+
+    name: str
+    sample: float
+    line: float
+    flag: str = ""
+
+    def __post_init__(self):
+        self.flag = (self.flag or "").strip()
+        if len(self.flag) > 1:
+            raise ValueError(f"picture flag must be '' or one character, got {self.flag!r}")
+
+    def _key(self) -> tuple:
+        return (self.name, float(self.sample), float(self.line), self.flag)
+
+
+@dataclass(eq=False)
+class MapOverlap:
+    """A ``MAP OVERLAPS`` row: neighbour name and its centre offset (UX, UY, UZ) in units of this SCALE."""
+
+    name: str
+    offset: np.ndarray
+
+    def __post_init__(self):
+        self.offset = _vector(self.offset, (3,), "offset")
+
+    def __eq__(self, other):
+        if not isinstance(other, MapOverlap):
+            return NotImplemented
+        return self.name == other.name and np.array_equal(self.offset, other.offset)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def _key(self) -> tuple:
+        return (self.name,) + _floats(self.offset)
+
+
+@dataclass
+class LandmarkLimb:
+    """A ``LIMB FITS`` row of an LMK: picture name, sample, line and the third (undocumented) value."""
+
+    name: str
+    sample: float
+    line: float
+    value: float
+
+    def _key(self) -> tuple:
+        return (self.name, float(self.sample), float(self.line), float(self.value))
+
+
+@dataclass
+class _LmkSource:
+    header: list[_Slot]
+    section_order: list[str]
+    section_text: dict[str, str]
+    rows: dict[str, list[tuple[tuple, str]]]
+    end_line: str
+    after_end: list[str]
+    final_newline: bool
+    pad_header: bool
+    pad_body: bool
+
+
+_LMK_TAGS = {
+    "size": "SIZE, SCALE(KM)",
+    "horizon": "HORIZON",
+    "sig": "SIGKM, RMSLMK",
+    "vlm": "VLM",
+    "ux": "UX",
+    "uy": "UY",
+    "uz": "UZ",
+    "sigma_lmk": "SIGMA_LMK",
+}
+_LMK_ORDER = ["name", "size", "horizon", "sig", "vlm", "ux", "uy", "uz", "sigma_lmk"]
+_SECTIONS = {"pictures": "PICTURES", "overlaps": "MAP OVERLAPS", "limbs": "LIMB FITS"}
+_LANDMARK_FIELDS = (
+    "name",
+    "hflag",
+    "bigmap_extra",
+    "qsz",
+    "scale",
+    "horizon",
+    "sigkm",
+    "rmslmk",
+    "vlm",
+    "ux",
+    "uy",
+    "uz",
+    "sigma_lmk",
+    "pictures",
+    "overlaps",
+    "limb_fits",
+)
+
+
+@dataclass(eq=False)
+class Landmark:
+    """One LMK file (spc-formats.md §4).
+
+    ``vlm`` is the body-fixed maplet centre (km); ``ux``, ``uy``, ``uz`` the maplet axes in the body frame
+    (columns of map->body); ``scale`` km per cell; ``sigkm`` the a-priori position sigma (0.5*SCALE by
+    convention); ``bigmap_extra`` the two F8.4 numbers of the bigmap line-1 variant, or None.
+    """
+
+    name: str
+    hflag: str
+    bigmap_extra: tuple[float, float] | None
+    qsz: int
+    scale: float
+    horizon: tuple[int, int, int, int]
+    sigkm: float
+    rmslmk: float
+    vlm: np.ndarray
+    ux: np.ndarray
+    uy: np.ndarray
+    uz: np.ndarray
+    sigma_lmk: np.ndarray
+    pictures: list[LandmarkPicture] = field(default_factory=list)
+    overlaps: list[MapOverlap] = field(default_factory=list)
+    limb_fits: list[LandmarkLimb] = field(default_factory=list)
+    _source: _LmkSource | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.qsz = int(self.qsz)
+        self.scale = float(self.scale)
+        self.sigkm = float(self.sigkm)
+        self.rmslmk = float(self.rmslmk)
+        self.horizon = tuple(int(h) for h in self.horizon)
+        if len(self.horizon) != 4:
+            raise ValueError(f"horizon must have 4 integers, got {self.horizon!r}")
+        if self.bigmap_extra is not None:
+            a, b = self.bigmap_extra
+            self.bigmap_extra = (float(a), float(b))
+        for name in ("vlm", "ux", "uy", "uz", "sigma_lmk"):
+            setattr(self, name, _vector(getattr(self, name), (3,), name))
+        self.pictures = list(self.pictures)
+        self.overlaps = list(self.overlaps)
+        self.limb_fits = list(self.limb_fits)
+
+    def __eq__(self, other):
+        if not isinstance(other, Landmark):
+            return NotImplemented
+        return _fields_equal(self, other, _LANDMARK_FIELDS)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def rotation_map_to_body(self) -> np.ndarray:
+        """Maplet -> body rotation: UX, UY, UZ as columns."""
+        return np.column_stack([self.ux, self.uy, self.uz])
+
+
+def _landmark_values(lmk: Landmark, key: str) -> tuple:
+    if key == "name":
+        return (lmk.name, lmk.hflag, lmk.bigmap_extra)
+    if key == "size":
+        return (lmk.qsz, float(lmk.scale))
+    if key == "horizon":
+        return tuple(lmk.horizon)
+    if key == "sig":
+        return (float(lmk.sigkm), float(lmk.rmslmk))
+    return _floats(getattr(lmk, key))
+
+
+def _section_of(line: str) -> str | None:
+    if line.startswith("PICTURES"):
+        return "pictures"
+    if line.startswith("MAP OVERLAPS"):
+        return "overlaps"
+    if line.startswith("LIMB FITS"):
+        return "limbs"
+    if line.startswith("END FILE"):
+        return "end"
+    return None
+
+
+def parse_lmk(text: str, path=None) -> Landmark:
+    """Parse the text of an LMK file (spc-formats.md §4).  Bad input raises :class:`SpcFormatError`."""
+    path = _src_path(path)
+    lines, final = _split_lines(text)
+    n = len(lines)
+    whats = {
+        "size": "QSZ, SCALE",
+        "horizon": "HORIZON",
+        "sig": "SIGKM, RMSLMK",
+        "vlm": "VLM",
+        "ux": "UX",
+        "uy": "UY",
+        "uz": "UZ",
+        "sigma_lmk": "SIGMA_LMK",
+    }
+
+    def need(i: int, what: str) -> str:
+        if i >= n:
+            if n == 0:
+                raise SpcFormatError(path, 1, f"expected {what}, found an empty file")
+            raise SpcFormatError(path, n, f"expected {what} on line {i + 1}, found end of file")
+        return lines[i]
+
+    header: list[_Slot] = []
+    # line 1: (A6,3X,A1) or the bigmap variant (A6,3X,A1,4X,2F8.4)
+    line = need(0, "the landmark name and HFLAG")
+    name = line[:6].strip()
+    if not name:
+        raise SpcFormatError(path, 1, "expected the landmark name in columns 1-6")
+    rest = line[6:].split()
+    if not rest or rest[0] not in ("T", "F"):
+        found = rest[0] if rest else "nothing"
+        raise SpcFormatError(path, 1, f"expected HFLAG T or F after the name, found {found!r}")
+    hflag = rest[0]
+    extra_text = line[6:].split(hflag, 1)[1]
+    bigmap_extra = None
+    if extra_text.strip():
+        vals, _ = _scan_row(extra_text, 2, 8, path=path, lineno=1, what="numbers (bigmap line-1 values)")
+        bigmap_extra = (vals[0], vals[1])
+    header.append(_Slot("name", line, (name, hflag, bigmap_extra)))
+
+    values: dict[str, list[float]] = {}
+    counts = {"size": 2, "horizon": 4, "sig": 2}
+    for i, key in enumerate(_LMK_ORDER[1:], start=1):
+        ln = need(i, whats[key])
+        v, t = _scan_numbers(ln, counts.get(key, 3), path=path, lineno=i + 1, what=f"numbers ({whats[key]})")
+        if key == "size" and (not _is_integral(v[0]) or v[0] < 0):
+            raise SpcFormatError(path, i + 1, f"expected an integer QSZ, found {v[0]!r}")
+        if key == "horizon" and not all(_is_integral(x) for x in v):
+            raise SpcFormatError(path, i + 1, f"expected 4 integers (HORIZON), found {v!r}")
+        if key == "size":
+            v = [int(v[0]), v[1]]
+        elif key == "horizon":
+            v = [int(x) for x in v]
+        values[key] = v
+        header.append(_Slot(key, ln, tuple(v), t.strip()))
+
+    section_order: list[str] = []
+    section_text: dict[str, str] = {}
+    rows: dict[str, list[tuple[tuple, str]]] = {"pictures": [], "overlaps": [], "limbs": []}
+    pictures: list[LandmarkPicture] = []
+    overlaps: list[MapOverlap] = []
+    limbs: list[LandmarkLimb] = []
+    state = None
+    i = len(_LMK_ORDER)
+    while i < n:
+        ln = lines[i]
+        kind = _section_of(ln)
+        if kind == "end":
+            break
+        if kind is not None:
+            if kind in section_text:
+                raise SpcFormatError(path, i + 1, f"unexpected second {_SECTIONS[kind]} section")
+            section_order.append(kind)
+            section_text[kind] = ln
+            state = kind
+        elif state == "pictures":
+            pname = ln[:12].strip()
+            if not pname:
+                raise SpcFormatError(path, i + 1, "expected a picture name in columns 1-12")
+            v, r = _scan_row(ln[12:], 2, 10, path=path, lineno=i + 1, what="numbers (picture sample, line)")
+            flag = r.strip()
+            if len(flag) > 1:
+                raise SpcFormatError(path, i + 1, f"expected at most a 1-character flag, found {flag!r}")
+            pic = LandmarkPicture(pname, v[0], v[1], flag)
+            pictures.append(pic)
+            rows["pictures"].append((pic._key(), ln))
+        elif state == "overlaps":
+            oname = ln[:6].strip()
+            if not oname:
+                raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
+            v, r = _scan_row(ln[8:], 3, 12, path=path, lineno=i + 1, what="numbers (map overlap offset)")
+            if r.strip() or ln[6:8].strip():
+                raise SpcFormatError(path, i + 1, "expected a name and 3 numbers (map overlap)")
+            ov = MapOverlap(oname, np.array(v))
+            overlaps.append(ov)
+            rows["overlaps"].append((ov._key(), ln))
+        elif state == "limbs":
+            lf = _parse_limb(ln, path, i + 1, name_width=12)
+            limb = LandmarkLimb(lf.name, lf.sample, lf.line, lf.value)
+            limbs.append(limb)
+            rows["limbs"].append((limb._key(), ln))
+        else:
+            raise SpcFormatError(path, i + 1, "expected PICTURES, MAP OVERLAPS, LIMB FITS or END FILE")
+        i += 1
+    if i >= n:
+        raise SpcFormatError(path, max(n, 1), "expected END FILE line, found end of file")
+
+    source = _LmkSource(
+        header=header,
+        section_order=section_order,
+        section_text=section_text,
+        rows=rows,
+        end_line=lines[i],
+        after_end=lines[i + 1 :],
+        final_newline=final,
+        pad_header=_majority_padded(lines[1:9], True),
+        pad_body=_majority_padded([lines[0]] + lines[9 : i + 1], False),
+    )
+    return Landmark(
+        name=name,
+        hflag=hflag,
+        bigmap_extra=bigmap_extra,
+        qsz=values["size"][0],
+        scale=values["size"][1],
+        horizon=tuple(values["horizon"]),
+        sigkm=values["sig"][0],
+        rmslmk=values["sig"][1],
+        vlm=np.array(values["vlm"]),
+        ux=np.array(values["ux"]),
+        uy=np.array(values["uy"]),
+        uz=np.array(values["uz"]),
+        sigma_lmk=np.array(values["sigma_lmk"]),
+        pictures=pictures,
+        overlaps=overlaps,
+        limb_fits=limbs,
+        _source=source,
+    )
+
+
+def _lmk_line(lmk: Landmark, slot: _Slot, pad_header: bool, pad_body: bool) -> str:
+    """Regenerate one of lines 1-9 with the LITHOS formats of spc-formats.md §4.1."""
+    key = slot.key
+    if key == "name":
+        if len(lmk.name) > 6:
+            raise ValueError(f"landmark name {lmk.name!r} is longer than 6 characters")
+        if lmk.hflag not in ("T", "F"):
+            raise ValueError(f"HFLAG must be 'T' or 'F', got {lmk.hflag!r}")
+        text = lmk.name.ljust(6) + "   " + lmk.hflag
+        if lmk.bigmap_extra is not None:
+            text += "    " + "".join(_fixed(v, 8, 4) for v in lmk.bigmap_extra)
+        padded = slot.padded if slot.padded is not None else pad_body
+        return _pad(text, padded)
+    padded = slot.padded if slot.padded is not None else pad_header
+    tag = slot.tag or _LMK_TAGS[key]
+    letter = _letter_of(slot.text)
+    if key == "size":
+        nums = _int_field(lmk.qsz, 8) + _fixed(lmk.scale, 12, 7)
+    elif key == "horizon":
+        nums = "".join(_int_field(h, 10) for h in lmk.horizon)
+    elif key == "sig":
+        nums = _dvec([lmk.sigkm, lmk.rmslmk], letter)
+    else:
+        nums = _dvec(getattr(lmk, key), letter)
+    return _tag_line(nums, tag, padded)
+
+
+def _row(kind: str, item) -> str:
+    """A new section row: ``(A12,2F10.2[,1X,A1])``, ``(A6,2X,3F12.3)`` or ``(A12,3F10.2)``."""
+    if kind == "pictures":
+        return _row_text(item.name, 12, (item.sample, item.line), (10, 2), item.flag)
+    if kind == "overlaps":
+        return _row_text(item.name, 6, (), (12, 3)) + "  " + "".join(_fixed(v, 12, 3) for v in item.offset)
+    return _row_text(item.name, 12, (item.sample, item.line, item.value), (10, 2))
+
+
+def format_lmk(lmk: Landmark) -> str:
+    """LMK file text; unchanged lines of a parsed file are reproduced byte for byte."""
+    src = lmk._source
+    if src is None:
+        slots = [_Slot(k) for k in _LMK_ORDER]
+        pad_header, pad_body = True, False
+        order = ["pictures", "overlaps", "limbs"]
+        section_text: dict[str, str] = {}
+        rows: dict[str, list] = {"pictures": [], "overlaps": [], "limbs": []}
+    else:
+        slots = src.header
+        pad_header, pad_body = src.pad_header, src.pad_body
+        order = list(src.section_order)
+        section_text = src.section_text
+        rows = src.rows
+    out: list[str] = []
+    for slot in slots:
+        if slot.text is not None and _landmark_values(lmk, slot.key) == slot.values:
+            out.append(slot.text)
+        else:
+            out.append(_lmk_line(lmk, slot, pad_header, pad_body))
+
+    content = {"pictures": lmk.pictures, "overlaps": lmk.overlaps, "limbs": lmk.limb_fits}
+    for kind in ("pictures", "overlaps", "limbs"):
+        if kind not in order and content[kind]:
+            order.append(kind)
+    for kind in order:
+        out.append(section_text.get(kind, _pad(_SECTIONS[kind], pad_body)))
+        out.extend(
+            _emit_rows(rows[kind], content[kind], lambda item, kind=kind: _pad(_row(kind, item), pad_body))
+        )
+    if src is not None:
+        out.append(src.end_line)
+        out.extend(src.after_end)
+    else:
+        out.append("END FILE")
+    return _join_lines(out, src.final_newline if src is not None else True)
+
+
+def read_lmk(path) -> Landmark:
+    """Read ``LMKFILES/<NAME>.LMK``."""
+    try:
+        text = atomic.read_text(path)
+    except OSError as exc:
+        raise SpcFormatError(path, None, f"expected a readable LMK file ({exc.strerror})") from None
+    return parse_lmk(text, path)
+
+
+def write_lmk(path, lmk: Landmark, *, overwrite: bool = True, backup: bool = False):
+    """Write an LMK file atomically (returns the backup path if one was made)."""
+    return atomic.write_text(path, format_lmk(lmk), overwrite=overwrite, backup=backup)

@@ -1,0 +1,360 @@
+"""SPC list files: ``PICTLIST.TXT``, ``LMRKLIST.TXT`` and ``LMRKLISTX.TXT`` <-> dataclasses.
+
+Specification: ``shared/docs/spc-formats.md`` §7.1 (PICTLIST, ``(A13)``: column 1 flag, columns 2-13 name;
+flags blank = in use, ``!`` = tucked out, ``#`` = skipped), §7.2 (LMRKLIST, ``(A6)``; ``#`` lines and names
+starting with ``X`` are skipped), §7.3 (LMRKLISTX: name in columns 1-6, then list-directed QSZ, number of
+pictures, VLM(3), SCALE), §0.2 (names) and §9.  Every list ends with an ``END`` line, which is required.
+
+Byte-exact: lines whose entry is unchanged keep their text (comments, blank lines and text after the ``END``
+line are preserved); changed or new entries are written in the layouts above.  The same variants
+(``PICTLISTX.TXT``, ``USED_PICS.TXT``, ``LMRKLISTR.TXT`` ...) share these layouts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spctool.errors import SpcFormatError
+from spctool.formats import atomic
+from spctool.formats.fortran import format_d
+from spctool.formats.sumfile import (
+    _floats,
+    _is_integral,
+    _join_lines,
+    _RowPool,
+    _scan_numbers,
+    _split_lines,
+    _src_path,
+    _vector,
+)
+
+__all__ = [
+    "PictureListEntry",
+    "PictureList",
+    "parse_pictlist",
+    "read_pictlist",
+    "format_pictlist",
+    "write_pictlist",
+    "LandmarkList",
+    "parse_lmrklist",
+    "read_lmrklist",
+    "format_lmrklist",
+    "write_lmrklist",
+    "LandmarkListXEntry",
+    "LandmarkListX",
+    "parse_lmrklistx",
+    "read_lmrklistx",
+    "format_lmrklistx",
+    "write_lmrklistx",
+]
+
+_PICT_FLAGS = ("", "!", "#")
+
+
+@dataclass
+class _ListSource:
+    """Layout of a parsed list: ('entry', original key, text) or ('other', None, text) lines, END and
+    after."""
+
+    layout: list[tuple[str, tuple | None, str]]
+    end_line: str
+    after_end: list[str]
+    final_newline: bool
+
+
+def _emit(layout_src: _ListSource | None, keys: list[tuple], make_text) -> str:
+    """Emit a list: non-entry lines in place, entries in current order reusing unchanged original text."""
+    out: list[str] = []
+    if layout_src is None:
+        out = [make_text(i) for i in range(len(keys))]
+        out.append("END")
+        return _join_lines(out, True)
+    original = [k for kind, k, _ in layout_src.layout if kind == "entry"]
+    if original == keys:  # unchanged: the original lines
+        out = [t for _, _, t in layout_src.layout]
+        out.append(layout_src.end_line)
+        out.extend(layout_src.after_end)
+        return _join_lines(out, layout_src.final_newline)
+    pool = _RowPool([(k, t) for kind, k, t in layout_src.layout if kind == "entry"])
+    nxt = 0
+    for kind, _, text in layout_src.layout:
+        if kind == "other":
+            out.append(text)
+        elif nxt < len(keys):
+            found = pool.take(keys[nxt])
+            out.append(found if found is not None else make_text(nxt))
+            nxt += 1
+    for i in range(nxt, len(keys)):
+        found = pool.take(keys[i])
+        out.append(found if found is not None else make_text(i))
+    out.append(layout_src.end_line)
+    out.extend(layout_src.after_end)
+    return _join_lines(out, layout_src.final_newline)
+
+
+def _read(path, what: str) -> str:
+    try:
+        return atomic.read_text(path)
+    except OSError as exc:
+        raise SpcFormatError(path, None, f"expected a readable {what} file ({exc.strerror})") from None
+
+
+def _missing_end(path, n: int) -> SpcFormatError:
+    if n == 0:
+        return SpcFormatError(path, 1, "expected END line, found an empty file")
+    return SpcFormatError(path, n, "expected END line, found end of file")
+
+
+# ==================================================================================================
+# PICTLIST.TXT
+
+
+@dataclass
+class PictureListEntry:
+    """One PICTLIST line: picture name and flag ('' in use, '!' tucked out, '#' skipped)."""
+
+    name: str
+    flag: str = ""
+
+    def __post_init__(self):
+        self.flag = (self.flag or "").strip()
+        if self.flag not in _PICT_FLAGS:
+            raise ValueError(f"PICTLIST flag must be '', '!' or '#', got {self.flag!r}")
+
+    def _key(self) -> tuple:
+        return (self.name, self.flag)
+
+
+@dataclass
+class PictureList:
+    """``PICTLIST.TXT`` (and variants): entries in file order."""
+
+    entries: list[PictureListEntry] = field(default_factory=list)
+    _source: _ListSource | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def active_names(self) -> list[str]:
+        """Names of the pictures in use (blank flag)."""
+        return [e.name for e in self.entries if e.flag == ""]
+
+    @property
+    def names(self) -> list[str]:
+        return [e.name for e in self.entries]
+
+
+def parse_pictlist(text: str, path=None) -> PictureList:
+    """Parse PICTLIST text: ``(A13)`` lines up to the required ``END`` line (columns 1-3)."""
+    path = _src_path(path)
+    lines, final = _split_lines(text)
+    layout: list[tuple[str, tuple | None, str]] = []
+    entries: list[PictureListEntry] = []
+    for i, line in enumerate(lines):
+        if line[:3] == "END":
+            src = _ListSource(layout, line, lines[i + 1 :], final)
+            return PictureList(entries, src)
+        if not line.strip():
+            layout.append(("other", None, line))
+            continue
+        flag = line[0].strip()
+        if flag not in _PICT_FLAGS:
+            raise SpcFormatError(
+                path,
+                i + 1,
+                f"expected a blank, '!' or '#' in column 1 and the name in columns 2-13, found {line[:13]!r}",
+            )
+        name = line[1:13].strip()
+        if not name:
+            raise SpcFormatError(path, i + 1, "expected a picture name in columns 2-13")
+        entry = PictureListEntry(name, flag)
+        entries.append(entry)
+        layout.append(("entry", entry._key(), line))
+    raise _missing_end(path, len(lines))
+
+
+def format_pictlist(plist: PictureList) -> str:
+    entries = plist.entries
+    for e in entries:
+        if len(e.name) > 12:
+            raise ValueError(f"picture name {e.name!r} is longer than 12 characters")
+
+    def make(i: int) -> str:
+        e = entries[i]
+        return (e.flag or " ") + e.name
+
+    return _emit(plist._source, [e._key() for e in entries], make)
+
+
+def read_pictlist(path) -> PictureList:
+    return parse_pictlist(_read(path, "PICTLIST"), path)
+
+
+def write_pictlist(path, plist: PictureList, *, overwrite: bool = True, backup: bool = False):
+    return atomic.write_text(path, format_pictlist(plist), overwrite=overwrite, backup=backup)
+
+
+# ==================================================================================================
+# LMRKLIST.TXT
+
+
+@dataclass
+class LandmarkList:
+    """``LMRKLIST.TXT`` (and variants).
+
+    ``names`` holds every landmark line in order, including ``X``-names; ``#`` comment lines and blank lines
+    are kept for the round trip but are not names.  ``active_names`` drops names starting with ``X``
+    (spc-formats.md §0.2, §7.2).
+    """
+
+    names: list[str] = field(default_factory=list)
+    _source: _ListSource | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def active_names(self) -> list[str]:
+        return [n for n in self.names if not n.startswith("X")]
+
+    @property
+    def comments(self) -> list[str]:
+        """The ``#`` lines of the parsed file."""
+        if self._source is None:
+            return []
+        return [t for kind, _, t in self._source.layout if kind == "other" and t.startswith("#")]
+
+
+def parse_lmrklist(text: str, path=None) -> LandmarkList:
+    """Parse LMRKLIST text: one ``(A6)`` name a line up to the required ``END`` line."""
+    path = _src_path(path)
+    lines, final = _split_lines(text)
+    layout: list[tuple[str, tuple | None, str]] = []
+    names: list[str] = []
+    for i, line in enumerate(lines):
+        name = line[:6].strip()
+        if name == "END":
+            return LandmarkList(names, _ListSource(layout, line, lines[i + 1 :], final))
+        if line.startswith("#") or not line.strip():
+            layout.append(("other", None, line))
+            continue
+        if not name:
+            raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
+        names.append(name)
+        layout.append(("entry", (name,), line))
+    raise _missing_end(path, len(lines))
+
+
+def format_lmrklist(llist: LandmarkList) -> str:
+    names = llist.names
+    for name in names:
+        if len(name) > 6 or not name.strip():
+            raise ValueError(f"landmark name {name!r} must have 1 to 6 characters")
+    return _emit(llist._source, [(n,) for n in names], lambda i: names[i])
+
+
+def read_lmrklist(path) -> LandmarkList:
+    return parse_lmrklist(_read(path, "LMRKLIST"), path)
+
+
+def write_lmrklist(path, llist: LandmarkList, *, overwrite: bool = True, backup: bool = False):
+    return atomic.write_text(path, format_lmrklist(llist), overwrite=overwrite, backup=backup)
+
+
+# ==================================================================================================
+# LMRKLISTX.TXT
+
+
+@dataclass(eq=False)
+class LandmarkListXEntry:
+    """One LMRKLISTX line: name, QSZ, number of pictures, VLM (km, body frame), SCALE (km)."""
+
+    name: str
+    qsz: int
+    npictures: int
+    vlm: np.ndarray
+    scale: float
+
+    def __post_init__(self):
+        self.qsz = int(self.qsz)
+        self.npictures = int(self.npictures)
+        self.vlm = _vector(self.vlm, (3,), "vlm")
+        self.scale = float(self.scale)
+
+    def __eq__(self, other):
+        if not isinstance(other, LandmarkListXEntry):
+            return NotImplemented
+        return self._key() == other._key()
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def _key(self) -> tuple:
+        return (self.name, self.qsz, self.npictures) + _floats(self.vlm) + (float(self.scale),)
+
+
+@dataclass
+class LandmarkListX:
+    """``LMRKLISTX.TXT``: entries in file order (iterable and indexable like a list)."""
+
+    entries: list[LandmarkListXEntry] = field(default_factory=list)
+    _source: _ListSource | None = field(default=None, repr=False, compare=False)
+
+    def __iter__(self):
+        return iter(self.entries)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getitem__(self, index):
+        return self.entries[index]
+
+    @property
+    def names(self) -> list[str]:
+        return [e.name for e in self.entries]
+
+
+def parse_lmrklistx(text: str, path=None) -> LandmarkListX:
+    """Parse LMRKLISTX text up to the required ``END`` line."""
+    path = _src_path(path)
+    lines, final = _split_lines(text)
+    layout: list[tuple[str, tuple | None, str]] = []
+    entries: list[LandmarkListXEntry] = []
+    for i, line in enumerate(lines):
+        name = line[:6].strip()
+        if name == "END":
+            return LandmarkListX(entries, _ListSource(layout, line, lines[i + 1 :], final))
+        if line.startswith("#") or not line.strip():
+            layout.append(("other", None, line))
+            continue
+        if not name:
+            raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
+        vals, _ = _scan_numbers(
+            line[6:], 6, path=path, lineno=i + 1, what="numbers (QSZ, pictures, VLM(3), SCALE)"
+        )
+        if not (_is_integral(vals[0]) and _is_integral(vals[1])):
+            raise SpcFormatError(
+                path, i + 1, f"expected integers QSZ and picture count, found {vals[0]!r}, {vals[1]!r}"
+            )
+        entry = LandmarkListXEntry(name, int(vals[0]), int(vals[1]), np.array(vals[2:5]), vals[5])
+        entries.append(entry)
+        layout.append(("entry", entry._key(), line))
+    raise _missing_end(path, len(lines))
+
+
+def format_lmrklistx(xlist: LandmarkListX) -> str:
+    entries = list(xlist.entries)
+    for e in entries:
+        if len(e.name) > 6:
+            raise ValueError(f"landmark name {e.name!r} is longer than 6 characters")
+
+    def make(i: int) -> str:
+        e = entries[i]
+        numbers = " ".join(format_d(v, 13, 6).strip() for v in (*e.vlm, e.scale))
+        return f"{e.name.ljust(6)} {e.qsz} {e.npictures} {numbers}"
+
+    return _emit(xlist._source, [e._key() for e in entries], make)
+
+
+def read_lmrklistx(path) -> LandmarkListX:
+    return parse_lmrklistx(_read(path, "LMRKLISTX"), path)
+
+
+def write_lmrklistx(path, xlist: LandmarkListX, *, overwrite: bool = True, backup: bool = False):
+    return atomic.write_text(path, format_lmrklistx(xlist), overwrite=overwrite, backup=backup)

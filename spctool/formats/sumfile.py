@@ -1,0 +1,977 @@
+"""SPC picture summaries (``SUMFILES/<PICNM>.SUM``) and nominals (``NOMINALS/<PICNM>.NOM``).
+
+Specification: ``shared/docs/spc-formats.md`` §0 (conventions, Fortran numbers, byte-exact round trip), §2
+(SUM), §3 (NOM), §8 items 9-11 (DISTORTION line, foreign writers, tag column) and §9 (checklist).
+
+Reading follows SPC: header lines by position, read list-directed (``D``/``E``/letterless exponents, trailing
+tag text); the optional DISTORTION line, the SIGMA lines and the sections are found by name (tags at column 63
+and 64 both occur).  Writing is byte-exact: every parsed line keeps its original text and is regenerated
+(LITHOS formats, ``3D20.10`` with the tag at column 64, in the exponent letter and the 80-column padding style
+of the line it replaces) only when its values differ from what was parsed.  New files use the canonical layout
+of §2.6 / §3.
+
+The small text helpers at the bottom of the module (``_split_lines``, ``_scan_numbers``, ``_RowPool`` ...) are
+shared with :mod:`spctool.formats.landmark` and :mod:`spctool.formats.lithos`.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spctool.errors import SpcFormatError
+from spctool.formats import atomic
+from spctool.formats.fortran import format_d, format_f, format_i, is_number, parse_number
+
+__all__ = [
+    "SumLandmark",
+    "LimbFit",
+    "Picture",
+    "parse_sum",
+    "read_sum",
+    "format_sum",
+    "write_sum",
+    "Nominal",
+    "parse_nom",
+    "read_nom",
+    "format_nom",
+    "write_nom",
+]
+
+
+# ==================================================================================================
+# shared text helpers (also used by landmark.py and lithos.py / lists.py)
+
+_TOKEN = re.compile(r"[^\s,]+")
+_FIXED = re.compile(r"^[+-]?\d*\.\d*$")
+_EXP_LETTER = re.compile(r"\d([EeDdQq])[+-]?\d")
+
+
+def _split_lines(text: str) -> tuple[list[str], bool]:
+    """Split file text into lines (no terminators) and whether the last line ended with a newline."""
+    text = text.replace("\r\n", "\n").replace("\r", "\n")
+    if text == "":
+        return [], False
+    final = text.endswith("\n")
+    body = text[:-1] if final else text
+    return body.split("\n"), final
+
+
+def _join_lines(lines: list[str], final_newline: bool) -> str:
+    if not lines:
+        return ""
+    return "\n".join(lines) + ("\n" if final_newline else "")
+
+
+def _is_padded(line: str) -> bool:
+    """True for a line blank-padded to exactly 80 columns (the Hayabusa / ``A20`` style)."""
+    return len(line) == 80 and line.endswith(" ")
+
+
+def _majority_padded(lines: list[str], default: bool) -> bool:
+    lines = [ln for ln in lines if ln.strip()]
+    if not lines:
+        return default
+    return 2 * sum(_is_padded(ln) for ln in lines) > len(lines)
+
+
+def _pad(text: str, padded: bool) -> str:
+    return text.ljust(80) if padded else text
+
+
+def _letter_of(line: str | None, default: str = "D") -> str:
+    """Exponent letter (``D`` or ``E``) used by the numbers of an original line."""
+    if not line:
+        return default
+    m = _EXP_LETTER.search(line)
+    if m is None:
+        return default
+    letter = m.group(1).upper()
+    return "E" if letter == "E" else "D"
+
+
+def _scan_numbers(
+    text: str,
+    count: int,
+    *,
+    path,
+    lineno: int,
+    what: str,
+    strict: bool = True,
+) -> tuple[list[float], str]:
+    """List-directed read of ``count`` numbers from ``text``; return them and the raw text after them.
+
+    With ``strict`` a further number after the ``count`` values is an error (a wrong number count), which
+    SPC's own reader would silently accept; trailing non-numeric text (the tag) is returned.
+    """
+    values: list[float] = []
+    end = 0
+    for m in _TOKEN.finditer(text):
+        tok = m.group()
+        if len(values) == count:
+            if strict and is_number(tok):
+                raise SpcFormatError(
+                    path, lineno, f"expected {count} {what}, found more than {count} numbers"
+                )
+            break
+        try:
+            values.append(parse_number(tok))
+        except ValueError:
+            found = f"found {len(values)} then {tok!r}" if values else f"found {tok!r}"
+            raise SpcFormatError(path, lineno, f"expected {count} {what}, {found}") from None
+        end = m.end()
+    if len(values) < count:
+        raise SpcFormatError(path, lineno, f"expected {count} {what}, found {len(values)}")
+    return values, text[end:]
+
+
+def _scan_fixed(text: str, count: int, width: int) -> tuple[list[float], str] | None:
+    """Fixed-width fallback (``countFwidth.d``) for fields that abut (e.g. ``-100000.00-100000.00``)."""
+    if len(text) < count * width:
+        return None
+    values = []
+    for k in range(count):
+        field_text = text[k * width : (k + 1) * width]
+        try:
+            values.append(parse_number(field_text))
+        except ValueError:
+            return None
+    return values, text[count * width :]
+
+
+_PLAIN = r"([+-]?(?:\d+\.?\d*|\.\d+))"
+_FAST_ROW = {n: re.compile(r"\s*" + r"\s+".join([_PLAIN] * n) + r"(?=\s|\Z)(.*)\Z", re.S) for n in (2, 3)}
+
+
+def _scan_row(text: str, count: int, width: int, *, path, lineno: int, what: str) -> tuple[list[float], str]:
+    """Numbers of a section row: list-directed, falling back to fixed ``Fwidth`` columns."""
+    fast = _FAST_ROW.get(count)
+    if fast is not None:  # plain blank-separated decimals (every SPC-written row): one regex, no tokenising
+        m = fast.match(text)
+        if m is not None:
+            rest = m.group(count + 1)
+            first = rest.split(None, 1)
+            if not first or not is_number(first[0]):
+                return [float(m.group(k)) for k in range(1, count + 1)], rest
+    try:
+        return _scan_numbers(text, count, path=path, lineno=lineno, what=what)
+    except SpcFormatError:
+        fixed = _scan_fixed(text, count, width)
+        if fixed is None:
+            raise
+        return fixed
+
+
+def _is_integral(value: float) -> bool:
+    return float(value).is_integer()
+
+
+def _decimals_of(line: str | None, default: int) -> int:
+    """Number of decimals of the first fixed-point token of a line (``37.0371`` -> 4)."""
+    if not line:
+        return default
+    for tok in _TOKEN.findall(line):
+        if _FIXED.match(tok):
+            return len(tok.split(".", 1)[1])
+    return default
+
+
+def _tag_line(numbers: str, tag: str, padded: bool) -> str:
+    """``numbers`` (60 columns) + 3 blanks + tag at column 64, optionally padded to 80 columns."""
+    return _pad(numbers.ljust(60) + "   " + tag, padded)
+
+
+def _dvec(values, letter: str = "D", width: int = 20, decimals: int = 10) -> str:
+    return "".join(format_d(float(v), width, decimals, letter) for v in values)
+
+
+def _floats(values) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.asarray(values, dtype=float).ravel())
+
+
+def _vector(value, shape: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.array(value, dtype=float)
+    if arr.size != int(np.prod(shape)):
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    return arr.reshape(shape)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        if a is None or b is None:
+            return False
+        return np.array_equal(np.asarray(a), np.asarray(b))
+    return a == b
+
+
+def _fields_equal(a, b, names: tuple[str, ...]) -> bool:
+    return all(_same(getattr(a, n), getattr(b, n)) for n in names)
+
+
+def _emit_rows(rows: list[tuple[tuple, str]], items, make) -> list[str]:
+    """Texts for section rows: the original texts when nothing changed, else unchanged rows keep theirs."""
+    keys = [item._key() for item in items]
+    if len(keys) == len(rows) and all(k == r[0] for k, r in zip(keys, rows)):
+        return [r[1] for r in rows]
+    pool = _RowPool(rows)
+    out = []
+    for item, key in zip(items, keys):
+        text = pool.take(key)
+        out.append(text if text is not None else make(item))
+    return out
+
+
+class _RowPool:
+    """Original row texts keyed by their parsed values; a row whose values are unchanged reuses its text."""
+
+    def __init__(self, rows: list[tuple[tuple, str]]):
+        self._pool: dict[tuple, list[str]] = {}
+        for key, text in rows:
+            self._pool.setdefault(key, []).append(text)
+
+    def take(self, key: tuple) -> str | None:
+        texts = self._pool.get(key)
+        if texts:
+            return texts.pop(0)
+        return None
+
+
+@dataclass
+class _Slot:
+    """One parsed header line: its key, original text and the values parsed from it."""
+
+    key: str
+    text: str | None = None
+    values: tuple | None = None
+    tag: str = ""
+
+    @property
+    def padded(self) -> bool | None:
+        return None if self.text is None else _is_padded(self.text)
+
+
+def _src_path(path):
+    return os.fspath(path) if path is not None else None
+
+
+# ==================================================================================================
+# SUM
+
+
+@dataclass
+class SumLandmark:
+    """A measured landmark centre in a SUM ``LANDMARKS`` row (1-based sample/line, optional 1-char flag)."""
+
+    name: str
+    sample: float
+    line: float
+    flag: str = ""
+
+    def __post_init__(self):
+        self.flag = (self.flag or "").strip()
+        if len(self.flag) > 1:
+            raise ValueError(f"landmark flag must be '' or one character, got {self.flag!r}")
+
+    def _key(self) -> tuple:
+        return (self.name, float(self.sample), float(self.line), self.flag)
+
+
+@dataclass
+class LimbFit:
+    """A ``LIMB FITS`` row: landmark name, sample, line and the third (undocumented) value."""
+
+    name: str
+    sample: float
+    line: float
+    value: float
+
+    def _key(self) -> tuple:
+        return (self.name, float(self.sample), float(self.line), float(self.value))
+
+
+@dataclass
+class _SumSource:
+    """What a parsed SUM file looked like, for the byte-exact rewrite."""
+
+    header: list[_Slot]
+    section_text: dict[str, str]  # 'landmarks' / 'limbs' / 'end' -> original header line
+    landmark_rows: list[tuple[tuple, str]]
+    limb_rows: list[tuple[tuple, str]]
+    linescan: tuple[str, list[str]] | None  # (section it follows, lines)
+    after_end: list[str]
+    final_newline: bool
+    pad_header: bool
+    pad_body: bool
+    name_line: str
+
+
+_SUM_TAGS = {
+    "npx": "NPX, NLN, THRSH",
+    "mmfl": "MMFL, CTR",
+    "scobj": "SCOBJ",
+    "cx": "CX",
+    "cy": "CY",
+    "cz": "CZ",
+    "sz": "SZ",
+    "kmatrix": "K-MATRIX",
+    "distortion": "DISTORTION",
+    "vso": "SIGMA_VSO",
+    "ptg": "SIGMA_PTG",
+}
+_SUM_ORDER = [
+    "name",
+    "utc",
+    "npx",
+    "mmfl",
+    "scobj",
+    "cx",
+    "cy",
+    "cz",
+    "sz",
+    "kmatrix",
+    "distortion",
+    "vso",
+    "ptg",
+]
+_PICTURE_FIELDS = (
+    "name",
+    "utc",
+    "npx",
+    "nln",
+    "thrsh",
+    "mmfl",
+    "ctr",
+    "scobj",
+    "cx",
+    "cy",
+    "cz",
+    "sz",
+    "kmatrix",
+    "distortion",
+    "sigma_vso",
+    "sigma_ptg",
+    "landmarks",
+    "limb_fits",
+)
+
+
+@dataclass(eq=False)
+class Picture:
+    """One SUM file (spc-formats.md §2): camera constants, pose, sigmas and measured landmarks.
+
+    ``cx``, ``cy``, ``cz`` are the ROWS of the body->camera rotation; ``scobj`` points from the spacecraft to
+    the body centre (body frame, km); ``kmatrix`` is 2x3 px/mm with the third column multiplying x*y.
+    """
+
+    name: str
+    utc: str
+    npx: int
+    nln: int
+    thrsh: np.ndarray
+    mmfl: float
+    ctr: np.ndarray
+    scobj: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    cz: np.ndarray
+    sz: np.ndarray
+    kmatrix: np.ndarray
+    distortion: np.ndarray | None = field(default_factory=lambda: np.zeros(4))
+    sigma_vso: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sigma_ptg: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    landmarks: list[SumLandmark] = field(default_factory=list)
+    limb_fits: list[LimbFit] = field(default_factory=list)
+    _source: _SumSource | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.npx = int(self.npx)
+        self.nln = int(self.nln)
+        self.mmfl = float(self.mmfl)
+        self.thrsh = _vector(self.thrsh, (2,), "thrsh")
+        self.ctr = _vector(self.ctr, (2,), "ctr")
+        for name in ("scobj", "cx", "cy", "cz", "sz", "sigma_vso", "sigma_ptg"):
+            setattr(self, name, _vector(getattr(self, name), (3,), name))
+        self.kmatrix = _vector(self.kmatrix, (2, 3), "kmatrix")
+        if self.distortion is not None:
+            self.distortion = _vector(self.distortion, (4,), "distortion")
+        self.landmarks = list(self.landmarks)
+        self.limb_fits = list(self.limb_fits)
+
+    def __eq__(self, other):
+        if not isinstance(other, Picture):
+            return NotImplemented
+        return _fields_equal(self, other, _PICTURE_FIELDS)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Body -> camera rotation (rows CX, CY, CZ)."""
+        return np.vstack([self.cx, self.cy, self.cz])
+
+    @property
+    def is_linescan(self) -> bool:
+        """Column 14 of line 1 is ``L`` (spc-formats.md §2.4)."""
+        line = self._source.name_line if self._source is not None else ""
+        return len(line) >= 14 and line[13] == "L"
+
+
+_UTC = re.compile(r"^\d{4}\s+[A-Za-z]{3}\s+\d{1,2}\s+\d{1,2}:\d{2}:\d{2}(\.\d*)?")
+
+
+def _picture_values(pic: Picture, key: str) -> tuple | None:
+    if key == "name":
+        return (pic.name,)
+    if key == "utc":
+        return (pic.utc,)
+    if key == "npx":
+        return (pic.npx, pic.nln) + _floats(pic.thrsh)
+    if key == "mmfl":
+        return (float(pic.mmfl),) + _floats(pic.ctr)
+    if key == "kmatrix":
+        return _floats(pic.kmatrix)
+    if key == "distortion":
+        return None if pic.distortion is None else _floats(pic.distortion)
+    attr = {"vso": "sigma_vso", "ptg": "sigma_ptg"}.get(key, key)
+    return _floats(getattr(pic, attr))
+
+
+def _section_kind(line: str) -> str | None:
+    if line.startswith("LANDMARKS"):
+        return "landmarks"
+    if line.startswith("LIMB FITS"):
+        return "limbs"
+    if line.startswith("END FILE"):
+        return "end"
+    if line.startswith("LINE SCAN DATA"):
+        return "linescan"
+    return None
+
+
+def _classify_tag(tag: str) -> str | None:
+    t = tag.upper()
+    if "DISTORTION" in t:
+        return "distortion"
+    if "VSO" in t:
+        return "vso"
+    if "PTG" in t:
+        return "ptg"
+    return None
+
+
+def parse_sum(text: str, path=None) -> Picture:
+    """Parse the text of a SUM file (spc-formats.md §2).  Bad input raises :class:`SpcFormatError`."""
+    path = _src_path(path)
+    lines, final = _split_lines(text)
+    n = len(lines)
+
+    def need(i: int, what: str) -> str:
+        if i >= n:
+            if n == 0:
+                raise SpcFormatError(path, 1, f"expected {what}, found an empty file")
+            raise SpcFormatError(path, n, f"expected {what} on line {i + 1}, found end of file")
+        return lines[i]
+
+    header: list[_Slot] = []
+
+    # line 1: picture name (A12); column 14 'L' marks a line-scan picture
+    line = need(0, "the picture name")
+    name = line[:12].strip()
+    if not name:
+        raise SpcFormatError(path, 1, "expected the picture name in columns 1-12")
+    header.append(_Slot("name", line, (name,)))
+
+    # line 2: UTC
+    line = need(1, "the UTC line")
+    utc = line.strip()
+    if not _UTC.match(utc):
+        raise SpcFormatError(path, 2, f"expected the UTC 'YYYY MON DD HH:MM:SS.sss', found {utc[:40]!r}")
+    header.append(_Slot("utc", line, (utc,)))
+
+    # line 3: NPX NLN T_lo T_hi
+    line = need(2, "NPX, NLN, THRSH")
+    vals, tag = _scan_numbers(line, 4, path=path, lineno=3, what="numbers (NPX, NLN, THRSH)")
+    if not (_is_integral(vals[0]) and _is_integral(vals[1])) or vals[0] < 1 or vals[1] < 1:
+        raise SpcFormatError(path, 3, f"expected positive integers NPX, NLN, found {vals[0]!r}, {vals[1]!r}")
+    npx, nln = int(vals[0]), int(vals[1])
+    thrsh = np.array(vals[2:4])
+    header.append(_Slot("npx", line, (npx, nln, vals[2], vals[3]), tag.strip()))
+
+    def vec_line(i: int, key: str, count: int, what: str) -> list[float]:
+        ln = need(i, what)
+        v, t = _scan_numbers(ln, count, path=path, lineno=i + 1, what=f"numbers ({what})")
+        header.append(_Slot(key, ln, tuple(v), t.strip()))
+        return v
+
+    v = vec_line(3, "mmfl", 3, "MMFL, CTR")
+    mmfl, ctr = v[0], np.array(v[1:3])
+    scobj = np.array(vec_line(4, "scobj", 3, "SCOBJ"))
+    cx = np.array(vec_line(5, "cx", 3, "CX"))
+    cy = np.array(vec_line(6, "cy", 3, "CY"))
+    cz = np.array(vec_line(7, "cz", 3, "CZ"))
+    sz = np.array(vec_line(8, "sz", 3, "SZ"))
+    line = need(9, "K-MATRIX")
+    v, t = _scan_row(line, 6, 10, path=path, lineno=10, what="numbers (K-MATRIX)")
+    header.append(_Slot("kmatrix", line, tuple(v), t.strip()))
+    kmatrix = np.array(v).reshape(2, 3)
+
+    # the rest of the header: DISTORTION (optional, by tag), SIGMA_VSO, SIGMA_PTG, other lines kept verbatim
+    i = 10
+    rest: list[tuple[int, str, str | None]] = []
+    while i < n and _section_kind(lines[i]) is None:
+        ln = lines[i]
+        toks = _TOKEN.findall(ln)
+        k = 0
+        while k < len(toks) and is_number(toks[k]):
+            k += 1
+        tag_text = " ".join(toks[k:])
+        # None = untagged (takes a SIGMA role by position below); "other" = an unknown tag such as SIGPXL
+        rest.append((i, ln, (_classify_tag(tag_text) or "other") if tag_text else None))
+        i += 1
+    if i >= n:
+        raise SpcFormatError(path, max(n, 1), "expected LANDMARKS, LIMB FITS or END FILE, found end of file")
+    kinds = [r[2] for r in rest]
+    # untagged lines take the SIGMA_VSO / SIGMA_PTG roles by position, as SPC reads them
+    for role in ("vso", "ptg"):
+        if role not in kinds:
+            for j, kd in enumerate(kinds):
+                if kd is None:
+                    kinds[j] = role
+                    break
+    distortion = None
+    sigma_vso = sigma_ptg = None
+    seen: set[str] = set()
+    for (idx, ln, _), kind in zip(rest, kinds):
+        if kind in seen:
+            kind = None  # a repeated role: keep verbatim
+        if kind is None or kind == "other":
+            header.append(_Slot("extra", ln))
+            continue
+        seen.add(kind)
+        count = 4 if kind == "distortion" else 3
+        v, t = _scan_numbers(ln, count, path=path, lineno=idx + 1, what=f"numbers ({_SUM_TAGS[kind]})")
+        header.append(_Slot(kind, ln, tuple(v), t.strip()))
+        if kind == "distortion":
+            distortion = np.array(v)
+        elif kind == "vso":
+            sigma_vso = np.array(v)
+        else:
+            sigma_ptg = np.array(v)
+    if sigma_vso is None:
+        raise SpcFormatError(path, i + 1, "expected a SIGMA_VSO line before this section header")
+    if sigma_ptg is None:
+        raise SpcFormatError(path, i + 1, "expected a SIGMA_PTG line before this section header")
+    header_end = i
+
+    # sections
+    section_text: dict[str, str] = {}
+    landmarks: list[SumLandmark] = []
+    limbs: list[LimbFit] = []
+    landmark_rows: list[tuple[tuple, str]] = []
+    limb_rows: list[tuple[tuple, str]] = []
+    linescan: tuple[str, list[str]] | None = None
+    state = None
+    end_index = None
+    while i < n:
+        ln = lines[i]
+        kind = _section_kind(ln)
+        if kind == "end":
+            section_text["end"] = ln
+            end_index = i
+            break
+        if state == "linescan" and kind not in ("landmarks", "limbs"):
+            linescan[1].append(ln)  # type: ignore[index]
+            i += 1
+            continue
+        if kind == "linescan":
+            if linescan is not None:
+                raise SpcFormatError(path, i + 1, "unexpected second LINE SCAN DATA block")
+            linescan = (state or "header", [ln])
+            state = "linescan"
+        elif kind in ("landmarks", "limbs"):
+            if kind in section_text:
+                raise SpcFormatError(path, i + 1, f"unexpected second {ln[:9]} section")
+            section_text[kind] = ln
+            state = kind
+        elif state == "landmarks":
+            lm = _parse_sum_landmark(ln, path, i + 1)
+            landmarks.append(lm)
+            landmark_rows.append((lm._key(), ln))
+        elif state == "limbs":
+            lf = _parse_limb(ln, path, i + 1, name_width=6)
+            limbs.append(lf)
+            limb_rows.append((lf._key(), ln))
+        else:  # pragma: no cover - header loop stops only at a section line
+            raise SpcFormatError(path, i + 1, "expected LANDMARKS, LIMB FITS or END FILE")
+        i += 1
+    if end_index is None:
+        raise SpcFormatError(path, n, "expected END FILE line, found end of file")
+
+    source = _SumSource(
+        header=header,
+        section_text=section_text,
+        landmark_rows=landmark_rows,
+        limb_rows=limb_rows,
+        linescan=linescan,
+        after_end=lines[end_index + 1 :],
+        final_newline=final,
+        pad_header=_majority_padded(lines[:header_end], False),
+        pad_body=_majority_padded(lines[header_end : end_index + 1], False),
+        name_line=lines[0],
+    )
+    return Picture(
+        name=name,
+        utc=utc,
+        npx=npx,
+        nln=nln,
+        thrsh=thrsh,
+        mmfl=mmfl,
+        ctr=ctr,
+        scobj=scobj,
+        cx=cx,
+        cy=cy,
+        cz=cz,
+        sz=sz,
+        kmatrix=kmatrix,
+        distortion=distortion,
+        sigma_vso=sigma_vso,
+        sigma_ptg=sigma_ptg,
+        landmarks=landmarks,
+        limb_fits=limbs,
+        _source=source,
+    )
+
+
+def _parse_sum_landmark(line: str, path, lineno: int) -> SumLandmark:
+    """``(A6,2F10.2)`` or ``(A6,2F10.2,1X,A1)``."""
+    name = line[:6].strip()
+    if not name:
+        raise SpcFormatError(path, lineno, "expected a landmark name in columns 1-6")
+    vals, rest = _scan_row(line[6:], 2, 10, path=path, lineno=lineno, what="numbers (landmark sample, line)")
+    flag = rest.strip()
+    if len(flag) > 1:
+        raise SpcFormatError(
+            path, lineno, f"expected at most a 1-character flag after sample, line; found {flag!r}"
+        )
+    return SumLandmark(name, vals[0], vals[1], flag)
+
+
+def _parse_limb(line: str, path, lineno: int, name_width: int):
+    """``(A6,3F10.2)`` (SUM) or ``(A12,3F10.2)`` (LMK): name, sample, line, value."""
+    name = line[:name_width].strip()
+    if not name:
+        raise SpcFormatError(path, lineno, f"expected a name in columns 1-{name_width}")
+    vals, rest = _scan_row(line[name_width:], 3, 10, path=path, lineno=lineno, what="numbers (limb fit)")
+    if rest.strip():
+        raise SpcFormatError(path, lineno, f"expected 3 numbers (limb fit), found trailing {rest.strip()!r}")
+    return LimbFit(name, vals[0], vals[1], vals[2])
+
+
+def _row_text(name: str, width: int, values, decimals_width: tuple[int, int], flag: str = "") -> str:
+    if len(name) > width:
+        raise ValueError(f"name {name!r} is longer than {width} characters")
+    w, d = decimals_width
+    text = name.ljust(width) + "".join(_fixed(v, w, d) for v in values)
+    if flag:
+        text += " " + flag
+    return text
+
+
+def _int_field(value: int, width: int) -> str:
+    """gfortran ``Iw``, one column wider when the number would fill (abut) or overflow the field."""
+    text = format_i(int(value), width)
+    if not text.startswith(" "):
+        text = " " + str(int(value))
+    return text
+
+
+def _int_or_repr(value: float, width: int) -> str:
+    if _is_integral(value):
+        return _int_field(int(value), width)
+    return " " + repr(float(value))
+
+
+def _fixed(value: float, width: int, decimals: int) -> str:
+    """gfortran ``Fw.d``, except that a value filling all ``w`` columns (it would abut the previous field, or
+    overflow into asterisks) is written one column wider, so that a list-directed read still separates it."""
+    text = format_f(float(value), width, decimals)
+    if not text.startswith(" "):
+        text = " " + f"{float(value):.{decimals}f}"
+    return text
+
+
+def _k_text(values, decimals: int) -> str:
+    """``6F10.d`` K-matrix numbers (d = 5 canonical, or the decimals of the line being replaced)."""
+    return "".join(_fixed(v, 10, decimals) for v in values)
+
+
+def _sum_line(pic: Picture, slot: _Slot, padded: bool) -> str:
+    """Regenerate one SUM header line (spc-formats.md §2.3 canonical / LITHOS formats)."""
+    key = slot.key
+    if key == "name":
+        rest = slot.text[12:] if slot.text else ""
+        text = pic.name.ljust(12) + rest if rest.strip() else pic.name
+        return _pad(text, padded)
+    if key == "utc":
+        return _pad(pic.utc, padded)
+    tag = slot.tag or _SUM_TAGS[key]
+    letter = _letter_of(slot.text)
+    if key == "npx":
+        nums = "".join(_int_or_repr(v, 6) for v in (pic.npx, pic.nln, *pic.thrsh))
+    elif key == "mmfl":
+        nums = _dvec([pic.mmfl, *pic.ctr], letter)
+    elif key == "kmatrix":
+        nums = _k_text(_floats(pic.kmatrix), _decimals_of(slot.text, 5))
+    elif key == "distortion":
+        nums = _dvec(pic.distortion, letter, 15, 5)
+    else:
+        nums = _dvec(_picture_values(pic, key), letter)
+    return _tag_line(nums, tag, padded)
+
+
+def format_sum(pic: Picture) -> str:
+    """SUM file text.  Unchanged lines of a parsed file are reproduced byte for byte."""
+    src = pic._source
+    if src is None:
+        slots = [_Slot(k) for k in _SUM_ORDER]
+        pad_header = pad_body = False
+    else:
+        slots = list(src.header)
+        pad_header, pad_body = src.pad_header, src.pad_body
+        if pic.distortion is not None and not any(s.key == "distortion" for s in slots):
+            at = next(j for j, s in enumerate(slots) if s.key == "kmatrix") + 1
+            slots.insert(at, _Slot("distortion"))
+    out: list[str] = []
+    for slot in slots:
+        if slot.key == "extra":
+            out.append(slot.text)
+            continue
+        if slot.key == "distortion" and pic.distortion is None:
+            continue
+        if slot.text is not None and _picture_values(pic, slot.key) == slot.values:
+            out.append(slot.text)
+        else:
+            padded = slot.padded if slot.padded is not None else pad_header
+            out.append(_sum_line(pic, slot, padded))
+
+    sections = src.section_text if src is not None else {}
+    linescan = src.linescan if src is not None else None
+
+    def header_line(kind: str, text: str) -> str:
+        return sections.get(kind, _pad(text, pad_body))
+
+    if linescan is not None and linescan[0] == "header":
+        out.extend(linescan[1])
+    if src is None or "landmarks" in sections or pic.landmarks:
+        out.append(header_line("landmarks", "LANDMARKS"))
+    out.extend(
+        _emit_rows(
+            src.landmark_rows if src is not None else [],
+            pic.landmarks,
+            lambda lm: _pad(_row_text(lm.name, 6, (lm.sample, lm.line), (10, 2), lm.flag), pad_body),
+        )
+    )
+    if linescan is not None and linescan[0] == "landmarks":
+        out.extend(linescan[1])
+    if src is None or "limbs" in sections or pic.limb_fits:
+        out.append(header_line("limbs", "LIMB FITS"))
+    out.extend(
+        _emit_rows(
+            src.limb_rows if src is not None else [],
+            pic.limb_fits,
+            lambda lf: _pad(_row_text(lf.name, 6, (lf.sample, lf.line, lf.value), (10, 2)), pad_body),
+        )
+    )
+    if linescan is not None and linescan[0] == "limbs":
+        out.extend(linescan[1])
+    out.append(header_line("end", "END FILE"))
+    if src is not None:
+        out.extend(src.after_end)
+    return _join_lines(out, src.final_newline if src is not None else True)
+
+
+def read_sum(path) -> Picture:
+    """Read ``SUMFILES/<PICNM>.SUM``."""
+    try:
+        text = atomic.read_text(path)
+    except OSError as exc:
+        raise SpcFormatError(path, None, f"expected a readable SUM file ({exc.strerror})") from None
+    return parse_sum(text, path)
+
+
+def write_sum(path, pic: Picture, *, overwrite: bool = True, backup: bool = False):
+    """Write a SUM file atomically (returns the backup path if one was made)."""
+    return atomic.write_text(path, format_sum(pic), overwrite=overwrite, backup=backup)
+
+
+# ==================================================================================================
+# NOM
+
+
+@dataclass
+class _NomSource:
+    header: list[_Slot]
+    end_line: str
+    after_end: list[str]
+    final_newline: bool
+    pad: bool
+
+
+_NOM_ORDER = ["name", "frame", "scobj", "vso", "cx", "cy", "cz", "ptg"]
+_NOM_TAGS = {"scobj": "SCOBJ", "vso": "SIGMA_VSO", "cx": "CX", "cy": "CY", "cz": "CZ", "ptg": "SIGMA_PTG"}
+_NOMINAL_FIELDS = (
+    "name",
+    "frame_vector",
+    "frame_tag",
+    "scobj",
+    "sigma_vso",
+    "cx",
+    "cy",
+    "cz",
+    "sigma_ptg",
+    "extra_lines",
+)
+
+
+@dataclass(eq=False)
+class Nominal:
+    """A NOM file (spc-formats.md §3): the a-priori pose from SPICE.
+
+    ``frame_vector`` is the unit vector of line 2 and ``frame_tag`` its frame name (``BOD_FRAME`` ...);
+    ``extra_lines`` holds the optional DYNAMICS lines (between SIGMA_PTG and END FILE) verbatim.
+    """
+
+    name: str
+    frame_vector: np.ndarray
+    frame_tag: str
+    scobj: np.ndarray
+    sigma_vso: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    cz: np.ndarray
+    sigma_ptg: np.ndarray
+    extra_lines: list[str] = field(default_factory=list)
+    _source: _NomSource | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        for name in ("frame_vector", "scobj", "sigma_vso", "cx", "cy", "cz", "sigma_ptg"):
+            setattr(self, name, _vector(getattr(self, name), (3,), name))
+        self.extra_lines = list(self.extra_lines)
+
+    def __eq__(self, other):
+        if not isinstance(other, Nominal):
+            return NotImplemented
+        return _fields_equal(self, other, _NOMINAL_FIELDS)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Body -> camera rotation (rows CX, CY, CZ)."""
+        return np.vstack([self.cx, self.cy, self.cz])
+
+
+def _nominal_values(nom: Nominal, key: str) -> tuple:
+    if key == "name":
+        return (nom.name,)
+    if key == "frame":
+        return _floats(nom.frame_vector) + (nom.frame_tag,)
+    attr = {"vso": "sigma_vso", "ptg": "sigma_ptg"}.get(key, key)
+    return _floats(getattr(nom, attr))
+
+
+def parse_nom(text: str, path=None) -> Nominal:
+    """Parse the text of a NOM file (spc-formats.md §3); lines are read by position."""
+    path = _src_path(path)
+    lines, final = _split_lines(text)
+    n = len(lines)
+    if n == 0:
+        raise SpcFormatError(path, 1, "expected the picture name, found an empty file")
+    header: list[_Slot] = []
+    name = lines[0][:12].strip()
+    if not name:
+        raise SpcFormatError(path, 1, "expected the picture name in columns 1-12")
+    header.append(_Slot("name", lines[0], (name,)))
+    values: dict[str, list[float]] = {}
+    frame_tag = ""
+    whats = {"frame": "frame vector", **_NOM_TAGS}
+    for i, key in enumerate(_NOM_ORDER[1:], start=1):
+        if i >= n:
+            raise SpcFormatError(path, n, f"expected {whats[key]} on line {i + 1}, found end of file")
+        ln = lines[i]
+        v, t = _scan_numbers(ln, 3, path=path, lineno=i + 1, what=f"numbers ({whats[key]})")
+        values[key] = v
+        if key == "frame":
+            frame_tag = t.strip()
+            header.append(_Slot(key, ln, tuple(v) + (frame_tag,), frame_tag))
+        else:
+            header.append(_Slot(key, ln, tuple(v), t.strip()))
+    i = len(_NOM_ORDER)
+    extra: list[str] = []
+    while i < n and not lines[i].startswith("END FILE"):
+        extra.append(lines[i])
+        i += 1
+    if i >= n:
+        raise SpcFormatError(path, n, "expected END FILE line, found end of file")
+    source = _NomSource(
+        header=header,
+        end_line=lines[i],
+        after_end=lines[i + 1 :],
+        final_newline=final,
+        pad=_majority_padded(lines[: i + 1], False),
+    )
+    return Nominal(
+        name=name,
+        frame_vector=np.array(values["frame"]),
+        frame_tag=frame_tag,
+        scobj=np.array(values["scobj"]),
+        sigma_vso=np.array(values["vso"]),
+        cx=np.array(values["cx"]),
+        cy=np.array(values["cy"]),
+        cz=np.array(values["cz"]),
+        sigma_ptg=np.array(values["ptg"]),
+        extra_lines=extra,
+        _source=source,
+    )
+
+
+def format_nom(nom: Nominal) -> str:
+    """NOM file text; unchanged lines of a parsed file are reproduced byte for byte."""
+    src = nom._source
+    slots = src.header if src is not None else [_Slot(k) for k in _NOM_ORDER]
+    pad = src.pad if src is not None else False
+    out: list[str] = []
+    for slot in slots:
+        if slot.text is not None and _nominal_values(nom, slot.key) == slot.values:
+            out.append(slot.text)
+            continue
+        padded = slot.padded if slot.padded is not None else pad
+        if slot.key == "name":
+            out.append(_pad(nom.name, padded))
+        elif slot.key == "frame":
+            out.append(_tag_line(_dvec(nom.frame_vector, _letter_of(slot.text)), nom.frame_tag, padded))
+        else:
+            vals = _nominal_values(nom, slot.key)
+            out.append(_tag_line(_dvec(vals, _letter_of(slot.text)), slot.tag or _NOM_TAGS[slot.key], padded))
+    out.extend(nom.extra_lines)
+    out.append(src.end_line if src is not None else "END FILE")
+    if src is not None:
+        out.extend(src.after_end)
+    return _join_lines(out, src.final_newline if src is not None else True)
+
+
+def read_nom(path) -> Nominal:
+    """Read ``NOMINALS/<PICNM>.NOM``."""
+    try:
+        text = atomic.read_text(path)
+    except OSError as exc:
+        raise SpcFormatError(path, None, f"expected a readable NOM file ({exc.strerror})") from None
+    return parse_nom(text, path)
+
+
+def write_nom(path, nom: Nominal, *, overwrite: bool = True, backup: bool = False):
+    """Write a NOM file atomically (returns the backup path if one was made)."""
+    return atomic.write_text(path, format_nom(nom), overwrite=overwrite, backup=backup)
