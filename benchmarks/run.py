@@ -33,12 +33,13 @@ def discover():
         except Exception as exc:  # a broken module is reported, never hidden
             yield path.stem, "(import failed)", exc
             continue
-        for name, target, fn in getattr(module, "BENCHMARKS", []):
-            yield name, target, fn
+        yield from getattr(module, "BENCHMARKS", [])
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("names", nargs="*", help="run only benchmarks whose name contains one of these words")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
@@ -48,18 +49,35 @@ def main(argv=None) -> int:
         if args.names and not any(word in name for word in args.names):
             continue
         if isinstance(fn, Exception):
-            rows.append({"name": name, "target": target, "value": None, "unit": "", "passed": False,
-                         "error": repr(fn)})
+            rows.append(
+                {
+                    "name": name,
+                    "target": target,
+                    "value": None,
+                    "unit": "",
+                    "passed": False,
+                    "error": repr(fn),
+                }
+            )
             failed += 1
             continue
         try:
             value, unit, passed = fn()
-            rows.append({"name": name, "target": target, "value": float(value), "unit": unit,
-                         "passed": bool(passed)})
+            rows.append(
+                {"name": name, "target": target, "value": float(value), "unit": unit, "passed": bool(passed)}
+            )
         except Exception as exc:
             traceback.print_exc(file=sys.stderr)
-            rows.append({"name": name, "target": target, "value": None, "unit": "", "passed": False,
-                         "error": repr(exc)})
+            rows.append(
+                {
+                    "name": name,
+                    "target": target,
+                    "value": None,
+                    "unit": "",
+                    "passed": False,
+                    "error": repr(exc),
+                }
+            )
         failed += not rows[-1]["passed"]
         if not args.json:
             r = rows[-1]

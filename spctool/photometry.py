@@ -72,8 +72,9 @@ def lambert(mu0, mu=None, alpha_deg=None):
     return np.where(dark, 0.0, mu0)
 
 
-def reflectance(mu0, mu, alpha_deg, model: str = "spc", *, beta: float = FIXED_BETA,
-                alpha0_deg: float = ALPHA0_DEG):
+def reflectance(
+    mu0, mu, alpha_deg, model: str = "spc", *, beta: float = FIXED_BETA, alpha0_deg: float = ALPHA0_DEG
+):
     """Dispatch on ``model`` in :data:`MODELS`."""
     if model == "spc":
         return spc_lunar_lambert(mu0, mu, alpha_deg, alpha0_deg)

@@ -38,7 +38,9 @@ def test_info_human_summary(run_cli, real):
 
 
 def test_validate_exit_codes(run_cli, real, tmp_path):
-    ok = run_cli("validate", *sorted((real / "rosetta-67p").glob("*.LMK")), real / "rosetta-67p/W48230079013.SUM")
+    ok = run_cli(
+        "validate", *sorted((real / "rosetta-67p").glob("*.LMK")), real / "rosetta-67p/W48230079013.SUM"
+    )
     assert ok.exit_code == 0, ok.stderr
     bad = tmp_path / "BAD.SUM"
     text = (real / "rosetta-67p/W48230079013.SUM").read_text().replace("0.1356800000D+03", "0.13568000x0D+03")
@@ -64,12 +66,17 @@ def test_convert_bennu_obj_to_icq_and_back(run_cli, real, tmp_path):
         assert shape.q == q
         back = tmp_path / f"back{q}.obj"
         assert run_cli("convert", icq, back).exit_code == 0
-        np.testing.assert_array_equal(read_obj(back).vertices, read_obj(real / "bennu-shapes" / name).vertices)
+        np.testing.assert_array_equal(
+            read_obj(back).vertices, read_obj(real / "bennu-shapes" / name).vertices
+        )
 
 
 def test_convert_same_format_is_byte_identical(run_cli, real, tmp_path):
-    for src in (real / "rosetta-67p/W48230079013.SUM", real / "hayabusa-itokawa/N2395699394.SUM",
-                real / "rosetta-67p/GD0036.LMK"):
+    for src in (
+        real / "rosetta-67p/W48230079013.SUM",
+        real / "hayabusa-itokawa/N2395699394.SUM",
+        real / "rosetta-67p/GD0036.LMK",
+    ):
         dst = tmp_path / src.name
         assert run_cli("convert", src, dst).exit_code == 0
         assert dst.read_bytes() == src.read_bytes()
@@ -93,7 +100,9 @@ def _maplet():
     alb = 1 + 0.1 * rng.normal(size=(n, n))
     valid = np.ones((n, n), bool)
     valid[0, 0] = False
-    return Maplet.new(0.001, q, [0.1, 0.2, 0.3], [0, -1, 0], [1, 0, 0], [0, 0, 1], h, alb, valid, name="AB0001")
+    return Maplet.new(
+        0.001, q, [0.1, 0.2, 0.3], [0, -1, 0], [1, 0, 0], [0, 0, 1], h, alb, valid, name="AB0001"
+    )
 
 
 def test_convert_map_to_images(run_cli, tmp_path):

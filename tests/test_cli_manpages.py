@@ -1,4 +1,7 @@
-"""Every command has a man page in man/ that matches its --help (regenerate: python -m spctool.cli.manpages man/)."""
+"""Every command has a man page in man/ that matches its --help.
+
+Regenerate with ``python -m spctool.cli.manpages man/``.
+"""
 
 from pathlib import Path
 
@@ -12,7 +15,9 @@ MAN = Path(__file__).resolve().parents[1] / "man"
 
 def test_man_pages_match_help():
     pages = all_pages()
-    stale = [name for name, text in pages.items() if not (MAN / name).exists() or (MAN / name).read_text() != text]
+    stale = [
+        name for name, text in pages.items() if not (MAN / name).exists() or (MAN / name).read_text() != text
+    ]
     extra = sorted(p.name for p in MAN.glob("spctool*.1") if p.name not in pages)
     assert not stale, f"man pages out of date: {stale}; run python -m spctool.cli.manpages man/"
     assert not extra, f"man pages for commands that do not exist: {extra}"

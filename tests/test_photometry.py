@@ -15,7 +15,9 @@ def test_hand_values():
     # mu0 = 0.5, mu = 1, alpha = 60 deg: beta = exp(-1)
     b = np.exp(-1.0)
     assert ph.spc_lunar_lambert(0.5, 1.0, 60.0) == pytest.approx((1 - b) * 0.5 + b * 0.5 / 1.5, rel=1e-15)
-    assert ph.mcewen_lunar_lambert(0.5, 1.0, 60.0) == pytest.approx(2 * b * 0.5 / 1.5 + (1 - b) * 0.5, rel=1e-15)
+    assert ph.mcewen_lunar_lambert(0.5, 1.0, 60.0) == pytest.approx(
+        2 * b * 0.5 / 1.5 + (1 - b) * 0.5, rel=1e-15
+    )
     assert ph.reflectance(0.5, 1.0, 10.0, "fixed") == pytest.approx(0.35 * 0.5 + 0.65 * 0.5 / 1.5, rel=1e-15)
     assert ph.reflectance(0.3, 0.9, 0.0, "lambert") == 0.3
 

@@ -15,12 +15,25 @@ names = st.text(alphabet="ABCDEFGHJKLMNPQRSTUVWXYZ0123456789", min_size=6, max_s
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(names, st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.integers(0, 50),
-                          st.sampled_from(["ok", "outside", "edge-peak"])), min_size=1, max_size=12))
+@given(
+    st.lists(
+        st.tuples(
+            names,
+            st.floats(-1e4, 1e4),
+            st.floats(-1e4, 1e4),
+            st.integers(0, 50),
+            st.sampled_from(["ok", "outside", "edge-peak"]),
+        ),
+        min_size=1,
+        max_size=12,
+    )
+)
 def test_text_and_json_round_trip(rows):
     t = LandmarkTable.from_rows(
         [{"name": n, "sample": s, "line": ln, "iterations": k, "status": st_} for n, s, ln, k, st_ in rows],
-        picture="P0001", command="register P0001")
+        picture="P0001",
+        command="register P0001",
+    )
     back = LandmarkTable.parse_text(t.to_text())
     assert back.picture == "P0001" and back.command == "register P0001"
     assert back.names == [r[0] for r in rows]
@@ -40,8 +53,12 @@ def test_nan_is_null_in_json_and_nan_in_text():
 
 
 def test_json_has_contract_keys_and_meta():
-    t = LandmarkTable.from_rows([{"name": "AB0001", "sample": 1.0, "line": 2.0}], picture="P", command="c",
-                                meta={"pose": {"position": np.array([1.0, 2.0, 3.0])}})
+    t = LandmarkTable.from_rows(
+        [{"name": "AB0001", "sample": 1.0, "line": 2.0}],
+        picture="P",
+        command="c",
+        meta={"pose": {"position": np.array([1.0, 2.0, 3.0])}},
+    )
     doc = json.loads(t.to_json())
     assert set(doc) >= {"command", "picture", "spctool_version", "landmarks", "pose"}
     assert doc["pose"]["position"] == [1.0, 2.0, 3.0]

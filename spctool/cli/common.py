@@ -61,8 +61,14 @@ def json_option(f):
 
 
 def output_option(f):
-    return click.option("-o", "--output", "output", metavar="FILE", default=None,
-                        help="Write the table to FILE instead of stdout ('-' = stdout).")(f)
+    return click.option(
+        "-o",
+        "--output",
+        "output",
+        metavar="FILE",
+        default=None,
+        help="Write the table to FILE instead of stdout ('-' = stdout).",
+    )(f)
 
 
 @contextmanager
@@ -73,7 +79,38 @@ def progress(ctx: Context, description: str, total: int | None):
         return
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeRemainingColumn(), transient=True) as bar:
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        transient=True,
+    ) as bar:
         task = bar.add_task(description, total=total)
         yield lambda n=1: bar.advance(task, n)
+
+
+def resolve_landmarks(ctx: Context, specs=(), table: str | None = None) -> list:
+    """Landmarks (``Landmark`` from LMK files) named on the command line.
+
+    ``specs`` may mix landmark names (resolved to ``LMKFILES/<NAME>.LMK``), LMK file paths and
+    landmark-table files; ``table`` is a landmark table (``-`` = stdin) whose ``name`` column is used.
+    With neither, every landmark of LMRKLIST.TXT (else LMKFILES/*.LMK) is taken.
+    """
+    from spctool.formats.table import read_table
+
+    names: list[str] = []
+    direct = []
+    if table:
+        names += read_table(table).names
+    for spec in specs:
+        p = Path(spec)
+        if p.is_file() and p.suffix.upper() == ".LMK":
+            direct.append(ctx.wd.read_landmark(str(p)))
+        elif p.is_file():
+            names += read_table(p).names
+        else:
+            names.append(spec)
+    if not specs and not table:
+        names = ctx.wd.landmark_names()
+    return direct + [ctx.wd.read_landmark(n) for n in names]

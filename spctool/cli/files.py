@@ -146,11 +146,17 @@ def summarize(kind: str, obj) -> list[str]:
             f"SIGMA_VSO {_vec(obj.sigma_vso)} km, SIGMA_PTG {_vec(obj.sigma_ptg)} rad",
             f"{len(obj.landmarks)} landmarks, {len(obj.limb_fits)} limb fits",
         ]
-        lines += [f"  {lm.name}  {lm.sample:10.2f} {lm.line:10.2f} {lm.flag}".rstrip() for lm in obj.landmarks]
+        lines += [
+            f"  {lm.name}  {lm.sample:10.2f} {lm.line:10.2f} {lm.flag}".rstrip() for lm in obj.landmarks
+        ]
         return lines
     if kind == "nom":
-        return [f"nominal {obj.name}", f"SCOBJ {_vec(obj.scobj)} km", f"SIGMA_VSO {_vec(obj.sigma_vso)} km "
-                f"({obj.frame_tag})", f"SIGMA_PTG {_vec(obj.sigma_ptg)} rad"]
+        return [
+            f"nominal {obj.name}",
+            f"SCOBJ {_vec(obj.scobj)} km",
+            f"SIGMA_VSO {_vec(obj.sigma_vso)} km ({obj.frame_tag})",
+            f"SIGMA_PTG {_vec(obj.sigma_ptg)} rad",
+        ]
     if kind == "lmk":
         lines = [
             f"landmark {obj.name} (HFLAG {obj.hflag}), QSZ {obj.qsz} ({2 * obj.qsz + 1}^2 cells), "
@@ -172,24 +178,34 @@ def summarize(kind: str, obj) -> list[str]:
             f"V {_vec(obj.v)} km",
             f"UX {_vec(obj.ux)}  UY {_vec(obj.uy)}  UZ {_vec(obj.uz)}",
             f"HSCALE {obj.hscale:g}; {int(valid.sum())} valid cells, {int((~valid).sum())} missing",
-            (f"heights {h.min():.4g} .. {h.max():.4g} cells; albedo {obj.albedo[valid].min():.2f} .. "
-             f"{obj.albedo[valid].max():.2f}") if h.size else "no valid cells",
+            (
+                f"heights {h.min():.4g} .. {h.max():.4g} cells; albedo {obj.albedo[valid].min():.2f} .. "
+                f"{obj.albedo[valid].max():.2f}"
+            )
+            if h.size
+            else "no valid cells",
         ]
     if kind == "icq":
         v = obj.vertices.reshape(-1, 3)
-        return [f"ICQ shape q={obj.q}: {obj.vertex_count} vertices, {6 * obj.q ** 2} cells"
-                + (" with albedo" if obj.albedo is not None else ""),
-                f"extent x {v[:, 0].min():.6g}..{v[:, 0].max():.6g}, y {v[:, 1].min():.6g}..{v[:, 1].max():.6g}, "
-                f"z {v[:, 2].min():.6g}..{v[:, 2].max():.6g} km"]
+        return [
+            f"ICQ shape q={obj.q}: {obj.vertex_count} vertices, {6 * obj.q**2} cells"
+            + (" with albedo" if obj.albedo is not None else ""),
+            f"extent x {v[:, 0].min():.6g}..{v[:, 0].max():.6g}, y {v[:, 1].min():.6g}..{v[:, 1].max():.6g}, "
+            f"z {v[:, 2].min():.6g}..{v[:, 2].max():.6g} km",
+        ]
     if kind in ("obj", "vtk"):
         v = obj.vertices
-        return [f"triangle mesh: {len(v)} vertices, {len(obj.faces)} triangles",
-                f"extent x {v[:, 0].min():.6g}..{v[:, 0].max():.6g}, y {v[:, 1].min():.6g}..{v[:, 1].max():.6g}, "
-                f"z {v[:, 2].min():.6g}..{v[:, 2].max():.6g} km"]
+        return [
+            f"triangle mesh: {len(v)} vertices, {len(obj.faces)} triangles",
+            f"extent x {v[:, 0].min():.6g}..{v[:, 0].max():.6g}, y {v[:, 1].min():.6g}..{v[:, 1].max():.6g}, "
+            f"z {v[:, 2].min():.6g}..{v[:, 2].max():.6g} km",
+        ]
     if kind == "lithos":
         lines = [f"INIT_LITHOS: {len(obj.keys)} keys, {len(obj.distortions)} DISTORT= models"]
         lines += [f"  {k} = {v}" for k, v in obj.keys.items()]
-        lines += [f"  DISTORT '{d.template}' {d.model} J={d.order}: {_vec(d.coefficients)}" for d in obj.distortions]
+        lines += [
+            f"  DISTORT '{d.template}' {d.model} J={d.order}: {_vec(d.coefficients)}" for d in obj.distortions
+        ]
         return lines
     if kind == "pictlist":
         return [f"picture list: {len(obj.entries)} pictures, {len(obj.active_names)} in use"]
@@ -201,8 +217,10 @@ def summarize(kind: str, obj) -> list[str]:
         return [f"landmark table: {len(obj)} rows, columns {', '.join(obj.columns)}"]
     if kind in PHOTO_KINDS:
         d = obj.data
-        return [f"photo {obj.npx} x {obj.nln} px (sample x line), {d.dtype} ({obj.bits}-bit)",
-                f"DN {d.min()} .. {d.max()}, mean {d.mean():.6g}, zero (missing) pixels {int((d == 0).sum())}"]
+        return [
+            f"photo {obj.npx} x {obj.nln} px (sample x line), {d.dtype} ({obj.bits}-bit)",
+            f"DN {d.min()} .. {d.max()}, mean {d.mean():.6g}, zero (missing) pixels {int((d == 0).sum())}",
+        ]
     return [repr(obj)]
 
 
@@ -257,8 +275,10 @@ def problems_of(kind: str, obj) -> list[str]:
         flat = obj.flat_vertices()
         bad = np.any(flat[a] != flat[b], axis=1)
         if bad.any():
-            out.append(f"{int(bad.sum())} of {len(a)} seam vertices differ from their duplicates "
-                       "(not an exact ICQ dump)")
+            out.append(
+                f"{int(bad.sum())} of {len(a)} seam vertices differ from their duplicates "
+                "(not an exact ICQ dump)"
+            )
     elif kind in ("obj", "vtk"):
         if len(obj.faces) and (obj.faces.min() < 0 or obj.faces.max() >= len(obj.vertices)):
             out.append("a face refers to a vertex that does not exist")
@@ -280,7 +300,9 @@ def problems_of(kind: str, obj) -> list[str]:
 @click.option("--arrays", is_flag=True, help="With --json, write large arrays in full (heights, pixels).")
 @click.option("--npx", type=int, help="Width of a .DAT photo (else taken from --sum).")
 @click.option("--nln", type=int, help="Height of a .DAT photo (else taken from --sum).")
-@click.option("--sum", "sum_path", type=click.Path(dir_okay=False), help="SUM file giving a .DAT photo's size.")
+@click.option(
+    "--sum", "sum_path", type=click.Path(dir_okay=False), help="SUM file giving a .DAT photo's size."
+)
 @pass_context
 def info_cmd(ctx: Context, files, as_json, arrays, npx, nln, sum_path):
     """Describe SPC files and photos; the type is detected from the content.
@@ -315,7 +337,9 @@ def info_cmd(ctx: Context, files, as_json, arrays, npx, nln, sum_path):
 @click.option("--json", "as_json", is_flag=True, help="Report as JSON.")
 @click.option("--npx", type=int, help="Width of a .DAT photo.")
 @click.option("--nln", type=int, help="Height of a .DAT photo.")
-@click.option("--sum", "sum_path", type=click.Path(dir_okay=False), help="SUM file giving a .DAT photo's size.")
+@click.option(
+    "--sum", "sum_path", type=click.Path(dir_okay=False), help="SUM file giving a .DAT photo's size."
+)
 @pass_context
 def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
     """Check SPC files and photos: exit 0 when all are valid, 2 when any is not.
@@ -351,7 +375,10 @@ def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
             for p in entry["problems"]:
                 click.echo(p, err=True)
     if as_json:
-        emit(json.dumps({"command": "validate", "spctool_version": __version__, "files": report}, indent=2) + "\n")
+        emit(
+            json.dumps({"command": "validate", "spctool_version": __version__, "files": report}, indent=2)
+            + "\n"
+        )
     ctx_exit = 2 if bad else 0
     if ctx_exit:
         raise click.exceptions.Exit(ctx_exit)
@@ -403,9 +430,13 @@ def _map_images(maplet, out: Path, kind: str, overwrite: bool, backup: bool) -> 
                 hdr[f"{label}{axis}"] = float(vec[i])
         heights = np.where(valid, maplet.heights, np.nan).astype(np.float64)
         albedo = np.where(valid, maplet.albedo, np.nan).astype(np.float64)
-        hdul = fits.HDUList([fits.PrimaryHDU(heights, header=hdr),
-                             fits.ImageHDU(albedo, name="ALBEDO"),
-                             fits.ImageHDU(valid.astype(np.uint8), name="VALID")])
+        hdul = fits.HDUList(
+            [
+                fits.PrimaryHDU(heights, header=hdr),
+                fits.ImageHDU(albedo, name="ALBEDO"),
+                fits.ImageHDU(valid.astype(np.uint8), name="VALID"),
+            ]
+        )
         buf = io.BytesIO()
         hdul.writeto(buf)
         atomic.write_bytes(out, buf.getvalue(), overwrite=overwrite, backup=backup)
@@ -420,12 +451,25 @@ def _map_images(maplet, out: Path, kind: str, overwrite: bool, backup: bool) -> 
         alb[valid] = np.clip(np.round(maplet.albedo[valid] * 100), 1, 255).astype(np.uint8)
         second = out.with_name(out.stem + ".albedo" + out.suffix)
         write_photo(out, Photo(data=img, name=maplet.name or "", bits=16), overwrite=overwrite, backup=backup)
-        write_photo(second, Photo(data=alb, name=maplet.name or "", bits=8), overwrite=overwrite, backup=backup)
+        write_photo(
+            second, Photo(data=alb, name=maplet.name or "", bits=8), overwrite=overwrite, backup=backup
+        )
         return [out, second]
     if kind == "npz":
         buf = io.BytesIO()
-        np.savez(buf, heights=maplet.heights, albedo=maplet.albedo, valid=valid, scale=maplet.scale,
-                 qsz=maplet.qsz, v=maplet.v, ux=maplet.ux, uy=maplet.uy, uz=maplet.uz, hscale=maplet.hscale)
+        np.savez(
+            buf,
+            heights=maplet.heights,
+            albedo=maplet.albedo,
+            valid=valid,
+            scale=maplet.scale,
+            qsz=maplet.qsz,
+            v=maplet.v,
+            ux=maplet.ux,
+            uy=maplet.uy,
+            uz=maplet.uz,
+            hscale=maplet.hscale,
+        )
         atomic.write_bytes(out, buf.getvalue(), overwrite=overwrite, backup=backup)
         return [out]
     raise SpcUsageError(f"{out}: a maplet converts to .fits, .pgm, .png, .npz or .MAP")
@@ -434,14 +478,28 @@ def _map_images(maplet, out: Path, kind: str, overwrite: bool, backup: bool) -> 
 @click.command("convert")
 @click.argument("src", type=click.Path(dir_okay=False, exists=True))
 @click.argument("dst", type=click.Path(dir_okay=False))
-@click.option("--flip-rows", is_flag=True, help="Reverse the row order of a photo (bottom-up storage -> SPC order).")
+@click.option(
+    "--flip-rows", is_flag=True, help="Reverse the row order of a photo (bottom-up storage -> SPC order)."
+)
 @click.option("--npx", type=int, help="Width of a .DAT input photo.")
 @click.option("--nln", type=int, help="Height of a .DAT input photo.")
-@click.option("--sum", "sum_path", type=click.Path(dir_okay=False), help="SUM file giving a .DAT photo's size.")
-@click.option("--byte-order", type=click.Choice(["auto", "big", "little"]), default="auto", show_default=True,
-              help="Byte order of a 16-bit .DAT input (auto: SPC's Laplacian test).")
-@click.option("--icq-style", type=click.Choice(["spc", "exact"]), default="spc", show_default=True,
-              help="ICQ output numbers: SPC's 3F12.5 or full precision.")
+@click.option(
+    "--sum", "sum_path", type=click.Path(dir_okay=False), help="SUM file giving a .DAT photo's size."
+)
+@click.option(
+    "--byte-order",
+    type=click.Choice(["auto", "big", "little"]),
+    default="auto",
+    show_default=True,
+    help="Byte order of a 16-bit .DAT input (auto: SPC's Laplacian test).",
+)
+@click.option(
+    "--icq-style",
+    type=click.Choice(["spc", "exact"]),
+    default="spc",
+    show_default=True,
+    help="ICQ output numbers: SPC's 3F12.5 or full precision.",
+)
 @click.option("--force", is_flag=True, help="Overwrite DST if it exists.")
 @click.option("--backup", is_flag=True, help="Keep DST.bak when overwriting.")
 @pass_context

@@ -93,10 +93,21 @@ def _one_line(text: str) -> str:
 
 @click.group(cls=SpcGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, "-V", "--version", prog_name="spctool")
-@click.option("-C", "workdir", default=".", metavar="DIR", type=click.Path(file_okay=False),
-              help="SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...). Default: current directory.")
-@click.option("--settings", "settings", metavar="FILE", type=click.Path(dir_okay=False),
-              help="INIT_LITHOS settings file. Default: DIR/INIT_LITHOS.TXT when present.")
+@click.option(
+    "-C",
+    "workdir",
+    default=".",
+    metavar="DIR",
+    type=click.Path(file_okay=False),
+    help="SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...). Default: current directory.",
+)
+@click.option(
+    "--settings",
+    "settings",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    help="INIT_LITHOS settings file. Default: DIR/INIT_LITHOS.TXT when present.",
+)
 @click.option("-v", "--verbose", count=True, help="More messages on stderr (repeatable).")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
 @click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
@@ -114,7 +125,9 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
     Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
     centres at integers, line 1 = first stored row.
     """
-    ctx.obj = Context(workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug)
+    ctx.obj = Context(
+        workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
+    )
 
 
 def _register_all():

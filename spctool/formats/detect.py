@@ -90,4 +90,6 @@ def detect_kind(path) -> str:
         return "lmrklist"
     if any(ln.split()[:1] == ["name"] for ln in lines[:20] if ln.strip()):
         return "table"
-    raise SpcFormatError(p, 1, "expected an SPC file (SUM, NOM, LMK, MAP, ICQ, OBJ, VTK, INIT_LITHOS, list) or a photo")
+    raise SpcFormatError(
+        p, 1, "expected an SPC file (SUM, NOM, LMK, MAP, ICQ, OBJ, VTK, INIT_LITHOS, list) or a photo"
+    )

@@ -45,7 +45,9 @@ def tokens(text: str) -> list[str]:
     return [t for t in _SPLIT.split(text) if t]
 
 
-def read_reals(text: str, count: int, *, path=None, line: int | None = None, what: str = "numbers") -> list[float]:
+def read_reals(
+    text: str, count: int, *, path=None, line: int | None = None, what: str = "numbers"
+) -> list[float]:
     """List-directed ``READ(LINE,*) A(1:count)``: the first ``count`` values, rest ignored.
 
     Raises :class:`SpcFormatError` naming ``path``/``line`` when fewer than
@@ -67,7 +69,9 @@ def read_reals(text: str, count: int, *, path=None, line: int | None = None, wha
     return out
 
 
-def read_ints(text: str, count: int, *, path=None, line: int | None = None, what: str = "integers") -> list[int]:
+def read_ints(
+    text: str, count: int, *, path=None, line: int | None = None, what: str = "integers"
+) -> list[int]:
     """List-directed read of ``count`` integers (a real with an integral value is refused)."""
     toks = tokens(text)
     out: list[int] = []
@@ -75,7 +79,9 @@ def read_ints(text: str, count: int, *, path=None, line: int | None = None, what
         if len(out) == count:
             break
         if not re.fullmatch(r"[+-]?\d+", tok):
-            raise SpcFormatError(path, line, f"expected {count} {what}, found {tok!r} at value {len(out) + 1}")
+            raise SpcFormatError(
+                path, line, f"expected {count} {what}, found {tok!r} at value {len(out) + 1}"
+            )
         out.append(int(tok))
     if len(out) < count:
         raise SpcFormatError(path, line, f"expected {count} {what}, found {len(out)}")

@@ -29,14 +29,32 @@ from spctool.errors import SpcFormatError
 
 #: Decimal places used for well-known columns; other floats use ``%.6g``.
 COLUMN_DECIMALS: dict[str, int] = {
-    "sample": 4, "line": 4, "predicted_sample": 4, "predicted_line": 4,
-    "apriori_sample": 4, "apriori_line": 4, "measured_sample": 4, "measured_line": 4,
-    "dsample": 4, "dline": 4, "true_sample": 4, "true_line": 4,
-    "error_sample": 4, "error_line": 4,
-    "residual_sample_before": 4, "residual_line_before": 4,
-    "residual_sample_after": 4, "residual_line_after": 4,
-    "correlation": 4, "emission": 3, "incidence": 3, "phase": 3,
-    "range_km": 6, "fraction_in_photo": 4, "lambda": 5, "phi": 5,
+    "sample": 4,
+    "line": 4,
+    "predicted_sample": 4,
+    "predicted_line": 4,
+    "apriori_sample": 4,
+    "apriori_line": 4,
+    "measured_sample": 4,
+    "measured_line": 4,
+    "dsample": 4,
+    "dline": 4,
+    "true_sample": 4,
+    "true_line": 4,
+    "error_sample": 4,
+    "error_line": 4,
+    "residual_sample_before": 4,
+    "residual_line_before": 4,
+    "residual_sample_after": 4,
+    "residual_line_after": 4,
+    "correlation": 4,
+    "emission": 3,
+    "incidence": 3,
+    "phase": 3,
+    "range_km": 6,
+    "fraction_in_photo": 4,
+    "lambda": 5,
+    "phi": 5,
 }
 
 _INT = re.compile(r"^[+-]?\d+$")
@@ -167,7 +185,9 @@ class LandmarkTable:
             return out.getvalue()
         cells = [[_format_value(k, self.columns[k][i]) for k in keys] for i in range(len(self))]
         widths = [max([len(k)] + [len(r[j]) for r in cells]) for j, k in enumerate(keys)]
-        numeric = [isinstance(self.columns[k], np.ndarray) and self.columns[k].dtype.kind in "fiu" for k in keys]
+        numeric = [
+            isinstance(self.columns[k], np.ndarray) and self.columns[k].dtype.kind in "fiu" for k in keys
+        ]
 
         def fmt(items):
             parts = []
@@ -203,7 +223,9 @@ class LandmarkTable:
             if header is None:
                 header = parts
                 if "name" not in header:
-                    raise SpcFormatError(path, lineno, "expected a header line of column names including 'name'")
+                    raise SpcFormatError(
+                        path, lineno, "expected a header line of column names including 'name'"
+                    )
                 continue
             if len(parts) != len(header):
                 raise SpcFormatError(path, lineno, f"expected {len(header)} columns, found {len(parts)}")
@@ -241,7 +263,9 @@ class LandmarkTable:
         if not isinstance(doc, dict) or not isinstance(doc.get("landmarks"), list):
             raise SpcFormatError(path, None, "expected a JSON object with a 'landmarks' list")
         rows = [{k: (math.nan if v is None else v) for k, v in r.items()} for r in doc["landmarks"]]
-        meta = {k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")}
+        meta = {
+            k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")
+        }
         return cls.from_rows(rows, picture=doc.get("picture"), command=doc.get("command"), meta=meta)
 
 

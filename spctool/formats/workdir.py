@@ -130,7 +130,9 @@ class WorkDir:
 
         path = self.photo_path(picture)
         if path is None:
-            raise _missing(self.root / "IMAGEFILES" / f"{picture.strip()}.DAT", f"the photo of picture {picture}")
+            raise _missing(
+                self.root / "IMAGEFILES" / f"{picture.strip()}.DAT", f"the photo of picture {picture}"
+            )
         return read_photo(path, npx=npx, nln=nln, **kw)
 
     def read_shape(self, path=None):

@@ -1,0 +1,140 @@
+"""``project``: landmark -> pixel, and pixel -> line of sight, with a picture's SPC camera (L15 §1)."""
+
+from __future__ import annotations
+
+import json
+
+import click
+import numpy as np
+
+from spctool import __version__
+from spctool.cli.common import (
+    Context,
+    emit,
+    emit_table,
+    json_option,
+    output_option,
+    pass_context,
+    resolve_landmarks,
+)
+from spctool.errors import SpcUsageError
+from spctool.formats.table import LandmarkTable
+from spctool.geometry.camera import Camera
+
+
+def _camera(ctx: Context, picture: str) -> tuple[object, Camera]:
+    pic = ctx.wd.read_picture(picture)
+    return pic, Camera.from_picture(pic, ctx.settings())
+
+
+def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable:
+    """Predicted pixels of landmarks (their LMK VLM) as a landmark table."""
+    names = [lm.name for lm in landmarks]
+    if not landmarks:
+        return LandmarkTable.from_rows([], picture=picture_name)
+    vlm = np.array([lm.vlm for lm in landmarks], dtype=np.float64)
+    sample, line, front = camera.project_with_mask(vlm)
+    inside = camera.in_image(sample, line)
+    rng = np.linalg.norm(vlm - camera.position, axis=1)
+    status = np.where(~front, "behind", np.where(inside, "ok", "outside"))
+    return LandmarkTable(
+        {"name": names, "sample": sample, "line": line, "range_km": rng, "status": list(status)},
+        picture=picture_name,
+    )
+
+
+@click.command("project")
+@click.argument("picture")
+@click.argument("landmarks", nargs=-1)
+@click.option(
+    "--landmarks", "table", metavar="TABLE", help="Take landmark names from a landmark table ('-' = stdin)."
+)
+@click.option(
+    "--inverse",
+    nargs=2,
+    type=float,
+    metavar="SAMPLE LINE",
+    help="Instead: the line of sight of pixel (SAMPLE, LINE) and, with a shape, the surface point hit.",
+)
+@click.option(
+    "--shape",
+    "shape_path",
+    type=click.Path(dir_okay=False),
+    help="Shape model for --inverse (ICQ, OBJ or VTK). Default: SHAPEFILES/SHAPE.TXT if present.",
+)
+@json_option
+@output_option
+@pass_context
+def project_cmd(ctx: Context, picture, landmarks, table, inverse, shape_path, as_json, output):
+    """Project landmarks into PICTURE, or a pixel back onto the body.
+
+    LANDMARKS are names (LMKFILES/NAME.LMK), LMK files or landmark tables; default: every
+    landmark of LMRKLIST.TXT (else LMKFILES/). The camera is the SUM's pose and K-matrix with the
+    INIT_LITHOS DISTORT= model matching the picture. Rows give the predicted SPC pixel
+    (1-based sample, line) and status ok / outside / behind.
+
+    Example:
+
+    \b
+      spctool -C WORKDIR project W48230079013
+      spctool project SUMFILES/W48230079013.SUM LMKFILES/FA0115.LMK --json
+      spctool -C WORKDIR project P0001 --inverse 512.5 512.5
+    """
+    pic, camera = _camera(ctx, picture)
+    command = "project " + picture
+    if inverse:
+        if landmarks or table:
+            raise SpcUsageError("--inverse takes a pixel, not landmarks")
+        sample, line = inverse
+        direction = camera.pixel_to_direction(np.array([sample]), np.array([line]))[0]
+        doc = {
+            "command": command,
+            "picture": pic.name,
+            "spctool_version": __version__,
+            "sample": sample,
+            "line": line,
+            "in_image": bool(camera.in_image(np.array([sample]), np.array([line]))[0]),
+            "spacecraft_position": camera.position.tolist(),
+            "direction_body": direction.tolist(),
+            "direction_camera": (camera.rotation @ direction).tolist(),
+        }
+        shape_obj = ctx.wd.read_shape(shape_path)
+        if shape_obj is None:
+            ctx.note_once(
+                "no shape model: the surface point is not computed (give --shape or SHAPEFILES/SHAPE.TXT)"
+            )
+        else:
+            from spctool.geometry.shape import as_shape
+
+            shp = as_shape(shape_obj)
+            hit = shp.first_hit(camera.position[None, :], direction[None, :])
+            if bool(hit.hit[0]):
+                point = hit.point[0]
+                r = float(np.linalg.norm(point))
+                doc["surface_point"] = point.tolist()
+                doc["range_km"] = float(hit.t[0])
+                doc["latitude_deg"] = float(np.degrees(np.arcsin(point[2] / r)))
+                doc["longitude_deg"] = float(np.degrees(np.arctan2(point[1], point[0])) % 360.0)
+                doc["radius_km"] = r
+            else:
+                doc["surface_point"] = None
+        if as_json:
+            emit(json.dumps(doc, indent=2) + "\n", output)
+        else:
+            lines = [f"# spctool {__version__}", f"# picture: {pic.name}", f"# command: {command}"]
+            for key, value in doc.items():
+                if key in ("command", "picture", "spctool_version"):
+                    continue
+                if isinstance(value, list):
+                    value = " ".join(f"{v:.10g}" for v in value)
+                lines.append(f"{key:<20} {value}")
+            emit("\n".join(lines) + "\n", output)
+        return
+    lms = resolve_landmarks(ctx, landmarks, table)
+    t = project_table(camera, lms, pic.name)
+    t.command = command
+    emit_table(t, as_json=as_json, output=output)
+
+
+def register(cli):
+    cli.add_command(project_cmd)
