@@ -50,7 +50,7 @@ def _paragraphs(help_text: str) -> str:
 
 def render(command: click.Command, path: list[str]) -> str:
     name = "-".join(path)
-    ctx = click.Context(command, info_name=" ".join(path))
+    ctx = click.Context(command, info_name=" ".join(path), help_option_names=["-h", "--help"])
     summary = command.get_short_help_str(limit=120)
     usage = " ".join(command.collect_usage_pieces(ctx))
     parts = [
@@ -91,7 +91,7 @@ def all_pages() -> dict[str, str]:
     from spctool.cli.main import cli
 
     pages = {"spctool.1": render(cli, ["spctool"])}
-    ctx = click.Context(cli, info_name="spctool")
+    ctx = click.Context(cli, info_name="spctool", help_option_names=["-h", "--help"])
     for sub in cli.list_commands(ctx):
         command = cli.get_command(ctx, sub)
         pages[f"spctool-{sub}.1"] = render(command, ["spctool", sub])
