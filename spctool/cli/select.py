@@ -1,0 +1,487 @@
+"""``lithos-select``: the maplets a picture can see (Stage A, :mod:`spctool.stages.select`).
+
+Loads the picture (SUM), the candidate landmarks (LMRKLIST.TXT, LMKFILES/, ``--maplets`` or
+``--landmarks``), INIT_LITHOS (distortion model, NUMLM/RESLM/SIZLM) and the shape, runs
+:func:`spctool.stages.select.select_maplets` and writes the landmark table of cli-contract.md.
+``--overlay`` draws the selected maplets' outlines on the photo.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from spctool.cli.common import Context, emit_table, json_option, output_option, pass_context
+from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
+from spctool.formats import atomic
+
+# ------------------------------------------------------------------------------------------------
+# inputs
+
+
+class Candidates:
+    """Candidate maplet geometry as arrays (the stage's inputs)."""
+
+    def __init__(self, names, centres, ux, uy, uz, scale, qsz):
+        self.names = list(names)
+        self.centres = np.asarray(centres, float).reshape(-1, 3)
+        self.ux = np.asarray(ux, float).reshape(-1, 3)
+        self.uy = np.asarray(uy, float).reshape(-1, 3)
+        self.uz = np.asarray(uz, float).reshape(-1, 3)
+        self.scale = np.asarray(scale, float).reshape(-1)
+        self.qsz = np.asarray(qsz, np.int64).reshape(-1)
+
+    def __len__(self):
+        return len(self.names)
+
+
+def _geometry_of(obj, name=None):
+    """(name, V, UX, UY, UZ, SCALE, QSZ) of a Landmark (LMK) or a Maplet (MAP)."""
+    centre = getattr(obj, "vlm", None)
+    if centre is None:
+        centre = obj.v
+    return (name or getattr(obj, "name", "") or "", centre, obj.ux, obj.uy, obj.uz, obj.scale, obj.qsz)
+
+
+def _load_named(wd, name: str):
+    """LMKFILES/<name>.LMK, else MAPFILES/<name>.MAP (EXTFILES/ too)."""
+    if wd.lmk_path(name).exists():
+        return _geometry_of(wd.read_landmark(name), name)
+    if wd.map_path(name).exists():
+        return _geometry_of(wd.read_maplet(name), name)
+    raise SpcFormatError(
+        wd.lmk_path(name), None, f"the LMK (or MAP) file of landmark {name} (file not found)"
+    )
+
+
+def _names_from_list_file(path: Path) -> list[str]:
+    """Names from an LMRKLIST-style file (one name a line, ``END`` optional, ``#`` comments)."""
+    names = []
+    for raw in atomic.read_text(path).splitlines():
+        token = raw[:6].strip() if raw.strip() else ""
+        if not token or raw.startswith("#"):
+            continue
+        if token == "END":
+            break
+        names.append(token)
+    return names
+
+
+def load_candidates(ctx: Context, maplets, landmarks_table) -> Candidates:
+    wd = ctx.wd
+    rows = []
+    if maplets:
+        for item in maplets:
+            p = Path(item)
+            suffix = p.suffix.upper()
+            if suffix == ".LMK" and p.exists():
+                from spctool.formats.landmark import read_lmk
+
+                rows.append(_geometry_of(read_lmk(p), None))
+                if not rows[-1][0]:
+                    rows[-1] = (p.stem,) + rows[-1][1:]
+            elif suffix == ".MAP" and p.exists():
+                from spctool.formats.maplet import read_map
+
+                m = read_map(p)
+                rows.append(_geometry_of(m, m.name or p.stem))
+            elif p.is_file():
+                rows.extend(_load_named(wd, n) for n in _names_from_list_file(p))
+            else:
+                rows.extend(_load_named(wd, n) for n in item.replace(",", " ").split())
+    elif landmarks_table:
+        from spctool.formats.table import read_table
+
+        table = read_table(landmarks_table)
+        rows = [_load_named(wd, n) for n in table.names]
+    else:
+        names = wd.landmark_names()
+        if not names:
+            raise SpcUsageError(
+                f"{wd.root}: no candidate landmarks (no LMRKLIST.TXT, no LMKFILES/*.LMK); "
+                "give --maplets or --landmarks"
+            )
+        rows = [_load_named(wd, n) for n in names]
+    if not rows:
+        return Candidates([], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), [], [])
+    cols = list(zip(*rows))
+    return Candidates(
+        cols[0],
+        np.vstack(cols[1]),
+        np.vstack(cols[2]),
+        np.vstack(cols[3]),
+        np.vstack(cols[4]),
+        np.asarray(cols[5], float),
+        np.asarray(cols[6], np.int64),
+    )
+
+
+def shape_model(obj):
+    """A geometry shape (first_hit/max_diameter) from what ``formats`` read: ICQ -> bilinear patches,
+    triangle mesh -> triangles; geometry shapes pass through."""
+    if obj is None or hasattr(obj, "first_hit"):
+        return obj
+    from spctool.geometry.shape import PatchShape, TriangleShape
+
+    verts = np.asarray(getattr(obj, "vertices", None))
+    if verts.ndim == 4:
+        return PatchShape(obj)
+    if getattr(obj, "faces", None) is not None:
+        return TriangleShape(obj)
+    raise SpcUsageError(f"cannot use a {type(obj).__name__} as a shape model")
+
+
+# ------------------------------------------------------------------------------------------------
+# overlay
+
+
+_PALETTE = [
+    (255, 64, 64),
+    (64, 220, 64),
+    (80, 160, 255),
+    (255, 200, 0),
+    (255, 80, 255),
+    (0, 230, 230),
+    (255, 140, 0),
+    (180, 120, 255),
+]
+
+
+def stretch_8bit(data, thrsh) -> np.ndarray:
+    """DN -> 0..255 linearly between the SUM THRSH values (min/max of the photo if THRSH is empty)."""
+    d = np.asarray(data, dtype=np.float64)
+    lo, hi = (float(thrsh[0]), float(thrsh[1])) if thrsh is not None else (math.nan, math.nan)
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        lo, hi = float(np.nanmin(d)), float(np.nanmax(d))
+        if not hi > lo:
+            hi = lo + 1.0
+    return np.clip(np.round((d - lo) / (hi - lo) * 255.0), 0, 255).astype(np.uint8)
+
+
+def outline_pixels(camera, centres, ux, uy, half_side, per_edge: int = 8):
+    """(sample, line, in_front) of the square outlines V + a·Ux + b·Uy, |a|, |b| = half_side, as
+    (N, 4·per_edge + 1) arrays walking the boundary (closed)."""
+    t = np.linspace(-1.0, 1.0, per_edge + 1)[:-1]
+    one = np.ones_like(t)
+    a = np.concatenate([t, one, -t, -one, [-1.0]])
+    b = np.concatenate([-one, t, one, -t, [-1.0]])
+    h = np.asarray(half_side, float)[:, None, None]
+    pts = centres[:, None, :] + h * (a[None, :, None] * ux[:, None, :] + b[None, :, None] * uy[:, None, :])
+    s, ln, front = camera.project_with_mask(pts.reshape(-1, 3))
+    shape = pts.shape[:2]
+    return s.reshape(shape), ln.reshape(shape), front.reshape(shape)
+
+
+def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes:
+    """PNG bytes: the photo stretched to 8 bits with the selected maplets' outlines and names."""
+    from PIL import Image, ImageDraw
+
+    gray = stretch_8bit(photo_data, thrsh)
+    img = Image.fromarray(np.repeat(gray[:, :, None], 3, axis=2), mode="RGB")
+    draw = ImageDraw.Draw(img)
+    sel = np.flatnonzero(result.selected)
+    if sel.size:
+        half = (2.0 * cand.qsz[sel] + 1.0) * cand.scale[sel] / 2.0
+        s, ln, front = outline_pixels(camera, cand.centres[sel], cand.ux[sel], cand.uy[sel], half)
+        for k, idx in enumerate(sel):  # drawing is per polygon in PIL; the geometry above is vectorised
+            if not front[k].all():
+                continue
+            colour = _PALETTE[k % len(_PALETTE)]
+            xy = list(zip((s[k] - 1.0).tolist(), (ln[k] - 1.0).tolist()))  # SPC 1-based -> PIL 0-based
+            draw.line(xy, fill=colour, width=1)
+            cs, cl = result.sample[idx] - 1.0, result.line[idx] - 1.0
+            if np.isfinite(cs) and np.isfinite(cl):
+                draw.line([(cs - 2, cl), (cs + 2, cl)], fill=colour)
+                draw.line([(cs, cl - 2), (cs, cl + 2)], fill=colour)
+            draw.text((float(np.min(s[k])) - 1.0, float(np.min(ln[k])) - 12.0), cand.names[idx], fill=colour)
+    buf = io.BytesIO()
+    img.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+# ------------------------------------------------------------------------------------------------
+# command
+
+
+@click.command("lithos-select")
+@click.argument("picture")
+@click.option(
+    "--sum",
+    "sum_path",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    help="The picture's SUM file (default: DIR/SUMFILES/PIC.SUM).",
+)
+@click.option(
+    "--maplets",
+    "maplets",
+    metavar="NAME|FILE",
+    multiple=True,
+    help="Candidate landmarks: names (LMKFILES/NAME.LMK, else MAPFILES/NAME.MAP), .LMK or .MAP "
+    "files, or a list file of names. Repeatable. Default: LMRKLIST.TXT, else LMKFILES/*.LMK.",
+)
+@click.option(
+    "--landmarks",
+    "landmarks_table",
+    metavar="TABLE",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    help="Candidate landmarks from the 'name' column of a landmark table ('-' = stdin).",
+)
+@click.option(
+    "--shape",
+    "shape_path",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    help="Shape model for the occlusion test (ICQ, OBJ or VTK). Default: DIR/SHAPEFILES/SHAPE.TXT.",
+)
+@click.option(
+    "--occlusion/--no-occlusion",
+    "occlusion",
+    default=None,
+    help="Run the occlusion test (L15 3.2.1). Default: on when a shape model is available.",
+)
+@click.option(
+    "--occlusion-tol",
+    type=float,
+    default=None,
+    metavar="F",
+    help="Occlusion tolerance as a fraction of the body's largest diameter.  [default: 0.01]",
+)
+@click.option(
+    "--numlm",
+    type=click.IntRange(min=0),
+    default=None,
+    metavar="N",
+    help="Maplet count above which the resolution screen applies.  [default: INIT_LITHOS NUMLM, else 200]",
+)
+@click.option(
+    "--reslm",
+    type=float,
+    default=None,
+    metavar="F",
+    help="Keep maplets whose pixel footprint < F x maplet scale.  [default: INIT_LITHOS RESLM, else 4]",
+)
+@click.option(
+    "--numlm-mode",
+    type=click.Choice(["deterministic", "spc_sequential"]),
+    default=None,
+    help="deterministic: screen all candidates when more than NUMLM pass; spc_sequential: screen "
+    "those met after NUMLM selections, in list order.  [default: deterministic]",
+)
+@click.option(
+    "--size-factor",
+    type=float,
+    default=None,
+    metavar="F",
+    help="Maplet side must be < F x photo side at the landmark.  [default: INIT_LITHOS SIZLM, else 1]",
+)
+@click.option(
+    "--facing-cos-min",
+    type=float,
+    default=None,
+    metavar="F",
+    help="Minimum cosine between the maplet normal and the direction to the camera.  [default: 0.05]",
+)
+@click.option(
+    "--max-emission",
+    type=float,
+    default=None,
+    metavar="DEG",
+    help="Reject maplets seen at emission >= DEG (LITHOS uses 75 for PICTLIST candidates).",
+)
+@click.option(
+    "--fractional-width",
+    type=float,
+    default=None,
+    metavar="W",
+    help="Offset of the 3x3 in-photo test points (LITHOS 'fractional width').  [default: 0.5]",
+)
+@click.option(
+    "--fw-scale",
+    type=click.Choice(["side", "half"]),
+    default=None,
+    help="The offset is W x maplet side (side) or W x half side (half).  [default: side]",
+)
+@click.option(
+    "--cone-rho",
+    type=click.Choice(["half-diagonal", "half-side"]),
+    default=None,
+    help="Maplet radius used by the field-of-view cone.  [default: half-diagonal]",
+)
+@click.option(
+    "--jacobian",
+    type=click.Choice(["central", "analytic"]),
+    default=None,
+    help="Pixel/maplet-cell Jacobian for the resolution: one-cell central differences (L15) or exact. "
+    " [default: central]",
+)
+@click.option(
+    "--all",
+    "show_all",
+    is_flag=True,
+    help="Also list rejected maplets, with the first failed check as status.",
+)
+@click.option(
+    "--require",
+    "require",
+    type=click.IntRange(min=0),
+    default=None,
+    metavar="N",
+    help="Exit 1 when fewer than N maplets are selected.",
+)
+@click.option(
+    "--overlay",
+    "overlay",
+    metavar="FILE.png",
+    type=click.Path(dir_okay=False),
+    help="Write the photo with the selected maplets' outlines and names drawn on it (PNG).",
+)
+@click.option(
+    "--photo",
+    "photo_path",
+    metavar="FILE",
+    type=click.Path(dir_okay=False, exists=True),
+    help="Photo for --overlay (default: the picture's IMAGEFILES/ photo).",
+)
+@json_option
+@output_option
+@pass_context
+def select_cmd(
+    ctx: Context,
+    picture,
+    sum_path,
+    maplets,
+    landmarks_table,
+    shape_path,
+    occlusion,
+    occlusion_tol,
+    numlm,
+    reslm,
+    numlm_mode,
+    size_factor,
+    facing_cos_min,
+    max_emission,
+    fractional_width,
+    fw_scale,
+    cone_rho,
+    jacobian,
+    show_all,
+    require,
+    overlay,
+    photo_path,
+    as_json,
+    output,
+):
+    """Select the maplets a picture can see, with predicted pixels and geometry.
+
+    The checks follow L15 3.2 in order; a rejected maplet's status is the first one it fails:
+    outside (field-of-view cone), backfacing (maplet faces away from the camera), too-oblique
+    (only with --max-emission), unlit (Sun below the maplet plane), too-coarse (pixel footprint
+    >= RESLM x scale, applied when more than NUMLM maplets pass), too-big (maplet larger than the
+    photo at that range), outside (none of the 3x3 box points in the photo), occluded (the shape
+    hides the landmark).  The occlusion test needs a shape model; without one it is skipped with
+    a note on stderr.
+
+    Columns: name, sample and line (predicted SPC pixel of the landmark), range_km,
+    resolution_km_px, emission, incidence and phase (degrees), fraction_in_photo (fraction of the
+    3x3 box points inside the photo) and status.  An empty selection is a valid result (exit 0)
+    unless --require N asks for more.
+
+    Example:
+
+    \b
+      spctool -C WORKDIR lithos-select P600127001 > sel.txt
+      spctool -C WORKDIR lithos-select P600127001 --all --json
+      spctool lithos-select W48230079013 --sum W48230079013.SUM --maplets FA0115.LMK --maplets FC0098.LMK
+      spctool -C WORKDIR lithos-select P600127001 --numlm 50 --overlay sel.png
+    """
+    from spctool.geometry.camera import Camera
+    from spctool.stages.select import SelectOptions, select_maplets
+
+    wd = ctx.wd
+    pic = wd.read_picture(sum_path if sum_path else picture)
+    settings = ctx.settings()
+    camera = Camera.from_picture(pic, settings)
+    options = SelectOptions.from_settings(
+        settings,
+        numlm=numlm,
+        reslm=reslm,
+        numlm_mode=numlm_mode,
+        size_factor=size_factor,
+        facing_cos_min=facing_cos_min,
+        max_emission=max_emission,
+        fractional_width=fractional_width,
+        fw_scale=fw_scale,
+        cone_rho=cone_rho,
+        jacobian=jacobian,
+        occlusion=occlusion,
+        occlusion_tol=occlusion_tol,
+    )
+    cand = load_candidates(ctx, maplets, landmarks_table)
+    ctx.info(f"{len(cand)} candidate maplets for picture {pic.name}")
+
+    shape = None
+    if occlusion is not False:
+        if shape_path or wd.shape_path.exists():
+            shape = shape_model(wd.read_shape(shape_path))
+        if shape is None:
+            if occlusion:
+                raise SpcUsageError(
+                    f"--occlusion needs a shape model ({wd.shape_path} not found; give --shape)"
+                )
+            ctx.note_once("no shape model (SHAPEFILES/SHAPE.TXT or --shape): occlusion check skipped")
+
+    result = select_maplets(
+        camera,
+        pic.sz,
+        cand.centres,
+        cand.ux,
+        cand.uy,
+        cand.uz,
+        cand.scale,
+        cand.qsz,
+        cand.names,
+        options,
+        shape=shape,
+    )
+    counts = result.status_counts()
+    meta = {
+        "candidates": len(result),
+        "selected": result.n_selected,
+        "status_counts": counts,
+        "occlusion": "checked" if result.occlusion_checked else "skipped",
+        "half_fov_deg": result.half_fov_deg,
+        "options": options.as_dict(),
+    }
+    table = result.to_table(include_rejected=show_all, picture=pic.name, command="lithos-select", meta=meta)
+    table.comments.append(
+        f"selected {result.n_selected} of {len(result)} candidate maplets; occlusion {meta['occlusion']}"
+    )
+    emit_table(table, as_json=as_json, output=output)
+
+    if overlay:
+        if photo_path:
+            from spctool.formats.photo import read_photo
+
+            photo = read_photo(photo_path, npx=pic.npx, nln=pic.nln)
+        else:
+            photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
+        if photo.data.shape != (pic.nln, pic.npx):
+            raise SpcUsageError(
+                f"the photo is {photo.npx} x {photo.nln} px but the SUM says {pic.npx} x {pic.nln}"
+            )
+        atomic.write_bytes(overlay, render_overlay(photo.data, pic.thrsh, camera, cand, result))
+        ctx.info(f"wrote {overlay}")
+
+    if require is not None and result.n_selected < require:
+        raise SpcResultError(
+            f"{pic.name}: {result.n_selected} maplets selected, fewer than --require {require}"
+        )
+
+
+def register(cli):
+    cli.add_command(select_cmd)
