@@ -1,0 +1,544 @@
+"""Stages F–G — ``correlate``: binning, the (2k+1)² NCC grid and the sub-pixel peak.
+
+Specification: spc-algorithms.md §7 (Stage F) and §8 (Stage G), §13 (defaults); L15 §3.5–3.5.1;
+S16 "Correlation and Peak Finding" (Eq. 18).
+
+What it computes
+----------------
+Two images on the same grid (maplet space: the extracted photo E and the predicted image P, both
+(2q+1)×(2q+1), NumPy axis 0 along UX, axis 1 along UY) or a template P placed over a larger search image
+E (image space, :func:`correlate` with anchors).  With spacing n:
+
+1. **Binning** (L15 Eq. 3.57 with erratum 24 — the inner sums run over the n cells (r_b−1)·n+1 … r_b·n,
+   not to (r_b−1)·n): each image is averaged over n×n blocks, counting only valid pixels; a block with no
+   valid pixel is invalid.  Both images are binned with **the same phase, anchored at the centre node**
+   (spc-algorithms.md §7.3): for odd n the anchor is the centre of block 0; for even n block 0 covers
+   anchor − n/2 … anchor + n/2 − 1 (a block of even width cannot be centred on a node; since E and P use
+   the same phase, this shifts neither image relative to the other and so biases no offset).
+2. **Grid** of whole-cell offsets (u, v) ∈ {−k…k}² in binned cells (k = ``grid_half``, default 5: 11×11),
+   u along axis 0 (UX), v along axis 1 (UY).  **Sign convention** (spc-algorithms.md §7.3):
+
+       C(u, v) = corr(E_b(m), P_b(m − (u, v)))
+
+   so if E(m) = P(m − Δ) the peak is at Δ.  With a fixed bin phase this equals shifting the
+   full-resolution prediction by n·(u, v) and then binning, as L15 describes.
+3. **NCC** = Pearson's coefficient over the pixels valid in *both* binned images (L15 §3.5, S16 "near-zero
+   threshold"):
+
+       C = (N·Σpe − Σp·Σe) / √[(N·Σp² − (Σp)²)(N·Σe² − (Σe)²)]
+
+   This departs from L15 Eq. 3.58, which has no square root (erratum 25; Eq. 3.59's σ normalisation
+   and Eq. 3.60/3.61's sign are errata 26/27), and from S16 Eq. 18, whose numerator lacks the factor N
+   (erratum 30).  Fewer than ``min_valid`` common pixels, or a constant image over the overlap, give NaN.
+4. **Peak** (Stage G): (r₀, c₀) = argmax of the finite entries.  ``not-found`` if the surface has no
+   finite value or its maximum is attained more than once (a flat surface); ``edge-peak`` if the peak
+   lies on the border of the grid; ``not-found`` if a 4-neighbour (``strict_8``: any of the 8) is ≥ the
+   peak or undefined — L15 footnote 43's "values decreasing around the peak";
+   ``low-correlation`` if the peak is below ``corr_min``.
+5. **Sub-pixel**: one parabola per axis through the peak and its two neighbours,
+
+       δ = (y₊ − y₋) / (2·(2y₀ − y₊ − y₋))
+
+   (L15 Eq. 3.65 has +2y₀ in the curvature: erratum 29 — with it the correction has the wrong sign;
+   Eq. 3.64's d²x/dy² means (d²y/dx²)⁻¹, erratum 28).  For a strict local maximum |δ| ≤ ½.
+6. **Offset** in full-resolution cells: Δx (along UX) = n·((r₀ − k) + δ_r), Δy (along UY) =
+   n·((c₀ − k) + δ_c).  The picture shift is δ = J_xy·Δ (Stage H, :mod:`spctool.stages.register`).
+
+Speed: the (2k+1)² masked Pearson sums run in one numba kernel (:func:`_k_ncc`): Σp·e is a dense
+correlation with register tiling, and the masked sums (N, Σe, Σe², Σp, Σp²) come from row prefix sums
+looked up at the ends of each run of valid pixels, so masks cost per run, not per pixel.  All sums are
+float64 and agree with a brute-force Pearson to ≈ 1e-15; a 99×99 pair at spacing 1 takes ≈ 0.3 ms
+(benchmarks/bench_register.py).  Images are centred on their valid mean before summing (Pearson is
+invariant to that) to keep the one-pass sums well conditioned.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from spctool.errors import SpcUsageError
+
+__all__ = [
+    "STATUSES",
+    "CorrelateOptions",
+    "Correlation",
+    "bin_image",
+    "correlate",
+    "find_peak",
+    "ncc_surface",
+    "parabola_vertex",
+]
+
+#: status words of a correlation (cli-contract.md "Landmark tables")
+STATUSES = ("ok", "edge-peak", "not-found", "low-correlation")
+
+
+@dataclass
+class CorrelateOptions:
+    """Settings of :func:`correlate` (defaults: spc-algorithms.md §13).
+
+    * ``grid_half`` k — the grid is (2k+1)² offsets (5: L15/S16's 11×11).
+    * ``min_valid`` — fewer binned pixels valid in both images gives C = NaN (25, [UNVERIFIED]).
+    * ``min_value`` — a pixel is valid only if its value exceeds this (0.0: L15's "non-zero in both
+      images", S16's near-zero threshold); ``None`` disables the value test (masks only).
+    * ``corr_min`` — peaks below it are ``low-correlation`` (0.3: S16 and GIANT; 0.5 is AUTOREGISTER's
+      removal cut, applied by the register driver).
+    * ``strict_8`` — require all 8 neighbours (not only the 4 along the axes) below the peak.
+    * ``bin_min_fraction`` — a bin is valid only if at least this fraction of its n² pixels is valid
+      (0: any valid pixel, L15 Eq. 3.57; image space uses 1 so that a template's partial border bins,
+      which average only the template's pixels, are not compared with full photo bins).
+    """
+
+    grid_half: int = 5
+    min_valid: int = 25
+    min_value: float | None = 0.0
+    corr_min: float = 0.3
+    strict_8: bool = False
+    bin_min_fraction: float = 0.0
+
+    def __post_init__(self):
+        if int(self.grid_half) != self.grid_half or self.grid_half < 1:
+            raise SpcUsageError(f"grid_half must be an integer >= 1, got {self.grid_half!r}")
+        self.grid_half = int(self.grid_half)
+        if int(self.min_valid) != self.min_valid or self.min_valid < 2:
+            raise SpcUsageError(f"min_valid must be an integer >= 2, got {self.min_valid!r}")
+        self.min_valid = int(self.min_valid)
+        if not (-1.0 <= float(self.corr_min) <= 1.0):
+            raise SpcUsageError(f"corr_min must lie in [-1, 1], got {self.corr_min!r}")
+        if not (0.0 <= float(self.bin_min_fraction) <= 1.0):
+            raise SpcUsageError(f"bin_min_fraction must lie in [0, 1], got {self.bin_min_fraction!r}")
+
+
+@dataclass
+class Correlation:
+    """Result of :func:`correlate` for one image pair.
+
+    ``offset`` is Δ = (Δx along UX / axis 0, Δy along UY / axis 1) in full-resolution cells (maplet space)
+    or pixels of the search image (image space: (Δline, Δsample) order of the array axes).  It is NaN for
+    ``not-found``; for ``edge-peak`` it is the whole-cell offset of the maximum (no sub-pixel part); for
+    ``low-correlation`` it is the full estimate (informative only).
+    """
+
+    surface: np.ndarray  #: (2k+1, 2k+1) C(u, v), NaN where undefined
+    counts: np.ndarray  #: (2k+1, 2k+1) binned pixels valid in both images
+    spacing: int  #: n, cells per bin
+    status: str  #: one of :data:`STATUSES`
+    peak: float  #: surface maximum (NaN if none)
+    peak_index: tuple[int, int] | None  #: (r₀, c₀) on the grid
+    subpixel: tuple[float, float]  #: (δ_r, δ_c) in binned cells
+    offset: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def grid_half(self) -> int:
+        return (self.surface.shape[0] - 1) // 2
+
+
+# --------------------------------------------------------------------------------------------------
+# binning
+
+
+def _block_range(size: int, anchor: int, n: int) -> tuple[int, int]:
+    """First and last block index of a length-``size`` axis binned by n about ``anchor``."""
+    h = n // 2
+    return (0 - anchor + h) // n, (size - 1 - anchor + h) // n
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_bin(v, m, n, s0, s1, sums, cnts):  # pragma: no cover - compiled
+    """sums/cnts[b0, b1] += value/1 of valid pixel (i, j) in block ((i − s0)//n, (j − s1)//n)."""
+    for i in range(v.shape[0]):
+        bi = (i - s0) // n
+        for j in range(v.shape[1]):
+            if m[i, j]:
+                bj = (j - s1) // n
+                sums[bi, bj] += v[i, j]
+                cnts[bi, bj] += 1.0
+
+
+def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
+    """Average ``values`` over n×n blocks of valid pixels (L15 Eq. 3.57, corrected bounds: erratum 24).
+
+    Block (0, 0) is anchored at index ``anchor`` (default: the array centre ``(shape − 1)//2``): for odd n
+    it is centred there; for even n it covers anchor − n/2 … anchor + n/2 − 1 along each axis.  Partial
+    blocks at the borders average the valid pixels they hold; a block is valid when it holds at least
+    one valid pixel and at least ``min_fraction``·n² of them.  Returns ``(binned, binned_valid,
+    binned_anchor)`` where ``binned_anchor`` is the index of block (0, 0) in the binned arrays.  n = 1
+    returns the values with invalid pixels set to 0.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    m = np.asarray(valid, dtype=bool)
+    if v.ndim != 2 or m.shape != v.shape:
+        raise SpcUsageError(f"bin_image needs 2-D values and a mask of one shape, got {v.shape}, {m.shape}")
+    n = int(n)
+    if n < 1:
+        raise SpcUsageError(f"spacing must be >= 1, got {n}")
+    if anchor is None:
+        anchor = ((v.shape[0] - 1) // 2, (v.shape[1] - 1) // 2)
+    a0, a1 = int(anchor[0]), int(anchor[1])
+    if n == 1:
+        return np.where(m, v, 0.0), m.copy(), (a0, a1)
+    b0 = _block_range(v.shape[0], a0, n)
+    b1 = _block_range(v.shape[1], a1, n)
+    h = n // 2
+    # input index of the first cell of the first block (≤ 0): block of pixel i = (i − s0)//n
+    s0 = a0 - h + b0[0] * n
+    s1 = a1 - h + b1[0] * n
+    sums = np.zeros((b0[1] - b0[0] + 1, b1[1] - b1[0] + 1))
+    cnts = np.zeros_like(sums)
+    _k_bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, s0, s1, sums, cnts)
+    ok = (cnts > 0) & (cnts >= min_fraction * n * n - 1e-9)
+    out = np.zeros_like(sums)
+    np.divide(sums, cnts, out=out, where=ok)
+    return out, ok, (-b0[0], -b1[0])
+
+
+# --------------------------------------------------------------------------------------------------
+# the NCC grid
+
+
+_JIT = dict(cache=True, nogil=True)
+
+
+@numba.njit(fastmath=True, **_JIT)
+def _k_dense(ez, pz, g, out):  # pragma: no cover - compiled
+    """out[a, b] += Σ_{i,j} pz[i, j]·ez[i + a, j + b] (ez is (Hp + g − 1, Wp + g − 1)).
+
+    Four lags share each load of ``pz`` (register tiling); rows are contiguous so the loop vectorises.
+    """
+    hp, wp = pz.shape
+    for a in range(g):
+        for i in range(hp):
+            pr = pz[i]
+            er = ez[i + a]
+            b = 0
+            while b + 4 <= g:
+                q0 = er[b : b + wp]
+                q1 = er[b + 1 : b + 1 + wp]
+                q2 = er[b + 2 : b + 2 + wp]
+                q3 = er[b + 3 : b + 3 + wp]
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                s3 = 0.0
+                for j in range(wp):
+                    p = pr[j]
+                    s0 += p * q0[j]
+                    s1 += p * q1[j]
+                    s2 += p * q2[j]
+                    s3 += p * q3[j]
+                out[a, b] += s0
+                out[a, b + 1] += s1
+                out[a, b + 2] += s2
+                out[a, b + 3] += s3
+                b += 4
+            while b < g:
+                q0 = er[b : b + wp]
+                s0 = 0.0
+                for j in range(wp):
+                    s0 += pr[j] * q0[j]
+                out[a, b] += s0
+                b += 1
+
+
+@numba.njit(**_JIT)
+def _k_runs(mask_row, lo, hi, out):  # pragma: no cover - compiled
+    """Write the [start, stop) runs of True in mask_row[lo:hi] to out (k, 2); return k."""
+    k = 0
+    j = lo
+    while j < hi:
+        if mask_row[j]:
+            s = j
+            while j < hi and mask_row[j]:
+                j += 1
+            out[k, 0] = s
+            out[k, 1] = j
+            k += 1
+        else:
+            j += 1
+    return k
+
+
+@numba.njit(**_JIT)
+def _k_ncc(e, me, p, mp, o0, o1, half, min_valid, surf, cnts):  # pragma: no cover - compiled
+    """C[a, b] (a = u + k, b = v + k) = Pearson over E[i, j] ↔ P[i − o0 − u, j − o1 − v], both valid.
+
+    Work in P's frame: E' = E[i + o0 − k, j + o1 − k] is the (Hp + 2k)×(Wp + 2k) part of E that can
+    pair with P at some offset, so pair (P[i, j], E'[i + a, j + b]).  The six Pearson sums split into
+
+    * Σ p·e — a dense correlation (:func:`_k_dense`), values centred and zero where invalid;
+    * N, Σe, Σe² (over P-valid pixels) and Σp, Σp² (over E-valid pixels) — masked box sums, taken from
+      row prefix sums at the ends of each run of valid pixels (two look-ups per run and offset), so
+      their cost depends on the number of runs, not on the number of pixels.
+
+    All sums are float64; the result equals the brute-force Pearson to rounding (≈ 1e-15).
+    """
+    he, we = e.shape
+    hp, wp = p.shape
+    g = 2 * half + 1
+    h2 = hp + g - 1
+    w2 = wp + g - 1
+    # rows/columns of E' that are real E pixels
+    r0 = max(0, half - o0)
+    r1 = max(r0, min(h2, he + half - o0))
+    c0 = max(0, half - o1)
+    c1 = max(c0, min(w2, we + half - o1))
+    # centring constants: Pearson is shift-invariant; centring keeps the one-pass sums well conditioned
+    ce = 0.0
+    ne = 0
+    for i in range(r0, r1):
+        for j in range(c0, c1):
+            if me[i + o0 - half, j + o1 - half]:
+                ce += e[i + o0 - half, j + o1 - half]
+                ne += 1
+    ce = ce / ne if ne > 0 else 0.0
+    cp = 0.0
+    npv = 0
+    for i in range(hp):
+        for j in range(wp):
+            if mp[i, j]:
+                cp += p[i, j]
+                npv += 1
+    cp = cp / npv if npv > 0 else 0.0
+    # E': validity, centred values, row prefixes of (valid, v, v²): rpe[r, 3c + q] = Σ_{j<c}
+    mv = np.zeros((h2, w2), np.bool_)
+    ez = np.zeros((h2, w2))
+    rpe = np.zeros((h2, 3 * (w2 + 1)))
+    for i in range(r0, r1):
+        n_ = 0.0
+        s_ = 0.0
+        s2_ = 0.0
+        row = rpe[i]
+        for j in range(w2):
+            if j >= c0 and j < c1 and me[i + o0 - half, j + o1 - half]:
+                v = e[i + o0 - half, j + o1 - half] - ce
+                ez[i, j] = v
+                mv[i, j] = True
+                n_ += 1.0
+                s_ += v
+                s2_ += v * v
+            row[3 * j + 3] = n_
+            row[3 * j + 4] = s_
+            row[3 * j + 5] = s2_
+    # P: centred values, row prefixes of (v, v²) for columns c = −pad … w2: rpp[i, 2(c + pad) + q]
+    pad = g - 1
+    pz = np.zeros((hp, wp))
+    wpp = w2 + pad + 1
+    rpp = np.zeros((hp, 2 * wpp))
+    for i in range(hp):
+        s_ = 0.0
+        s2_ = 0.0
+        row = rpp[i]
+        for c in range(w2 + 1):
+            if c > 0 and c - 1 < wp and mp[i, c - 1]:
+                v = p[i, c - 1] - cp
+                pz[i, c - 1] = v
+                s_ += v
+                s2_ += v * v
+            row[2 * (c + pad)] = s_
+            row[2 * (c + pad) + 1] = s2_
+    acc = np.zeros((g, g, 5))  # N, Σe, Σe², Σp, Σp²
+    runs = np.empty((w2 + 1, 2), np.int64)
+    for i in range(hp):  # runs of valid P pixels: sums of E' over them
+        k = _k_runs(mp[i], 0, wp, runs)
+        for q in range(k):
+            s = runs[q, 0]
+            t = runs[q, 1]
+            for a in range(g):
+                row = rpe[i + a]
+                for b in range(g):
+                    acc[a, b, 0] += row[3 * (t + b)] - row[3 * (s + b)]
+                    acc[a, b, 1] += row[3 * (t + b) + 1] - row[3 * (s + b) + 1]
+                    acc[a, b, 2] += row[3 * (t + b) + 2] - row[3 * (s + b) + 2]
+    for r in range(r0, r1):  # runs of valid E' pixels: sums of P over them (P column = E' column − b)
+        k = _k_runs(mv[r], c0, c1, runs)
+        a_lo = max(0, r - hp + 1)
+        a_hi = min(g, r + 1)
+        for q in range(k):
+            s = runs[q, 0]
+            t = runs[q, 1]
+            for a in range(a_lo, a_hi):
+                row = rpp[r - a]
+                for b in range(g):
+                    acc[a, b, 3] += row[2 * (t - b + pad)] - row[2 * (s - b + pad)]
+                    acc[a, b, 4] += row[2 * (t - b + pad) + 1] - row[2 * (s - b + pad) + 1]
+    sep = np.zeros((g, g))
+    _k_dense(ez, pz, g, sep)
+    for a in range(g):
+        for b in range(g):
+            n = float(round(acc[a, b, 0]))
+            se = acc[a, b, 1]
+            see = acc[a, b, 2]
+            sp = acc[a, b, 3]
+            spp = acc[a, b, 4]
+            cnts[a, b] = n
+            if n < min_valid:
+                surf[a, b] = np.nan
+                continue
+            de = n * see - se * se
+            dp = n * spp - sp * sp
+            # a constant image over the overlap (zero variance up to rounding) has no correlation
+            if de <= 1e-12 * n * see or dp <= 1e-12 * n * spp:
+                surf[a, b] = np.nan
+                continue
+            c = (n * sep[a, b] - se * sp) / math.sqrt(de * dp)
+            surf[a, b] = min(1.0, max(-1.0, c))
+
+
+def ncc_surface(e, e_valid, p, p_valid, grid_half: int = 5, min_valid: int = 25, origin=(0, 0)):
+    """Masked Pearson NCC on the (2k+1)² grid of whole-pixel offsets; returns ``(surface, counts)``.
+
+    ``surface[u + k, v + k]`` correlates ``e[i, j]`` with ``p[i − origin[0] − u, j − origin[1] − v]`` over
+    the pixels valid in both (``origin`` is the index in ``e`` of ``p``'s pixel (0, 0) at zero offset;
+    (0, 0) for two images on the same grid).  NaN where fewer than ``min_valid`` pixels are common or an
+    image is constant over the overlap.  No binning: see :func:`correlate`.
+    """
+    e = np.asarray(e, dtype=np.float64)
+    p = np.asarray(p, dtype=np.float64)
+    me = np.asarray(e_valid, dtype=bool)
+    mp = np.asarray(p_valid, dtype=bool)
+    if e.ndim != 2 or p.ndim != 2 or me.shape != e.shape or mp.shape != p.shape:
+        raise SpcUsageError("ncc_surface needs 2-D images with masks of the same shapes")
+    g = 2 * int(grid_half) + 1
+    surf = np.empty((g, g))
+    cnts = np.empty((g, g))
+    _k_ncc(
+        np.ascontiguousarray(e),
+        np.ascontiguousarray(me),
+        np.ascontiguousarray(p),
+        np.ascontiguousarray(mp),
+        int(origin[0]),
+        int(origin[1]),
+        int(grid_half),
+        float(min_valid),
+        surf,
+        cnts,
+    )
+    return surf, np.rint(cnts).astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------------
+# peak
+
+
+def parabola_vertex(y_minus, y0, y_plus):
+    """Vertex offset δ = (y₊ − y₋)/(2·(2y₀ − y₊ − y₋)) of the parabola through (−1, y₋), (0, y₀), (1, y₊).
+
+    L15 Eq. 3.65 with erratum 29 (curvature y₊ + y₋ − 2y₀, not + 2y₀).  Vectorised; NaN where the
+    curvature is zero.  Example: (0.5, 1.0, 0.8) → +0.2143 (the seed's formula gives −0.045).
+    """
+    ym = np.asarray(y_minus, dtype=np.float64)
+    yz = np.asarray(y0, dtype=np.float64)
+    yp = np.asarray(y_plus, dtype=np.float64)
+    den = 2.0 * (2.0 * yz - yp - ym)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.where(den != 0.0, (yp - ym) / np.where(den != 0.0, den, 1.0), np.nan)
+    return d if d.ndim else float(d)
+
+
+def _vertex(ym: float, y0: float, yp: float) -> float:
+    den = 2.0 * (2.0 * y0 - yp - ym)
+    return (yp - ym) / den if den != 0.0 else math.nan
+
+
+def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False):
+    """Stage G on one surface: ``(status, peak, (r₀, c₀) or None, (δ_r, δ_c))`` (spc-algorithms.md §8.3)."""
+    s = np.asarray(surface, dtype=np.float64)
+    finite = np.isfinite(s)
+    if not finite.any():
+        return "not-found", math.nan, None, (math.nan, math.nan)
+    flat = np.where(finite, s, -np.inf)
+    r0, c0 = divmod(int(np.argmax(flat)), s.shape[1])
+    peak = float(s[r0, c0])
+    if np.count_nonzero(flat == peak) > 1:  # a flat surface or a tied maximum: no clearly defined peak
+        return "not-found", peak, (r0, c0), (math.nan, math.nan)
+    g0, g1 = s.shape
+    if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
+        return "edge-peak", peak, (r0, c0), (0.0, 0.0)
+    up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
+    left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
+    neighbours = [up, down, left, right]
+    if strict_8:
+        neighbours += [
+            float(s[r0 - 1, c0 - 1]),
+            float(s[r0 - 1, c0 + 1]),
+            float(s[r0 + 1, c0 - 1]),
+            float(s[r0 + 1, c0 + 1]),
+        ]
+    # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
+    if not all(v < peak for v in neighbours):
+        return "not-found", peak, (r0, c0), (math.nan, math.nan)
+    dr = _vertex(up, peak, down)
+    dc = _vertex(left, peak, right)
+    status = "ok" if peak >= corr_min else "low-correlation"
+    return status, peak, (r0, c0), (dr, dc)
+
+
+# --------------------------------------------------------------------------------------------------
+# the stage
+
+
+def _valid_mask(values, valid, min_value):
+    v = np.asarray(values, dtype=np.float64)
+    m = np.isfinite(v)
+    if valid is not None:
+        vm = np.asarray(valid, dtype=bool)
+        if vm.shape != v.shape:
+            raise SpcUsageError(f"mask shape {vm.shape} differs from image shape {v.shape}")
+        m &= vm
+    if min_value is not None:
+        with np.errstate(invalid="ignore"):
+            m &= v > float(min_value)
+    return v, m
+
+
+def correlate(
+    extracted,
+    predicted,
+    *,
+    extracted_valid=None,
+    predicted_valid=None,
+    spacing: int = 1,
+    options: CorrelateOptions | None = None,
+    extracted_anchor=None,
+    predicted_anchor=None,
+) -> Correlation:
+    """Correlate a prediction with an extracted (or search) image; spc-algorithms.md §7–§8.
+
+    ``extracted`` E and ``predicted`` P are 2-D arrays with optional validity masks (pixels must also be
+    finite and exceed ``options.min_value``).  Maplet space: E and P share a grid and the anchors default
+    to the centre node.  Image space: E is a larger search window and P a template; ``extracted_anchor``
+    is the index in E where P's ``predicted_anchor`` sits at zero offset.  Both are binned by ``spacing``
+    n with blocks anchored there (same phase), then C(u, v) = corr(E_b(m), P_b(m − (u, v))) on the
+    (2k+1)² grid; the result's ``offset`` is in full-resolution cells: n·((r₀ − k) + δ_r, (c₀ − k) + δ_c).
+    """
+    opts = options or CorrelateOptions()
+    n = int(spacing)
+    if n < 1 or n != spacing:
+        raise SpcUsageError(f"spacing must be an integer >= 1, got {spacing!r}")
+    e, me = _valid_mask(extracted, extracted_valid, opts.min_value)
+    p, mp = _valid_mask(predicted, predicted_valid, opts.min_value)
+    if e.ndim != 2 or p.ndim != 2:
+        raise SpcUsageError("correlate needs 2-D images")
+    if extracted_anchor is None and predicted_anchor is None and e.shape != p.shape:
+        raise SpcUsageError(f"images differ in shape ({e.shape} vs {p.shape}); give the anchors")
+    ea = ((e.shape[0] - 1) // 2, (e.shape[1] - 1) // 2) if extracted_anchor is None else extracted_anchor
+    pa = ((p.shape[0] - 1) // 2, (p.shape[1] - 1) // 2) if predicted_anchor is None else predicted_anchor
+    eb, meb, eab = bin_image(e, me, n, ea, opts.bin_min_fraction)
+    pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
+    origin = (eab[0] - pab[0], eab[1] - pab[1])
+    surf, cnts = ncc_surface(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
+    status, peak, idx, (dr, dc) = find_peak(surf, opts.corr_min, opts.strict_8)
+    k = opts.grid_half
+    if idx is None or status == "not-found":
+        off = np.full(2, np.nan)
+    else:
+        off = n * np.array([(idx[0] - k) + dr, (idx[1] - k) + dc], dtype=np.float64)
+    return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off)

@@ -1,0 +1,833 @@
+"""Stage H — ``register``: measure where each landmark really is in a photo.
+
+Specification: spc-algorithms.md §9 (Stage H: both drivers), §7.3/§8.3 (the shift and its sign), §12
+(S16 checklist), §13 (defaults); L15 §3.5.2 (Eq. 3.67); S16 "Template matching loop" (Eq. 9, 11,
+18–19) and "Future Retina development".
+
+One correlation step of one landmark (:func:`correlate_landmark`)
+-----------------------------------------------------------------
+``space="maplet"`` (SPC; S16's baseline): the prediction P (:func:`spctool.stages.predict.predict`,
+one per landmark and pose) is correlated with the photo resampled onto the maplet with its centre V
+placed at the current pixel c (:func:`spctool.stages.extract.extract` with ``center_pixel=c``).  The
+correlator (:mod:`spctool.stages.correlate`) returns Δ in maplet cells (x along UX, y along UY) with
+C(Δ) = corr(E(m), P(m − Δ)): the feature the prediction puts at cell m lies at cell m + Δ of the
+extracted image, so V appears at extracted cell Δ and
+
+    c_new = c + J_xy·Δ                 (L15 Eq. 3.67, S16 Eq. 19; spc-algorithms.md §7.3)
+
+with J_xy = ∂(sample, line)/∂(x, y) at V in pixels per cell (the extraction's a-priori Jacobian, S16
+evaluates H at x*).
+
+``space="image"`` (S16 "Future Retina development"): the maplet is *rendered into the photo* with the
+picture's camera, the Sun, per-pixel view directions and cast shadows
+(:func:`spctool.stages.render.render` of the maplet as a height patch — the renderer of the synthetic
+worlds, reused), over the pixels of its footprint; that template T is correlated with the photo itself
+over a window that extends (k + 1)·n pixels beyond the footprint on every side, so the search is not
+limited by the maplet's extent.  Offsets are whole photo pixels (binned by n); the shift is in pixels
+directly.  A template placed at displacement d (pixels, relative to the projection c₀ of V) is rendered
+with rays through p − d for its fractional part (the camera's CTR moved by frac(d)) and shifted by the
+integer part; it is re-rendered only when the fractional part moves by more than ``rerender_tol``.
+With ``image_shadows`` (default) shadowed pixels are *used*, dark in both images — the point of
+ray-traced shadows; photo pixels then count when 0 < DN ≤ T2 (T1 is not applied; DN 0 is SPC's
+missing data), template pixels where every sub-ray hit the maplet.
+
+Drivers (:func:`register`; spc-algorithms.md §9.3)
+--------------------------------------------------
+* ``schedule="retina_s16"`` — per landmark, no pose update: start at the a-priori pixel (S16 Eq. 9) and
+  for L = 10, 9, …, 1 correlate at spacing L (search ±5L cells, S16) and move c by J_xy·Δ (S16
+  Eq. 19).  A failed peak check ends the landmark with its status (``fail_fast``, the default; S16 does
+  not say) or, with ``fail_fast=False``, keeps c and goes on.  Acceptance needs ρ ≥ 0.3.
+* ``schedule="autoregister"`` — SPC's AUTOREGISTER seed (``make_scriptA.seed``): removal criteria
+  ``0,50,.25,0,5`` on the first pass; align at spacing 2, then 1, drop landmarks with ρ < 0.5, align at
+  spacing 1.  Every align pass correlates all landmarks at the current pose, then (``pose_update``,
+  default on) solves the spacecraft position and pointing from all accepted measurements
+  (:func:`spctool.stages.pose.solve_pose`, with the SUM sigmas as prior) and re-predicts and
+  re-extracts with the new pose in the next pass; ``halve_shift`` applies half of each shift (the
+  "option 1" of Align landmarks).
+
+Every constant is a field of :class:`RegisterOptions`; a schedule is a list of steps ``("align", n)``
+or ``("drop", ρ_min)`` (:func:`schedule_steps`).
+
+Status words (cli-contract.md): ``ok``; ``not-found`` (no clearly defined peak), ``edge-peak`` (peak on
+the border of the search grid), ``low-correlation`` (peak below ``corr_min``, or dropped by the
+AUTOREGISTER cut); ``outside`` (V behind the camera or projecting off the photo);
+``removed-<criterion>`` (Stage E removal on the first extraction).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spctool.errors import SpcUsageError
+from spctool.geometry import heightfield
+from spctool.stages.correlate import CorrelateOptions, Correlation, correlate
+from spctool.stages.extract import (
+    ZENITH_EPS,
+    ExtractOptions,
+    _enhance_kernel,
+    brt0,
+    extract,
+    shadow_extension,
+    shadow_offsets,
+)
+from spctool.stages.pose import PoseError, PoseOptions, solve_pose
+from spctool.stages.predict import PredictOptions, predict, unit_vector
+
+__all__ = [
+    "SCHEDULES",
+    "SPACES",
+    "LandmarkStep",
+    "RegisterOptions",
+    "RegisterResult",
+    "Registrar",
+    "correlate_landmark",
+    "register",
+    "schedule_steps",
+]
+
+SCHEDULES = ("retina_s16", "autoregister")
+SPACES = ("maplet", "image")
+
+
+# --------------------------------------------------------------------------------------------------
+# options
+
+
+@dataclass
+class RegisterOptions:
+    """Every constant of Stage H (spc-algorithms.md §9.3, §13).
+
+    * ``schedule`` — ``"retina_s16"`` or ``"autoregister"``; ``space`` — ``"maplet"`` or ``"image"``.
+    * ``s16_spacings`` — S16's L sequence (10 … 1); ``autoregister_steps`` — SPC's seed
+      (align 2, align 1, drop ρ < 0.5, align 1).  ``steps`` overrides either with an explicit list of
+      ``("align", n)`` / ``("drop", ρ)`` (or ints meaning align at that spacing).
+    * ``corr_min`` — peak acceptance (0.3, S16/GIANT); ``grid_half`` (5 → 11×11, search ±5n);
+      ``min_valid`` (25 binned pixels); ``strict_8`` (all 8 neighbours below the peak).
+    * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (True).
+    * ``pose_update`` — AUTOREGISTER driver: pose solve after each align pass (True);
+      ``halve_shift`` — apply ½ of every shift (False); ``min_pose_landmarks`` — accepted landmarks
+      needed for a pose solve (3).
+    * ``criteria`` — Stage E removal applied at the first extraction: ``"default"`` = ``None`` (no
+      removal) for retina_s16 and ``"autoregister"`` (0,50,.25,0,5) for autoregister; or any
+      :class:`spctool.stages.extract.Criteria` spec, or None.
+    * image space: ``supersample`` (rays per pixel axis of the template, 2), ``image_shadows`` (use
+      shadowed pixels, True), ``rerender_tol`` (px per unit spacing, 0.02), ``template_margin`` (px
+      added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
+      this fraction of its n² pixels on the maplet, 0.5: border bins that average only a sliver of
+      template are not compared with full photo bins).
+    * ``keep_images`` — keep each landmark's last Extraction / template Rendering in
+      :attr:`RegisterResult.last_steps` (False: only the correlation, to bound memory).
+    * ``predict``, ``extract``, ``pose`` — options of the stages called (their own defaults).
+    """
+
+    schedule: str = "retina_s16"
+    space: str = "maplet"
+    s16_spacings: tuple = (10, 9, 8, 7, 6, 5, 4, 3, 2, 1)
+    autoregister_steps: tuple = (("align", 2), ("align", 1), ("drop", 0.5), ("align", 1))
+    steps: tuple | None = None
+    corr_min: float = 0.3
+    grid_half: int = 5
+    min_valid: int = 25
+    strict_8: bool = False
+    fail_fast: bool = True
+    pose_update: bool = True
+    halve_shift: bool = False
+    min_pose_landmarks: int = 3
+    criteria: object = "default"
+    supersample: int = 2
+    image_shadows: bool = True
+    rerender_tol: float = 0.02
+    template_margin: int = 1
+    image_bin_fraction: float = 0.5
+    keep_images: bool = False
+    predict: PredictOptions = field(default_factory=PredictOptions)
+    extract: ExtractOptions | None = None
+    pose: PoseOptions = field(default_factory=PoseOptions)
+
+    def __post_init__(self):
+        if self.schedule not in SCHEDULES:
+            raise SpcUsageError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        if self.space not in SPACES:
+            raise SpcUsageError(f"space must be one of {', '.join(SPACES)}, got {self.space!r}")
+        if not -1.0 <= float(self.corr_min) <= 1.0:
+            raise SpcUsageError(f"corr_min must lie in [-1, 1], got {self.corr_min}")
+        if int(self.supersample) < 1:
+            raise SpcUsageError(f"supersample must be >= 1, got {self.supersample}")
+        if not float(self.rerender_tol) >= 0.0:
+            raise SpcUsageError(f"rerender_tol must be >= 0, got {self.rerender_tol}")
+        if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
+            raise SpcUsageError(f"image_bin_fraction must lie in [0, 1], got {self.image_bin_fraction}")
+        if int(self.template_margin) < 0:
+            raise SpcUsageError(f"template_margin must be >= 0, got {self.template_margin}")
+        self.s16_spacings = tuple(int(n) for n in self.s16_spacings)
+        schedule_steps(self)  # validates the steps
+        if self.extract is None:
+            crit = self.criteria
+            if isinstance(crit, str) and crit == "default":
+                crit = "autoregister" if self.schedule == "autoregister" else None
+            self.extract = ExtractOptions(criteria=crit)
+        self.correlate_options  # validates grid_half / min_valid  # noqa: B018
+
+    @property
+    def correlate_options(self) -> CorrelateOptions:
+        return CorrelateOptions(
+            grid_half=self.grid_half, min_valid=self.min_valid, corr_min=self.corr_min, strict_8=self.strict_8
+        )
+
+    def as_dict(self) -> dict:
+        out = {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if f.name not in ("predict", "extract", "pose")
+        }
+        out["steps"] = [list(s) for s in schedule_steps(self)]
+        out["predict"] = self.predict.as_dict()
+        out["extract"] = self.extract.as_dict()
+        out["s16_spacings"] = list(self.s16_spacings)
+        out["autoregister_steps"] = [list(s) for s in self.autoregister_steps]
+        out["criteria"] = out["extract"]["criteria"]
+        return out
+
+
+def schedule_steps(options: RegisterOptions) -> list[tuple[str, float]]:
+    """The driver's steps: ``[("align", n), …, ("drop", ρ), …]`` (validated)."""
+    if options.steps is not None:
+        raw = options.steps
+    elif options.schedule == "retina_s16":
+        raw = [("align", n) for n in options.s16_spacings]
+    else:
+        raw = options.autoregister_steps
+    steps = []
+    for s in raw:
+        if isinstance(s, (int, np.integer)):
+            s = ("align", int(s))
+        if not (isinstance(s, (tuple, list)) and len(s) == 2 and s[0] in ("align", "drop")):
+            raise SpcUsageError(f"schedule step must be ('align', n) or ('drop', rho), got {s!r}")
+        kind, value = s
+        if kind == "align":
+            if int(value) != value or int(value) < 1:
+                raise SpcUsageError(f"align spacing must be an integer >= 1, got {value!r}")
+            steps.append(("align", int(value)))
+        else:
+            if not -1.0 <= float(value) <= 1.0:
+                raise SpcUsageError(f"drop threshold must lie in [-1, 1], got {value!r}")
+            steps.append(("drop", float(value)))
+    if not any(k == "align" for k, _ in steps):
+        raise SpcUsageError("a registration schedule needs at least one align step")
+    return steps
+
+
+# --------------------------------------------------------------------------------------------------
+# one landmark, one step
+
+
+@dataclass
+class LandmarkStep:
+    """One correlation step of one landmark (:func:`correlate_landmark`)."""
+
+    center: np.ndarray  #: (2,) pixel (sample, line) where V was placed (maplet) / the template sat (image)
+    shift: np.ndarray  #: (2,) px (dsample, dline) = J_xy·Δ (maplet) or the image offset; NaN if not-found
+    correlation: Correlation  #: surface, peak, status, offset (cells or (line, sample) px)
+    jxy: np.ndarray | None  #: (2, 2) px per cell (maplet space)
+    status: str  #: correlation status, or the extraction's removed-*/outside
+    extraction: object = None  #: the Extraction (maplet space)
+    template: object = None  #: the template Rendering (image space)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def measured(self) -> np.ndarray:
+        return self.center + self.shift
+
+
+class _Landmark:
+    """Per-landmark state reused across steps: slopes, prediction (per camera), template cache."""
+
+    __slots__ = (
+        "maplet",
+        "name",
+        "slopes",
+        "v",
+        "pred",
+        "pred_camera",
+        "patch",
+        "tmpl",
+        "tmpl_key",
+        "ext",
+        "ext_camera",
+        "shadow",
+    )
+
+    def __init__(self, maplet, name):
+        self.maplet = maplet
+        self.name = name
+        self.slopes = heightfield.slopes(maplet.heights, maplet.valid)
+        self.v = np.asarray(maplet.v, dtype=np.float64)
+        self.pred = None
+        self.pred_camera = None
+        self.patch = None
+        self.tmpl = None
+        self.tmpl_key = None
+        self.ext = None
+        self.ext_camera = None
+        self.shadow = None
+
+
+class Registrar:
+    """Correlation steps for the landmarks of one photo (shared by :func:`register` and the CLI).
+
+    ``photo``: array ``data[line − 1, sample − 1]`` or a Photo; ``camera``: the picture's camera;
+    ``sun``: body→Sun vector; ``maplets``: objects with heights, albedo, valid, scale, v, ux, uy, uz;
+    ``thresholds``: (T1, T2).
+    """
+
+    def __init__(
+        self, photo, sun, maplets, thresholds=None, options: RegisterOptions | None = None, names=None
+    ):
+        self.options = options if options is not None else RegisterOptions()
+        data = getattr(photo, "data", photo)
+        self.photo = np.ascontiguousarray(data, dtype=np.float64)
+        if self.photo.ndim != 2:
+            raise SpcUsageError("the photo must be a 2-D array")
+        self.sun = unit_vector(sun, "sun")
+        t = (-math.inf, math.inf) if thresholds is None else tuple(float(x) for x in thresholds)
+        self.thresholds = tuple(-math.inf if math.isnan(x) else x for x in t[:1]) + tuple(
+            math.inf if math.isnan(x) else x for x in t[1:2]
+        )
+        names = (
+            [getattr(m, "name", "") or f"#{i + 1}" for i, m in enumerate(maplets)] if names is None else names
+        )
+        self.landmarks = [_Landmark(m, str(n)) for m, n in zip(maplets, names)]
+        self._copts = self.options.correlate_options
+
+    def __len__(self):
+        return len(self.landmarks)
+
+    # -- geometry ------------------------------------------------------------------------------
+    def release(self, i: int) -> None:
+        """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
+        lm = self.landmarks[i]
+        lm.pred = lm.pred_camera = lm.ext = lm.ext_camera = lm.tmpl = lm.tmpl_key = lm.shadow = None
+
+    def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
+        """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
+        if not self.landmarks:
+            return np.zeros((0, 2)), np.zeros(0, bool)
+        v = np.stack([lm.v for lm in self.landmarks])
+        s, ln, front = camera.project_with_mask(v)
+        nln, npx = self.photo.shape
+        inside = front & (s >= 1.0) & (s <= npx) & (ln >= 1.0) & (ln <= nln)
+        return np.stack([s, ln], axis=-1), inside
+
+    def prediction(self, i: int, camera):
+        lm = self.landmarks[i]
+        if lm.pred is None or lm.pred_camera is not camera:
+            lm.pred = predict(lm.maplet, camera.position, self.sun, self.options.predict, slopes=lm.slopes)
+            lm.pred_camera = camera
+        return lm.pred
+
+    # -- one step ------------------------------------------------------------------------------
+    def step(self, i: int, camera, center, spacing: int, *, apply_criteria: bool = False) -> LandmarkStep:
+        """Correlate landmark ``i`` with V placed at pixel ``center`` (sample, line), spacing n."""
+        if self.options.space == "image":
+            return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing)
+        return self._maplet_step(i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria)
+
+    def _maplet_step(self, i, camera, center, spacing, apply_criteria):
+        lm = self.landmarks[i]
+        ext = self.extraction(i, camera, center, apply_criteria)
+        pred = self.prediction(i, camera)
+        corr = correlate(
+            ext.image,
+            pred.image,
+            extracted_valid=ext.valid,
+            predicted_valid=pred.lit,
+            spacing=spacing,
+            options=self._copts,
+        )
+        status = corr.status if ext.status == "ok" else ext.status
+        shift = ext.jxy @ corr.offset
+        del lm
+        return LandmarkStep(center, shift, corr, ext.jxy, status, extraction=ext)
+
+    def extraction(self, i: int, camera, center, apply_criteria: bool = False):
+        """The photo resampled onto landmark ``i`` with V at pixel ``center`` (Stage C–E).
+
+        The first extraction per camera is :func:`spctool.stages.extract.extract`.  Later ones at other
+        centres (the S16 loop) reuse its geometry: re-centring moves every node pixel by the same
+        amount (extract's own rule: proj(P_k) + (centre − proj(V)), or Eq. 11 with a new [s, l]_c), and
+        the emission cut and the visibility march depend on the geometry only; so only the BRT0
+        sampling and the shadow enhancement (which depends on the image) are redone.  The result is the
+        same Extraction that ``extract`` would return (the removal statistics are those of the first
+        extraction).  Sub-sampled cells (m > 1), the cast-shadow march and requested removal criteria
+        run the full ``extract``.
+        """
+        lm = self.landmarks[i]
+        eopts = self.options.extract
+        if not apply_criteria and eopts.criteria is not None:
+            eopts = dataclasses.replace(eopts, criteria=None)
+        base = lm.ext
+        if (
+            base is None
+            or lm.ext_camera is not camera
+            or base.subsample != 1
+            or eopts.cast_shadow_trace
+            or base.status == "outside"
+            or eopts.criteria is not None
+        ):
+            ext = extract(
+                self.photo,
+                lm.maplet,
+                camera,
+                self.sun,
+                self.thresholds,
+                eopts,
+                center_pixel=center,
+                slopes=lm.slopes,
+            )
+            lm.ext, lm.ext_camera = ext, camera
+            lm.shadow = None
+            return ext
+        ds, dl = float(center[0]) - base.center_sample, float(center[1]) - base.center_line
+        smp = base.sample + ds
+        lin = base.line + dl
+        nln, npx = self.photo.shape
+        node_ok = np.isfinite(base.sample)
+        covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)
+        values = brt0(
+            self.photo,
+            np.where(node_ok, smp, 0.0),
+            np.where(node_ok, lin, 0.0),
+            self.thresholds[0],
+            self.thresholds[1],
+            repair_floor=eopts.repair_floor,
+        )
+        lit = node_ok & (values > 0.0)
+        image = np.where(lit, values, 0.0)
+        removed_shadow = np.zeros(image.shape, dtype=bool)
+        if eopts.apply_filter:
+            # the extract filter's step 1 (shadow enhancement: extract_filter's own offsets and kernel,
+            # computed once per landmark and camera), then steps 2–3 from the first extraction's mask
+            if lm.shadow is None:
+                lm.shadow = self._shadow_offsets(lm, base)
+            if lm.shadow is not False:
+                checks, zeros = lm.shadow
+                zero = np.zeros(image.shape, dtype=bool)
+                edges = np.zeros(image.shape, dtype=bool)
+                nonzero = image > 0.0
+                _enhance_kernel(nonzero, checks, zeros, zero, edges)
+                removed_shadow = zero & nonzero
+                image[zero] = 0.0
+            image = np.where(base.visible, image, 0.0)
+        return dataclasses.replace(
+            base,
+            image=image,
+            valid=image > 0.0,
+            covered=covered,
+            lit=lit,
+            removed_shadow=removed_shadow,
+            sample=smp,
+            line=lin,
+            center_sample=float(center[0]),
+            center_line=float(center[1]),
+            status="ok",  # criteria were not requested (else the full path ran); "outside" never gets here
+        )
+
+    def _shadow_offsets(self, lm: _Landmark, base):
+        """(checks, zeros) of the shadow enhancement for this landmark and camera, or False when the Sun
+        is at the maplet zenith — exactly as :func:`spctool.stages.extract.extract_filter` computes them."""
+        eopts = self.options.extract
+        m = lm.maplet
+        s_m = heightfield.to_maplet_components(self.sun, m.ux, m.uy, m.uz)
+        s_xy = math.hypot(s_m[0], s_m[1])
+        if not s_xy > ZENITH_EPS * float(np.linalg.norm(s_m)):
+            return False
+        n = np.asarray(m.heights).shape[0]
+        ds = shadow_extension(base.det_j, eopts.ds_mode, eopts.ds_base, cap=2 * n)
+        return shadow_offsets(
+            (s_m[0] / s_xy, s_m[1] / s_xy),
+            ds,
+            eopts.lateral,
+            eopts.lateral_band,
+            eopts.shadow_include_edge,
+            eopts.edge_steps,
+        )
+
+    def _template(self, lm: _Landmark, camera, frac, spacing: int = 1):
+        """Rendering of the maplet for a placement whose fractional part is ``frac`` (sample, line).
+
+        Returns ``(rendering or None, fractional offset rendered, window (s0, s1, l0, l1))``; the cached
+        template is reused while the camera is the same and ``frac`` moved by ≤ ``rerender_tol``·n (at
+        spacing n a sub-pixel change far below a bin does not matter).
+        """
+        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, render
+
+        if lm.patch is None:
+            m = lm.maplet
+            lm.patch = HeightPatch(
+                m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
+            )
+        if (
+            lm.tmpl is not None
+            and lm.tmpl_key[0] is camera
+            and np.max(np.abs(lm.tmpl_key[1] - frac)) <= self.options.rerender_tol * spacing
+        ):
+            return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
+        # footprint: the projection of the maplet's border nodes, plus a margin
+        q = lm.patch.qsz
+        t = np.arange(-q, q + 1, dtype=np.float64)
+        edge = np.concatenate(
+            [
+                np.stack([t, np.full_like(t, -q)], 1),
+                np.stack([t, np.full_like(t, q)], 1),
+                np.stack([np.full_like(t, -q), t], 1),
+                np.stack([np.full_like(t, q), t], 1),
+            ]
+        )
+        h = lm.patch.interpolate(edge[:, 0], edge[:, 1])[0]
+        s, ln, front = camera.project_with_mask(lm.patch.to_body(np.column_stack([edge, h])))
+        if not np.all(front):
+            return None, frac, None
+        mg = int(self.options.template_margin)
+        s0, s1 = int(math.floor(s.min())) - mg, int(math.ceil(s.max())) + mg
+        l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
+        # rays through p − frac: the same camera with its CTR moved by frac
+        shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
+        ropts = RenderOptions(
+            photometry=self.options.predict.photometry,
+            supersample=int(self.options.supersample),
+            shadows=bool(self.options.image_shadows),
+        )
+        shp = (l1 - l0 + 1, s1 - s0 + 1)
+        rad = np.zeros(shp)
+        cov = np.zeros(shp)
+        cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
+        if cs0 <= s1 and cl0 <= l1:
+            part = render(shifted, self.sun, None, [lm.patch], ropts, window=(cs0, s1, cl0, l1))
+            rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
+            cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
+        rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
+        lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
+        return rend, frac.copy(), (s0, s1, l0, l1)
+
+    def _image_step(self, i, camera, center, spacing):
+        lm = self.landmarks[i]
+        c0 = np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2)
+        disp = center - c0
+        frac = disp - np.round(disp)
+        rend, f_t, window = self._template(lm, camera, frac, spacing)
+        g = 2 * self._copts.grid_half + 1
+        if rend is None:
+            corr = Correlation(
+                np.full((g, g), np.nan),
+                np.zeros((g, g), np.int64),
+                spacing,
+                "not-found",
+                math.nan,
+                None,
+                (math.nan, math.nan),
+            )
+            return LandmarkStep(center, np.full(2, np.nan), corr, None, "outside")
+        placement_int = np.round(disp - f_t)
+        placement = placement_int + f_t
+        s0, s1, l0, l1 = window
+        di_s, di_l = int(placement_int[0]), int(placement_int[1])
+        tmpl = rend.radiance
+        tvalid = rend.coverage >= 1.0 - 1e-12
+        if not self.options.image_shadows:
+            tvalid &= tmpl > 0.0
+        # photo crop: the template window moved by the integer placement, plus the search margin
+        marg = (self._copts.grid_half + 1) * int(spacing)
+        cl_lo, cl_hi = l0 + di_l - marg, l1 + di_l + marg
+        cs_lo, cs_hi = s0 + di_s - marg, s1 + di_s + marg
+        crop = np.zeros((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
+        nln, npx = self.photo.shape
+        a_lo, a_hi = max(cl_lo, 1), min(cl_hi, nln)
+        b_lo, b_hi = max(cs_lo, 1), min(cs_hi, npx)
+        inside = np.zeros(crop.shape, bool)
+        if a_lo <= a_hi and b_lo <= b_hi:
+            crop[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = self.photo[
+                a_lo - 1 : a_hi, b_lo - 1 : b_hi
+            ]
+            inside[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = True
+        t1, t2 = self.thresholds
+        cvalid = inside & np.isfinite(crop) & (crop > 0.0) & (crop <= t2)  # DN 0 = no data (SPC)
+        if not self.options.image_shadows:
+            cvalid &= crop >= t1
+        # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
+        a_s = int(np.clip(round(c0[0] + f_t[0]), s0, s1))
+        a_l = int(np.clip(round(c0[1] + f_t[1]), l0, l1))
+        p_anchor = (a_l - l0, a_s - s0)
+        e_anchor = (a_l + di_l - cl_lo, a_s + di_s - cs_lo)
+        copts = dataclasses.replace(
+            self._copts, min_value=None, bin_min_fraction=self.options.image_bin_fraction
+        )
+        corr = correlate(
+            crop,
+            tmpl,
+            extracted_valid=cvalid,
+            predicted_valid=tvalid,
+            spacing=spacing,
+            options=copts,
+            extracted_anchor=e_anchor,
+            predicted_anchor=p_anchor,
+        )
+        shift = np.array([corr.offset[1], corr.offset[0]])  # (line, sample) axes → (dsample, dline)
+        # the step's reference is where the template actually sat
+        return LandmarkStep(c0 + placement, shift, corr, None, corr.status, template=rend)
+
+
+def correlate_landmark(
+    photo,
+    camera,
+    sun,
+    maplet,
+    center=None,
+    spacing: int = 1,
+    thresholds=None,
+    options: RegisterOptions | None = None,
+) -> LandmarkStep:
+    """One correlation step of one landmark at pixel ``center`` (default: projection of V)."""
+    reg = Registrar(photo, sun, [maplet], thresholds, options)
+    if center is None:
+        center = reg.project(camera)[0][0]
+    return reg.step(0, camera, center, spacing)
+
+
+# --------------------------------------------------------------------------------------------------
+# drivers
+
+
+@dataclass
+class RegisterResult:
+    """Per-landmark outcome of :func:`register` (arrays (N, …), pixels (sample, line), SPC 1-based)."""
+
+    names: list[str]
+    apriori: np.ndarray  #: (N, 2) a-priori pixel (table pixel or projection with the input pose)
+    measured: np.ndarray  #: (N, 2) measured pixel; NaN unless status is ok
+    correlation: np.ndarray  #: (N,) peak ρ of the last correlation (NaN if none)
+    iterations: np.ndarray  #: (N,) correlation steps run
+    spacing: np.ndarray  #: (N,) spacing of the last step
+    status: list[str]
+    camera: object  #: final camera (pose updated by the AUTOREGISTER driver)
+    pose: object = None  #: last PoseResult (AUTOREGISTER with pose_update), else None
+    passes: list = field(default_factory=list)  #: per align pass: dict(spacing, ok, pose_solved, …)
+    last_steps: list = field(default_factory=list)  #: the last LandmarkStep of every landmark (or None)
+    warnings: list = field(default_factory=list)
+    options: RegisterOptions | None = None
+
+    def __len__(self):
+        return len(self.names)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.array([s == "ok" for s in self.status], dtype=bool)
+
+    @property
+    def shift(self) -> np.ndarray:
+        """(N, 2) measured − a-priori (NaN unless ok)."""
+        return self.measured - self.apriori
+
+    def status_counts(self) -> dict:
+        out: dict[str, int] = {}
+        for s in self.status:
+            out[s] = out.get(s, 0) + 1
+        return out
+
+    def to_table(self, picture=None, command="register", meta=None):
+        """The landmark table (cli-contract.md): sample/line = measured pixel when ok, else the
+        a-priori pixel; apriori_sample/line; dsample/dline = measured − a-priori; correlation;
+        iterations; spacing (last); status."""
+        from spctool.formats.table import LandmarkTable
+
+        ok = self.ok
+        best = np.where(ok[:, None], self.measured, self.apriori) if len(self) else np.zeros((0, 2))
+        d = self.shift
+        cols = {
+            "name": list(self.names),
+            "sample": best[:, 0],
+            "line": best[:, 1],
+            "apriori_sample": self.apriori[:, 0].copy(),
+            "apriori_line": self.apriori[:, 1].copy(),
+            "dsample": d[:, 0],
+            "dline": d[:, 1],
+            "correlation": self.correlation.astype(np.float64),
+            "iterations": self.iterations.astype(np.int64),
+            "spacing": self.spacing.astype(np.int64),
+            "status": list(self.status),
+        }
+        return LandmarkTable(cols, picture=picture, command=command, meta=dict(meta or {}))
+
+
+def register(
+    photo,
+    camera,
+    sun,
+    maplets,
+    thresholds=None,
+    options: RegisterOptions | None = None,
+    *,
+    apriori=None,
+    names=None,
+    positions=None,
+    prior_sigma_position=None,
+    prior_sigma_attitude=None,
+    progress=None,
+) -> RegisterResult:
+    """Stage H: measure the landmarks of ``maplets`` in ``photo`` (module docstring).
+
+    ``apriori`` (N, 2): starting pixels (e.g. the lithos-select table); rows with NaN — or no array —
+    start at the projection of V with ``camera``.  ``positions`` (N, 3): body-fixed landmark positions
+    for the pose solve (default: each maplet's V).  ``prior_sigma_*``: SUM SIGMA_VSO (km) and SIGMA_PTG
+    (rad) for the pose solve.  ``progress(n)`` is called as landmarks are processed.
+    """
+    opts = options if options is not None else RegisterOptions()
+    reg = Registrar(photo, sun, maplets, thresholds, opts, names)
+    n = len(reg)
+    steps = schedule_steps(opts)
+    proj, usable = reg.project(camera)
+    start = proj.copy()
+    if apriori is not None:
+        ap = np.asarray(apriori, dtype=np.float64).reshape(n, 2)
+        given = np.all(np.isfinite(ap), axis=1)
+        start[given] = ap[given]
+    apri = start.copy()
+    measured = np.full((n, 2), np.nan)
+    corr = np.full(n, np.nan)
+    iters = np.zeros(n, np.int64)
+    spac = np.zeros(n, np.int64)
+    status = ["ok" if u else "outside" for u in usable]
+    last = [None] * n
+    tick = progress or (lambda k=1: None)
+    result = RegisterResult(
+        [lm.name for lm in reg.landmarks], apri, measured, corr, iters, spac, status, camera, options=opts
+    )
+    if opts.schedule == "retina_s16":
+        _drive_s16(reg, camera, steps, start, result, last, tick)
+    else:
+        pos = (
+            (np.stack([lm.v for lm in reg.landmarks]) if n else np.zeros((0, 3)))
+            if positions is None
+            else np.asarray(positions, dtype=np.float64).reshape(n, 3)
+        )
+        _drive_autoregister(
+            reg, camera, steps, start, result, last, pos, prior_sigma_position, prior_sigma_attitude, tick
+        )
+    result.last_steps = last
+    return result
+
+
+def _record(result, last, i, st: LandmarkStep, keep_images: bool):
+    last[i] = st if keep_images else dataclasses.replace(st, extraction=None, template=None)
+    result.iterations[i] += 1
+    result.spacing[i] = st.correlation.spacing
+    result.correlation[i] = st.correlation.peak
+
+
+def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick):
+    opts = reg.options
+    factor = 0.5 if opts.halve_shift else 1.0
+    for i in range(len(reg)):
+        if result.status[i] != "ok":
+            tick()
+            continue
+        c = start[i].copy()
+        state = None
+        first = True
+        for kind, value in steps:
+            if kind == "drop":
+                if state == "ok" and not result.correlation[i] >= value:
+                    state = "low-correlation"
+                    break
+                continue
+            st = reg.step(i, camera, c, int(value), apply_criteria=first)
+            first = False
+            _record(result, last, i, st, opts.keep_images)
+            if st.status.startswith("removed-") or st.status == "outside":
+                state = st.status
+                break
+            if st.ok:
+                c = st.center + factor * st.shift
+                state = "ok"
+            else:
+                state = st.status
+                if opts.fail_fast:
+                    break
+        result.status[i] = state or "not-found"
+        if result.status[i] == "ok":
+            result.measured[i] = c
+        reg.release(i)
+        tick()
+
+
+def _drive_autoregister(
+    reg: Registrar, camera, steps, start, result, last, positions, sig_pos, sig_att, tick
+):
+    opts = reg.options
+    factor = 0.5 if opts.halve_shift else 1.0
+    n = len(reg)
+    active = np.array([s == "ok" for s in result.status], dtype=bool)
+    centre = start.copy()
+    first = True
+    cam = camera
+    for kind, value in steps:
+        if kind == "drop":
+            low = active & ~(result.correlation >= value)
+            for i in np.flatnonzero(low):
+                result.status[i] = "low-correlation"
+                result.measured[i] = np.nan
+            active &= ~low
+            continue
+        spacing = int(value)
+        ok_pass = np.zeros(n, bool)
+        for i in np.flatnonzero(active):
+            st = reg.step(i, cam, centre[i], spacing, apply_criteria=first)
+            _record(result, last, i, st, opts.keep_images)
+            result.status[i] = st.status
+            if st.status.startswith("removed-") or st.status == "outside":
+                active[i] = False
+                result.measured[i] = np.nan
+            elif st.ok:
+                ok_pass[i] = True
+                result.measured[i] = st.center + factor * st.shift
+            else:
+                result.measured[i] = np.nan
+            if opts.pose_update:  # the next pass has a new camera: nothing cached is reused
+                reg.release(i)
+            tick()
+        first = False
+        info = {
+            "spacing": spacing,
+            "ok": int(ok_pass.sum()),
+            "attempted": int(active.sum()),
+            "pose_solved": False,
+        }
+        if opts.pose_update and ok_pass.sum() >= max(1, int(opts.min_pose_landmarks)):
+            meas = np.where(ok_pass[:, None], result.measured, np.nan)
+            try:
+                pr = solve_pose(cam, positions, meas, opts.pose, sig_pos, sig_att, names=result.names)
+            except PoseError as exc:
+                result.warnings.append(f"pass at spacing {spacing}: pose not updated ({exc})")
+            else:
+                cam = cam.with_pose(scobj=pr.scobj, rotation=pr.rotation)
+                result.pose = pr
+                info["pose_solved"] = True
+                info["rms_after_px"] = float(pr.rms_after)
+                proj, inside = reg.project(cam)
+                centre = np.where(np.isfinite(proj), proj, centre)
+        elif opts.pose_update:
+            result.warnings.append(
+                f"pass at spacing {spacing}: {int(ok_pass.sum())} landmarks accepted, "
+                f"fewer than {opts.min_pose_landmarks}: pose not updated"
+            )
+        if not info["pose_solved"]:
+            # without a pose update each landmark carries its own measurement into the next pass
+            centre = np.where(ok_pass[:, None], result.measured, centre)
+        result.passes.append(info)
+    result.camera = cam

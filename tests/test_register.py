@@ -1,0 +1,340 @@
+"""Tests of spctool.stages.register (Stage H, spc-algorithms.md §9) end to end on rendered scenes with
+known truth (register_scene: the terrain rendered by spctool.stages.render through S16's optics; the
+maplets are the same terrain, so the true landmark pixel is the projection of V with the true camera).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import register_scene as rs
+
+from spctool.errors import SpcUsageError
+from spctool.stages.extract import ExtractOptions, extract
+from spctool.stages.register import (
+    RegisterOptions,
+    Registrar,
+    correlate_landmark,
+    register,
+    schedule_steps,
+)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return rs.scene()
+
+
+def _err(result, truth, i=0):
+    return np.abs(result.measured[i] - truth)
+
+
+# --------------------------------------------------------------------------------------------------
+# building blocks
+
+
+def test_scene_truth_pixel(scene):
+    assert scene.truth_pixel == pytest.approx([100.5, 100.5], abs=1e-9)
+    jxy = scene.camera.jacobian_maplet(scene.maplet.v, scene.maplet.ux, scene.maplet.uy, scene.maplet.scale)
+    # S16: 1.43 cm pixels, 1 cm cells, foreshortened by the 15° emission
+    assert math.sqrt(abs(np.linalg.det(jxy))) == pytest.approx(
+        0.698 * math.sqrt(math.cos(math.radians(15))), abs=2e-3
+    )
+
+
+def test_reextraction_equals_extract(scene):
+    """The S16 loop's re-extraction at a new centre reuses the geometry; it must equal extract()."""
+    reg = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds)
+    first = reg.extraction(0, scene.camera, scene.truth_pixel)
+    for c in ([103.27, 98.61], [95.0, 104.5]):
+        fast = reg.extraction(0, scene.camera, np.array(c))
+        full = extract(
+            scene.photo,
+            scene.maplet,
+            scene.camera,
+            scene.sun,
+            scene.thresholds,
+            ExtractOptions(criteria=None),
+            center_pixel=c,
+        )
+        assert fast is not first
+        for name in ("valid", "covered", "lit", "removed_shadow"):
+            np.testing.assert_array_equal(getattr(fast, name), getattr(full, name), err_msg=name)
+        for name in ("image", "sample", "line"):  # node pixels differ by rounding only (p + Δ vs p − c₀ + c)
+            np.testing.assert_allclose(
+                getattr(fast, name), getattr(full, name), rtol=1e-12, atol=1e-9, err_msg=name
+            )
+        assert (fast.center_sample, fast.center_line) == (full.center_sample, full.center_line)
+        np.testing.assert_array_equal(fast.jxy, full.jxy)
+
+
+def test_shift_sign_with_a_known_pixel_offset(scene):
+    """Extracting 2.6 px away from the truth must give a shift of −2.6 px back to it (δ = J_xy·Δ)."""
+    c = scene.truth_pixel + np.array([2.6, -1.8])
+    st = correlate_landmark(
+        scene.photo, scene.camera, scene.sun, scene.maplet, c, spacing=1, thresholds=scene.thresholds
+    )
+    assert st.ok
+    np.testing.assert_allclose(st.shift, [-2.6, 1.8], atol=0.1)
+    np.testing.assert_allclose(st.shift, st.jxy @ st.correlation.offset)
+
+
+# --------------------------------------------------------------------------------------------------
+# end to end: accuracy
+
+
+@pytest.mark.parametrize("schedule", ["retina_s16", "autoregister"])
+def test_unperturbed_error_maplet_space(scene, schedule):
+    opts = RegisterOptions(schedule=schedule, pose_update=False)
+    r = register(scene.photo, scene.camera, scene.sun, [scene.maplet], scene.thresholds, opts)
+    assert r.status == ["ok"]
+    assert np.all(_err(r, scene.truth_pixel) <= 0.02)
+    assert r.correlation[0] > 0.9
+    assert r.iterations[0] == (10 if schedule == "retina_s16" else 3)
+    assert r.spacing[0] == 1
+
+
+def test_unperturbed_error_image_space(scene):
+    opts = RegisterOptions(schedule="autoregister", space="image", pose_update=False)
+    r = register(scene.photo, scene.camera, scene.sun, [scene.maplet], scene.thresholds, opts)
+    assert r.status == ["ok"]
+    assert np.all(_err(r, scene.truth_pixel) <= 0.02)
+    assert r.correlation[0] > 0.95
+
+
+@pytest.mark.parametrize("dpx", [(5.0, -3.0), (17.0, 11.0)])
+def test_apriori_pointing_error_is_recovered(scene, dpx):
+    cam = rs.pointing_error(scene.camera, *dpx)
+    apriori = np.array(cam.project(scene.maplet.v))
+    assert np.abs(apriori - scene.truth_pixel) == pytest.approx(np.abs(dpx), abs=0.01)
+    r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions())
+    assert r.status == ["ok"]
+    assert np.all(_err(r, scene.truth_pixel) <= 0.02)
+    np.testing.assert_allclose(r.shift[0], scene.truth_pixel - apriori, atol=0.02)
+    np.testing.assert_allclose(r.apriori[0], apriori)
+
+
+def test_table_apriori_pixel_is_the_start(scene):
+    start = scene.truth_pixel + np.array([-6.2, 4.1])
+    r = register(
+        scene.photo,
+        scene.camera,
+        scene.sun,
+        [scene.maplet],
+        scene.thresholds,
+        RegisterOptions(),
+        apriori=[start],
+    )
+    assert r.status == ["ok"] and np.all(_err(r, scene.truth_pixel) <= 0.02)
+    np.testing.assert_allclose(r.apriori[0], start)
+
+
+def test_image_space_finds_what_maplet_space_loses(scene):
+    """A pointing error of (40, −25) px (≈ 57 and 36 cells) puts the landmark beyond the ±50-cell reach of
+    maplet space; image space searches the photo itself (S16 Retina)."""
+    cam = rs.pointing_error(scene.camera, 40.0, -25.0)
+    rm = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions())
+    assert rm.status[0] in ("edge-peak", "not-found", "low-correlation")
+    assert np.all(np.isnan(rm.measured[0]))
+    ri = register(
+        scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(space="image")
+    )
+    assert ri.status == ["ok"]
+    assert np.all(_err(ri, scene.truth_pixel) <= 0.05)
+
+
+# --------------------------------------------------------------------------------------------------
+# AUTOREGISTER with pose updates
+
+
+def test_autoregister_updates_the_pose(scene):
+    offsets = [(-55, -50), (-50, 55), (55, -45), (50, 50), (0, 0)]
+    maplets = [rs.offset_maplet(scene, x, y, q=24, name=f"L{k}") for k, (x, y) in enumerate(offsets)]
+    truth = np.array([scene.camera.project(m.v) for m in maplets])
+    # a-priori pose: 3.6 cm off sideways and a 3.6-px pointing error
+    cam = rs.pointing_error(scene.camera, 3.0, 2.0)
+    cam = cam.with_pose(position=cam.position + 3e-5 * scene.maplet.ux - 2e-5 * scene.maplet.uy)
+    apriori = np.array([cam.project(m.v) for m in maplets])
+    assert np.max(np.abs(apriori - truth)) > 4.0
+    opts = RegisterOptions(schedule="autoregister", criteria=None)
+    r = register(
+        scene.photo,
+        cam,
+        scene.sun,
+        maplets,
+        scene.thresholds,
+        opts,
+        prior_sigma_position=np.full(3, 2e-3),
+        prior_sigma_attitude=np.full(3, 0.01),
+    )
+    assert r.status == ["ok"] * 5
+    assert [p["spacing"] for p in r.passes] == [2, 1, 1]
+    assert all(p["pose_solved"] for p in r.passes)
+    assert np.max(np.abs(r.measured - truth)) <= 0.05
+    # the updated pose predicts the landmarks where they are
+    final = np.array([r.camera.project(m.v) for m in maplets])
+    assert np.max(np.abs(final - truth)) <= 0.1
+    assert r.pose is not None and r.pose.rms_after < 0.1
+    np.testing.assert_array_equal(r.iterations, 3)
+
+
+def test_autoregister_without_pose_update_carries_each_shift(scene):
+    maplets = [rs.offset_maplet(scene, 30, -30, q=24, name="A")]
+    cam = rs.pointing_error(scene.camera, 4.0, -3.0)
+    truth = np.array(scene.camera.project(maplets[0].v))
+    r = register(
+        scene.photo,
+        cam,
+        scene.sun,
+        maplets,
+        scene.thresholds,
+        RegisterOptions(schedule="autoregister", pose_update=False, criteria=None),
+    )
+    assert r.status == ["ok"] and r.pose is None
+    assert np.all(_err(r, truth) <= 0.02)
+    assert r.camera is cam and not any(p["pose_solved"] for p in r.passes)
+
+
+def test_too_few_landmarks_for_a_pose_solve_is_a_warning(scene):
+    cam = rs.pointing_error(scene.camera, 2.0, 1.0)
+    r = register(
+        scene.photo,
+        cam,
+        scene.sun,
+        [scene.maplet],
+        scene.thresholds,
+        RegisterOptions(schedule="autoregister"),
+    )
+    assert r.status == ["ok"] and r.pose is None
+    assert r.warnings and "pose not updated" in r.warnings[0]
+    assert np.all(_err(r, scene.truth_pixel) <= 0.02)
+
+
+# --------------------------------------------------------------------------------------------------
+# statuses and options
+
+
+def test_drop_step_marks_low_correlation(scene):
+    opts = RegisterOptions(
+        schedule="autoregister",
+        pose_update=False,
+        autoregister_steps=(("align", 1), ("drop", 0.9999), ("align", 1)),
+    )
+    r = register(scene.photo, scene.camera, scene.sun, [scene.maplet], scene.thresholds, opts)
+    assert r.status == ["low-correlation"] and r.iterations[0] == 1 and np.all(np.isnan(r.measured))
+
+
+def test_removal_criteria_on_the_first_extraction(scene):
+    # the scene is seen at 15° emission: SLIM = 10° removes it
+    opts = RegisterOptions(criteria="0,10,.25,0,5")
+    r = register(scene.photo, scene.camera, scene.sun, [scene.maplet], scene.thresholds, opts)
+    assert r.status == ["removed-slim"] and r.iterations[0] == 1
+    t = r.to_table()
+    assert t["status"] == ["removed-slim"] and math.isnan(t["dsample"][0])
+    assert t["sample"][0] == pytest.approx(scene.truth_pixel[0])  # the a-priori pixel stays the best
+
+
+def test_outside_landmarks_are_skipped(scene):
+    far = rs.offset_maplet(scene, 0, 0, q=24, name="FAR")
+    far.v = far.v + 0.2 * scene.camera.rotation[0]  # 200 m sideways: off the photo
+    behind = rs.offset_maplet(scene, 0, 0, q=24, name="BACK")
+    behind.v = scene.camera.position - 0.01 * scene.camera.rotation[2]
+    r = register(
+        scene.photo, scene.camera, scene.sun, [far, behind, scene.maplet], scene.thresholds, RegisterOptions()
+    )
+    assert r.status == ["outside", "outside", "ok"]
+    np.testing.assert_array_equal(r.iterations, [0, 0, 10])
+
+
+def test_fail_fast_and_continue(scene):
+    cam = rs.pointing_error(scene.camera, 6.0, 0.0)
+    steps = (("align", 1), ("align", 3), ("align", 1))  # a 6-px (≈ 8.6 cell) error is out of reach at n = 1
+    r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(steps=steps))
+    assert r.status[0] in ("edge-peak", "not-found") and r.iterations[0] == 1
+    r = register(
+        scene.photo,
+        cam,
+        scene.sun,
+        [scene.maplet],
+        scene.thresholds,
+        RegisterOptions(steps=steps, fail_fast=False),
+    )
+    assert r.status == ["ok"] and r.iterations[0] == 3
+    assert np.all(_err(r, scene.truth_pixel) <= 0.05)
+
+
+def test_halve_shift(scene):
+    cam = rs.pointing_error(scene.camera, 3.0, -2.0)
+    ap = np.array(cam.project(scene.maplet.v))
+    r = register(
+        scene.photo,
+        cam,
+        scene.sun,
+        [scene.maplet],
+        scene.thresholds,
+        RegisterOptions(steps=(2,), halve_shift=True),
+    )
+    assert r.status == ["ok"]
+    np.testing.assert_allclose(r.shift[0], 0.5 * (scene.truth_pixel - ap), atol=0.1)
+
+
+def test_result_table(scene):
+    r = register(
+        scene.photo,
+        scene.camera,
+        scene.sun,
+        [scene.maplet],
+        scene.thresholds,
+        RegisterOptions(steps=(3, 1)),
+        names=["ABC123"],
+    )
+    t = r.to_table(picture="PIC", meta={"x": 1})
+    assert list(t.columns) == [
+        "name",
+        "sample",
+        "line",
+        "apriori_sample",
+        "apriori_line",
+        "dsample",
+        "dline",
+        "correlation",
+        "iterations",
+        "spacing",
+        "status",
+    ]
+    assert t.names == ["ABC123"] and t.picture == "PIC" and t.command == "register"
+    assert t["sample"][0] == pytest.approx(r.measured[0, 0]) and t["iterations"][0] == 2
+    assert r.status_counts() == {"ok": 1}
+
+
+def test_schedule_steps_and_option_checks():
+    assert schedule_steps(RegisterOptions()) == [("align", n) for n in range(10, 0, -1)]
+    assert schedule_steps(RegisterOptions(schedule="autoregister")) == [
+        ("align", 2),
+        ("align", 1),
+        ("drop", 0.5),
+        ("align", 1),
+    ]
+    assert RegisterOptions(schedule="autoregister").extract.criteria.as_tuple() == (0, 50, 0.25, 0, 5)
+    assert RegisterOptions().extract.criteria is None
+    assert schedule_steps(RegisterOptions(steps=(4, ("drop", 0.2), 1))) == [
+        ("align", 4),
+        ("drop", 0.2),
+        ("align", 1),
+    ]
+    for bad in (
+        {"schedule": "x"},
+        {"space": "x"},
+        {"steps": (("drop", 0.5),)},
+        {"steps": (0,)},
+        {"steps": (("drop", 3.0), 1)},
+        {"corr_min": 2.0},
+        {"supersample": 0},
+        {"grid_half": 0},
+    ):
+        with pytest.raises(SpcUsageError):
+            RegisterOptions(**bad)
+    d = RegisterOptions().as_dict()
+    assert d["steps"][0] == ["align", 10] and d["corr_min"] == 0.3 and "predict" in d
