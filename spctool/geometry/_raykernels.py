@@ -1,0 +1,1097 @@
+"""Numba kernels behind :mod:`spctool.geometry.shape`: BVH builders and ray traversal.
+
+Nothing here is public API; :mod:`spctool.geometry.shape` wraps it.  Two primitive kinds share one
+flattened bounding-volume hierarchy layout and one traversal kernel:
+
+* ``KIND_PATCH`` — ICQ cells treated as bilinear patches and inverted with SPC's algebra
+  (L15 §3.2.1, Eq. 3.27–3.35, with the errata 13–16 of ``spc-algorithms.md`` §11; the detailed
+  GET_HEIGHTS recipe is ``spc-algorithms.md`` §2.2 "Bilinear-patch inversion in detail").
+* ``KIND_TRIANGLE`` — triangles, Möller–Trumbore (two-sided, edges inclusive).
+
+Builders produce an n-ary tree (children of a node contiguous):
+
+* ``bounds[n] = (xlo, ylo, zlo, xhi, yhi, zhi)``;
+* ``leaf[n] == 0``: children are nodes ``first[n] … first[n] + count[n] − 1``;
+* ``leaf[n] == 1``: primitives are ``prims[first[n] … first[n] + count[n] − 1]``;
+* every child has a larger node index than its parent (node 0 is the root), so bounds can be
+  accumulated in one reverse sweep.
+
+:func:`pack4` turns it into the 4-wide packed layout the traversal reads (each node holds its
+children's boxes side by side, so a visit touches two small contiguous records).
+
+Patch cell index convention (``spc-formats.md`` §5): cell ``k = F·q² + J·q + I`` with the 0-based face
+``F = 0…5`` (file face number F+1), ``I, J = 0…q−1``; its corners are the vertices
+0 = (I, J), 1 = (I+1, J), 2 = (I, J+1), 3 = (I+1, J+1) of the flattened vertex array
+``verts[F·(q+1)² + J·(q+1) + I]``.  The patch parameter ``u`` runs along I (corner 0 → 1) and ``v``
+along J (corner 0 → 2).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+KIND_PATCH = 0
+KIND_TRIANGLE = 1
+
+STACK_SIZE = 256  # traversal stack per ray: ≤ 3·depth + 1 (patch quadtree < 40, SAH trees ≤ 217)
+MAX_SAH_DEPTH = 48  # below this depth SAH ranges are halved by index, so binary depth ≤ 48 + log2(m)
+CHUNK = 256  # rays per parallel work item (scratch arrays are allocated once per chunk)
+_HUGE = 1e30  # stands in for 1/0 in the slab test (keeps 0·inf and inf − inf out of it)
+
+
+# ------------------------------------------------------------------------------------------------
+# primitive tests
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def tilde_frame(dx, dy, dz):
+    """Tilde frame of L15 Eq. 3.21 in body coordinates for a unit direction (dx, dy, dz).
+
+    z̃ = d̂, ỹ = z̃ × b_x / |z̃ × b_x|, x̃ = ỹ × z̃ with b_x = (1, 0, 0), the body x axis.  When d̂ is
+    (nearly) parallel to b_x the body y axis is used instead (L15 footnote 21: any right-handed
+    orthonormal frame with z̃ = d̂ works; the root ι₀ does not depend on the choice).
+    Returns the nine components (x̃, ỹ, z̃).
+    """
+    # z̃ × b_x = (0, dz, −dy)
+    ny = dy * dy + dz * dz
+    if ny > 1e-12:
+        s = 1.0 / math.sqrt(ny)
+        yx, yy, yz = 0.0, dz * s, -dy * s
+    else:  # z̃ × b_y = (−dz, 0, dx)
+        s = 1.0 / math.sqrt(dx * dx + dz * dz)
+        yx, yy, yz = -dz * s, 0.0, dx * s
+    # x̃ = ỹ × z̃ (unit: ỹ ⟂ z̃, both unit)
+    xx = yy * dz - yz * dy
+    xy = yz * dx - yx * dz
+    xz = yx * dy - yy * dx
+    return xx, xy, xz, yx, yy, yz, dx, dy, dz
+
+
+@njit(cache=True)
+def _project(verts, b, ox, oy, oz, fr):
+    """Tilde-frame coordinates (x̃, ỹ, z̃) of vertex ``b`` relative to the ray origin (Eq. 3.22)."""
+    px = verts[b, 0] - ox
+    py = verts[b, 1] - oy
+    pz = verts[b, 2] - oz
+    return (px * fr[0] + py * fr[1] + pz * fr[2], px * fr[3] + py * fr[4] + pz * fr[5],
+            px * fr[6] + py * fr[7] + pz * fr[8])
+
+
+@njit(cache=True)
+def _outside(a0, a1, a2, a3, eps):
+    """True if the line of sight (x̃ = 0 or ỹ = 0) misses the patch extended to [−eps, 1+eps]²:
+    the bilinear function with corner values a0…a3 has one strict sign at all four extended
+    corners (the extended patch lies in their convex hull)."""
+    e1 = -eps
+    e2 = 1.0 + eps
+    A1 = a1 - a0
+    A2 = a2 - a0
+    A3 = a0 - a1 - a2 + a3
+    c00 = a0 + A1 * e1 + A2 * e1 + A3 * e1 * e1
+    c10 = a0 + A1 * e2 + A2 * e1 + A3 * e2 * e1
+    c01 = a0 + A1 * e1 + A2 * e2 + A3 * e1 * e2
+    c11 = a0 + A1 * e2 + A2 * e2 + A3 * e2 * e2
+    return (c00 > 0.0 and c10 > 0.0 and c01 > 0.0 and c11 > 0.0) or (
+        c00 < 0.0 and c10 < 0.0 and c01 < 0.0 and c11 < 0.0)
+
+
+@njit(cache=True)
+def patch_solve(x0, y0, z0, x1, y1, z1, x2, y2, z2, x3, y3, z3, eps):
+    """SPC bilinear-patch inversion (L15 §3.2.1 Eq. 3.27–3.35 with errata 13–16) from the tilde-frame
+    corner coordinates in SPC's order 0 = (I,J), 1 = (I+1,J), 2 = (I,J+1), 3 = (I+1,J+1).
+
+    Returns ``(ok, t, u, v)``: ``u`` = ι₀ (along I), ``v`` = γ₀ (along J), ``t`` = the interpolated
+    z̃ (Eq. 3.34), the distance along the ray.  A sign screen on the extended corners first skips
+    patches whose projection cannot contain the line of sight (a pure cull, like L15's Eq. 3.25–3.26
+    screens: it never removes a solution the algebra below would accept, up to rounding at the
+    patch boundary).
+    """
+    if _outside(x0, x1, x2, x3, eps) or _outside(y0, y1, y2, y3, eps):
+        return False, 0.0, 0.0, 0.0
+    # bilinear coefficients (Eq. 3.29, 3.30 in SPC's corner order, spc-algorithms.md §2.2)
+    X0 = x0
+    X1 = x1 - x0
+    X2 = x2 - x0
+    X3 = x0 - x1 - x2 + x3
+    Y0 = y0
+    Y1 = y1 - y0
+    Y2 = y2 - y0
+    Y3 = y0 - y1 - y2 + y3
+    A = X1 * Y3 - X3 * Y1  # Eq. 3.33
+    B = X1 * Y2 - X2 * Y1 + X0 * Y3 - X3 * Y0
+    C = X0 * Y2 - X2 * Y0
+    D = B * B - 4.0 * A * C
+    if not D > 0.0:  # erratum 13: SPC proceeds only if B² > 4AC strictly
+        return False, 0.0, 0.0, 0.0
+    # erratum 13/14: SPC's root (√(1−4AC/B²) − 1)·B/(2A) and its small-|A| series −C/B − AC²/B³ are
+    # the stable root C/q, q = −(B + sign(B)√D)/2, evaluated without a branch.
+    sq = math.sqrt(D)
+    if B >= 0.0:
+        qd = -0.5 * (B + sq)
+    else:
+        qd = -0.5 * (B - sq)
+    u = C / qd
+    if u < -eps or u > 1.0 + eps:  # erratum 16: accept [−EPS, 1+EPS]
+        return False, 0.0, 0.0, 0.0
+    # erratum 15: γ from the equation with the larger |denominator|
+    dxn = X2 + X3 * u
+    dyn = Y2 + Y3 * u
+    if abs(dxn) > abs(dyn):
+        v = -(X0 + X1 * u) / dxn
+    else:
+        if dyn == 0.0:
+            return False, 0.0, 0.0, 0.0
+        v = -(Y0 + Y1 * u) / dyn
+    if v < -eps or v > 1.0 + eps:
+        return False, 0.0, 0.0, 0.0
+    t = z0 + (z1 - z0) * u + (z2 - z0) * v + (z0 - z1 - z2 + z3) * u * v  # Eq. 3.34, 3.35
+    return True, t, u, v
+
+
+@njit(cache=True)
+def cell_base(k, q):
+    """Flattened vertex index of corner 0 = (I, J) of cell ``k``."""
+    qq = q * q
+    f = k // qq
+    r = k - f * qq
+    j = r // q
+    i = r - j * q
+    q1 = q + 1
+    return f * q1 * q1 + j * q1 + i
+
+
+@njit(cache=True)
+def patch_hit(verts, k, q, ox, oy, oz, fr, eps):
+    """:func:`patch_solve` for cell ``k``; ``fr`` is the 9-tuple from :func:`tilde_frame`."""
+    b = cell_base(k, q)
+    q1 = q + 1
+    x0, y0, z0 = _project(verts, b, ox, oy, oz, fr)
+    x1, y1, z1 = _project(verts, b + 1, ox, oy, oz, fr)
+    x2, y2, z2 = _project(verts, b + q1, ox, oy, oz, fr)
+    x3, y3, z3 = _project(verts, b + q1 + 1, ox, oy, oz, fr)
+    return patch_solve(x0, y0, z0, x1, y1, z1, x2, y2, z2, x3, y3, z3, eps)
+
+
+@njit(cache=True)
+def triangle_hit(verts, faces, k, ox, oy, oz, dx, dy, dz):
+    """Möller–Trumbore, two-sided, edges inclusive.  Returns ``(ok, t, u, v)`` (barycentrics of
+    vertices 1 and 2)."""
+    a = faces[k, 0]
+    b = faces[k, 1]
+    c = faces[k, 2]
+    ax = verts[a, 0]
+    ay = verts[a, 1]
+    az = verts[a, 2]
+    e1x = verts[b, 0] - ax
+    e1y = verts[b, 1] - ay
+    e1z = verts[b, 2] - az
+    e2x = verts[c, 0] - ax
+    e2y = verts[c, 1] - ay
+    e2z = verts[c, 2] - az
+    px = dy * e2z - dz * e2y
+    py = dz * e2x - dx * e2z
+    pz = dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return False, 0.0, 0.0, 0.0
+    inv = 1.0 / det
+    tx = ox - ax
+    ty = oy - ay
+    tz = oz - az
+    u = (tx * px + ty * py + tz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return False, 0.0, 0.0, 0.0
+    qx = ty * e1z - tz * e1y
+    qy = tz * e1x - tx * e1z
+    qz = tx * e1y - ty * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    if v < 0.0 or u + v > 1.0:
+        return False, 0.0, 0.0, 0.0
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv
+    return True, t, u, v
+
+
+@njit(cache=True)
+def _slab(b0, b1, b2, b3, b4, b5, ox, oy, oz, ix, iy, iz, t0, t1):
+    """Slab test of box (b0, b1, b2)–(b3, b4, b5): entry distance clipped to [t0, t1], or +inf."""
+    a = (b0 - ox) * ix
+    b = (b3 - ox) * ix
+    lo = min(a, b)
+    hi = max(a, b)
+    a = (b1 - oy) * iy
+    b = (b4 - oy) * iy
+    lo = max(lo, min(a, b))
+    hi = min(hi, max(a, b))
+    a = (b2 - oz) * iz
+    b = (b5 - oz) * iz
+    lo = max(lo, min(a, b))
+    hi = min(hi, max(a, b))
+    lo = max(lo, t0)
+    hi = min(hi, t1)
+    if lo <= hi:
+        return lo
+    return np.inf
+
+
+@njit(cache=True)
+def _inv(d):
+    if d == 0.0:
+        return _HUGE
+    return 1.0 / d
+
+
+# ------------------------------------------------------------------------------------------------
+# packed 4-wide hierarchy
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def pack4(bounds, first, count, leaf):
+    """Collapse a BVH (n-ary, ≤ 4 children, or binary) into a packed 4-wide hierarchy.
+
+    Packed node p: ``nc[p, 0]`` = number of slots (1…4), ``nc[p, 1 + j]`` = reference of slot j,
+    ``nb[p, :, j]`` = box of slot j (xlo, ylo, zlo, xhi, yhi, zhi).  A reference r ≥ 0 is a packed
+    node; r < 0 is a leaf with code −r − 1 = (first primitive << 3) | count.  Binary nodes are widened
+    by repeatedly opening the slot with the largest surface area.  Returns (root_box, nb, nc).
+    """
+    m = 1  # packed nodes ≤ internal source nodes (+1 when the root is a leaf)
+    for n in range(bounds.shape[0]):
+        if not leaf[n]:
+            m += 1
+    nb = np.empty((m, 6, 4), np.float64)
+    nc = np.zeros((m, 5), np.int32)
+    src = np.empty(m, np.int64)
+    slots = np.empty(8, np.int64)
+    root_box = bounds[0].copy()
+    npk = 1
+    src[0] = 0
+    p = 0
+    while p < npk:
+        n = src[p]
+        ns = 0
+        if leaf[n]:  # only possible for the root: one slot holding the root leaf
+            slots[0] = n
+            ns = 1
+        else:
+            for c in range(first[n], first[n] + count[n]):
+                slots[ns] = c
+                ns += 1
+        while ns < 4:
+            best = -1
+            best_a = -1.0
+            for j in range(ns):
+                c = slots[j]
+                if leaf[c] or ns - 1 + count[c] > 4:
+                    continue
+                ex = bounds[c, 3] - bounds[c, 0]
+                ey = bounds[c, 4] - bounds[c, 1]
+                ez = bounds[c, 5] - bounds[c, 2]
+                a = ex * ey + ey * ez + ez * ex
+                if a > best_a:
+                    best_a = a
+                    best = j
+            if best < 0:
+                break
+            c = slots[best]
+            slots[best] = slots[ns - 1]
+            ns -= 1
+            for g in range(first[c], first[c] + count[c]):
+                slots[ns] = g
+                ns += 1
+        nc[p, 0] = ns
+        for j in range(ns):
+            c = slots[j]
+            for w in range(6):
+                nb[p, w, j] = bounds[c, w]
+            if leaf[c]:
+                nc[p, 1 + j] = -((first[c] << 3) | count[c]) - 1
+            else:
+                src[npk] = c
+                nc[p, 1 + j] = npk
+                npk += 1
+        for j in range(ns, 4):
+            for w in range(6):
+                nb[p, w, j] = 0.0
+            nc[p, 1 + j] = 0
+        p += 1
+    return root_box, nb[:npk].copy(), nc[:npk].copy()
+
+
+# ------------------------------------------------------------------------------------------------
+# traversal
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _trace_one(kind, any_hit, ox, oy, oz, dx, dy, dz, t0, t1, root_box, nb, nc, prims, verts, faces, q,
+               eps, stack_r, stack_t, kid_r, kid_t, kid_lo, kid_hi, pxs, pys, pzs):
+    """Trace one ray with unit direction.  Returns ``(index, t, u, v)``; index −1 = no hit."""
+    ix = _inv(dx)
+    iy = _inv(dy)
+    iz = _inv(dz)
+    # slab planes as t = plane·inv − origin·inv; near/far plane rows chosen once by direction sign
+    oix = ox * ix
+    oiy = oy * iy
+    oiz = oz * iz
+    nx = 0 if ix >= 0.0 else 3
+    ny = 1 if iy >= 0.0 else 4
+    nz = 2 if iz >= 0.0 else 5
+    fx = 3 - nx
+    fy = 5 - ny
+    fz = 7 - nz
+    if kind == KIND_PATCH:
+        fr = tilde_frame(dx, dy, dz)
+    else:
+        fr = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    best_t = t1
+    best_k = -1
+    best_u = 0.0
+    best_v = 0.0
+    te = _slab(root_box[0], root_box[1], root_box[2], root_box[3], root_box[4], root_box[5], ox, oy, oz,
+               ix, iy, iz, t0, t1)
+    if te == np.inf:
+        return best_k, best_t, best_u, best_v
+    stack_r[0] = 0
+    stack_t[0] = te
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        ref = stack_r[sp]
+        if stack_t[sp] > best_t:
+            continue
+        if ref < 0:
+            code = -ref - 1
+            s = code >> 3
+            c = code & 7
+            if kind == KIND_PATCH and c == 4:
+                # a 2×2 block of cells: project its 3×3 vertices once (bit-identical to patch_hit)
+                b = cell_base(prims[s], q)
+                q1 = q + 1
+                for jj in range(3):
+                    for ii in range(3):
+                        w = jj * 3 + ii
+                        pxs[w], pys[w], pzs[w] = _project(verts, b + jj * q1 + ii, ox, oy, oz, fr)
+                for m in range(4):
+                    w = (m >> 1) * 3 + (m & 1)
+                    ok, t, u, v = patch_solve(pxs[w], pys[w], pzs[w], pxs[w + 1], pys[w + 1], pzs[w + 1],
+                                              pxs[w + 3], pys[w + 3], pzs[w + 3], pxs[w + 4], pys[w + 4],
+                                              pzs[w + 4], eps)
+                    k = prims[s + m]
+                    if ok and t >= t0 and (t < best_t or (t == best_t and (best_k < 0 or k < best_k))):
+                        best_t = t
+                        best_k = k
+                        best_u = u
+                        best_v = v
+                        if any_hit:
+                            return best_k, best_t, best_u, best_v
+                continue
+            for m in range(s, s + c):
+                k = prims[m]
+                if kind == KIND_PATCH:
+                    ok, t, u, v = patch_hit(verts, k, q, ox, oy, oz, fr, eps)
+                else:
+                    ok, t, u, v = triangle_hit(verts, faces, k, ox, oy, oz, dx, dy, dz)
+                if ok and t >= t0 and (t < best_t or (t == best_t and (best_k < 0 or k < best_k))):
+                    best_t = t
+                    best_k = k
+                    best_u = u
+                    best_v = v
+                    if any_hit:
+                        return best_k, best_t, best_u, best_v
+            continue
+        # the four slab tests side by side (branch-free, so LLVM can vectorise them)
+        for j in range(4):
+            kid_lo[j] = max(max(nb[ref, nx, j] * ix - oix, nb[ref, ny, j] * iy - oiy),
+                            max(nb[ref, nz, j] * iz - oiz, t0))
+            kid_hi[j] = min(min(nb[ref, fx, j] * ix - oix, nb[ref, fy, j] * iy - oiy),
+                            min(nb[ref, fz, j] * iz - oiz, best_t))
+        nk = 0
+        for j in range(nc[ref, 0]):
+            te = kid_lo[j]
+            if te <= kid_hi[j]:
+                # insertion sort, farthest first (the nearest is pushed last, popped first)
+                p = nk
+                while p > 0 and kid_t[p - 1] < te:
+                    kid_t[p] = kid_t[p - 1]
+                    kid_r[p] = kid_r[p - 1]
+                    p -= 1
+                kid_t[p] = te
+                kid_r[p] = nc[ref, 1 + j]
+                nk += 1
+        for p in range(nk):
+            stack_r[sp] = kid_r[p]
+            stack_t[sp] = kid_t[p]
+            sp += 1
+    return best_k, best_t, best_u, best_v
+
+
+@njit(parallel=True, cache=True)
+def trace(kind, any_hit, order, origins, dirs, tmin, tmax, root_box, nb, nc, prims, verts, faces, q, eps,
+          out_k, out_t, out_u, out_v, out_p):
+    """Trace all rays (first hit, or any hit when ``any_hit``) in parallel chunks.
+
+    ``origins`` (n or 1, 3), ``dirs`` (n or 1, 3), ``tmin``/``tmax`` (n or 1,) — a length-1 input is
+    used for every ray; n is the length of the outputs.  ``dirs`` need not be unit; a zero or
+    non-finite direction gives no hit.  ``tmin``/``tmax`` are distance limits along the unit
+    direction.  Outputs: cell/face index (−1 = none), t
+    (inf if none), patch/barycentric parameters and the hit point (NaN if none).  Rays are
+    processed in the sequence ``order`` (a permutation from :func:`ray_order`, for cache coherence);
+    results are written at the rays' own positions.
+    """
+    n = out_k.shape[0]
+    no = origins.shape[0] > 1
+    nd_ = dirs.shape[0] > 1
+    n0 = tmin.shape[0] > 1
+    n1 = tmax.shape[0] > 1
+    nchunks = (n + CHUNK - 1) // CHUNK
+    for ci in prange(nchunks):
+        stack_r = np.empty(STACK_SIZE, np.int64)
+        stack_t = np.empty(STACK_SIZE, np.float64)
+        kid_r = np.empty(4, np.int64)
+        kid_t = np.empty(4, np.float64)
+        kid_lo = np.empty(4, np.float64)
+        kid_hi = np.empty(4, np.float64)
+        pxs = np.empty(9, np.float64)
+        pys = np.empty(9, np.float64)
+        pzs = np.empty(9, np.float64)
+        ray = np.empty((CHUNK, 8), np.float64)
+        res_k = np.empty(CHUNK, np.int64)
+        res = np.empty((CHUNK, 6), np.float64)
+        lo = ci * CHUNK
+        hi = min(n, lo + CHUNK)
+        # gather the chunk's rays (independent loads: the memory system overlaps the misses)
+        for m in range(hi - lo):
+            r = order[lo + m]
+            ro = r if no else 0
+            rd = r if nd_ else 0
+            ray[m, 0] = origins[ro, 0]
+            ray[m, 1] = origins[ro, 1]
+            ray[m, 2] = origins[ro, 2]
+            ray[m, 3] = dirs[rd, 0]
+            ray[m, 4] = dirs[rd, 1]
+            ray[m, 5] = dirs[rd, 2]
+            ray[m, 6] = tmin[r if n0 else 0]
+            ray[m, 7] = tmax[r if n1 else 0]
+        for m in range(hi - lo):
+            ox = ray[m, 0]
+            oy = ray[m, 1]
+            oz = ray[m, 2]
+            dx = ray[m, 3]
+            dy = ray[m, 4]
+            dz = ray[m, 5]
+            t0 = ray[m, 6]
+            t1 = ray[m, 7]
+            nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+            k = -1
+            t = np.inf
+            u = np.nan
+            v = np.nan
+            if nd > 0.0 and nd < np.inf and math.isfinite(ox + oy + oz) and t0 <= t1:
+                dx /= nd
+                dy /= nd
+                dz /= nd
+                k, t, u, v = _trace_one(kind, any_hit, ox, oy, oz, dx, dy, dz, t0, t1, root_box,
+                                        nb, nc, prims, verts, faces, q, eps, stack_r, stack_t, kid_r,
+                                        kid_t, kid_lo, kid_hi, pxs, pys, pzs)
+            res_k[m] = k
+            if k < 0:
+                res[m, 0] = np.inf
+                for a in range(1, 6):
+                    res[m, a] = np.nan
+                continue
+            res[m, 0] = t
+            res[m, 1] = u
+            res[m, 2] = v
+            if kind == KIND_PATCH:
+                b = cell_base(k, q)
+                q1 = q + 1
+                w0 = (1.0 - u) * (1.0 - v)
+                w1 = u * (1.0 - v)
+                w2 = (1.0 - u) * v
+                w3 = u * v
+                for a in range(3):
+                    res[m, 3 + a] = (w0 * verts[b, a] + w1 * verts[b + 1, a] + w2 * verts[b + q1, a]
+                                     + w3 * verts[b + q1 + 1, a])
+            else:
+                w0 = 1.0 - u - v
+                for a in range(3):
+                    res[m, 3 + a] = (w0 * verts[faces[k, 0], a] + u * verts[faces[k, 1], a]
+                                     + v * verts[faces[k, 2], a])
+        # scatter the results to the rays' own positions
+        for m in range(hi - lo):
+            r = order[lo + m]
+            out_k[r] = res_k[m]
+            out_t[r] = res[m, 0]
+            out_u[r] = res[m, 1]
+            out_v[r] = res[m, 2]
+            out_p[r, 0] = res[m, 3]
+            out_p[r, 1] = res[m, 4]
+            out_p[r, 2] = res[m, 5]
+
+
+@njit(cache=True)
+def _spread2(x):
+    """Interleave the low 10 bits of x with zeros (bit b → bit 2b)."""
+    x &= 0x3FF
+    x = (x | (x << 8)) & 0x00FF00FF
+    x = (x | (x << 4)) & 0x0F0F0F0F
+    x = (x | (x << 2)) & 0x33333333
+    x = (x | (x << 1)) & 0x55555555
+    return x
+
+
+@njit(cache=True)
+def _spread3(x):
+    """Spread the low 4 bits of x to every third bit."""
+    r = 0
+    for b in range(4):
+        r |= ((x >> b) & 1) << (3 * b)
+    return r
+
+
+@njit(cache=True)
+def _octa(dx, dy, dz):
+    """Octahedral map of a direction to [−1, 1]² ((0, 0) for a zero or non-finite direction)."""
+    s = abs(dx) + abs(dy) + abs(dz)
+    if not (s > 0.0 and s < np.inf):
+        return 0.0, 0.0
+    a = dx / s
+    b = dy / s
+    if dz < 0.0:
+        a, b = (1.0 - abs(b)) * (1.0 if a >= 0 else -1.0), (1.0 - abs(a)) * (1.0 if b >= 0 else -1.0)
+    return a, b
+
+
+@njit(cache=True)
+def ray_order(n, origins, dirs):
+    """A permutation of the n rays that makes neighbours in it spatially coherent.
+
+    Key (32 bits) = Morton code of the octahedral direction, quantised to 1024 × 1024 over the span of
+    the rays' own directions (20 bits), then the Morton code of the origin quantised to 16³ over the
+    origins' bounding box (12 bits).  Two 16-bit LSD counting-sort passes, O(n).  Rays from one
+    camera therefore come in direction order, parallel (shadow) rays in origin order.  ``origins``
+    and ``dirs`` may have one row (shared by every ray) or n.
+    """
+    no = origins.shape[0] > 1
+    nd = dirs.shape[0] > 1
+    amin = np.inf
+    amax = -np.inf
+    bmin = np.inf
+    bmax = -np.inf
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for r in range(n):
+        rd = r if nd else 0
+        a, b = _octa(dirs[rd, 0], dirs[rd, 1], dirs[rd, 2])
+        amin = min(amin, a)
+        amax = max(amax, a)
+        bmin = min(bmin, b)
+        bmax = max(bmax, b)
+        ro = r if no else 0
+        for w in range(3):
+            x = origins[ro, w]
+            if x < lo[w]:
+                lo[w] = x
+            if x > hi[w]:
+                hi[w] = x
+    sa = 1023.999 / (amax - amin) if amax > amin else 0.0
+    sb = 1023.999 / (bmax - bmin) if bmax > bmin else 0.0
+    so = np.zeros(3)
+    for w in range(3):
+        if hi[w] > lo[w] and np.isfinite(hi[w] - lo[w]):
+            so[w] = 15.999 / (hi[w] - lo[w])
+    key = np.empty(n, np.int64)
+    for r in range(n):
+        rd = r if nd else 0
+        a, b = _octa(dirs[rd, 0], dirs[rd, 1], dirs[rd, 2])
+        ia = min(max(int((a - amin) * sa), 0), 1023) if sa > 0.0 else 0
+        ib = min(max(int((b - bmin) * sb), 0), 1023) if sb > 0.0 else 0
+        ro = r if no else 0
+        code_o = 0
+        for w in range(3):
+            x = origins[ro, w]
+            ix = 0
+            if so[w] > 0.0 and np.isfinite(x):
+                ix = min(max(int((x - lo[w]) * so[w]), 0), 15)
+            code_o |= _spread3(ix) << w
+        key[r] = ((_spread2(ia) | (_spread2(ib) << 1)) << 12) | code_o
+    order = np.empty(n, np.int64)
+    tmp = np.empty(n, np.int64)
+    cnt = np.zeros(65537, np.int64)
+    for r in range(n):
+        cnt[(key[r] & 0xFFFF) + 1] += 1
+    for b in range(65536):
+        cnt[b + 1] += cnt[b]
+    for r in range(n):
+        kk = key[r] & 0xFFFF
+        tmp[cnt[kk]] = r
+        cnt[kk] += 1
+    cnt[:] = 0
+    for r in range(n):
+        cnt[(key[tmp[r]] >> 16) + 1] += 1
+    for b in range(65536):
+        cnt[b + 1] += cnt[b]
+    for r in range(n):
+        kk = key[tmp[r]] >> 16
+        order[cnt[kk]] = tmp[r]
+        cnt[kk] += 1
+    return order
+
+
+# ------------------------------------------------------------------------------------------------
+# brute force (every primitive, same primitive tests) — used by tests and as a fallback
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def trace_brute(kind, origins, dirs, tmin, tmax, nprim, verts, faces, q, eps, out_k, out_t, out_u,
+                out_v):
+    """Nearest hit over every primitive for each ray (ties → smaller index)."""
+    n = out_k.shape[0]
+    for r in range(n):
+        z = 0
+        ro = r if origins.shape[0] > 1 else z
+        rd = r if dirs.shape[0] > 1 else z
+        t0 = tmin[r if tmin.shape[0] > 1 else z]
+        t1 = tmax[r if tmax.shape[0] > 1 else z]
+        ox = origins[ro, 0]
+        oy = origins[ro, 1]
+        oz = origins[ro, 2]
+        dx = dirs[rd, 0]
+        dy = dirs[rd, 1]
+        dz = dirs[rd, 2]
+        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+        out_k[r] = -1
+        out_t[r] = np.inf
+        out_u[r] = np.nan
+        out_v[r] = np.nan
+        if not (nd > 0.0 and nd < np.inf):
+            continue
+        dx /= nd
+        dy /= nd
+        dz /= nd
+        fr = tilde_frame(dx, dy, dz)
+        best_t = t1
+        for k in range(nprim):
+            if kind == KIND_PATCH:
+                ok, t, u, v = patch_hit(verts, k, q, ox, oy, oz, fr, eps)
+            else:
+                ok, t, u, v = triangle_hit(verts, faces, k, ox, oy, oz, dx, dy, dz)
+            if ok and t >= t0 and (t < best_t or (t == best_t and out_k[r] < 0)):
+                best_t = t
+                out_k[r] = k
+                out_t[r] = t
+                out_u[r] = u
+                out_v[r] = v
+
+
+# ------------------------------------------------------------------------------------------------
+# BVH builders
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def build_patch_tree(verts, q, leaf_side, eps, pad):
+    """O(n) BVH over the ICQ grid: six face quadtrees under one root.
+
+    Root → two nodes of three faces each → one quadtree per face.  Each face is split recursively at
+    the midpoints of its I and J ranges until a block is at most
+    ``leaf_side × leaf_side`` cells; a leaf holds the cells of its block.  Leaf boxes bound every
+    patch *including its [−eps, 1+eps] parameter extension* (the bilinear surface over the
+    extended square lies in the convex hull of its four extended corners), padded by ``pad``; so the
+    tree never culls a hit that the brute-force search over all cells would accept.
+    """
+    ncell = 6 * q * q
+    max_nodes = 2 * ncell + 8
+    first = np.zeros(max_nodes, np.int32)
+    count = np.zeros(max_nodes, np.int32)
+    leaf = np.zeros(max_nodes, np.uint8)
+    rf = np.zeros(max_nodes, np.int32)
+    ri0 = np.zeros(max_nodes, np.int32)
+    ri1 = np.zeros(max_nodes, np.int32)
+    rj0 = np.zeros(max_nodes, np.int32)
+    rj1 = np.zeros(max_nodes, np.int32)
+    prims = np.empty(ncell, np.int32)
+    stack = np.empty(4096, np.int32)
+    # root → two groups of three faces → six face quadtrees (so no node has more than 4 children)
+    first[0] = 1
+    count[0] = 2
+    first[1] = 3
+    count[1] = 3
+    first[2] = 6
+    count[2] = 3
+    nn = 9
+    sp = 0
+    for f in range(5, -1, -1):
+        n = f + 3
+        rf[n] = f
+        ri0[n] = 0
+        ri1[n] = q
+        rj0[n] = 0
+        rj1[n] = q
+        stack[sp] = n
+        sp += 1
+    npr = 0
+    i_lo = np.empty(2, np.int32)
+    i_hi = np.empty(2, np.int32)
+    j_lo = np.empty(2, np.int32)
+    j_hi = np.empty(2, np.int32)
+    while sp > 0:
+        sp -= 1
+        n = stack[sp]
+        f = rf[n]
+        i0 = ri0[n]
+        i1 = ri1[n]
+        j0 = rj0[n]
+        j1 = rj1[n]
+        ni = i1 - i0
+        nj = j1 - j0
+        if ni <= leaf_side and nj <= leaf_side:
+            leaf[n] = 1
+            first[n] = npr
+            count[n] = ni * nj
+            for j in range(j0, j1):
+                for i in range(i0, i1):
+                    prims[npr] = f * q * q + j * q + i
+                    npr += 1
+            continue
+        if ni > 1:
+            nsi = 2
+            im = i0 + ni // 2
+            i_lo[0] = i0
+            i_hi[0] = im
+            i_lo[1] = im
+            i_hi[1] = i1
+        else:
+            nsi = 1
+            i_lo[0] = i0
+            i_hi[0] = i1
+        if nj > 1:
+            nsj = 2
+            jm = j0 + nj // 2
+            j_lo[0] = j0
+            j_hi[0] = jm
+            j_lo[1] = jm
+            j_hi[1] = j1
+        else:
+            nsj = 1
+            j_lo[0] = j0
+            j_hi[0] = j1
+        first[n] = nn
+        count[n] = nsi * nsj
+        c = nn
+        for a in range(nsj):
+            for b in range(nsi):
+                rf[c] = f
+                ri0[c] = i_lo[b]
+                ri1[c] = i_hi[b]
+                rj0[c] = j_lo[a]
+                rj1[c] = j_hi[a]
+                c += 1
+        for c2 in range(c - 1, nn - 1, -1):
+            stack[sp] = c2
+            sp += 1
+        nn = c
+    bounds = np.empty((nn, 6), np.float64)
+    q1 = q + 1
+    ea = -eps
+    eb = 1.0 + eps
+    for n in range(nn - 1, -1, -1):
+        lx = np.inf
+        ly = np.inf
+        lz = np.inf
+        hx = -np.inf
+        hy = -np.inf
+        hz = -np.inf
+        if leaf[n]:
+            for m in range(first[n], first[n] + count[n]):
+                k = prims[m]
+                f = k // (q * q)
+                r = k - f * q * q
+                j = r // q
+                i = r - j * q
+                b = f * q1 * q1 + j * q1 + i
+                for e in range(4):
+                    uu = ea if (e & 1) == 0 else eb
+                    vv = ea if (e & 2) == 0 else eb
+                    w0 = (1.0 - uu) * (1.0 - vv)
+                    w1 = uu * (1.0 - vv)
+                    w2 = (1.0 - uu) * vv
+                    w3 = uu * vv
+                    x = w0 * verts[b, 0] + w1 * verts[b + 1, 0] + w2 * verts[b + q1, 0] + w3 * verts[
+                        b + q1 + 1, 0]
+                    y = w0 * verts[b, 1] + w1 * verts[b + 1, 1] + w2 * verts[b + q1, 1] + w3 * verts[
+                        b + q1 + 1, 1]
+                    z = w0 * verts[b, 2] + w1 * verts[b + 1, 2] + w2 * verts[b + q1, 2] + w3 * verts[
+                        b + q1 + 1, 2]
+                    lx = min(lx, x)
+                    ly = min(ly, y)
+                    lz = min(lz, z)
+                    hx = max(hx, x)
+                    hy = max(hy, y)
+                    hz = max(hz, z)
+            lx -= pad
+            ly -= pad
+            lz -= pad
+            hx += pad
+            hy += pad
+            hz += pad
+        else:
+            for ch in range(first[n], first[n] + count[n]):
+                lx = min(lx, bounds[ch, 0])
+                ly = min(ly, bounds[ch, 1])
+                lz = min(lz, bounds[ch, 2])
+                hx = max(hx, bounds[ch, 3])
+                hy = max(hy, bounds[ch, 4])
+                hz = max(hz, bounds[ch, 5])
+        bounds[n, 0] = lx
+        bounds[n, 1] = ly
+        bounds[n, 2] = lz
+        bounds[n, 3] = hx
+        bounds[n, 4] = hy
+        bounds[n, 5] = hz
+    return bounds, first[:nn].copy(), count[:nn].copy(), leaf[:nn].copy(), prims
+
+
+@njit(cache=True)
+def build_sah_tree(lo, hi, leaf_max, n_bins):
+    """Binary BVH by binned surface-area heuristic (all three axes, ``n_bins`` bins).
+
+    ``lo``/``hi`` are the (padded) primitive boxes.  Leaves hold at most ``leaf_max`` primitives.
+    A range is halved by index instead when all its centroids coincide or it lies deeper than
+    ``MAX_SAH_DEPTH`` (so pathological inputs cannot make the tree deeper than the fixed stacks).
+    """
+    m = lo.shape[0]
+    prims = np.arange(m).astype(np.int32)
+    cen = 0.5 * (lo + hi)
+    max_nodes = 2 * m + 1
+    bounds = np.empty((max_nodes, 6), np.float64)
+    first = np.zeros(max_nodes, np.int32)
+    count = np.zeros(max_nodes, np.int32)
+    leaf = np.zeros(max_nodes, np.uint8)
+    st_n = np.empty(256, np.int64)
+    st_s = np.empty(256, np.int64)
+    st_e = np.empty(256, np.int64)
+    st_d = np.empty(256, np.int64)  # depth: beyond MAX_SAH_DEPTH ranges are halved (depth ≤ ~72)
+    bin_cnt = np.zeros(n_bins, np.int64)
+    bin_box = np.empty((n_bins, 6), np.float64)
+    right_area = np.empty(n_bins, np.float64)
+    right_cnt = np.empty(n_bins, np.int64)
+    st_n[0] = 0
+    st_s[0] = 0
+    st_e[0] = m
+    st_d[0] = 0
+    sp = 1
+    nn = 1
+    while sp > 0:
+        sp -= 1
+        n = st_n[sp]
+        s = st_s[sp]
+        e = st_e[sp]
+        depth = st_d[sp]
+        bx0 = np.inf
+        by0 = np.inf
+        bz0 = np.inf
+        bx1 = -np.inf
+        by1 = -np.inf
+        bz1 = -np.inf
+        cx0 = np.inf
+        cy0 = np.inf
+        cz0 = np.inf
+        cx1 = -np.inf
+        cy1 = -np.inf
+        cz1 = -np.inf
+        for a in range(s, e):
+            p = prims[a]
+            bx0 = min(bx0, lo[p, 0])
+            by0 = min(by0, lo[p, 1])
+            bz0 = min(bz0, lo[p, 2])
+            bx1 = max(bx1, hi[p, 0])
+            by1 = max(by1, hi[p, 1])
+            bz1 = max(bz1, hi[p, 2])
+            cx0 = min(cx0, cen[p, 0])
+            cy0 = min(cy0, cen[p, 1])
+            cz0 = min(cz0, cen[p, 2])
+            cx1 = max(cx1, cen[p, 0])
+            cy1 = max(cy1, cen[p, 1])
+            cz1 = max(cz1, cen[p, 2])
+        bounds[n, 0] = bx0
+        bounds[n, 1] = by0
+        bounds[n, 2] = bz0
+        bounds[n, 3] = bx1
+        bounds[n, 4] = by1
+        bounds[n, 5] = bz1
+        cnt = e - s
+        if cnt <= leaf_max:
+            leaf[n] = 1
+            first[n] = s
+            count[n] = cnt
+            continue
+        best_cost = np.inf
+        best_axis = -1
+        best_bin = -1
+        cmin = (cx0, cy0, cz0)
+        cmax = (cx1, cy1, cz1)
+        for axis in range(3 if depth < MAX_SAH_DEPTH else 0):
+            c0 = cmin[axis]
+            ext = cmax[axis] - c0
+            if not ext > 0.0:
+                continue
+            scale = n_bins / ext
+            bin_cnt[:] = 0
+            for b in range(n_bins):
+                bin_box[b, 0] = np.inf
+                bin_box[b, 1] = np.inf
+                bin_box[b, 2] = np.inf
+                bin_box[b, 3] = -np.inf
+                bin_box[b, 4] = -np.inf
+                bin_box[b, 5] = -np.inf
+            for a in range(s, e):
+                p = prims[a]
+                b = int((cen[p, axis] - c0) * scale)
+                if b >= n_bins:
+                    b = n_bins - 1
+                bin_cnt[b] += 1
+                for w in range(3):
+                    bin_box[b, w] = min(bin_box[b, w], lo[p, w])
+                    bin_box[b, 3 + w] = max(bin_box[b, 3 + w], hi[p, w])
+            # sweep from the right
+            rx0 = np.inf
+            ry0 = np.inf
+            rz0 = np.inf
+            rx1 = -np.inf
+            ry1 = -np.inf
+            rz1 = -np.inf
+            rc = 0
+            for b in range(n_bins - 1, 0, -1):
+                if bin_cnt[b] > 0:
+                    rx0 = min(rx0, bin_box[b, 0])
+                    ry0 = min(ry0, bin_box[b, 1])
+                    rz0 = min(rz0, bin_box[b, 2])
+                    rx1 = max(rx1, bin_box[b, 3])
+                    ry1 = max(ry1, bin_box[b, 4])
+                    rz1 = max(rz1, bin_box[b, 5])
+                rc += bin_cnt[b]
+                right_cnt[b] = rc
+                if rc > 0:
+                    ddx = rx1 - rx0
+                    ddy = ry1 - ry0
+                    ddz = rz1 - rz0
+                    right_area[b] = ddx * ddy + ddy * ddz + ddz * ddx
+                else:
+                    right_area[b] = 0.0
+            lx0 = np.inf
+            ly0 = np.inf
+            lz0 = np.inf
+            lx1 = -np.inf
+            ly1 = -np.inf
+            lz1 = -np.inf
+            lc = 0
+            for b in range(n_bins - 1):  # split between bin b and b+1
+                if bin_cnt[b] > 0:
+                    lx0 = min(lx0, bin_box[b, 0])
+                    ly0 = min(ly0, bin_box[b, 1])
+                    lz0 = min(lz0, bin_box[b, 2])
+                    lx1 = max(lx1, bin_box[b, 3])
+                    ly1 = max(ly1, bin_box[b, 4])
+                    lz1 = max(lz1, bin_box[b, 5])
+                lc += bin_cnt[b]
+                if lc == 0 or right_cnt[b + 1] == 0:
+                    continue
+                ddx = lx1 - lx0
+                ddy = ly1 - ly0
+                ddz = lz1 - lz0
+                la = ddx * ddy + ddy * ddz + ddz * ddx
+                cost = la * lc + right_area[b + 1] * right_cnt[b + 1]
+                if cost < best_cost:
+                    best_cost = cost
+                    best_axis = axis
+                    best_bin = b
+        if best_axis < 0:
+            mid = (s + e) // 2  # all centroids coincide (or too deep): halve by index
+        else:
+            c0 = cmin[best_axis]
+            scale = n_bins / (cmax[best_axis] - c0)
+            a = s
+            z = e - 1
+            while a <= z:
+                b = int((cen[prims[a], best_axis] - c0) * scale)
+                if b >= n_bins:
+                    b = n_bins - 1
+                if b <= best_bin:
+                    a += 1
+                else:
+                    tmp = prims[a]
+                    prims[a] = prims[z]
+                    prims[z] = tmp
+                    z -= 1
+            mid = a
+            if mid == s or mid == e:
+                mid = (s + e) // 2
+        c = nn
+        nn += 2
+        first[n] = c
+        count[n] = 2
+        st_n[sp] = c + 1
+        st_s[sp] = mid
+        st_e[sp] = e
+        st_d[sp] = depth + 1
+        sp += 1
+        st_n[sp] = c
+        st_s[sp] = s
+        st_e[sp] = mid
+        st_d[sp] = depth + 1
+        sp += 1
+    return bounds[:nn].copy(), first[:nn].copy(), count[:nn].copy(), leaf[:nn].copy(), prims
+
+
+# ------------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def farthest_pair(points):
+    """Exact maximum pairwise distance of ``points`` (pruned all-pairs search).
+
+    Points are sorted by distance r from their centroid, descending; a pair (i, j) cannot exceed
+    r_i + r_j, so the scan over i stops once r_i + r_0 ≤ best, and the inner scan once
+    r_i + r_j ≤ best.  Worst case O(n²), typically near-linear for compact bodies.
+    """
+    n = points.shape[0]
+    if n < 2:
+        return 0.0
+    cx = 0.0
+    cy = 0.0
+    cz = 0.0
+    for i in range(n):
+        cx += points[i, 0]
+        cy += points[i, 1]
+        cz += points[i, 2]
+    cx /= n
+    cy /= n
+    cz /= n
+    r = np.empty(n)
+    for i in range(n):
+        r[i] = math.sqrt((points[i, 0] - cx) ** 2 + (points[i, 1] - cy) ** 2 + (points[i, 2] - cz) ** 2)
+    order = np.argsort(-r)
+    best2 = 0.0
+    best = 0.0
+    for a in range(n):
+        i = order[a]
+        if r[i] + r[order[0]] <= best:
+            break
+        for b in range(a + 1, n):
+            j = order[b]
+            if r[i] + r[j] <= best:
+                break
+            d2 = ((points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2
+                  + (points[i, 2] - points[j, 2]) ** 2)
+            if d2 > best2:
+                best2 = d2
+                best = math.sqrt(d2)
+    return best

@@ -1,0 +1,683 @@
+"""Global shape models and ray queries: first hit, any hit (shadow/occlusion) and visibility.
+
+Two representations share one contract (:class:`HitResult`, ``first_hit``, ``any_hit``,
+``bounding_box``, ``max_diameter``, ``volume``, ``area``):
+
+* :class:`PatchShape` — an ICQ shape (``spc-formats.md`` §5) whose cells are **bilinear patches**
+  through corners 0 = (I, J), 1 = (I+1, J), 2 = (I, J+1), 3 = (I+1, J+1).  Rays are intersected with
+  SPC's own algebra (L15 §3.2.1, Eq. 3.21–3.35; ``spc-algorithms.md`` §2.2 "Bilinear-patch inversion
+  in detail" and "Which root"), with the seed errata 13–16 of ``spc-algorithms.md`` §11 applied:
+
+  - erratum 13: the test is on \\|A\\| and SPC proceeds only if B² > 4AC strictly; the root is
+    (−B + sign(B)·√D)/(2A), computed here as the stable C/q with q = −(B + sign(B)·√D)/2
+    (L15's unconditional "−B + √D" picks the wrong root for B < 0);
+  - erratum 14: the small-\\|A\\| branch −C/B − AC²/B³ is the first-order series of that same root,
+    so C/q needs no branch (:func:`patch_intersect_reference` keeps SPC's literal branch).  SPC's
+    switch is on the *absolute* \\|A\\| ≤ 1e-8 (km²), so for metre-size cells the series is used
+    with ε = 4AC/B² of ~1e-2 and is off by (C/B)·ε²/8 (~1e-5 in ι₀); C/q is exact there;
+  - erratum 15: γ₀ comes from the x or y equation with the larger \\|denominator\\|,
+    \\|X₂ + X₃ι₀\\| versus \\|Y₂ + Y₃ι₀\\| (L15 Eq. 3.32 prints X₂ − X₃ι₀);
+  - erratum 16: parameters are accepted in [−EPS, 1 + EPS] with EPS = 0.01 (GET_HEIGHTS), not [0, 1].
+
+  L15's two pre-filters are replaced by a bounding-volume hierarchy: the d_max screen (Eq. 3.24–3.25)
+  only discards cells that cannot be hit, and the corner cross-product screen (Eq. 3.26) is subsumed
+  by the parameter-range test (it would also drop back-facing cells, which never give the first hit
+  on a closed body seen from outside).  The nearest hit along the ray wins (L15 end of §3.2.1).
+
+* :class:`TriangleShape` — a triangle mesh (e.g. an OBJ/VTK plate model), Möller–Trumbore in double
+  precision over a binned-SAH BVH; optionally Embree (``embreex``) for speed, with the hit refined in
+  double precision on the triangle Embree reports.
+
+Both traversals are numba kernels (:mod:`spctool.geometry._raykernels`): a stack-based, nearest-child-
+first walk with t-pruning for first hits and early exit for any-hit queries over a packed 4-wide
+hierarchy (float32 boxes rounded outward), parallel over rays.  Batches of ≥ 4096 rays are traced in
+a coherent order (rays sorted by direction, then origin, by an O(n) radix sort) and the results
+written back in the caller's order.
+
+The patch hierarchy is built from the ICQ grid itself: six face quadtrees (blocks of 2×2 cells as
+leaves) whose boxes are merged bottom-up — O(n), well under a second for q = 512 (1.57 M cells).
+Leaf boxes bound each patch *over its accepted parameter range [−EPS, 1+EPS]²*, so the hierarchy
+returns exactly what the brute-force search over every cell returns (tested bit for bit).
+
+:func:`visible_from` is the occlusion test of L15 §3.2.1: a point is visible from the camera if the
+first surface hit along the line of sight lies within a tolerance of the point (L15: 1 % of the
+body's largest diameter; ``spc-algorithms.md`` §2.3 ``occlusion_tol``).
+
+Conventions: body-fixed coordinates in km; ray directions need not be unit — ``t`` is always the
+distance along the normalised direction; misses have ``hit = False``, ``index = −1``, ``t = inf`` and
+NaN point/parameters (never NaN for a hit).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from spctool.geometry import _raykernels as _rk
+
+__all__ = [
+    "SPC_PATCH_EPS",
+    "SPC_SMALL_A",
+    "HitResult",
+    "PatchHit",
+    "PatchShape",
+    "TriangleShape",
+    "patch_intersect_reference",
+    "visible_from",
+    "embree_available",
+]
+
+SPC_PATCH_EPS = 0.01
+"""Parameter margin of GET_HEIGHTS: ι, γ accepted in [−EPS, 1+EPS] (erratum 16; BIGMAP uses 1e-5)."""
+
+SPC_SMALL_A = 1e-8
+"""SPC's switch between the closed-form root and its series, on \\|A\\| (erratum 13)."""
+
+_SORT_MIN_RAYS = 4096  # above this many rays, trace them in a coherent order (ray_order)
+_BOX_PAD_REL = 1e-9  # BVH boxes are padded by this fraction of the model's extent (rounding safety)
+
+
+# ------------------------------------------------------------------------------------------------
+# results
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HitResult:
+    """Per-ray result of :meth:`PatchShape.first_hit` / :meth:`TriangleShape.first_hit`.
+
+    ``index`` is the cell index ``(F−1)·q² + J·q + I`` for patches (see
+    :meth:`PatchShape.cell_fij`) or the 0-based face index for triangles.  ``u``, ``v`` are the
+    bilinear parameters (ι₀ along I, γ₀ along J, in [−EPS, 1+EPS]) for patches, or the barycentric
+    weights of the triangle's 2nd and 3rd vertices.  ``point`` is the surface point (bilinear or
+    barycentric interpolation of the corners) and ``t`` the distance from the ray origin along the
+    unit direction.
+    """
+
+    hit: np.ndarray
+    t: np.ndarray
+    point: np.ndarray
+    index: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.hit.shape[0])
+
+
+@dataclass(frozen=True)
+class PatchHit:
+    """One accepted patch intersection from :func:`patch_intersect_reference`."""
+
+    t: float
+    u: float
+    v: float
+    point: tuple[float, float, float]
+
+
+# ------------------------------------------------------------------------------------------------
+# the literal reference (L15 §3.2.1 + errata), scalar, used by tests
+# ------------------------------------------------------------------------------------------------
+
+
+def patch_intersect_reference(origin, direction, corners, eps: float = SPC_PATCH_EPS,
+                              body_x=(1.0, 0.0, 0.0)) -> PatchHit | None:
+    """Intersect one ray with one bilinear cell exactly as L15 §3.2.1 describes, with errata 13–16.
+
+    ``corners`` is (4, 3) in SPC's order 0 = (I,J), 1 = (I+1,J), 2 = (I,J+1), 3 = (I+1,J+1)
+    (L15's cyclic corners 1, 2, 3, 4 of Fig. 13 are our 0, 2, 3, 1: L15's X₁ = x₄ − x₁ is our
+    x₁ − x₀).  Pure Python scalars, one step per equation; the ray origin plays the camera and the
+    body frame the camera frame.  The cell is two-sided (no Eq. 3.26 facing screen), and a hit
+    behind the origin (z̃ < 0) is rejected.  Returns ``None`` for no hit.
+    """
+    ox, oy, oz = (float(a) for a in origin)
+    dx, dy, dz = (float(a) for a in direction)
+    nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if not (nd > 0.0 and math.isfinite(nd)):
+        return None
+    # Eq. 3.20/3.21: z̃ along the line of sight, ỹ = z̃ × b_x normalised, x̃ = ỹ × z̃ normalised.
+    zt = (dx / nd, dy / nd, dz / nd)
+    bx = tuple(float(a) for a in body_x)
+
+    def cross(a, b):
+        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+    def unit(a):
+        n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+        return (a[0] / n, a[1] / n, a[2] / n)
+
+    yt = cross(zt, bx)
+    if yt[0] ** 2 + yt[1] ** 2 + yt[2] ** 2 <= 1e-12:  # footnote 21: any right-handed frame will do
+        yt = cross(zt, (0.0, 1.0, 0.0))
+    yt = unit(yt)
+    xt = unit(cross(yt, zt))
+    # Eq. 3.22 (body frame = camera frame here): corner vectors from the ray origin, tilde components.
+    xs, ys, zs = [], [], []
+    for c in corners:
+        p = (float(c[0]) - ox, float(c[1]) - oy, float(c[2]) - oz)
+        xs.append(p[0] * xt[0] + p[1] * xt[1] + p[2] * xt[2])
+        ys.append(p[0] * yt[0] + p[1] * yt[1] + p[2] * yt[2])
+        zs.append(p[0] * zt[0] + p[1] * zt[1] + p[2] * zt[2])
+    # Eq. 3.29, 3.30 (SPC corner order, spc-algorithms.md §2.2)
+    X0, X1, X2, X3 = xs[0], xs[1] - xs[0], xs[2] - xs[0], xs[0] - xs[1] - xs[2] + xs[3]
+    Y0, Y1, Y2, Y3 = ys[0], ys[1] - ys[0], ys[2] - ys[0], ys[0] - ys[1] - ys[2] + ys[3]
+    # Eq. 3.33
+    A = X1 * Y3 - X3 * Y1
+    B = X1 * Y2 - X2 * Y1 - X3 * Y0 + X0 * Y3
+    C = X0 * Y2 - X2 * Y0
+    # erratum 13: proceed only if B² > 4AC (strictly)
+    if not B * B > 4.0 * A * C:
+        return None
+    if B == 0.0:  # SPC's formulas divide by B (→ NaN → rejected)
+        return None
+    # Eq. 3.31 as SPC codes it — erratum 13: test |A|, and the root (√(1 − 4AC/B²) − 1)·B/(2A),
+    # i.e. (−B + sign(B)·√D)/(2A), not L15's "−B + √D"; erratum 14: the series branch.
+    if abs(A) > SPC_SMALL_A:
+        iota = (math.sqrt(1.0 - 4.0 * A * C / (B * B)) - 1.0) * B / (2.0 * A)
+    else:
+        iota = -C / B - A * C * C / B ** 3
+    # Eq. 3.32 — erratum 15: |X₂ + X₃ι₀| against |Y₂ + Y₃ι₀|, the larger denominator wins.
+    den_x = X2 + X3 * iota
+    den_y = Y2 + Y3 * iota
+    if abs(den_x) > abs(den_y):
+        gamma = -(X0 + X1 * iota) / den_x
+    elif den_y != 0.0:
+        gamma = -(Y0 + Y1 * iota) / den_y
+    else:
+        return None
+    # erratum 16: accept [−EPS, 1+EPS]
+    if not (-eps <= iota <= 1.0 + eps and -eps <= gamma <= 1.0 + eps):
+        return None
+    # Eq. 3.34/3.35: the distance is the interpolated z̃
+    Z0, Z1, Z2, Z3 = zs[0], zs[1] - zs[0], zs[2] - zs[0], zs[0] - zs[1] - zs[2] + zs[3]
+    z_int = Z0 + Z1 * iota + Z2 * gamma + Z3 * iota * gamma
+    if z_int < 0.0:  # behind the camera
+        return None
+    w = ((1 - iota) * (1 - gamma), iota * (1 - gamma), (1 - iota) * gamma, iota * gamma)
+    point = tuple(sum(w[i] * float(corners[i][a]) for i in range(4)) for a in range(3))
+    return PatchHit(t=z_int, u=iota, v=gamma, point=point)
+
+
+# ------------------------------------------------------------------------------------------------
+# shared machinery
+# ------------------------------------------------------------------------------------------------
+
+
+def embree_available() -> bool:
+    """True if the optional Embree binding (``embreex``) can be imported."""
+    try:
+        import embreex.mesh_construction  # noqa: F401
+        import embreex.rtcore_scene  # noqa: F401
+    except Exception:  # pragma: no cover - depends on the environment
+        return False
+    return True
+
+
+def _rays(origins, directions, t_min, t_max):
+    """Normalise ray inputs to C-contiguous float64 arrays of n or 1 rows (no broadcast copies)."""
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if o.shape[-1:] != (3,) or d.shape[-1:] != (3,) or o.ndim > 2 or d.ndim > 2:
+        raise ValueError(f"origins and directions must be (N, 3) or (3,), got {o.shape} and {d.shape}")
+    o = _writable(o.reshape(-1, 3))
+    d = _writable(d.reshape(-1, 3))
+    t0 = _writable(np.asarray(t_min, dtype=np.float64).reshape(-1))
+    t1 = _writable(np.asarray(t_max, dtype=np.float64).reshape(-1))
+    n = max(o.shape[0], d.shape[0], t0.shape[0], t1.shape[0])
+    for name, a in (("origins", o), ("directions", d), ("t_min", t0), ("t_max", t1)):
+        if a.shape[0] not in (1, n):
+            raise ValueError(f"{name} has {a.shape[0]} rows, expected 1 or {n}")
+    return n, o, d, t0, t1
+
+
+def _writable(a):
+    """C-contiguous and writeable (one numba signature for every call; copies only if needed)."""
+    a = np.ascontiguousarray(a)
+    return a if a.flags.writeable else a.copy()
+
+
+class _Shape:
+    """Common part of both shape kinds (BVH arrays, traversal wrappers, statistics)."""
+
+    _kind: int
+    _verts: np.ndarray  # (nv, 3) float64, contiguous
+    _faces: np.ndarray  # (m, 3) int64 (empty for patches)
+    _q: int
+    _eps: float
+    bvh_root_box: np.ndarray  # (6,) float64
+    bvh_boxes: np.ndarray  # (M, 6, 4) float32, rounded outward
+    bvh_refs: np.ndarray  # (M, 5) int32
+    bvh_prims: np.ndarray  # (P,) int32
+
+    def _set_tree(self, tree):
+        bounds, first, count, leaf, prims = tree
+        if leaf.any() and count[leaf.astype(bool)].max() > 7:
+            raise AssertionError("BVH leaves must hold at most 7 primitives")
+        root, nb, nc = _rk.pack4(bounds, first, count, leaf)
+        self.bvh_root_box = root
+        self.bvh_boxes = _outward_f32(nb)
+        self.bvh_refs = nc
+        self.bvh_prims = prims
+
+    # -- queries ---------------------------------------------------------------------------------
+
+    def _trace_numba(self, any_hit, n, o, d, t0, t1):
+        out_k = np.empty(n, np.int64)
+        out_t = np.empty(n, np.float64)
+        out_u = np.empty(n, np.float64)
+        out_v = np.empty(n, np.float64)
+        out_p = np.empty((n, 3), np.float64)
+        if n:
+            if n >= _SORT_MIN_RAYS:
+                order = _rk.ray_order(n, o, d)
+            else:
+                order = np.arange(n, dtype=np.int64)
+            _rk.trace(self._kind, any_hit, order, o, d, t0, t1, self.bvh_root_box, self.bvh_boxes,
+                      self.bvh_refs, self.bvh_prims, self._verts, self._faces, self._q, self._eps,
+                      out_k, out_t, out_u, out_v, out_p)
+        return out_k, out_t, out_u, out_v, out_p
+
+    def first_hit(self, origins, directions, t_max=np.inf, *, t_min=0.0) -> HitResult:
+        """Nearest surface hit along each ray with t_min ≤ t ≤ t_max (t_max, t_min scalar or (N,)).
+
+        Use ``t_min`` > 0 to step off the surface for rays that start on it.
+        """
+        k, t, u, v, p = self._trace(False, *_rays(origins, directions, t_min, t_max))
+        return HitResult(hit=k >= 0, t=t, point=p, index=k, u=u, v=v)
+
+    def any_hit(self, origins, directions, t_max=np.inf, *, t_min=0.0) -> np.ndarray:
+        """True where the ray meets the surface anywhere in [t_min, t_max] (shadow/occlusion test;
+        the traversal stops at the first accepted primitive)."""
+        return self._any(*_rays(origins, directions, t_min, t_max))
+
+    def _trace(self, any_hit, n, o, d, t0, t1):
+        return self._trace_numba(any_hit, n, o, d, t0, t1)
+
+    def _any(self, n, o, d, t0, t1):
+        return self._trace_numba(True, n, o, d, t0, t1)[0] >= 0
+
+    def brute_force_first_hit(self, origins, directions, t_max=np.inf, *, t_min=0.0) -> HitResult:
+        """First hit by testing every primitive (no hierarchy) — for tests and verification."""
+        n, o, d, t0, t1 = _rays(origins, directions, t_min, t_max)
+        k = np.empty(n, np.int64)
+        t = np.empty(n)
+        u = np.empty(n)
+        v = np.empty(n)
+        if n:
+            _rk.trace_brute(self._kind, o, d, t0, t1, self.n_primitives, self._verts, self._faces,
+                            self._q, self._eps, k, t, u, v)
+        p = self._points(k, u, v)
+        return HitResult(hit=k >= 0, t=t, point=p, index=k, u=u, v=v)
+
+    def visible_from(self, camera_position, points, tol_km=None) -> np.ndarray:
+        """See :func:`visible_from`."""
+        return visible_from(self, camera_position, points, tol_km)
+
+    # -- statistics ------------------------------------------------------------------------------
+
+    @property
+    def n_primitives(self) -> int:
+        raise NotImplementedError
+
+    def _points(self, k, u, v):
+        raise NotImplementedError
+
+    @cached_property
+    def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box of the vertices: (lo (3,), hi (3,)) in km."""
+        return self._verts.min(axis=0), self._verts.max(axis=0)
+
+    @cached_property
+    def bounding_box_diagonal(self) -> float:
+        """Length of the bounding-box diagonal (an upper bound of :attr:`max_diameter`)."""
+        lo, hi = self.bounding_box
+        return float(np.linalg.norm(hi - lo))
+
+    @cached_property
+    def max_diameter(self) -> float:
+        """The body's largest extent: the exact maximum distance between two vertices.
+
+        This is SPC's MAXLEN reading of "maximum diameter" (L15 §3.2.1: the occlusion tolerance is
+        1 % of it).  Computed over the convex-hull vertices with a pruned pair search.
+        """
+        pts = np.unique(self._verts, axis=0)
+        if pts.shape[0] > 4:
+            try:
+                from scipy.spatial import ConvexHull
+
+                pts = pts[ConvexHull(pts).vertices]
+            except Exception:  # flat or degenerate vertex sets: fall back to all vertices
+                pass
+        return float(_rk.farthest_pair(np.ascontiguousarray(pts)))
+
+
+def _outward_f32(nb: np.ndarray) -> np.ndarray:
+    """Packed boxes (M, 6, 4) as float32 rounded outward (lo down, hi up): half the memory
+    traffic, still conservative."""
+    b32 = nb.astype(np.float32)
+    lo, hi = b32[:, :3], b32[:, 3:]
+    lo[:] = np.where(lo.astype(np.float64) > nb[:, :3], np.nextafter(lo, np.float32(-np.inf)), lo)
+    hi[:] = np.where(hi.astype(np.float64) < nb[:, 3:], np.nextafter(hi, np.float32(np.inf)), hi)
+    return np.ascontiguousarray(b32)
+
+
+def _pad_for(verts: np.ndarray) -> float:
+    ext = float(np.max(verts.max(axis=0) - verts.min(axis=0))) if verts.size else 0.0
+    scale = max(ext, float(np.max(np.abs(verts))) if verts.size else 0.0, 1e-300)
+    return _BOX_PAD_REL * scale
+
+
+# ------------------------------------------------------------------------------------------------
+# ICQ bilinear patches
+# ------------------------------------------------------------------------------------------------
+
+
+class PatchShape(_Shape):
+    """An ICQ shape whose cells are SPC bilinear patches, with a face-quadtree BVH.
+
+    ``PatchShape(icq)`` takes an object with ``.vertices`` of shape (6, q+1, q+1, 3) indexed
+    [F−1, J, I, xyz] (``spctool.formats.icq.IcqShape``) or that array itself.  ``eps`` is the
+    parameter margin (erratum 16: 0.01 as GET_HEIGHTS; BIGMAP uses 1e-5); ``leaf_side`` the block
+    size of the quadtree leaves.
+    """
+
+    _kind = _rk.KIND_PATCH
+
+    def __init__(self, vertices, *, eps: float = SPC_PATCH_EPS, leaf_side: int = 2):
+        arr = getattr(vertices, "vertices", vertices)
+        v = np.asarray(arr, dtype=np.float64)
+        if v.ndim != 4 or v.shape[0] != 6 or v.shape[1] != v.shape[2] or v.shape[3] != 3 or v.shape[1] < 2:
+            raise ValueError(f"ICQ vertices must have shape (6, q+1, q+1, 3), got {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("ICQ vertices must be finite")
+        if not eps >= 0.0:
+            raise ValueError("eps must be >= 0")
+        if leaf_side not in (1, 2):
+            raise ValueError("leaf_side must be 1 or 2 (a leaf holds at most 7 cells)")
+        self._verts = np.array(v.reshape(-1, 3), dtype=np.float64, order="C", copy=True)  # owned
+        self.vertices = self._verts.reshape(v.shape)
+        self.q = int(v.shape[1] - 1)
+        self._q = self.q
+        self._eps = float(eps)
+        self.eps = float(eps)
+        self._faces = np.zeros((0, 3), np.int64)
+        self._set_tree(_rk.build_patch_tree(self._verts, self.q, int(leaf_side), self._eps,
+                                            _pad_for(self._verts)))
+
+    @property
+    def n_primitives(self) -> int:
+        return 6 * self.q * self.q
+
+    n_cells = n_primitives
+
+    def cell_fij(self, index):
+        """Split cell indices into (F (1…6), I, J) arrays."""
+        k = np.asarray(index, dtype=np.int64)
+        f, r = np.divmod(k, self.q * self.q)
+        j, i = np.divmod(r, self.q)
+        return f + 1, i, j
+
+    def cell_index(self, face, i, j):
+        """Cell index of face F (1…6) and cell (I, J) (0…q−1)."""
+        return (np.asarray(face) - 1) * self.q * self.q + np.asarray(j) * self.q + np.asarray(i)
+
+    def cell_corners(self, index) -> np.ndarray:
+        """Corners (…, 4, 3) of cells in SPC's order (I,J), (I+1,J), (I,J+1), (I+1,J+1)."""
+        f, i, j = self.cell_fij(index)
+        v = self.vertices
+        f = f - 1
+        return np.stack([v[f, j, i], v[f, j, i + 1], v[f, j + 1, i], v[f, j + 1, i + 1]], axis=-2)
+
+    def surface_point(self, index, u, v) -> np.ndarray:
+        """Bilinear point of cell ``index`` at parameters (u along I, v along J)."""
+        c = self.cell_corners(index)
+        u = np.asarray(u, dtype=np.float64)[..., None]
+        v = np.asarray(v, dtype=np.float64)[..., None]
+        return ((1 - u) * (1 - v) * c[..., 0, :] + u * (1 - v) * c[..., 1, :] + (1 - u) * v * c[..., 2, :]
+                + u * v * c[..., 3, :])
+
+    def _points(self, k, u, v):
+        p = np.full((k.shape[0], 3), np.nan)
+        m = k >= 0
+        if m.any():
+            p[m] = self.surface_point(k[m], u[m], v[m])
+        return p
+
+    def _all_corners(self):
+        v = self.vertices
+        return v[:, :-1, :-1], v[:, :-1, 1:], v[:, 1:, :-1], v[:, 1:, 1:]
+
+    @cached_property
+    def max_cell_diagonal(self) -> float:
+        """L15 Eq. 3.24: the largest cell diagonal, max over cells of \\|c₀ − c₃\\| and \\|c₁ − c₂\\|."""
+        c0, c1, c2, c3 = self._all_corners()
+        return float(np.sqrt(max(np.max(np.sum((c0 - c3) ** 2, -1)), np.max(np.sum((c1 - c2) ** 2, -1)))))
+
+    @cached_property
+    def volume(self) -> float:
+        """Enclosed volume of the bilinear surface (km³), by the divergence theorem.
+
+        V = (1/3)∮ P·n dA = −(1/3)Σ∬ P·(P_u × P_v) du dv (P_u × P_v points inward on an ICQ face,
+        ``spc-formats.md`` §5.2).  The integrand is of degree 2 in u and v, so a 2×2 Gauss–Legendre
+        rule is exact.  Positive for a correctly oriented ICQ model.
+        """
+        c0, c1, c2, c3 = self._all_corners()
+        e1 = c1 - c0
+        e2 = c2 - c0
+        e3 = c0 - c1 - c2 + c3
+        g = 0.5 + 0.5 / math.sqrt(3.0) * np.array([-1.0, 1.0])
+        total = 0.0
+        for u in g:
+            for v in g:
+                p = c0 + u * e1 + v * e2 + u * v * e3
+                pu = e1 + v * e3
+                pv = e2 + u * e3
+                total += float(np.sum(p * np.cross(pu, pv)))
+        return -total / 4.0 / 3.0
+
+    @cached_property
+    def area(self) -> float:
+        """Surface area of the bilinear patches (km²), 4×4 Gauss–Legendre per cell."""
+        c0, c1, c2, c3 = self._all_corners()
+        e1 = c1 - c0
+        e2 = c2 - c0
+        e3 = c0 - c1 - c2 + c3
+        x, w = np.polynomial.legendre.leggauss(4)
+        x = 0.5 * (x + 1.0)
+        w = 0.5 * w
+        total = 0.0
+        for u, wu in zip(x, w):
+            for v, wv in zip(x, w):
+                total += wu * wv * float(np.sum(np.linalg.norm(np.cross(e1 + v * e3, e2 + u * e3), axis=-1)))
+        return total
+
+
+# ------------------------------------------------------------------------------------------------
+# triangle meshes
+# ------------------------------------------------------------------------------------------------
+
+
+class TriangleShape(_Shape):
+    """A triangle mesh with a binned-SAH BVH (numba) and an optional Embree backend.
+
+    ``TriangleShape(mesh)`` takes an object with ``.vertices`` (n, 3) and ``.faces`` (m, 3) 0-based
+    (``spctool.formats.mesh.TriangleMesh``); ``TriangleShape(vertices, faces)`` the arrays.
+    ``backend``: ``"numba"`` (always available), ``"embree"`` (requires ``embreex``) or ``"auto"``
+    (Embree when importable).  Embree traces in single precision; its hits are re-intersected in
+    double precision on the reported triangle, so ``t``/``point`` agree with the numba path to
+    rounding, and the chosen triangle on all but rays through edges and vertices.
+    """
+
+    _kind = _rk.KIND_TRIANGLE
+
+    def __init__(self, vertices, faces=None, *, backend: str = "auto", leaf_size: int = 4):
+        if faces is None:
+            faces = vertices.faces
+            vertices = vertices.vertices
+        v = np.array(vertices, dtype=np.float64, order="C", copy=True)  # owned: the BVH depends on it
+        f = np.array(faces, dtype=np.int64, order="C", copy=True)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise ValueError(f"vertices must be (n, 3), got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+            raise ValueError(f"faces must be (m, 3) with m > 0, got {f.shape}")
+        if f.min() < 0 or f.max() >= v.shape[0]:
+            raise ValueError("face indices must be 0-based and < number of vertices")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("vertices must be finite")
+        if backend not in ("auto", "numba", "embree"):
+            raise ValueError(f"backend must be 'auto', 'numba' or 'embree', got {backend!r}")
+        if backend == "auto":
+            backend = "embree" if embree_available() else "numba"
+        if backend == "embree" and not embree_available():
+            raise ValueError("backend='embree' needs the optional package embreex")
+        self.vertices = v
+        self.faces = f
+        self.backend = backend
+        self._verts = v
+        self._faces = f
+        self._q = 0
+        self._eps = 0.0
+        tri = v[f]
+        pad = _pad_for(v)
+        lo = tri.min(axis=1) - pad
+        hi = tri.max(axis=1) + pad
+        if not 1 <= leaf_size <= 7:
+            raise ValueError("leaf_size must be 1…7")
+        self._set_tree(_rk.build_sah_tree(np.ascontiguousarray(lo), np.ascontiguousarray(hi),
+                                          int(leaf_size), 16))
+        self._scene = None
+        if backend == "embree":
+            self._build_embree()
+
+    @property
+    def n_primitives(self) -> int:
+        return int(self.faces.shape[0])
+
+    def _points(self, k, u, v):
+        p = np.full((k.shape[0], 3), np.nan)
+        m = k >= 0
+        if m.any():
+            tri = self.vertices[self.faces[k[m]]]
+            uu = u[m][:, None]
+            vv = v[m][:, None]
+            p[m] = (1 - uu - vv) * tri[:, 0] + uu * tri[:, 1] + vv * tri[:, 2]
+        return p
+
+    # -- Embree ----------------------------------------------------------------------------------
+
+    def _build_embree(self):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh as _EmbreeMesh
+
+        self._scene = rtcore_scene.EmbreeScene()
+        _EmbreeMesh(self._scene, self.vertices.astype(np.float32), self.faces.astype(np.int32))
+
+    def _embree_run(self, n, o, d, t0, t1, query):
+        """Embree query; rays start at max(t0, 0) (origin moved along the unit direction) and end at
+        t1.  Returns (usable-ray mask, full origins, unit directions, Embree's answer)."""
+        o = np.broadcast_to(o, (n, 3))
+        d = np.broadcast_to(d, (n, 3))
+        t0 = np.broadcast_to(t0, (n,))
+        t1 = np.broadcast_to(t1, (n,))
+        nd = np.linalg.norm(d, axis=1)
+        ok = (nd > 0) & np.isfinite(nd) & np.all(np.isfinite(o), axis=1) & (t0 <= t1) & (t0 >= 0)
+        dn = np.zeros((n, 3))
+        dn[ok] = d[ok] / nd[ok, None]
+        start = np.where(ok, t0, 0.0)
+        span = np.minimum(np.where(ok, t1 - start, 0.0), np.finfo(np.float32).max / 4)
+        res = self._scene.run((o + start[:, None] * dn).astype(np.float32), dn.astype(np.float32),
+                              dists=span.astype(np.float32), query=query,
+                              output=(query == "INTERSECT"))
+        return ok, o, dn, res
+
+    def _trace(self, any_hit, n, o, d, t0, t1):
+        if self.backend != "embree" or np.any(t0 < 0):  # Embree cannot start behind the origin
+            return self._trace_numba(any_hit, n, o, d, t0, t1)
+        ok, o, dn, res = self._embree_run(n, o, d, t0, t1, "INTERSECT")
+        prim = np.asarray(res["primID"], dtype=np.int64)
+        k = np.where(ok & (prim >= 0), prim, -1)
+        t = np.full(n, np.inf)
+        u = np.full(n, np.nan)
+        v = np.full(n, np.nan)
+        m = k >= 0
+        if m.any():
+            # double-precision re-intersection with the triangle Embree found (unbounded plane hit,
+            # so a ray through an edge keeps Embree's choice of triangle)
+            tri = self.vertices[self.faces[k[m]]]
+            tt, uu, vv = _moller_trumbore_plane(o[m], dn[m], tri)
+            bad = ~np.isfinite(tt)
+            if bad.any():  # parallel in double precision: keep Embree's single-precision values
+                start = np.broadcast_to(t0, (n,))[m][bad]
+                tt[bad] = np.asarray(res["tfar"], np.float64)[m][bad] + start
+                uu[bad] = np.asarray(res["u"], np.float64)[m][bad]
+                vv[bad] = np.asarray(res["v"], np.float64)[m][bad]
+            t[m] = tt
+            u[m] = uu
+            v[m] = vv
+        return k, t, u, v, self._points(k, u, v)
+
+    def _any(self, n, o, d, t0, t1):
+        if self.backend != "embree" or np.any(t0 < 0):
+            return self._trace_numba(True, n, o, d, t0, t1)[0] >= 0
+        ok, _, _, res = self._embree_run(n, o, d, t0, t1, "OCCLUDED")
+        return ok & (np.asarray(res) >= 0)
+
+    @cached_property
+    def volume(self) -> float:
+        """Signed enclosed volume (km³), Σ v₀·(v₁ × v₂)/6 (divergence theorem); positive for
+        outward (right-hand-rule) facets."""
+        t = self.vertices[self.faces]
+        return float(np.sum(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])))) / 6.0
+
+    @cached_property
+    def area(self) -> float:
+        """Total facet area (km²)."""
+        t = self.vertices[self.faces]
+        return float(np.sum(np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1))) / 2.0
+
+
+def _moller_trumbore_plane(o, d, tri):
+    """Vectorised Möller–Trumbore without the inside test: (t, u, v); t = inf if parallel."""
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        tv = o - tri[:, 0]
+        u = np.einsum("ij,ij->i", tv, p) * inv
+        qv = np.cross(tv, e1)
+        v = np.einsum("ij,ij->i", d, qv) * inv
+        t = np.einsum("ij,ij->i", e2, qv) * inv
+    t = np.where(det != 0, t, np.inf)
+    return t, u, v
+
+
+# ------------------------------------------------------------------------------------------------
+# occlusion
+# ------------------------------------------------------------------------------------------------
+
+
+def visible_from(shape, camera_position, points, tol_km=None) -> np.ndarray:
+    """L15 §3.2.1 occlusion test: is each surface point the first thing the camera sees along its
+    line of sight?
+
+    A ray from ``camera_position`` (3,) toward each point (N, 3) is traced up to the point's
+    distance plus ``tol_km``; the point is visible if the first hit lies within ``tol_km`` of it.
+    ``tol_km`` (scalar or (N,)) defaults to 1 % of ``shape.max_diameter`` (L15; configurable as
+    ``occlusion_tol`` in ``spc-algorithms.md`` §2.3).  A line of sight that meets no surface within
+    reach (a point off the body) is reported not visible.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cam = np.asarray(camera_position, dtype=np.float64).reshape(3)
+    if tol_km is None:
+        tol_km = 0.01 * shape.max_diameter
+    tol = np.broadcast_to(np.asarray(tol_km, dtype=np.float64), (pts.shape[0],))
+    d = pts - cam
+    dist = np.linalg.norm(d, axis=1)
+    res = shape.first_hit(np.broadcast_to(cam, pts.shape), d, t_max=dist + tol)
+    close = np.linalg.norm(np.where(res.hit[:, None], res.point, 0.0) - pts, axis=1) <= tol
+    return res.hit & close
