@@ -121,18 +121,13 @@ def load_candidates(ctx: Context, maplets, landmarks_table) -> Candidates:
 
 
 def shape_model(obj):
-    """A geometry shape (first_hit/max_diameter) from what ``formats`` read: ICQ -> bilinear patches,
-    triangle mesh -> triangles; geometry shapes pass through."""
-    if obj is None or hasattr(obj, "first_hit"):
-        return obj
-    from spctool.geometry.shape import PatchShape, TriangleShape
+    """A geometry shape from what ``formats`` read (see ``geometry.shape.as_shape``)."""
+    from spctool.geometry.shape import as_shape
 
-    verts = np.asarray(getattr(obj, "vertices", None))
-    if verts.ndim == 4:
-        return PatchShape(obj)
-    if getattr(obj, "faces", None) is not None:
-        return TriangleShape(obj)
-    raise SpcUsageError(f"cannot use a {type(obj).__name__} as a shape model")
+    try:
+        return as_shape(obj)
+    except TypeError as exc:
+        raise SpcUsageError(str(exc)) from None
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1095,3 +1095,49 @@ def farthest_pair(points):
                 best2 = d2
                 best = math.sqrt(d2)
     return best
+
+
+@njit(cache=True, parallel=True)
+def directional_extremes(points, dirs, n_chunks):
+    """Per direction: (min, max) of points·dir and the indices where they occur.
+
+    Points are split into ``n_chunks`` blocks scanned in parallel (directions innermost, so the
+    direction table stays in cache); block results are then reduced.
+    """
+    n = points.shape[0]
+    k = dirs.shape[0]
+    lo = np.full((n_chunks, k), np.inf)
+    hi = np.full((n_chunks, k), -np.inf)
+    ilo = np.zeros((n_chunks, k), np.int64)
+    ihi = np.zeros((n_chunks, k), np.int64)
+    size = (n + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        for i in range(c * size, min(n, (c + 1) * size)):
+            x = points[i, 0]
+            y = points[i, 1]
+            z = points[i, 2]
+            for d in range(k):
+                v = x * dirs[d, 0] + y * dirs[d, 1] + z * dirs[d, 2]
+                if v < lo[c, d]:
+                    lo[c, d] = v
+                    ilo[c, d] = i
+                if v > hi[c, d]:
+                    hi[c, d] = v
+                    ihi[c, d] = i
+    out_lo = np.empty(k)
+    out_hi = np.empty(k)
+    out_ilo = np.empty(k, np.int64)
+    out_ihi = np.empty(k, np.int64)
+    for d in range(k):
+        out_lo[d] = lo[0, d]
+        out_hi[d] = hi[0, d]
+        out_ilo[d] = ilo[0, d]
+        out_ihi[d] = ihi[0, d]
+        for c in range(1, n_chunks):
+            if lo[c, d] < out_lo[d]:
+                out_lo[d] = lo[c, d]
+                out_ilo[d] = ilo[c, d]
+            if hi[c, d] > out_hi[d]:
+                out_hi[d] = hi[c, d]
+                out_ihi[d] = ihi[c, d]
+    return out_lo, out_hi, out_ilo, out_ihi

@@ -338,20 +338,76 @@ class _Shape:
 
     @cached_property
     def max_diameter(self) -> float:
-        """The body's largest extent: the exact maximum distance between two vertices.
+        """The body's largest extent: the maximum distance between two vertices (SPC's MAXLEN).
 
-        This is SPC's MAXLEN reading of "maximum diameter" (L15 §3.2.1: the occlusion tolerance is
-        1 % of it).  Computed over the convex-hull vertices with a pruned pair search.
+        L15 §3.2.1 sets the occlusion tolerance to 1 % of it.  Up to :data:`EXACT_DIAMETER_POINTS`
+        convex-hull vertices the value is exact (pruned all-pairs search).  Larger, rounder bodies
+        (where that pruning degenerates to O(n²): minutes for a q=512 sphere) use
+        :func:`approximate_diameter`, which is exact for any body whose diameter is a double-normal
+        pair reached from its directional extremes and never more than 0.2 % short in the worst case.
         """
         pts = np.unique(self._verts, axis=0)
-        if pts.shape[0] > 4:
+        if 4 < pts.shape[0] <= 200_000:
             try:
                 from scipy.spatial import ConvexHull
 
                 pts = pts[ConvexHull(pts).vertices]
             except Exception:  # flat or degenerate vertex sets: fall back to all vertices
                 pass
-        return float(_rk.farthest_pair(np.ascontiguousarray(pts)))
+        pts = np.ascontiguousarray(pts)
+        if pts.shape[0] <= EXACT_DIAMETER_POINTS:
+            return float(_rk.farthest_pair(pts))
+        return approximate_diameter(pts)
+
+
+#: above this many candidate points :attr:`_Shape.max_diameter` switches to :func:`approximate_diameter`
+EXACT_DIAMETER_POINTS = 6000
+
+
+def approximate_diameter(points, n_directions: int = 1024, refine: int = 8) -> float:
+    """Largest pairwise distance of ``points`` (N, 3), from below, in O(N·n_directions).
+
+    The extent along each of ``n_directions`` near-uniform (Fibonacci) directions bounds the
+    diameter D from below by D·cos(θ/2), θ the largest angular gap (≈ 0.11 rad for 1024
+    directions: at most 0.16 % short).  The extreme pairs of the ``refine`` widest directions are then
+    polished by the double-normal iteration (b = farthest from a, a = farthest from b), which
+    reaches the exact diameter whenever it lies in that basin (always, in the tests).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[0] < 2:
+        return 0.0
+    k = np.arange(n_directions) + 0.5
+    z = 1.0 - 2.0 * k / n_directions
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = np.pi * (1.0 + 5.0**0.5) * k
+    dirs = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    dirs = dirs[dirs[:, 2] >= 0.0]  # a direction and its opposite give the same extent
+    lo, hi, ilo, ihi = _rk.directional_extremes(np.ascontiguousarray(p), np.ascontiguousarray(dirs), 16)
+    best = float(np.max(hi - lo))
+    for d in np.argsort(lo - hi)[:refine]:
+        a, b = ilo[d], ihi[d]
+        for _ in range(4):
+            b_new = int(np.argmax(np.sum((p - p[a]) ** 2, axis=1)))
+            a_new = int(np.argmax(np.sum((p - p[b_new]) ** 2, axis=1)))
+            if (a_new, b_new) == (a, b):
+                break
+            a, b = a_new, b_new
+        best = max(best, float(np.linalg.norm(p[a] - p[b])))
+    return best
+
+
+def as_shape(obj, **kw):
+    """A ray-query shape from what :mod:`spctool.formats` reads: an ``IcqShape`` (or its (6, q+1, q+1, 3)
+    vertex array) becomes a :class:`PatchShape`, a ``TriangleMesh`` a :class:`TriangleShape`; shapes and
+    ``None`` pass through."""
+    if obj is None or isinstance(obj, _Shape):
+        return obj
+    verts = getattr(obj, "vertices", obj)
+    if np.ndim(verts) == 4:
+        return PatchShape(obj, **kw)
+    if getattr(obj, "faces", None) is not None:
+        return TriangleShape(obj, **kw)
+    raise TypeError(f"cannot use a {type(obj).__name__} as a shape model")
 
 
 def _outward_f32(nb: np.ndarray) -> np.ndarray:
