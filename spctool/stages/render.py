@@ -1,0 +1,879 @@
+"""Render a photo of surfaces — a global shape and maplet-like height patches — seen by an SPC camera.
+
+A pure function of (camera, Sun direction, surfaces, options) → image, used by ``spctool render``
+and the simulator (:mod:`spctool.sim.simulate`), and meant for register's image-space mode (S16
+"Future Retina development": correlation against a ray-traced prediction with cast shadows).  No
+files are read or written here.
+
+Surfaces
+--------
+* a **shape** (:class:`ShapeSurface`): an ICQ model as SPC bilinear patches (``spc-formats.md``
+  §5; ray algebra of ``spc-algorithms.md`` §2.2 via :class:`spctool.geometry.shape.PatchShape`) or a
+  triangle mesh; shading normals are interpolated vertex normals, albedo the ICQ 4th column
+  (``spc-formats.md`` §5.1) or 1;
+* **height patches** (:class:`HeightPatch`): maplet grids (``spc-formats.md`` §1.3,
+  P = V + SCALE·(x·UX + y·UY + h·UZ), x along UX = axis 0, y along UY = axis 1) — real maplets or
+  the simulator's fine truth patches.  Rays meet the bilinear terrain exactly
+  (:func:`spctool.geometry.heightfield.intersect_rays`); shading normals are the bilinear
+  interpolation of SPC's node slopes (HGT2SLP table, ``spc-algorithms.md`` §3.1), albedo the
+  bilinear map albedo.
+
+Composition rule: inside a patch's footprint — the column |x|, |y| ≤ QSZ and
+h_min − 1 ≤ z ≤ h_max + 1 (cells) — the patch *replaces* the shape.  Each ray takes the nearest of
+its patch hits and its shape hit when the shape hit lies outside every footprint; a ray that hits
+the shape inside a footprint but misses the patch (a grazing ray over a patch edge) keeps the shape
+hit.
+
+Per ray (the pixel's line of sight from :meth:`spctool.geometry.camera.Camera.pixel_to_direction`,
+so the SUM pose, the K-matrix and any ``DISTORT=`` model are honoured exactly):
+
+1. nearest surface hit (above);
+2. μ₀ = n̂·ŝ, μ = n̂·ê with ê the unit vector from the hit toward the camera (per pixel, not per
+   maplet), phase α = ∠(ŝ, ê);
+3. reflectance R(μ₀, μ, α) of :mod:`spctool.photometry` (default ``"spc"``: SPC's lunar-Lambert
+   without McEwen's factor 2, ``spc-algorithms.md`` §3.2 / erratum 17) times the albedo;
+4. cast shadow: a ray toward the Sun (the Sun at infinity, SUM ``SZ``) that meets any patch
+   (exact bilinear crossing) or the shape → radiance 0.  Shadow rays leave a patch point from
+   just above its terrain (``shadow_offset_cells``) and ignore the shape inside the point's own
+   patch column; shadow rays from shape points start ``shadow_lift_shape`` shape cells above the
+   shape and may hit it after ``shadow_offset_shape`` shape cells, on ICQ cells whose parameter
+   margin is 1e-7 instead of GET_HEIGHTS' 0.01 (whose flaps would shadow strips along concave
+   edges; :attr:`ShapeSurface.shadow_shape`).
+   (Prediction in SPC has no cast shadows — ``spc-algorithms.md`` §3.2 — this renderer has them
+   because it renders the *truth*; ``shadows=False`` switches them off.)
+
+Pixels are averaged over ``supersample``² sub-pixel rays on a regular grid; ``coverage`` is the
+fraction of sub-rays that hit a surface (sky contributes 0).  Pixels are SPC pixels (1-based,
+centres at integers, ``spc-formats.md`` §0.4): the image array is ``radiance[line − l0, sample − s0]``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numba
+import numpy as np
+
+from spctool.errors import SpcUsageError
+from spctool.geometry import heightfield
+from spctool.geometry._heightkernels import _first_crossing
+from spctool.geometry.shape import PatchShape, TriangleShape
+from spctool.photometry import MODELS as PHOTOMETRY_MODELS
+from spctool.photometry import phase_angle_deg, reflectance
+
+__all__ = [
+    "HeightPatch",
+    "ShapeSurface",
+    "RenderOptions",
+    "Rendering",
+    "SurfaceHits",
+    "render",
+    "trace",
+    "shade",
+    "shadowed",
+    "cull_patches",
+    "sky",
+    "SKY",
+    "SHAPE",
+]
+
+#: surface id of a ray that hits nothing / the shape (patches are numbered 0, 1, …)
+SKY = -2
+SHAPE = -1
+
+_BIG = 1e300
+
+#: parameter margin of the ICQ cells for shadow rays (see :attr:`ShapeSurface.shadow_shape`)
+SHADOW_PATCH_EPS = 1e-7
+
+
+# ------------------------------------------------------------------------------------------------
+# surfaces
+# ------------------------------------------------------------------------------------------------
+
+
+def _vec3(a, name):
+    out = np.asarray(a, dtype=np.float64).reshape(-1)
+    if out.shape != (3,) or not np.all(np.isfinite(out)):
+        raise SpcUsageError(f"{name} must be a finite 3-vector")
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class HeightPatch:
+    """A maplet-like height field: heights in cells on the frame (V, UX, UY, UZ) with SCALE km/cell.
+
+    ``heights``, ``albedo`` and ``valid`` are (2q+1)×(2q+1) with axis 0 along UX (J) and axis 1 along
+    UY (I) (``spc-formats.md`` §1.3).  ``albedo`` defaults to 1, ``valid`` to all nodes.
+    """
+
+    heights: np.ndarray
+    scale: float
+    v: np.ndarray
+    ux: np.ndarray
+    uy: np.ndarray
+    uz: np.ndarray
+    albedo: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    name: str = ""
+
+    def __post_init__(self):
+        set_ = object.__setattr__
+        h = np.ascontiguousarray(self.heights, dtype=np.float64)
+        if h.ndim != 2 or h.shape[0] != h.shape[1] or h.shape[0] % 2 != 1 or h.shape[0] < 3:
+            raise SpcUsageError(
+                f"patch {self.name!r}: heights must be (2q+1)x(2q+1) with q >= 1, got {h.shape}"
+            )
+        valid = np.ones(h.shape, bool) if self.valid is None else np.ascontiguousarray(self.valid, dtype=bool)
+        alb = np.ones(h.shape) if self.albedo is None else np.ascontiguousarray(self.albedo, dtype=np.float64)
+        if valid.shape != h.shape or alb.shape != h.shape:
+            raise SpcUsageError(f"patch {self.name!r}: albedo and valid must have the shape of heights")
+        valid = valid & np.isfinite(h)
+        if not valid.any():
+            raise SpcUsageError(f"patch {self.name!r} has no valid node")
+        set_(self, "heights", np.where(valid, h, 0.0))
+        set_(self, "valid", valid)
+        set_(self, "albedo", np.where(valid, alb, 0.0))
+        scale = float(self.scale)
+        if not (scale > 0 and math.isfinite(scale)):
+            raise SpcUsageError(f"patch {self.name!r}: scale must be > 0")
+        set_(self, "scale", scale)
+        for k in ("v", "ux", "uy", "uz"):
+            set_(self, k, _vec3(getattr(self, k), k))
+
+    @classmethod
+    def from_maplet(cls, maplet, name: str | None = None) -> HeightPatch:
+        """A patch from any object with heights, albedo, valid, scale, v, ux, uy, uz (e.g. ``Maplet``)."""
+        return cls(
+            maplet.heights,
+            maplet.scale,
+            maplet.v,
+            maplet.ux,
+            maplet.uy,
+            maplet.uz,
+            albedo=getattr(maplet, "albedo", None),
+            valid=getattr(maplet, "valid", None),
+            name=getattr(maplet, "name", "") if name is None else name,
+        )
+
+    @property
+    def qsz(self) -> int:
+        return (self.heights.shape[0] - 1) // 2
+
+    @cached_property
+    def rotation(self) -> np.ndarray:
+        """Maplet → body rotation, UX, UY, UZ as columns."""
+        return np.column_stack([self.ux, self.uy, self.uz])
+
+    @cached_property
+    def height_range(self) -> tuple[float, float]:
+        h = self.heights[self.valid]
+        return float(h.min()), float(h.max())
+
+    @cached_property
+    def slopes(self):
+        """SPC node slopes (:func:`spctool.geometry.heightfield.slopes`): hx, hy, usable."""
+        return heightfield.slopes(self.heights, self.valid)
+
+    def to_local(self, points) -> np.ndarray:
+        """Body points (N, 3) km → maplet-frame (x, y, z) in cells."""
+        return ((np.asarray(points, dtype=np.float64) - self.v) @ self.rotation) / self.scale
+
+    def dirs_to_local(self, directions) -> np.ndarray:
+        """Body directions (N, 3) → maplet components divided by SCALE (keeps the ray parameter in km)."""
+        return (np.asarray(directions, dtype=np.float64) @ self.rotation) / self.scale
+
+    def to_body(self, local) -> np.ndarray:
+        """Maplet-frame cells (N, 3) → body km."""
+        return self.v + self.scale * (np.asarray(local, dtype=np.float64) @ self.rotation.T)
+
+    def interpolate(self, x, y):
+        """Bilinear (height, hx, hy, albedo) at maplet-frame (x, y) cells; x along UX, y along UY."""
+        n = self.heights.shape[0]
+        q = self.qsz
+        u = np.clip(np.asarray(x, dtype=np.float64) + q, 0.0, n - 1.0)
+        w = np.clip(np.asarray(y, dtype=np.float64) + q, 0.0, n - 1.0)
+        i = np.minimum(np.floor(u).astype(np.intp), n - 2)
+        j = np.minimum(np.floor(w).astype(np.intp), n - 2)
+        fu = u - i
+        fw = w - j
+        w00 = (1 - fu) * (1 - fw)
+        w10 = fu * (1 - fw)
+        w01 = (1 - fu) * fw
+        w11 = fu * fw
+        hx, hy, _ = self.slopes
+        out = []
+        for a in (self.heights, hx, hy, self.albedo):
+            out.append(w00 * a[i, j] + w10 * a[i + 1, j] + w01 * a[i, j + 1] + w11 * a[i + 1, j + 1])
+        return tuple(out)
+
+    def normals_at(self, x, y) -> np.ndarray:
+        """Unit body-frame shading normals at maplet-frame (x, y): interpolated slopes (§3.1)."""
+        _, hx, hy, _ = self.interpolate(x, y)
+        return heightfield.normals_body(hx, hy, self.ux, self.uy, self.uz)
+
+    def box(self, top_extra: float = 0.0):
+        """Local bounding box (lo (3,), hi (3,)) in cells: the footprint column with a 1-cell margin."""
+        zlo, zhi = self.height_range
+        q = float(self.qsz)
+        return np.array([-q, -q, zlo - 1.0]), np.array([q, q, zhi + 1.0 + top_extra])
+
+
+@numba.njit(inline="always", cache=True)
+def _slab1(o, d, lo, hi):
+    """Entry/exit of o + t·d in [lo, hi] along one axis (±_BIG for parallel rays)."""
+    if d == 0.0:
+        if lo <= o <= hi:
+            return -_BIG, _BIG
+        return _BIG, -_BIG
+    t1 = (lo - o) / d
+    t2 = (hi - o) / d
+    if t1 > t2:
+        return t2, t1
+    return t1, t2
+
+
+@numba.njit(parallel=True, cache=True)
+def _local_slab(origins, dirs, v, rot, inv_scale, lo, hi, o_out, d_out, tn_out, tf_out):
+    """Maplet-frame rays (cells; direction per km) and their box entry (≥ 0) / exit parameters."""
+    for k in numba.prange(origins.shape[0]):
+        px = origins[k, 0] - v[0]
+        py = origins[k, 1] - v[1]
+        pz = origins[k, 2] - v[2]
+        dx = dirs[k, 0]
+        dy = dirs[k, 1]
+        dz = dirs[k, 2]
+        tn = 0.0
+        tf = _BIG
+        for a in range(3):
+            oa = (px * rot[0, a] + py * rot[1, a] + pz * rot[2, a]) * inv_scale
+            da = (dx * rot[0, a] + dy * rot[1, a] + dz * rot[2, a]) * inv_scale
+            o_out[k, a] = oa
+            d_out[k, a] = da
+            t1, t2 = _slab1(oa, da, lo[a], hi[a])
+            if t1 > tn:
+                tn = t1
+            if t2 < tf:
+                tf = t2
+        tn_out[k] = tn
+        tf_out[k] = tf
+
+
+@numba.njit(parallel=True, cache=True)
+def _near_spheres(origins, dirs, use, centres, radii2, out):
+    """out[k, p] = ray origin + t·dir (t ≥ 0, unit dir) passes within sphere p (rays with ``use``)."""
+    npatch = centres.shape[0]
+    for k in numba.prange(origins.shape[0]):
+        if not use[k]:
+            continue
+        for p in range(npatch):
+            wx = centres[p, 0] - origins[k, 0]
+            wy = centres[p, 1] - origins[k, 1]
+            wz = centres[p, 2] - origins[k, 2]
+            w2 = wx * wx + wy * wy + wz * wz
+            tc = wx * dirs[k, 0] + wy * dirs[k, 1] + wz * dirs[k, 2]
+            if tc > 0.0:
+                w2 -= tc * tc
+            out[k, p] = w2 <= radii2[p]
+
+
+@numba.njit(parallel=True, cache=True)
+def _in_boxes(points, use, centres, radii2, vs, rots, inv_scales, los, his, out):
+    """out[k] = point k (with ``use``) lies in any patch's maplet-frame box (sphere pre-test first)."""
+    npatch = centres.shape[0]
+    for k in numba.prange(points.shape[0]):
+        if not use[k]:
+            continue
+        for p in range(npatch):
+            dx = points[k, 0] - centres[p, 0]
+            dy = points[k, 1] - centres[p, 1]
+            dz = points[k, 2] - centres[p, 2]
+            if dx * dx + dy * dy + dz * dz > radii2[p]:
+                continue
+            px = points[k, 0] - vs[p, 0]
+            py = points[k, 1] - vs[p, 1]
+            pz = points[k, 2] - vs[p, 2]
+            inside = True
+            for a in range(3):
+                c = (px * rots[p, 0, a] + py * rots[p, 1, a] + pz * rots[p, 2, a]) * inv_scales[p]
+                if c < los[p, a] or c > his[p, a]:
+                    inside = False
+            if inside:
+                out[k] = True
+                break
+
+
+@numba.njit(parallel=True, cache=True)
+def _crossings(h, valid, hmin, hmax, q, o, d, t_min, t_max, out):
+    """heightfield.intersect_rays for maplet-frame rays, in parallel (same exact crossing kernel)."""
+    for m in numba.prange(o.shape[0]):
+        out[m] = _first_crossing(
+            h,
+            valid,
+            hmin,
+            hmax,
+            o[m, 0] + q,
+            o[m, 1] + q,
+            o[m, 2],
+            d[m, 0],
+            d[m, 1],
+            d[m, 2],
+            t_min[m],
+            t_max[m],
+        )
+
+
+def _c64(a):
+    return np.require(a, dtype=np.float64, requirements=["C", "W"])
+
+
+class _PatchSet:
+    """The patches of one rendering, with packed arrays for the batch kernels."""
+
+    def __init__(self, patches):
+        self.patches = list(patches)
+        n = len(self.patches)
+        self.centres = np.zeros((n, 3))
+        self.radii2 = np.zeros(n)
+        self.vs = np.zeros((n, 3))
+        self.rots = np.zeros((n, 3, 3))
+        self.inv = np.zeros(n)
+        self.los = np.zeros((n, 3))
+        self.his = np.zeros((n, 3))
+        for k, p in enumerate(self.patches):
+            lo, hi = p.box()
+            zc = 0.5 * (lo[2] + hi[2])
+            self.centres[k] = p.v + p.scale * zc * p.uz
+            # a sphere around the box raised by the relief (the shadow test's own-column box)
+            half = 0.5 * (hi[2] - lo[2]) + (p.height_range[1] - p.height_range[0]) + 1.0
+            self.radii2[k] = (p.scale * 1.0001) ** 2 * (2.0 * p.qsz**2 + (half + 1.0) ** 2)
+            self.vs[k] = p.v
+            self.rots[k] = p.rotation
+            self.inv[k] = 1.0 / p.scale
+            self.los[k] = lo
+            self.his[k] = hi
+
+    def __len__(self):
+        return len(self.patches)
+
+    def near(self, origins, dirs, use=None):
+        """(N, P) bool: rays that may meet each patch's box (bounding-sphere test)."""
+        n = dirs.shape[0]
+        out = np.zeros((n, len(self)), bool)
+        if len(self) and n:
+            u = np.ones(n, bool) if use is None else np.ascontiguousarray(use, dtype=bool)
+            _near_spheres(_c64(origins), _c64(dirs), u, self.centres, self.radii2, out)
+        return out
+
+    def in_footprint(self, points, use):
+        out = np.zeros(points.shape[0], bool)
+        if len(self) and points.shape[0]:
+            _in_boxes(
+                _c64(points),
+                np.ascontiguousarray(use, dtype=bool),
+                self.centres,
+                self.radii2,
+                self.vs,
+                self.rots,
+                self.inv,
+                self.los,
+                self.his,
+                out,
+            )
+        return out
+
+
+def _local_rays(patch, origins, dirs, top_extra=0.0):
+    """(o_local, d_local, t_enter ≥ 0, t_exit) of rays against the patch box (numba, no temporaries)."""
+    n = dirs.shape[0]
+    o = np.empty((n, 3))
+    d = np.empty((n, 3))
+    tn = np.empty(n)
+    tf = np.empty(n)
+    lo, hi = patch.box(top_extra)
+    _local_slab(
+        _c64(origins), _c64(dirs), patch.v, _c64(patch.rotation), 1.0 / patch.scale, lo, hi, o, d, tn, tf
+    )
+    return o, d, tn, tf
+
+
+def _intersect_patch(patch, o, d, tmin, tmax):
+    """Exact first crossing (km along the body ray) of maplet-frame rays with the patch terrain."""
+    out = np.empty(o.shape[0])
+    if o.shape[0]:
+        zlo, zhi = patch.height_range
+        _crossings(
+            patch.heights,
+            patch.valid,
+            zlo,
+            zhi,
+            float(patch.qsz),
+            _c64(o),
+            _c64(d),
+            _c64(tmin),
+            _c64(tmax),
+            out,
+        )
+    return out
+
+
+class ShapeSurface:
+    """A global shape for rendering: ray queries plus shading normals and albedo at hits.
+
+    ``ShapeSurface.from_model(obj)`` accepts an ``IcqShape`` (→ SPC bilinear patches, with its albedo
+    column), a ``TriangleMesh`` (→ triangles), or a ready ``PatchShape`` / ``TriangleShape``.
+    ``vertex_albedo``: (6, q+1, q+1) for patches, (n,) for triangles, or None (albedo 1).
+    """
+
+    def __init__(self, shape, vertex_albedo=None):
+        if not isinstance(shape, PatchShape | TriangleShape):
+            raise SpcUsageError(f"not a ray-traceable shape: {type(shape).__name__}")
+        self.shape = shape
+        self.is_patch = isinstance(shape, PatchShape)
+        if vertex_albedo is not None:
+            vertex_albedo = np.asarray(vertex_albedo, dtype=np.float64)
+            want = shape.vertices.shape[:-1]
+            if vertex_albedo.shape != want:
+                raise SpcUsageError(f"shape albedo must have shape {want}, got {vertex_albedo.shape}")
+        self.vertex_albedo = vertex_albedo
+
+    @classmethod
+    def from_model(cls, model, *, backend: str = "auto") -> ShapeSurface:
+        """Wrap an ICQ shape, a triangle mesh or a geometry shape object."""
+        if isinstance(model, ShapeSurface):
+            return model
+        if isinstance(model, PatchShape | TriangleShape):
+            return cls(model)
+        verts = getattr(model, "vertices", None)
+        if verts is not None and np.ndim(verts) == 4:  # IcqShape
+            return cls(PatchShape(verts), getattr(model, "albedo", None))
+        if verts is not None and getattr(model, "faces", None) is not None:  # TriangleMesh
+            return cls(TriangleShape(model.vertices, model.faces, backend=backend))
+        raise SpcUsageError(f"cannot render a shape of type {type(model).__name__}")
+
+    @cached_property
+    def cell_size(self) -> float:
+        """Typical primitive edge length (km): √(area / number of primitives)."""
+        n = self.shape.n_primitives * (1 if self.is_patch else 0.5)
+        return math.sqrt(self.shape.area / n)
+
+    @cached_property
+    def shadow_shape(self):
+        """The shape for shadow rays.  ICQ cells are intersected over [−EPS, 1+EPS]² (EPS = 0.01 as in
+        GET_HEIGHTS, erratum 16) so that first hits never slip through seams; on a concave edge the
+        1 % flap of the neighbouring cell then shadows the strip of this cell under it.  Shadow rays
+        therefore use the same cells with a margin of 1e-7 (a second, lazily built hierarchy)."""
+        if self.is_patch:
+            return PatchShape(self.shape.vertices, eps=SHADOW_PATCH_EPS)
+        return self.shape
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """Unit outward vertex normals, area-weighted over adjacent cells/faces (seams merged)."""
+        if self.is_patch:
+            from spctool.formats.icq import icq_merge_map
+
+            v = self.shape.vertices
+            q = self.shape.q
+            c0, c1, c2, c3 = v[:, :-1, :-1], v[:, :-1, 1:], v[:, 1:, :-1], v[:, 1:, 1:]
+            pu = 0.5 * (c1 - c0 + c3 - c2)  # along I
+            pv = 0.5 * (c2 - c0 + c3 - c1)  # along J
+            cn = -np.cross(pu, pv)  # ∂P/∂I × ∂P/∂J points inward on every ICQ face (spc-formats.md §5.2)
+            acc = np.zeros_like(v)
+            acc[:, :-1, :-1] += cn
+            acc[:, :-1, 1:] += cn
+            acc[:, 1:, :-1] += cn
+            acc[:, 1:, 1:] += cn
+            flat = acc.reshape(-1, 3)
+            rep = icq_merge_map(q)
+            merged = np.zeros_like(flat)
+            np.add.at(merged, rep, flat)
+            out = merged[rep]
+            out /= np.linalg.norm(out, axis=1, keepdims=True)
+            return out.reshape(v.shape)
+        tri = self.shape.vertices[self.shape.faces]
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        acc = np.zeros_like(self.shape.vertices)
+        for k in range(3):
+            np.add.at(acc, self.shape.faces[:, k], fn)
+        nrm = np.linalg.norm(acc, axis=1, keepdims=True)
+        return acc / np.where(nrm == 0, 1.0, nrm)
+
+    def _corner_weights(self, index, u, v):
+        if self.is_patch:
+            f, i, j = self.shape.cell_fij(index)
+            f = f - 1
+            idx = (f, j, i), (f, j, i + 1), (f, j + 1, i), (f, j + 1, i + 1)
+            w = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
+            return idx, w
+        faces = self.shape.faces[index]
+        return (faces[:, 0], faces[:, 1], faces[:, 2]), (1 - u - v, u, v)
+
+    def normals(self, index, u, v) -> np.ndarray:
+        """Interpolated unit shading normals at hits (cell/face index and parameters)."""
+        idx, w = self._corner_weights(index, u, v)
+        vn = self.vertex_normals
+        n = sum(wk[:, None] * vn[ik] for ik, wk in zip(idx, w))
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def albedo(self, index, u, v) -> np.ndarray:
+        """Interpolated vertex albedo at hits (1 when the shape has none)."""
+        if self.vertex_albedo is None:
+            return np.ones(np.shape(index))
+        idx, w = self._corner_weights(index, u, v)
+        return sum(wk * self.vertex_albedo[ik] for ik, wk in zip(idx, w))
+
+
+# ------------------------------------------------------------------------------------------------
+# options and results
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How to render (module docstring).
+
+    ``photometry``: a model of :mod:`spctool.photometry` (``spc``, ``mcewen``, ``fixed``, ``lambert``);
+    ``supersample``: n for n×n sub-pixel rays; ``shadows``: trace cast shadows; ``use_albedo``: multiply
+    by the surface albedo; ``chunk``: rays per batch (memory bound); ``shadow_offset_cells``: height
+    above a patch's terrain where its shadow rays start (cells); ``shadow_offset_shape``: distance, in
+    shape cells, before a shadow ray from a shape point may hit the shape; ``shadow_lift_shape``: such
+    rays start this far (shape cells) above the shape along its shading normal.
+    """
+
+    photometry: str = "spc"
+    supersample: int = 1
+    shadows: bool = True
+    use_albedo: bool = True
+    chunk: int = 1 << 18
+    shadow_offset_cells: float = 1e-3
+    shadow_offset_shape: float = 0.02
+    shadow_lift_shape: float = 0.002
+
+    def __post_init__(self):
+        if self.photometry not in PHOTOMETRY_MODELS:
+            raise SpcUsageError(
+                f"unknown photometric model {self.photometry!r}; "
+                f"expected one of {', '.join(PHOTOMETRY_MODELS)}"
+            )
+        if not 1 <= int(self.supersample) <= 16:
+            raise SpcUsageError("supersample must be 1 … 16")
+        if int(self.chunk) < 1:
+            raise SpcUsageError("chunk must be >= 1")
+
+
+@dataclass
+class SurfaceHits:
+    """Nearest hits of a batch of rays (:func:`trace`).
+
+    ``surface``: SKY (−2), SHAPE (−1) or the patch index; ``t`` km along the unit direction (inf for
+    sky); ``point`` body km; ``normal`` unit shading normal; ``albedo``; ``local``: maplet-frame (x, y, z)
+    cells for patch hits (NaN otherwise).
+    """
+
+    surface: np.ndarray
+    t: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+    local: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        return self.surface != SKY
+
+
+@dataclass
+class Rendering:
+    """A rendered image window: ``radiance[line − l0, sample − s0]`` = mean of R·albedo over sub-rays.
+
+    ``coverage``: fraction of sub-rays hitting a surface; ``shadow``: fraction of sub-rays on a lit-facing
+    surface (μ₀ > 0) but in cast shadow; ``surface``: the surface id of each pixel's first sub-ray;
+    ``window`` = (s0, s1, l0, l1), 1-based inclusive.
+    """
+
+    radiance: np.ndarray
+    coverage: np.ndarray
+    shadow: np.ndarray
+    surface: np.ndarray
+    window: tuple[int, int, int, int]
+    options: RenderOptions = field(default_factory=RenderOptions)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Pixels where any sub-ray hit a surface."""
+        return self.coverage > 0
+
+
+# ------------------------------------------------------------------------------------------------
+# tracing
+# ------------------------------------------------------------------------------------------------
+
+
+def trace(
+    origins, directions, shape: ShapeSurface | None = None, patches=(), *, albedo_fn=None
+) -> SurfaceHits:
+    """Nearest hits of rays (origins (N, 3) or (3,) body km, unit directions (N, 3)) on the shape and
+    the patches (composition rule of the module docstring), with shading normals and albedo.
+
+    ``albedo_fn(points) -> albedo`` replaces the shape's own albedo at shape hits (the simulator paints
+    its terrain albedo this way).
+    """
+    d = _c64(directions)
+    o = _c64(np.broadcast_to(np.asarray(origins, dtype=np.float64), d.shape))
+    pset = (
+        patches
+        if isinstance(patches, _PatchSet)
+        else _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    )
+    n = d.shape[0]
+    surface = np.full(n, SKY, dtype=np.int32)
+    t = np.full(n, np.inf)
+    local = np.full((n, 3), np.nan)
+    # -- patches: nearest patch hit per ray
+    near = pset.near(o, d)
+    for k, patch in enumerate(pset.patches):
+        sel = np.flatnonzero(near[:, k])
+        if sel.size == 0:
+            continue
+        ol, dl, tn, tf = _local_rays(patch, o[sel], d[sel])
+        tmax = np.minimum(tf, t[sel])
+        ok = tmax >= tn
+        tp = np.full(sel.size, np.nan)
+        tp[ok] = _intersect_patch(patch, ol[ok], dl[ok], tn[ok], tmax[ok])
+        good = np.isfinite(tp) & (tp < t[sel])
+        idx = sel[good]
+        t[idx] = tp[good]
+        surface[idx] = k
+        local[idx] = ol[good] + tp[good, None] * dl[good]
+    # -- shape
+    take = None
+    if shape is not None:
+        res = shape.shape.first_hit(o, d)
+        in_fp = pset.in_footprint(res.point, res.hit)
+        take = res.hit & (((~in_fp) & (res.t < t)) | (surface == SKY))
+        t[take] = res.t[take]
+        surface[take] = SHAPE
+    # -- points, normals, albedo
+    point = np.full((n, 3), np.nan)
+    normal = np.full((n, 3), np.nan)
+    albedo = np.zeros(n)
+    for k, patch in enumerate(pset.patches):
+        m = np.flatnonzero(surface == k)
+        if m.size == 0:
+            continue
+        z, hx, hy, alb = patch.interpolate(local[m, 0], local[m, 1])
+        local[m, 2] = z  # on the terrain (the crossing is exact; this removes rounding)
+        point[m] = patch.to_body(local[m])
+        normal[m] = heightfield.normals_body(hx, hy, patch.ux, patch.uy, patch.uz)
+        albedo[m] = alb
+    if take is not None:
+        m = np.flatnonzero(take)
+        if m.size:
+            point[m] = res.point[m]
+            normal[m] = shape.normals(res.index[m], res.u[m], res.v[m])
+            albedo[m] = (
+                albedo_fn(point[m])
+                if albedo_fn is not None
+                else shape.albedo(res.index[m], res.u[m], res.v[m])
+            )
+    return SurfaceHits(surface, t, point, normal, albedo, local)
+
+
+def shadowed(
+    hits: SurfaceHits,
+    sun,
+    shape: ShapeSurface | None = None,
+    patches=(),
+    *,
+    options: RenderOptions = RenderOptions(),
+    which=None,
+) -> np.ndarray:
+    """True where the ray from a hit toward the Sun meets a patch or the shape (cast shadow).
+
+    ``which`` (bool (N,)) limits the test to some hits (others are reported False).
+    """
+    sun = _vec3(sun, "sun")
+    sun = sun / np.linalg.norm(sun)
+    pset = (
+        patches
+        if isinstance(patches, _PatchSet)
+        else _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    )
+    n = hits.surface.shape[0]
+    sel = np.flatnonzero(hits.hit if which is None else (hits.hit & which))
+    out = np.zeros(n, bool)
+    if sel.size == 0:
+        return out
+    pts = _c64(hits.point[sel])
+    surf = hits.surface[sel]
+    dirs = _c64(np.broadcast_to(sun, pts.shape))
+    blocked = np.zeros(sel.size, bool)
+    t_shape_min = np.zeros(sel.size)
+    if shape is not None:
+        t_shape_min[:] = options.shadow_offset_shape * shape.cell_size
+        on_shape = surf == SHAPE
+        if on_shape.any():  # lift off the shape (rounding, and mm mismatches at patch borders)
+            pts[on_shape] += (options.shadow_lift_shape * shape.cell_size) * hits.normal[sel[on_shape]]
+    near = pset.near(pts, dirs)
+    for k, patch in enumerate(pset.patches):
+        own = surf == k
+        cand = np.flatnonzero((near[:, k] | own) & ~blocked)
+        if cand.size == 0:
+            continue
+        zlo, zhi = patch.height_range
+        # one slab pass against the box raised by the relief: for the patch's own points its exit is
+        # where the shadow ray leaves the patch column (the shape is replaced by the patch inside it)
+        ol, dl, tn, tf = _local_rays(patch, pts[cand], dirs[cand], top_extra=(zhi - zlo) + 1.0)
+        mine = own[cand]
+        if mine.any():
+            ol[mine] = hits.local[sel[cand[mine]]]
+            ol[mine, 2] += options.shadow_offset_cells
+            tn[mine] = 0.0
+            t_shape_min[cand[mine]] = np.maximum(t_shape_min[cand[mine]], tf[mine])
+        ok = tf >= tn
+        tp = np.full(cand.size, np.nan)
+        tp[ok] = _intersect_patch(patch, ol[ok], dl[ok], tn[ok], tf[ok])
+        blocked[cand[np.isfinite(tp)]] = True
+    if shape is not None:
+        rest = np.flatnonzero(~blocked)
+        if rest.size:
+            blocked[rest] = shape.shadow_shape.any_hit(pts[rest], dirs[rest], t_min=t_shape_min[rest])
+    out[sel] = blocked
+    return out
+
+
+def shade(
+    hits: SurfaceHits, directions, sun, *, options: RenderOptions = RenderOptions(), shadow=None
+) -> np.ndarray:
+    """Radiance R(μ₀, μ, α)·albedo of each hit (0 for sky and, when given, where ``shadow`` is True)."""
+    sun = _vec3(sun, "sun")
+    sun = sun / np.linalg.norm(sun)
+    d = np.asarray(directions, dtype=np.float64)
+    e = -d / np.linalg.norm(d, axis=1, keepdims=True)  # toward the camera
+    out = np.zeros(hits.surface.shape[0])
+    m = np.flatnonzero(hits.hit)
+    if m.size == 0:
+        return out
+    nrm = hits.normal[m]
+    mu0 = nrm @ sun
+    mu = np.sum(nrm * e[m], axis=1)
+    alpha = phase_angle_deg(sun, e[m])
+    r = reflectance(mu0, mu, alpha, options.photometry)
+    if options.use_albedo:
+        r = r * hits.albedo[m]
+    if shadow is not None:
+        r = np.where(shadow[m], 0.0, r)
+    out[m] = r
+    return out
+
+
+def _window(camera, window):
+    if window is None:
+        return 1, camera.npx, 1, camera.nln
+    s0, s1, l0, l1 = (int(v) for v in window)
+    if not (1 <= s0 <= s1 and 1 <= l0 <= l1):
+        raise SpcUsageError(f"render window must satisfy 1 <= s0 <= s1 and 1 <= l0 <= l1, got {window}")
+    return s0, s1, l0, l1
+
+
+def render(
+    camera, sun, shape=None, patches=(), options: RenderOptions | None = None, *, window=None, albedo_fn=None
+) -> Rendering:
+    """Render the pixels of ``window`` = (s0, s1, l0, l1) (1-based, inclusive; default the whole photo).
+
+    ``camera``: a :class:`spctool.geometry.camera.Camera` (pose and intrinsics); ``sun``: body→Sun
+    direction (SUM ``SZ``); ``shape``: an ICQ/mesh/geometry shape or :class:`ShapeSurface` (or None);
+    ``patches``: :class:`HeightPatch` objects or maplets.
+    """
+    options = options or RenderOptions()
+    sun = _vec3(sun, "sun")
+    sun = sun / np.linalg.norm(sun)
+    surf = None if shape is None else ShapeSurface.from_model(shape)
+    plist = _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    s0, s1, l0, l1 = _window(camera, window)
+    nss = int(options.supersample)
+    offs = (np.arange(nss) + 0.5) / nss - 0.5
+    width = s1 - s0 + 1
+    height = l1 - l0 + 1
+    rad = np.zeros((height, width))
+    cov = np.zeros((height, width))
+    shd = np.zeros((height, width))
+    sid = np.full((height, width), SKY, dtype=np.int16)
+    rays_per_line = width * nss * nss
+    lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
+    origin = camera.position
+    samples = np.arange(s0, s1 + 1, dtype=np.float64)
+    for a in range(0, height, lines_per_chunk):
+        b = min(height, a + lines_per_chunk)
+        lines = np.arange(l0 + a, l0 + b, dtype=np.float64)
+        # sub-ray grid: (line, sub-line, sample, sub-sample)
+        ll = lines[:, None, None, None] + offs[None, :, None, None]
+        ss = samples[None, None, :, None] + offs[None, None, None, :]
+        ll, ss = np.broadcast_arrays(ll, ss)
+        shape4 = ll.shape
+        dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
+        ok = np.all(np.isfinite(dirs), axis=1)
+        hits = trace(
+            origin, np.where(ok[:, None], dirs, np.array([0.0, 0.0, 1.0])), surf, plist, albedo_fn=albedo_fn
+        )
+        if not ok.all():
+            hits.surface[~ok] = SKY
+        lit_facing = hits.hit & (np.sum(np.nan_to_num(hits.normal) * sun, axis=1) > 0)
+        sh = (
+            shadowed(hits, sun, surf, plist, options=options, which=lit_facing)
+            if options.shadows
+            else np.zeros(hits.surface.shape[0], bool)
+        )
+        r = shade(hits, dirs, sun, options=options, shadow=sh)
+        k = nss * nss
+        rad[a:b] = r.reshape(shape4).mean(axis=(1, 3))
+        cov[a:b] = hits.hit.reshape(shape4).sum(axis=(1, 3)) / k
+        shd[a:b] = sh.reshape(shape4).sum(axis=(1, 3)) / k
+        sid[a:b] = hits.surface.reshape(shape4)[:, 0, :, 0]
+    return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options)
+
+
+def cull_patches(camera, patches, window=None, margin_px: float = 4.0) -> list:
+    """The patches whose bounding sphere can appear in the window (default the whole photo).
+
+    A cheap pre-selection for working directories with many maplets: the sphere around each patch box
+    is projected (centre pixel ± its angular radius in pixels, ×1.2 for distortion, + ``margin_px``);
+    patches behind the camera or off the window are dropped; a camera inside a sphere keeps it.
+    """
+    plist = [p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches]
+    if not plist:
+        return []
+    s0, s1, l0, l1 = _window(camera, window)
+    pset = _PatchSet(plist)
+    c = pset.centres
+    rad = np.sqrt(pset.radii2)
+    rel = c - camera.position
+    dist = np.linalg.norm(rel, axis=1)
+    ahead = rel @ camera.boresight
+    smp, lin = camera.project(c)
+    r_px = 1.2 * np.arcsin(np.clip(rad / np.maximum(dist, 1e-300), 0, 1)) / camera.ifov + margin_px
+    ok = (
+        (smp + r_px >= s0)
+        & (smp - r_px <= s1)
+        & (lin + r_px >= l0)
+        & (lin - r_px <= l1)
+        & (ahead > 0)
+        & np.isfinite(smp)
+        & np.isfinite(lin)
+    )
+    # spheres reaching behind the camera plane project badly: keep them when they could be in view
+    near = (dist <= rad) | ((ahead <= rad) & (ahead > -rad))
+    keep = ok | near
+    return [p for p, k in zip(plist, keep) if k]
+
+
+def sky(camera, window=None) -> Rendering:
+    """An empty rendering (nothing hit) of the window — handy for callers that skip empty views."""
+    s0, s1, l0, l1 = _window(camera, window)
+    shp = (l1 - l0 + 1, s1 - s0 + 1)
+    return Rendering(
+        np.zeros(shp), np.zeros(shp), np.zeros(shp), np.full(shp, SKY, np.int16), (s0, s1, l0, l1)
+    )

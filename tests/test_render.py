@@ -1,0 +1,242 @@
+"""spctool.stages.render against analytic cases: a tilted plane's brightness, a sphere's terminator, a
+block's shadow length; the patch/shape composition rule; windows and supersampling."""
+
+import math
+
+import numpy as np
+import pytest
+
+from spctool.errors import SpcUsageError
+from spctool.formats.icq import IcqShape, icq_cube_grid
+from spctool.geometry.camera import Camera
+from spctool.geometry.frames import orient_frame
+from spctool.photometry import phase_angle_deg, reflectance
+from spctool.sim.simulate import look_rotation
+from spctool.stages.render import (
+    SHAPE,
+    SKY,
+    HeightPatch,
+    RenderOptions,
+    ShapeSurface,
+    cull_patches,
+    render,
+    trace,
+)
+
+
+def _camera(position, target, npx=200, nln=200, mmfl=10.0, k=100.0, roll=0.0, model="NONE", coef=()):
+    return Camera(
+        mmfl=mmfl,
+        ctr=[(npx + 1) / 2, (nln + 1) / 2],
+        kmatrix=[[k, 0, 0], [0, k, 0]],
+        rotation=look_rotation(position, target, roll),
+        scobj=-np.asarray(position, float),
+        npx=npx,
+        nln=nln,
+        model=model,
+        coefficients=np.asarray(coef, float),
+    )
+
+
+def _frame(normal=(0.3, -0.2, 0.9)):
+    ux, uy, uz = orient_frame(np.asarray(normal, float))
+    return ux, uy, uz
+
+
+def _pixels(cam, window=None):
+    s0, s1, l0, l1 = window or (1, cam.npx, 1, cam.nln)
+    ll, ss = np.mgrid[l0 : l1 + 1, s0 : s1 + 1].astype(float)
+    return ss, ll
+
+
+# ------------------------------------------------------------------------------------------------
+# a tilted plane
+
+
+@pytest.mark.parametrize("model", ["lambert", "spc", "mcewen"])
+def test_tilted_plane_brightness_is_the_photometric_law(model):
+    ux, uy, uz = _frame()
+    v = np.array([0.2, 0.05, 0.3])
+    scale, q, a, b = 0.001, 30, 0.3, -0.2
+    x = np.arange(-q, q + 1.0)
+    heights = a * x[:, None] + b * x[None, :]  # x along UX (axis 0), y along UY (axis 1)
+    patch = HeightPatch(heights, scale, v, ux, uy, uz, albedo=np.full(heights.shape, 0.8))
+    n = -a * ux - b * uy + uz
+    n /= np.linalg.norm(n)
+    sun = n + 0.6 * ux + 0.2 * uy
+    sun /= np.linalg.norm(sun)
+    pos = v + 0.15 * (uz + 0.4 * uy - 0.3 * ux)
+    cam = _camera(pos, v, model="OWEN", coef=[0, 1e-4, 2e-3, 0, 0, 1e-5, 0])
+    r = render(cam, sun, None, [patch], RenderOptions(photometry=model))
+    # independent: ray–plane intersection and the law evaluated by hand
+    ss, ll = _pixels(cam)
+    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
+    o = cam.position
+    t = ((v - o) @ n) / (d @ n)
+    hit_pt = o + t[:, None] * d
+    loc = (hit_pt - v) @ np.column_stack([ux, uy, uz]) / scale
+    inside = (np.abs(loc[:, 0]) < q - 1e-6) & (np.abs(loc[:, 1]) < q - 1e-6)
+    e = -d
+    want = reflectance(np.full(d.shape[0], n @ sun), e @ n, phase_angle_deg(sun, e), model) * 0.8
+    got = r.radiance.ravel()
+    assert inside.sum() > 5000
+    np.testing.assert_allclose(got[inside], want[inside], rtol=1e-9, atol=1e-12)
+    assert np.all(r.surface.ravel()[inside] == 0) and np.all(r.shadow.ravel()[inside] == 0)
+    assert np.all(got[~inside & (r.coverage.ravel() == 0)] == 0)
+    # the crossing itself is exact
+    hits = trace(o, d[inside], None, [patch])
+    np.testing.assert_allclose(hits.t, t[inside], rtol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# a sphere
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    q = 32
+    g = icq_cube_grid(q)
+    return IcqShape(q, g / np.linalg.norm(g, axis=-1, keepdims=True))  # R = 1 km
+
+
+def test_sphere_terminator_and_lambert_shading(sphere):
+    cam = _camera([0.0, -6.0, 0.0], [0.0, 0.0, 0.0], npx=400, nln=400)
+    sun = np.array([1.0, 0.0, 0.0])
+    r = render(cam, sun, sphere, [], RenderOptions(photometry="lambert"))
+    ctr = cam.ctr[0]
+    # the terminator (the great circle x = 0) contains the camera: it projects to a straight line
+    # through the photo centre; CX = z x CZ = -x, so the lit (x > 0) side is at small samples
+    assert cam.rotation[0] @ np.array([1.0, 0, 0]) == pytest.approx(-1.0)
+    ss, ll = _pixels(cam)
+    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
+    hits = trace(cam.position, d, ShapeSurface.from_model(sphere))
+    x = hits.point[:, 0] / np.linalg.norm(hits.point, axis=1)  # the true mu0 = x/R at the hit
+    body = (r.coverage == 1.0).ravel()
+    # away from the limb (grazing rays: emission ~90°) ...
+    centre = -cam.position / np.linalg.norm(cam.position)
+    theta = np.arccos(np.clip(d @ centre, -1, 1))
+    limb_px = (math.asin(1.0 / np.linalg.norm(cam.position)) - theta) / cam.ifov  # > 0 inside the disc
+    inner = body & (limb_px > 3)
+    # ... the lit side (x > 0) is lit and the night side dark.  Within about one facet angle of the
+    # terminator (q = 32: 2.8°, mu0 < 0.05) the next facet of the ICQ model casts its shadow, as the
+    # faceted shape really does; 0.08 leaves room for that.
+    rad = r.radiance.ravel()
+    assert np.all(rad[inner & (x > 0.08)] > 0)
+    assert np.all(rad[inner & (x < -0.005)] == 0)
+    # in pixels: the terminator is the photo's centre column
+    assert np.all(rad[inner & (ss.ravel() < ctr - 15)] > 0) and np.all(
+        rad[inner & (ss.ravel() > ctr + 3)] == 0
+    )
+    # Lambert on the lit side: mu0 = n.s with n the sphere's radial direction at the hit
+    lit = inner & (x > 0.08)
+    np.testing.assert_allclose(rad[lit], x[lit], atol=0.01)
+    # the limb: every body pixel's ray meets the unit sphere, sky pixels' rays miss it (±1 px)
+    assert np.all(body[limb_px > 1.5]) and not np.any(r.coverage.ravel()[limb_px < -1.5])
+
+
+# ------------------------------------------------------------------------------------------------
+# a block's shadow
+
+
+def test_shadow_length_behind_a_block():
+    ux, uy, uz = _frame((0.1, 0.2, 1.0))
+    v = np.array([0.05, 0.1, 0.5])
+    scale, q, height = 0.001, 40, 6.0
+    h = np.zeros((2 * q + 1, 2 * q + 1))
+    x0, x1, y0, y1 = 10, 14, -5, 5  # block nodes (cells); walls slope over one cell
+    h[q + x0 : q + x1 + 1, q + y0 : q + y1 + 1] = height
+    patch = HeightPatch(h, scale, v, ux, uy, uz)
+    elev = math.radians(30.0)
+    sun = math.cos(elev) * ux + math.sin(elev) * uz  # the Sun low in the +x direction
+    cam = _camera(v + 0.25 * uz, v, npx=300, nln=300)  # nadir, 0.25 m per pixel = 4 px per cell
+    r = render(cam, sun, None, [patch], RenderOptions(photometry="lambert"))
+    ss, ll = _pixels(cam)
+    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
+    hits = trace(cam.position, d, None, [patch])
+    x, y = hits.local[:, 0], hits.local[:, 1]
+    ground = (hits.surface == 0) & (np.abs(hits.local[:, 2]) < 1e-9)
+    dark = r.radiance.ravel() == 0
+    row = ground & (np.abs(y) < 3) & (x < x0 - 1)
+    # the top edge at x0 casts its shadow to x0 − H/tan(elevation)
+    end = x0 - height / math.tan(elev)
+    shadowed_x = x[row & dark]
+    assert shadowed_x.min() == pytest.approx(end, abs=0.3)  # one pixel is 0.25 cells
+    assert np.all(~dark[row & (x < end - 0.3)])
+    # lit ground is Lambert cos(60°); no shadow beside the block
+    assert np.allclose(r.radiance.ravel()[row & (x < end - 0.3)], math.sin(elev), rtol=1e-9)
+    beside = ground & (np.abs(y) > y1 + 2) & (x > end) & (x < x0 - 1)
+    assert beside.sum() > 100 and not np.any(dark[beside])
+    # beyond the wall's foot (where the interpolated normals of the wall tilt away) it is cast shadow
+    assert r.shadow.ravel()[row & dark & (x < x0 - 2)].min() == 1.0
+    # without shadows the same ground is lit
+    r2 = render(cam, sun, None, [patch], RenderOptions(photometry="lambert", shadows=False))
+    assert np.all(r2.radiance.ravel()[row & (x < x0 - 2)] > 0.4)
+
+
+# ------------------------------------------------------------------------------------------------
+# composition, windows, supersampling
+
+
+def test_patch_replaces_the_shape_in_its_footprint(sphere):
+    surf = ShapeSurface.from_model(sphere)
+    ux, uy, uz = orient_frame(np.array([0.0, 0.0, 1.0]))
+    q, scale = 20, 0.01
+    x = np.arange(-q, q + 1.0)
+    rr = (x[:, None] ** 2 + x[None, :] ** 2) * scale**2
+    sphere_h = (np.sqrt(1.0 - rr) - 1.0) / scale  # the sphere under the patch, in cells
+    patch = HeightPatch(sphere_h - 0.5, scale, [0, 0, 1.0], ux, uy, uz)  # half a cell *below* the shape
+    cam = _camera([0.0, 0.0, 3.0], [0.0, 0.0, 0.0], npx=160, nln=160)
+    r = render(cam, [0.3, 0.2, 1.0], surf, [patch])
+    ss, ll = _pixels(cam)
+    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
+    hits = trace(cam.position, d, surf, [patch])
+    in_fp = (np.abs(hits.local[:, 0]) < q) & (np.abs(hits.local[:, 1]) < q)
+    assert np.all(hits.surface[hits.surface == 0] == 0) and in_fp.sum() > 1000
+    # inside the footprint the lower patch wins although the shape is nearer
+    res = surf.shape.first_hit(cam.position, d)
+    inner = in_fp & (np.abs(hits.local[:, 0]) < q - 2) & (np.abs(hits.local[:, 1]) < q - 2)
+    assert np.all(hits.surface[inner] == 0) and np.all(hits.t[inner] > res.t[inner])
+    outside = res.hit & (hits.surface == SHAPE)
+    np.testing.assert_array_equal(hits.t[outside], res.t[outside])
+    assert np.all(r.surface[r.coverage == 0] == SKY)
+
+
+def test_window_is_a_crop_and_supersampling_counts_subrays(sphere):
+    cam = _camera([0.0, -4.0, 1.0], [0.0, 0.0, 0.0], npx=120, nln=100, k=20.0)
+    opt = RenderOptions(supersample=3)
+    full = render(cam, [1.0, -0.5, 0.3], sphere, [], opt)
+    win = (20, 70, 31, 60)
+    part = render(cam, [1.0, -0.5, 0.3], sphere, [], opt, window=win)
+    s0, s1, l0, l1 = win
+    np.testing.assert_array_equal(part.radiance, full.radiance[l0 - 1 : l1, s0 - 1 : s1])
+    np.testing.assert_array_equal(part.coverage, full.coverage[l0 - 1 : l1, s0 - 1 : s1])
+    frac = full.coverage * 9
+    assert np.allclose(frac, np.round(frac)) and np.any((full.coverage > 0) & (full.coverage < 1))
+    with pytest.raises(SpcUsageError):
+        render(cam, [1, 0, 0], sphere, [], window=(10, 5, 1, 2))
+
+
+def test_cull_patches_keeps_what_the_camera_can_see():
+    cam = _camera([0.0, 0.0, 2.0], [0.0, 0.0, 0.0], npx=100, nln=100)
+    ux, uy, uz = orient_frame(np.array([0.0, 0.0, 1.0]))
+
+    def mk(c):
+        return HeightPatch(np.zeros((11, 11)), 0.001, c, ux, uy, uz)
+
+    seen = mk([0.0, 0.0, 1.0])
+    off = mk([0.5, 0.0, 1.0])  # ~27° off the boresight; the half field of view is ~2.9°
+    behind = mk([0.0, 0.0, 3.0])
+    kept = cull_patches(cam, [seen, off, behind])
+    assert kept == [seen]
+
+
+def test_height_patch_validation():
+    ux, uy, uz = orient_frame(np.array([0.0, 0.0, 1.0]))
+    with pytest.raises(SpcUsageError):
+        HeightPatch(np.zeros((4, 4)), 0.001, [0, 0, 1], ux, uy, uz)
+    with pytest.raises(SpcUsageError):
+        HeightPatch(np.zeros((5, 5)), 0.0, [0, 0, 1], ux, uy, uz)
+    with pytest.raises(SpcUsageError):
+        HeightPatch(np.zeros((5, 5)), 0.001, [0, 0, 1], ux, uy, uz, valid=np.zeros((5, 5), bool))
+    with pytest.raises(SpcUsageError):
+        RenderOptions(photometry="phong")
