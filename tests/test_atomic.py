@@ -45,3 +45,15 @@ def test_read_text_strips_cr(tmp_path):
     p = tmp_path / "c"
     p.write_bytes(b"a\r\nb\r\n")
     assert atomic.read_text(p) == "a\nb\n"
+
+
+def test_new_files_get_umask_permissions(tmp_path):
+    umask = os.umask(0o022)
+    try:
+        atomic.write_text(tmp_path / "new", "x")
+        assert (tmp_path / "new").stat().st_mode & 0o777 == 0o644
+        os.chmod(tmp_path / "new", 0o600)
+        atomic.write_text(tmp_path / "new", "y")  # an existing file keeps its mode
+        assert (tmp_path / "new").stat().st_mode & 0o777 == 0o600
+    finally:
+        os.umask(umask)

@@ -41,6 +41,10 @@ def write_bytes(path, data: bytes, *, overwrite: bool = True, backup: bool = Fal
             fh.write(data)
         if path.exists():
             shutil.copymode(path, tmp)
+        else:  # mkstemp creates 0600; a new file gets the usual 0666 less the umask
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         try:
