@@ -1,0 +1,1115 @@
+"""Batch runs: many pictures × the navigation stages, in local processes or on a Dask cluster.
+
+A mission measures thousands of pictures against thousands of landmarks.  For each picture of a
+PICTLIST (spc-formats.md §7.1) :func:`navigate_picture` runs the stages the way the command chain of
+cli-contract.md does::
+
+    lithos-select PIC  →  register PIC --landmarks sel  →  solve-pose PIC --measurements reg
+
+* **select** (Stage A, :func:`spctool.stages.select.select_maplets`): the candidates of LMRKLIST.TXT
+  (else LMKFILES/*.LMK) at their LMK VLM (else the MAP's V), options from INIT_LITHOS
+  (:meth:`SelectOptions.from_settings`), the occlusion test when the working directory has a shape;
+* **register** (Stage H, :func:`spctool.stages.register.register`): the selected landmarks, starting at
+  their selected pixels, with the MAPFILES/ maplets; the default schedule is SPC's AUTOREGISTER
+  (spc-algorithms.md §9.2–9.3: align at spacing 2 and 1 with a pose solve after each pass, drop
+  ρ < 0.5, align at 1) because that is what SPC's own batch seeds (``make_scriptA.seed``) run;
+* **solve-pose** (Stage I, :func:`spctool.stages.pose.solve_pose`): the landmarks registered ``ok`` at
+  their LMK VLM, from the SUM's a-priori pose with SIGMA_VSO / SIGMA_PTG as prior (spc-algorithms.md
+  §10.3).
+
+Outputs (under ``out_dir``, SPC layout; every file written atomically, see :mod:`spctool.formats.atomic`):
+
+* ``SUMFILES/<PIC>.SUM`` — a copy of the input SUM with the registered landmarks in its LANDMARKS section
+  (new pixels for ``ok`` landmarks, added when absent, other rows kept) and, when the pose solve
+  converged, the solved SCOBJ, CX, CY, CZ, SIGMA_VSO and SIGMA_PTG; every other line is byte-identical
+  (``formats.sumfile`` rewrites changed lines only);
+* ``TABLES/<PIC>.select.txt``, ``TABLES/<PIC>.register.txt``, ``TABLES/<PIC>.pose.txt`` — the landmark
+  tables of the three stages (cli-contract.md "Landmark tables");
+* ``TABLES/<PIC>.done.json`` — the done-marker, written **last**: the picture's summary row, its timings,
+  the options fingerprint and the SHA-256 of the input SUM.  A picture counts as done only when its
+  marker exists and both fingerprints match, so a batch interrupted at any instant resumes safely:
+  a picture is redone (its old outputs and marker removed first) unless ``force`` is False and it is
+  done with the same options and the same input SUM.  Failed pictures get no marker (they are retried);
+* ``BATCH_SUMMARY.txt`` / ``BATCH_SUMMARY.json`` — the summary of the last run, written by the driver.
+
+Status of a picture (the summary's ``status`` column): ``ok`` (pose solved and converged, SUM updated);
+``no-pose: <reason>`` (the stages ran but the pose could not be solved — too few landmarks registered,
+degenerate geometry or no convergence; the SUM copy holds the registered landmarks, pose unchanged;
+this is a result, not a failure); ``failed: <one line>`` (the picture could not be processed — a
+missing or malformed file, an internal error; nothing is marked done).  A failure never stops the
+batch.
+
+Parallelism (:func:`run_batch`) never changes a result: each picture is computed from its own input
+files by the same function with fixed options (no random draws), results are collected by picture
+index and the summary is in picture order, so ``jobs=1``, ``jobs=N`` (a spawn-started
+:class:`~concurrent.futures.ProcessPoolExecutor`, numba limited to cores/N threads per process) and a
+Dask cluster (``scheduler``; ``pip install 'spctool[dask]'``; the workers must see the working and
+output directories at the same paths) write byte-identical files.  Data shared by every picture — the
+settings, the candidate landmark geometry, the shape model and a bounded cache of maplets — is loaded
+once per worker process (:class:`SharedData`), not once per picture.  One process computes one
+picture at a time (a process-wide lock: several threads of one Dask worker would otherwise launch
+numba's parallel kernels concurrently), so give Dask workers one thread each.
+
+Not done here: LMK ``PICTURES`` sections are not updated — several pictures would write the same LMK
+file concurrently; SPC's own batch updates them in a separate serial step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from spctool import __version__
+from spctool.errors import SpcError, SpcFormatError, SpcUsageError
+from spctool.formats import atomic
+from spctool.formats.workdir import WorkDir
+from spctool.stages.pose import PoseError, PoseOptions
+from spctool.stages.register import RegisterOptions
+
+__all__ = [
+    "BatchOptions",
+    "BatchResult",
+    "PictureOutcome",
+    "PictureSummary",
+    "SharedData",
+    "batch_pictures",
+    "navigate_picture",
+    "output_paths",
+    "run_batch",
+]
+
+MARKER_FORMAT = "spctool-batch-done/1"
+SUMMARY_FORMAT = "spctool-batch/1"
+TABLES_DIR = "TABLES"
+SUMMARY_STEM = "BATCH_SUMMARY"
+#: status words of a picture; the text after ``": "`` is the one-line reason
+STATUSES = ("ok", "no-pose", "failed")
+
+
+# --------------------------------------------------------------------------------------------------
+# options
+
+
+def _default_register() -> RegisterOptions:
+    return RegisterOptions(schedule="autoregister")
+
+
+@dataclass
+class BatchOptions:
+    """Everything that decides a picture's result (and so its resume fingerprint).
+
+    * ``select`` — overrides of :class:`spctool.stages.select.SelectOptions` applied after INIT_LITHOS
+      (``SelectOptions.from_settings(settings, **select)``; None values ignored).
+    * ``occlusion`` — None: run the occlusion test when a shape model exists; True: require one;
+      False: never.
+    * ``register`` — :class:`RegisterOptions` (default: the AUTOREGISTER schedule in maplet space).
+    * ``pose`` — :class:`PoseOptions` of the final solve (the AUTOREGISTER passes use ``register.pose``).
+    * ``settings_path`` / ``shape_path`` — explicit INIT_LITHOS and shape files (default: the working
+      directory's INIT_LITHOS.TXT and SHAPEFILES/SHAPE.TXT when present).
+    * ``maplet_cache`` — maplets kept per worker process (least recently used dropped first).
+    """
+
+    select: dict = field(default_factory=dict)
+    occlusion: bool | None = None
+    register: RegisterOptions = field(default_factory=_default_register)
+    pose: PoseOptions = field(default_factory=PoseOptions)
+    settings_path: str | None = None
+    shape_path: str | None = None
+    maplet_cache: int = 4096
+
+    def __post_init__(self):
+        from spctool.stages.select import SelectOptions
+
+        known = {f.name for f in dataclasses.fields(SelectOptions)}
+        unknown = sorted(set(self.select) - known)
+        if unknown:
+            raise SpcUsageError(f"unknown selection option(s): {', '.join(unknown)}")
+        if self.occlusion is not None:
+            self.occlusion = bool(self.occlusion)
+        self.maplet_cache = int(self.maplet_cache)
+        if self.maplet_cache < 0:
+            raise SpcUsageError(f"maplet_cache must be >= 0, got {self.maplet_cache}")
+        for name in ("settings_path", "shape_path"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, str(Path(value).resolve()))
+
+    def as_dict(self) -> dict:
+        return {
+            "select": {k: v for k, v in sorted(self.select.items()) if v is not None},
+            "occlusion": self.occlusion,
+            "register": self.register.as_dict(),
+            "pose": dataclasses.asdict(self.pose),
+            "settings_path": self.settings_path,
+            "shape_path": self.shape_path,
+        }
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the options that decide a result (``maplet_cache`` does not)."""
+        text = json.dumps(_jsonable(self.as_dict()), sort_keys=True, allow_nan=True)
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _jsonable(v):
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return repr(v)
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return v
+    return repr(v)
+
+
+# --------------------------------------------------------------------------------------------------
+# data shared by the pictures of one worker
+
+
+class SharedData:
+    """Per-process data of a batch: settings, select options, candidate geometry, shape, maplets.
+
+    Built once per (working directory, options) in each worker process (:meth:`get`); the maplet
+    cache is bounded (``options.maplet_cache``) and holds read failures too, so a missing MAP is
+    reported for every picture that selects it without being re-read.
+    """
+
+    _lock = threading.Lock()
+    _instances: OrderedDict = OrderedDict()
+
+    def __init__(self, workdir, options: BatchOptions):
+        from spctool.stages.select import SelectOptions
+
+        self.wd = WorkDir(Path(workdir))
+        self.options = options
+        self.settings = self.wd.read_settings(options.settings_path)
+        self.select_options = SelectOptions.from_settings(self.settings, **options.select)
+        names = self.wd.landmark_names()
+        if not names:
+            raise SpcUsageError(
+                f"{self.wd.root}: no candidate landmarks (no LMRKLIST.TXT, no LMKFILES/*.LMK)"
+            )
+        rows = [_candidate_row(self.wd, n) for n in names]
+        self.names = [r[0] for r in rows]
+        n = len(rows)
+
+        def stack(k, width):
+            return np.array([r[k] for r in rows], dtype=np.float64).reshape(n, width)
+
+        self.centres = stack(1, 3)
+        self.ux, self.uy, self.uz = stack(2, 3), stack(3, 3), stack(4, 3)
+        self.scale = stack(5, 1).reshape(n)
+        self.qsz = np.array([r[6] for r in rows], dtype=np.int64).reshape(n)
+        self.index = {name: i for i, name in enumerate(self.names)}
+        self.shape = None
+        if options.occlusion is not False:
+            path = options.shape_path
+            if path or self.wd.shape_path.exists():
+                self.shape = _shape_model(self.wd.read_shape(path))
+            if self.shape is None and options.occlusion:
+                raise SpcUsageError(
+                    f"the occlusion test needs a shape model ({self.wd.shape_path} not found)"
+                )
+            if self.shape is not None:
+                self.shape.max_diameter  # noqa: B018  (build the cached hierarchy once, here)
+        self._maplets: OrderedDict = OrderedDict()
+
+    @classmethod
+    def get(cls, workdir, options: BatchOptions, token: str | None = None) -> SharedData:
+        """The instance for (``workdir``, ``options``, ``token``), built on first use.  A batch passes
+        its own ``token``, so every batch reads the working directory afresh (files may have changed
+        between two batches run by a long-lived Dask worker); the last two instances are kept."""
+        key = (str(Path(workdir).resolve()), options.fingerprint(), token)
+        with cls._lock:
+            data = cls._instances.get(key)
+            if data is None:
+                data = cls(workdir, options)
+                cls._instances[key] = data
+                while len(cls._instances) > 2:
+                    cls._instances.popitem(last=False)
+            cls._instances.move_to_end(key)
+            return data
+
+    @classmethod
+    def clear(cls) -> None:
+        with cls._lock:
+            cls._instances.clear()
+
+    def maplet(self, name: str):
+        """The maplet of ``name`` (MAPFILES/, then EXTFILES/), or the SpcFormatError reading it."""
+        item = self._maplets.get(name)
+        if item is None:
+            try:
+                item = self.wd.read_maplet(name)
+            except SpcFormatError as exc:
+                item = exc
+            if self.options.maplet_cache:
+                self._maplets[name] = item
+                while len(self._maplets) > self.options.maplet_cache:
+                    self._maplets.popitem(last=False)
+        else:
+            self._maplets.move_to_end(name)
+        return item
+
+
+def _candidate_row(wd: WorkDir, name: str):
+    """(name, V, UX, UY, UZ, SCALE, QSZ) from LMKFILES/<name>.LMK (V = VLM), else from the MAP (V),
+    as ``lithos-select`` and ``register`` take them."""
+    if wd.lmk_path(name).exists():
+        obj = wd.read_landmark(name)
+        centre = obj.vlm
+    elif wd.map_path(name).exists():
+        obj = wd.read_maplet(name)
+        centre = obj.v
+    else:
+        raise SpcFormatError(
+            wd.lmk_path(name), None, f"the LMK (or MAP) file of landmark {name} (file not found)"
+        )
+    return (name, centre, obj.ux, obj.uy, obj.uz, float(obj.scale), int(obj.qsz))
+
+
+def _shape_model(obj):
+    """A geometry shape from what ``formats`` read: ICQ → bilinear patches, mesh → triangles."""
+    if obj is None or hasattr(obj, "first_hit"):
+        return obj
+    from spctool.geometry.shape import PatchShape, TriangleShape
+
+    verts = np.asarray(getattr(obj, "vertices", None))
+    if verts.ndim == 4:
+        return PatchShape(obj)
+    if getattr(obj, "faces", None) is not None:
+        return TriangleShape(obj)
+    raise SpcUsageError(f"cannot use a {type(obj).__name__} as a shape model")
+
+
+# --------------------------------------------------------------------------------------------------
+# one picture
+
+
+@dataclass
+class PictureSummary:
+    """One row of the batch summary (small and picklable: what a worker sends back)."""
+
+    picture: str
+    status: str
+    candidates: int = 0
+    selected: int = 0
+    found: int = 0
+    used: int = 0
+    rms_before_px: float = math.nan
+    rms_after_px: float = math.nan
+    dposition_km: float = math.nan
+    dattitude_rad: float = math.nan
+    converged: bool = False
+    delta_position: list = field(default_factory=lambda: [math.nan] * 3)
+    delta_attitude: list = field(default_factory=lambda: [math.nan] * 3)
+    timings: dict = field(default_factory=dict)
+    resumed: bool = False
+
+    @property
+    def kind(self) -> str:
+        """``ok``, ``no-pose`` or ``failed`` (the status without its reason)."""
+        return self.status.split(":", 1)[0]
+
+    @property
+    def failed(self) -> bool:
+        return self.kind == "failed"
+
+    def result_dict(self) -> dict:
+        """The deterministic part (no timings, no resume flag): equal whatever the parallelism."""
+        d = dataclasses.asdict(self)
+        d.pop("timings")
+        d.pop("resumed")
+        return d
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PictureSummary:
+        known = {f.name for f in dataclasses.fields(cls)}
+        values = {k: v for k, v in d.items() if k in known}
+        for k in ("rms_before_px", "rms_after_px", "dposition_km", "dattitude_rad"):
+            if values.get(k) is None:
+                values[k] = math.nan
+        for k in ("delta_position", "delta_attitude"):
+            if k in values:
+                values[k] = [math.nan if x is None else float(x) for x in values[k]]
+        return cls(**values)
+
+
+@dataclass
+class PictureOutcome:
+    """Everything :func:`navigate_picture` produced for one picture.
+
+    ``select`` (SelectResult), ``register`` (RegisterResult), ``pose`` (PoseResult) are None for the
+    stages that did not run; the ``*_table`` attributes are the landmark tables written to
+    ``TABLES/``; ``sum_text`` the updated SUM (None when the picture failed before registering).
+    """
+
+    summary: PictureSummary
+    select: object = None
+    register: object = None
+    pose: object = None
+    select_table: object = None
+    register_table: object = None
+    pose_table: object = None
+    sum_text: str | None = None
+    input_sha256: str | None = None
+
+    @property
+    def status(self) -> str:
+        return self.summary.status
+
+
+def _one_line(text: str, limit: int = 300) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _failure_text(exc: BaseException) -> str:
+    if isinstance(exc, SpcError):
+        return _one_line(str(exc))
+    return _one_line(f"internal error: {type(exc).__name__}: {exc}")
+
+
+#: one picture at a time per process (numba's default threading layer cannot run parallel kernels
+#: from several threads at once; see the module docstring)
+_COMPUTE_LOCK = threading.Lock()
+
+
+def navigate_picture(
+    workdir,
+    picture: str,
+    options: BatchOptions | None = None,
+    *,
+    shared: SharedData | None = None,
+    token: str | None = None,
+) -> PictureOutcome:
+    """Run lithos-select → register → solve-pose for one picture of ``workdir`` (module docstring).
+
+    Pure apart from reading the working directory: nothing is written (see :func:`write_outcome`).
+    Never raises (interrupts apart): any problem — with this picture's files or with the shared data
+    — is ``summary.status == "failed: <one line>"``.  ``shared``: the worker's :class:`SharedData`
+    (default: ``SharedData.get(workdir, options, token)``).
+    """
+    options = options if options is not None else BatchOptions()
+    with _COMPUTE_LOCK:
+        return _navigate(workdir, picture, options, shared, token)
+
+
+def _navigate(workdir, picture, options, shared, token) -> PictureOutcome:
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    summary = PictureSummary(picture=picture, status="failed: not run", timings=timings)
+    out = PictureOutcome(summary)
+    try:
+        if shared is None:
+            shared = SharedData.get(workdir, options, token)
+        _run_stages(shared, picture, options, out, timings)
+    except Exception as exc:  # noqa: BLE001 - a picture's failure (MemoryError too) never stops the batch
+        summary.status = "failed: " + _failure_text(exc)
+    timings["total_s"] = time.perf_counter() - t0
+    return out
+
+
+def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: PictureOutcome, timings):
+    from spctool.formats.sumfile import parse_sum
+    from spctool.geometry.camera import Camera
+    from spctool.stages.pose import solve_pose
+    from spctool.stages.register import register
+    from spctool.stages.select import select_maplets
+
+    summary = out.summary
+    wd = shared.wd
+    clock = time.perf_counter()
+
+    # ---- inputs ----------------------------------------------------------------------------------
+    sum_path = wd.sum_path(picture)
+    try:
+        raw = sum_path.read_bytes()
+    except FileNotFoundError:
+        raise SpcFormatError(sum_path, None, f"the SUM file of picture {picture} (file not found)") from None
+    except OSError as exc:
+        raise SpcFormatError(sum_path, None, f"a readable SUM file ({exc.strerror})") from None
+    out.input_sha256 = hashlib.sha256(raw).hexdigest()
+    pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
+    camera = Camera.from_picture(pic, shared.settings)
+    photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
+    if photo.data.shape != (pic.nln, pic.npx):
+        raise SpcFormatError(
+            wd.photo_path(pic.name),
+            None,
+            f"a {pic.npx} x {pic.nln} px photo as the SUM says (found {photo.npx} x {photo.nln})",
+        )
+    timings["read_s"] = time.perf_counter() - clock
+
+    # ---- Stage A: lithos-select ------------------------------------------------------------------
+    clock = time.perf_counter()
+    sel = select_maplets(
+        camera,
+        pic.sz,
+        shared.centres,
+        shared.ux,
+        shared.uy,
+        shared.uz,
+        shared.scale,
+        shared.qsz,
+        shared.names,
+        shared.select_options,
+        shape=shared.shape,
+    )
+    out.select = sel
+    summary.candidates = len(sel)
+    summary.selected = int(sel.n_selected)
+    out.select_table = sel.to_table(
+        picture=pic.name,
+        command="lithos-select",
+        meta={
+            "candidates": len(sel),
+            "selected": int(sel.n_selected),
+            "occlusion": "checked" if sel.occlusion_checked else "skipped",
+            "options": shared.select_options.as_dict(),
+        },
+    )
+    out.select_table.comments.append(
+        f"selected {sel.n_selected} of {len(sel)} candidate maplets; "
+        f"occlusion {'checked' if sel.occlusion_checked else 'skipped'}"
+    )
+    timings["select_s"] = time.perf_counter() - clock
+
+    # ---- Stage H: register -----------------------------------------------------------------------
+    clock = time.perf_counter()
+    chosen = np.flatnonzero(sel.selected)
+    names, maplets, apriori, missing = [], [], [], []
+    for i in chosen:  # file look-ups per selected landmark; the numerics are vectorised in the stages
+        name = sel.names[i]
+        m = shared.maplet(name)
+        if isinstance(m, SpcFormatError):
+            missing.append(name)
+            continue
+        names.append(name)
+        maplets.append(m)
+        apriori.append((sel.sample[i], sel.line[i]))
+    idx = np.array([shared.index[n] for n in names], dtype=np.int64)
+    positions = shared.centres[idx] if len(idx) else np.zeros((0, 3))
+    apriori = np.asarray(apriori, dtype=np.float64).reshape(-1, 2)
+    ropts = options.register
+    reg = register(
+        photo,
+        camera,
+        pic.sz,
+        maplets,
+        tuple(float(x) for x in pic.thrsh),
+        ropts,
+        apriori=apriori,
+        names=names,
+        positions=positions,
+        prior_sigma_position=pic.sigma_vso,
+        prior_sigma_attitude=pic.sigma_ptg,
+    )
+    out.register = reg
+    ok = reg.ok
+    summary.found = int(ok.sum())
+    meta = {
+        "landmark_source": "selection",
+        "schedule": ropts.schedule,
+        "space": ropts.space,
+        "thresholds": [float(x) for x in pic.thrsh],
+        "status_counts": reg.status_counts(),
+        "registered": summary.found,
+        "passes": reg.passes,
+        "options": ropts.as_dict(),
+        "warnings": list(reg.warnings),
+    }
+    table = reg.to_table(picture=pic.name, command="register", meta=meta)
+    if missing:
+        from spctool.formats.table import LandmarkTable
+
+        rows = table.rows()
+        for name in missing:
+            row = {k: math.nan for k in table.columns}
+            row.update(name=name, iterations=0, spacing=0, status="no-maplet")
+            k = shared.index[name]
+            row.update(sample=float(sel.sample[k]), line=float(sel.line[k]))
+            row.update(apriori_sample=float(sel.sample[k]), apriori_line=float(sel.line[k]))
+            rows.append(row)
+        table = LandmarkTable.from_rows(rows, picture=pic.name, command="register", meta=meta)
+    table.comments.append(
+        f"registered {summary.found} of {len(reg) + len(missing)} landmarks "
+        f"({ropts.schedule}, {ropts.space} space)"
+    )
+    out.register_table = table
+    timings["register_s"] = time.perf_counter() - clock
+
+    # ---- Stage I: solve-pose ---------------------------------------------------------------------
+    clock = time.perf_counter()
+    new_pic = _with_landmarks(pic, reg)
+    use = np.flatnonzero(ok)
+    try:
+        pose = solve_pose(
+            camera,
+            positions[use],
+            reg.measured[use],
+            options.pose,
+            prior_sigma_position=pic.sigma_vso,
+            prior_sigma_attitude=pic.sigma_ptg,
+            names=[names[i] for i in use],
+        )
+    except PoseError as exc:
+        pose = None
+        summary.status = "no-pose: " + _failure_text(exc)
+    timings["pose_s"] = time.perf_counter() - clock
+    if pose is not None:
+        out.pose = pose
+        summary.used = pose.n_used
+        summary.rms_before_px = float(pose.rms_before)
+        summary.rms_after_px = float(pose.rms_after)
+        summary.converged = bool(pose.converged)
+        summary.delta_position = [float(x) for x in pose.delta_position]
+        summary.delta_attitude = [float(x) for x in pose.delta_attitude]
+        summary.dposition_km = float(np.linalg.norm(pose.delta_position))
+        summary.dattitude_rad = float(np.linalg.norm(pose.delta_attitude))
+        out.pose_table = _pose_table(pic.name, pose, options.pose)
+        if pose.converged:
+            rot = pose.rotation
+            new_pic = dataclasses.replace(
+                new_pic,
+                scobj=pose.scobj,
+                cx=rot[0],
+                cy=rot[1],
+                cz=rot[2],
+                sigma_vso=pose.sigma_position,
+                sigma_ptg=pose.sigma_attitude,
+            )
+            summary.status = "ok"
+        else:
+            summary.status = f"no-pose: did not converge in {options.pose.max_iter} iterations"
+    from spctool.formats.sumfile import format_sum
+
+    out.sum_text = format_sum(new_pic)
+
+
+def _with_landmarks(pic, reg):
+    """The picture with its LANDMARKS rows updated as ``register --write-sum`` does: ok landmarks get
+    their measured pixel (rows added when absent, flags kept), other rows are left alone."""
+    from spctool.formats.sumfile import SumLandmark
+
+    rows = list(pic.landmarks)
+    index = {lm.name.strip(): k for k, lm in enumerate(rows)}
+    for name, good, m in zip(reg.names, reg.ok, reg.measured):
+        if not good:
+            continue
+        if name in index:
+            old = rows[index[name]]
+            rows[index[name]] = SumLandmark(old.name, float(m[0]), float(m[1]), old.flag)
+        else:
+            rows.append(SumLandmark(name, float(m[0]), float(m[1])))
+            index[name] = len(rows) - 1
+    return dataclasses.replace(pic, landmarks=rows)
+
+
+def _pose_table(picture: str, pose, popts: PoseOptions):
+    """The solve-pose residual table (cli-contract.md; the columns of ``spctool solve-pose``)."""
+    from spctool.formats.table import LandmarkTable
+
+    cols = {
+        "name": list(pose.names),
+        "sample": pose.measured[:, 0],
+        "line": pose.measured[:, 1],
+        "apriori_sample": pose.predicted_before[:, 0],
+        "apriori_line": pose.predicted_before[:, 1],
+        "predicted_sample": pose.predicted_after[:, 0],
+        "predicted_line": pose.predicted_after[:, 1],
+        "residual_sample_before": pose.residuals_before[:, 0],
+        "residual_line_before": pose.residuals_before[:, 1],
+        "residual_sample_after": pose.residuals_after[:, 0],
+        "residual_line_after": pose.residuals_after[:, 1],
+        "status": list(pose.status),
+    }
+    meta = {"pose": pose.pose_dict(), "options": dataclasses.asdict(popts)}
+    table = LandmarkTable(cols, picture=picture, command="solve-pose", meta=meta)
+    table.comments.append(
+        f"solved with {pose.n_used} landmarks, {pose.iterations} iterations, "
+        f"{'converged' if pose.converged else 'NOT converged'}; residuals measured - predicted (px)"
+    )
+    return table
+
+
+# --------------------------------------------------------------------------------------------------
+# outputs and resume
+
+
+def output_paths(out_dir, picture: str) -> dict[str, Path]:
+    """The files of one picture under ``out_dir`` (``marker`` is written last)."""
+    out = Path(out_dir)
+    tables = out / TABLES_DIR
+    return {
+        "sum": out / "SUMFILES" / f"{picture}.SUM",
+        "select": tables / f"{picture}.select.txt",
+        "register": tables / f"{picture}.register.txt",
+        "pose": tables / f"{picture}.pose.txt",
+        "marker": tables / f"{picture}.done.json",
+    }
+
+
+def clear_outputs(out_dir, picture: str) -> None:
+    """Remove a picture's outputs, the marker first (so a crash in between leaves it 'not done')."""
+    paths = output_paths(out_dir, picture)
+    for key in ("marker", "sum", "select", "register", "pose"):
+        try:
+            paths[key].unlink()
+        except FileNotFoundError:
+            pass
+
+
+def write_outcome(out_dir, outcome: PictureOutcome, fingerprint: str) -> None:
+    """Write a picture's outputs atomically, the done-marker last (only when it did not fail)."""
+    paths = output_paths(out_dir, outcome.summary.picture)
+    clear_outputs(out_dir, outcome.summary.picture)
+    if outcome.sum_text is not None:
+        atomic.write_text(paths["sum"], outcome.sum_text)
+    for key, table in (
+        ("select", outcome.select_table),
+        ("register", outcome.register_table),
+        ("pose", outcome.pose_table),
+    ):
+        if table is not None:
+            atomic.write_bytes(paths[key], table.to_text().encode("utf-8"))
+    if outcome.summary.failed:
+        return
+    marker = {
+        "format": MARKER_FORMAT,
+        "picture": outcome.summary.picture,
+        "options_sha256": fingerprint,
+        "input_sum_sha256": outcome.input_sha256,
+        "spctool_version": __version__,
+        "summary": _json_clean(outcome.summary.as_dict()),
+    }
+    atomic.write_bytes(paths["marker"], (json.dumps(marker, indent=1) + "\n").encode("utf-8"))
+
+
+def read_marker(out_dir, picture: str) -> dict | None:
+    """The done-marker of ``picture`` (None when absent or unreadable)."""
+    path = output_paths(out_dir, picture)["marker"]
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(doc, dict) or doc.get("format") != MARKER_FORMAT or doc.get("picture") != picture:
+        return None
+    return doc
+
+
+def done_summary(workdir, out_dir, picture: str, fingerprint: str) -> PictureSummary | None:
+    """The stored summary if ``picture`` is done with these options and this input SUM, else None."""
+    doc = read_marker(out_dir, picture)
+    if doc is None or doc.get("options_sha256") != fingerprint:
+        return None
+    try:
+        raw = WorkDir(Path(workdir)).sum_path(picture).read_bytes()
+    except OSError:
+        return None
+    if doc.get("input_sum_sha256") != hashlib.sha256(raw).hexdigest():
+        return None
+    paths = output_paths(out_dir, picture)
+    if not paths["sum"].exists():
+        return None
+    try:
+        summary = PictureSummary.from_dict(doc["summary"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    summary.resumed = True
+    return summary
+
+
+def process_picture(
+    workdir, out_dir, picture: str, options: BatchOptions, fingerprint: str, token: str | None = None
+) -> PictureSummary:
+    """Worker task: navigate one picture and write its outputs; returns the summary row.
+
+    A failure to write the outputs is reported as the picture's failure too.  ``timings["write_s"]``
+    (writing, in the returned summary only: the marker is written before it is known).
+    """
+    outcome = navigate_picture(workdir, picture, options, token=token)
+    clock = time.perf_counter()
+    try:
+        write_outcome(out_dir, outcome, fingerprint)
+    except OSError as exc:
+        outcome.summary.status = "failed: " + _one_line(f"cannot write the outputs: {exc}")
+    outcome.summary.timings["write_s"] = time.perf_counter() - clock
+    return outcome.summary
+
+
+# --------------------------------------------------------------------------------------------------
+# driver
+
+
+@dataclass
+class BatchResult:
+    """The summaries of a batch in picture order, and where its outputs are."""
+
+    pictures: list[PictureSummary]
+    out_dir: Path
+    fingerprint: str
+    elapsed_s: float = math.nan
+    mode: str = "local"
+    workers: int = 1
+    options: dict = field(default_factory=dict)
+
+    @property
+    def failed(self) -> list[PictureSummary]:
+        return [p for p in self.pictures if p.failed]
+
+    def counts(self) -> dict[str, int]:
+        out = {k: 0 for k in STATUSES}
+        for p in self.pictures:
+            out[p.kind] = out.get(p.kind, 0) + 1
+        out["resumed"] = sum(1 for p in self.pictures if p.resumed)
+        return out
+
+    def to_table(self):
+        """The summary table: picture, candidates, selected, found, used, rms before/after (px),
+        position change (km), attitude change (rad), status — one row per picture, in list order."""
+        from spctool.formats.table import LandmarkTable
+
+        ps = self.pictures
+
+        def col(name, dtype=np.float64):
+            return np.array([getattr(p, name) for p in ps], dtype=dtype)
+
+        cols = {
+            "picture": [p.picture for p in ps],
+            "candidates": col("candidates", np.int64),
+            "selected": col("selected", np.int64),
+            "found": col("found", np.int64),
+            "used": col("used", np.int64),
+            "rms_before_px": col("rms_before_px"),
+            "rms_after_px": col("rms_after_px"),
+            "dposition_km": col("dposition_km"),
+            "dattitude_rad": col("dattitude_rad"),
+            "status": [p.kind for p in ps],
+        }
+        table = LandmarkTable(cols, command="batch", meta={})
+        c = self.counts()
+        table.comments.append(
+            f"{len(ps)} pictures: {c['ok']} ok, {c['no-pose']} no-pose, {c['failed']} failed"
+            + (f"; {c['resumed']} done earlier (skipped)" if c["resumed"] else "")
+        )
+        table.comments.append(f"outputs: {self.out_dir}")
+        return table
+
+    def to_text(self) -> str:
+        """The summary table, then one ``# PICTURE status: reason`` line per picture not ok (the
+        table's status column holds the word only, so the rows stay whitespace-separated)."""
+        lines = [f"# {p.picture} {p.status}\n" for p in self.pictures if p.kind != "ok"]
+        return self.to_table().to_text() + "".join(lines)
+
+    def to_json_dict(self) -> dict:
+        return {
+            "command": "batch",
+            "format": SUMMARY_FORMAT,
+            "spctool_version": __version__,
+            "out_dir": str(self.out_dir),
+            "mode": self.mode,
+            "workers": self.workers,
+            "elapsed_s": self.elapsed_s,
+            "options_sha256": self.fingerprint,
+            "options": _jsonable(self.options),
+            "counts": self.counts(),
+            "pictures": [_json_clean(p.as_dict()) for p in self.pictures],
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_json_dict(), indent=2, allow_nan=False) + "\n"
+
+    def write_summary(self) -> None:
+        atomic.write_bytes(self.out_dir / f"{SUMMARY_STEM}.txt", self.to_text().encode("utf-8"))
+        atomic.write_bytes(self.out_dir / f"{SUMMARY_STEM}.json", self.to_json().encode("utf-8"))
+
+
+def _json_clean(v):
+    """NaN/inf → None (JSON null), recursively."""
+    if isinstance(v, dict):
+        return {k: _json_clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_clean(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def batch_pictures(workdir, pictlist=None) -> list[str]:
+    """The pictures to process: the active names of ``pictlist`` (a PICTLIST-format file), else of
+    the working directory's PICTLIST (PICTLISTX.TXT preferred, else every SUMFILES/*.SUM); duplicates
+    dropped, order kept."""
+    if pictlist is not None:
+        from spctool.formats.lists import read_pictlist
+
+        names = read_pictlist(pictlist).active_names
+    else:
+        names = WorkDir(Path(workdir)).picture_names()
+    return list(dict.fromkeys(n.strip() for n in names if n.strip()))
+
+
+def _check_usable(workdir, options: BatchOptions) -> None:
+    """Fail early (SpcUsageError / SpcFormatError) when no picture could be processed: unreadable
+    INIT_LITHOS or selection options, no candidate landmarks, a required shape model missing."""
+    from spctool.stages.select import SelectOptions
+
+    wd = WorkDir(Path(workdir))
+    SelectOptions.from_settings(wd.read_settings(options.settings_path), **options.select)
+    if not wd.landmark_names():
+        raise SpcUsageError(f"{wd.root}: no candidate landmarks (no LMRKLIST.TXT, no LMKFILES/*.LMK)")
+    if options.occlusion and not (options.shape_path or wd.shape_path.exists()):
+        raise SpcUsageError(f"the occlusion test needs a shape model ({wd.shape_path} not found)")
+    if options.shape_path and not Path(options.shape_path).exists():
+        raise SpcUsageError(f"{options.shape_path}: shape model not found")
+
+
+def _init_worker(workdir, options: BatchOptions, token: str, numba_threads: int) -> None:
+    """ProcessPool initializer: leave Ctrl-C to the parent (it stops the pool), limit numba's threads,
+    load the shared data once."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        import numba
+
+        numba.set_num_threads(max(1, min(numba_threads, numba.config.NUMBA_NUM_THREADS)))
+    except Exception:  # noqa: BLE001 - an optimisation only
+        pass
+    try:
+        SharedData.get(workdir, options, token)
+    except Exception:  # noqa: BLE001 - every picture will report the problem itself
+        pass
+
+
+def run_batch(
+    workdir,
+    pictures: Sequence[str] | None = None,
+    options: BatchOptions | None = None,
+    *,
+    out_dir,
+    jobs: int = 1,
+    scheduler=None,
+    force: bool = False,
+    on_result: Callable[[PictureSummary], None] | None = None,
+    write_summary: bool = True,
+) -> BatchResult:
+    """Process ``pictures`` (default: the working directory's PICTLIST) and write their outputs.
+
+    ``jobs``: 1 = in this process, N > 1 = N spawn-started worker processes; ``scheduler``: a Dask
+    scheduler address (``tcp://host:port``) or a ``distributed.Client`` — then ``jobs`` is ignored.
+    Pictures already done with the same options and input SUM are skipped unless ``force``.
+    ``on_result(summary)`` is called in this process as each picture finishes (skipped ones first).
+    Returns the summaries in picture order; raises only for bad usage (SpcUsageError) and interrupts.
+    """
+    options = options if options is not None else BatchOptions()
+    workdir = Path(workdir).resolve()
+    out_dir = Path(out_dir).resolve()
+    if out_dir == workdir:
+        raise SpcUsageError(
+            f"--out-dir must differ from the working directory ({workdir}): the batch reads SUMFILES/ there"
+        )
+    if int(jobs) < 1:
+        raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
+    names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
+    fingerprint = options.fingerprint()
+    token = uuid.uuid4().hex[:12]  # this batch: shared data are read afresh (SharedData.get)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tick = on_result or (lambda s: None)
+    t0 = time.perf_counter()
+
+    results: list[PictureSummary | None] = [None] * len(names)
+    todo: list[int] = []
+    for i, name in enumerate(names):
+        done = None if force else done_summary(workdir, out_dir, name, fingerprint)
+        if done is not None:
+            results[i] = done
+            tick(done)
+        else:
+            todo.append(i)
+
+    if todo and scheduler is None and int(jobs) == 1:
+        SharedData.get(workdir, options, token)  # settings, candidates, shape: fail here, once
+    elif todo:
+        _check_usable(workdir, options)  # the cheap part of that check; the workers load the rest
+
+    def record(i: int, summary: PictureSummary) -> None:
+        results[i] = summary
+        tick(summary)
+
+    mode, workers = "local", int(jobs)
+    if todo and scheduler is not None:
+        mode = "dask"
+        workers = _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, token, record)
+    elif todo and int(jobs) > 1:
+        mode = "processes"
+        _run_processes(int(jobs), workdir, out_dir, names, todo, options, fingerprint, token, record)
+    else:
+        for i in todo:
+            record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, token))
+
+    result = BatchResult(
+        [r for r in results if r is not None],
+        out_dir,
+        fingerprint,
+        elapsed_s=time.perf_counter() - t0,
+        mode=mode,
+        workers=workers,
+        options=options.as_dict(),
+    )
+    if write_summary:
+        result.write_summary()
+    return result
+
+
+def _lost(picture: str, exc: BaseException) -> PictureSummary:
+    reason = _one_line(f"worker lost: {type(exc).__name__}: {exc}")
+    return PictureSummary(picture=picture, status="failed: " + reason)
+
+
+def _run_processes(
+    jobs, workdir, out_dir, names, todo, options, fingerprint, token, record, task=None
+) -> None:
+    """Run ``task`` (default :func:`process_picture`) for the pictures ``todo`` in spawned processes.
+
+    At most ``jobs`` pictures are in flight, so when a worker process dies (a crash in native code,
+    the OOM killer) the suspects are those few: they are retried one at a time in a one-worker pool,
+    which names the culprit ("failed: worker lost: …") and completes the innocent; the other
+    pictures go on in a fresh pool.  A death never stops the batch.
+    """
+    from collections import deque
+    from concurrent.futures import FIRST_COMPLETED, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    task = task or process_picture
+    queue, suspects = deque(todo), deque()
+    cores = os.cpu_count() or 1
+    while queue or suspects:
+        solo = bool(suspects)
+        source, width = (suspects, 1) if solo else (queue, jobs)
+        pool = _new_pool(min(width, len(source)), workdir, options, token, max(1, cores // width))
+        inflight: dict = {}
+        broken = False
+        try:
+            while (source or inflight) and not broken:
+                while source and len(inflight) < width:
+                    i = source.popleft()
+                    fut = pool.submit(task, str(workdir), str(out_dir), names[i], options, fingerprint, token)
+                    inflight[fut] = i
+                done, _ = wait(inflight, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    i = inflight.pop(fut)
+                    try:
+                        summary = fut.result()
+                    except BrokenProcessPool as exc:
+                        broken = True
+                        if solo:
+                            record(i, _lost(names[i], exc))
+                        else:
+                            suspects.append(i)
+                        continue
+                    except Exception as exc:  # noqa: BLE001 - e.g. a result that cannot be unpickled
+                        summary = _lost(names[i], exc)
+                    record(i, summary)
+            suspects.extend(inflight.values())  # in flight when the pool broke
+        except BaseException:
+            _stop_pool(pool)
+            raise
+        if broken:
+            _stop_pool(pool)
+        else:
+            pool.shutdown(wait=True)
+
+
+def _new_pool(workers, workdir, options, token, numba_threads):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_init_worker,
+        initargs=(str(workdir), options, token, numba_threads),
+    )
+
+
+def _stop_pool(pool) -> None:
+    """Cancel what has not started and end the worker processes now (their pictures are not marked
+    done, so the next run redoes them)."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        try:
+            proc.terminate()
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
+
+def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, token, record) -> int:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise SpcUsageError("--scheduler needs Dask distributed: pip install 'spctool[dask]'") from None
+    own = not hasattr(scheduler, "submit")
+    if own:
+        try:
+            client = Client(str(scheduler), timeout="30s", set_as_default=False)
+        except (OSError, TimeoutError) as exc:
+            raise SpcUsageError(
+                f"cannot connect to the Dask scheduler {scheduler}: {_one_line(exc)}"
+            ) from None
+    else:
+        client = scheduler
+    futures = []
+    try:
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        keys = [f"spctool-batch-{names[i]}-{token}" for i in todo]
+        futures = client.map(
+            process_picture,
+            [str(workdir)] * len(todo),
+            [str(out_dir)] * len(todo),
+            [names[i] for i in todo],
+            [options] * len(todo),
+            [fingerprint] * len(todo),
+            [token] * len(todo),
+            key=keys,
+            pure=False,
+        )
+        index = {f.key: i for f, i in zip(futures, todo)}
+        for fut in as_completed(futures, loop=client.loop):
+            i = index[fut.key]
+            try:
+                summary = fut.result()
+            except Exception as exc:  # noqa: BLE001 - lost worker, cancelled task
+                summary = _lost(names[i], exc)
+            record(i, summary)
+            fut.release()
+    except BaseException:
+        if futures:
+            try:
+                client.cancel(futures)
+            except Exception:  # noqa: BLE001
+                pass
+        raise
+    finally:
+        if own:
+            client.close()
+    return workers

@@ -1,0 +1,224 @@
+"""``batch``: lithos-select → register → solve-pose over every picture of a PICTLIST.
+
+A thin command over :func:`spctool.batch.run_batch` (the per-picture pipeline, the output layout, the
+resume rule and the parallel back ends are documented there): parse the options, show a progress
+bar, report each failed picture on stderr as it happens, print the summary table (or ``--json``), and
+exit 1 when any picture failed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from spctool.cli.common import Context, emit, json_option, output_option, pass_context, progress
+from spctool.errors import SpcResultError, SpcUsageError
+
+
+@click.command("batch")
+@click.argument(
+    "pictlist", required=False, type=click.Path(dir_okay=False, exists=True), metavar="[PICTLIST]"
+)
+@click.option(
+    "--out-dir",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Output directory (SPC layout: DIR/SUMFILES/, DIR/TABLES/).  [default: WORKDIR/BATCH]",
+)
+@click.option(
+    "-j",
+    "--jobs",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    metavar="N",
+    help="Local worker processes.",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Run on an existing Dask distributed cluster (e.g. tcp://scheduler-host:8786; needs "
+    "'pip install spctool[dask]'; workers must see WORKDIR and --out-dir at the same paths). "
+    "Overrides --jobs.",
+)
+@click.option("--force", is_flag=True, help="Redo pictures that are already done.")
+@click.option(
+    "--schedule",
+    type=click.Choice(["autoregister", "s16"]),
+    default="autoregister",
+    show_default=True,
+    help="Registration schedule: SPC's AUTOREGISTER (pose solve after each pass) or S16's "
+    "per-landmark spacings 10..1 (see 'spctool register --help').",
+)
+@click.option(
+    "--space",
+    type=click.Choice(["maplet", "image"]),
+    default="maplet",
+    show_default=True,
+    help="Correlate in maplet space (SPC) or image space (S16 Retina).",
+)
+@click.option(
+    "--corr-min",
+    type=float,
+    default=0.3,
+    show_default=True,
+    metavar="RHO",
+    help="Correlation peaks below RHO are low-correlation.",
+)
+@click.option(
+    "--occlusion/--no-occlusion",
+    "occlusion",
+    default=None,
+    help="Occlusion test of lithos-select.  [default: on when a shape model exists]",
+)
+@click.option(
+    "--shape",
+    "shape_path",
+    metavar="FILE",
+    type=click.Path(dir_okay=False, exists=True),
+    help="Shape model for the occlusion test (default: WORKDIR/SHAPEFILES/SHAPE.TXT).",
+)
+@click.option(
+    "--sigma-px",
+    type=float,
+    default=0.1,
+    show_default=True,
+    metavar="PX",
+    help="1-sigma measurement noise per pixel component of the pose solve.",
+)
+@click.option(
+    "--no-prior",
+    is_flag=True,
+    help="Ignore the SUM's SIGMA_VSO / SIGMA_PTG a-priori constraint in the pose solve.",
+)
+@click.option(
+    "--min-landmarks",
+    type=click.IntRange(min=0),
+    default=3,
+    show_default=True,
+    metavar="N",
+    help="Fewer registered landmarks leave the pose unsolved (status no-pose).",
+)
+@json_option
+@output_option
+@pass_context
+def batch_cmd(
+    ctx: Context,
+    pictlist,
+    out_dir,
+    jobs,
+    scheduler,
+    force,
+    schedule,
+    space,
+    corr_min,
+    occlusion,
+    shape_path,
+    sigma_px,
+    no_prior,
+    min_landmarks,
+    as_json,
+    output,
+):
+    """Navigate every picture of a PICTLIST: lithos-select, register, solve-pose.
+
+    PICTLIST is a PICTLIST.TXT-format file (default: the working directory's PICTLISTX.TXT or
+    PICTLIST.TXT, else every SUMFILES/*.SUM); pictures flagged '!' or '#' are left out.  For each
+    picture the maplets it can see are selected (LMRKLIST.TXT candidates, INIT_LITHOS options,
+    occlusion with the shape model), registered in its photo and the spacecraft position and
+    attitude solved from the registered pixels with the SUM's sigmas as prior, exactly as the
+    commands lithos-select, register (here with the AUTOREGISTER schedule by default) and
+    solve-pose do one by one.
+
+    Outputs, written atomically to --out-dir: SUMFILES/PIC.SUM (the input SUM with the registered
+    LANDMARKS rows and, when the pose converged, the solved SCOBJ, CX, CY, CZ, SIGMA_VSO,
+    SIGMA_PTG; every other line unchanged), TABLES/PIC.select.txt, TABLES/PIC.register.txt,
+    TABLES/PIC.pose.txt (the stages' landmark tables), TABLES/PIC.done.json (written last) and
+    BATCH_SUMMARY.txt / BATCH_SUMMARY.json.  A batch is resumable: a picture whose done-marker
+    matches the options and its input SUM is skipped unless --force, so an interrupted batch
+    continues where it stopped.  The results do not depend on --jobs or --scheduler.
+
+    Summary columns (one row per picture, in list order): picture, candidates, selected (maplets
+    selected), found (landmarks registered), used (in the pose solve), rms_before_px and
+    rms_after_px (residual rms at the a-priori and the solved pose), dposition_km and
+    dattitude_rad (size of the pose change), status: ok, no-pose (the pose could not be solved:
+    too few landmarks or no convergence; the SUM holds the registered landmarks only) or failed
+    (the picture could not be processed; the reason follows the table as '# PIC failed: ...' and
+    is printed on stderr at once).  --json writes the same rows with the full status text, the
+    pose change vectors and per-stage timings.  A failed picture never stops the batch; the exit
+    code is 1 when any picture failed, else 0.
+
+    Example:
+
+    \b
+      spctool -C WORKDIR batch --jobs 2
+      spctool -C WORKDIR batch PICTLIST.TXT --out-dir run1 --json > run1.json
+      spctool -C WORKDIR batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
+    """
+    from spctool.batch import BatchOptions, batch_pictures, run_batch
+    from spctool.stages.pose import PoseOptions
+    from spctool.stages.register import RegisterOptions
+
+    workdir = Path(ctx.workdir)
+    if not workdir.is_dir():
+        raise SpcUsageError(f"{workdir}: no such working directory")
+    target = Path(out_dir) if out_dir else workdir / "BATCH"
+    pose = PoseOptions(sigma_px=sigma_px, use_prior=not no_prior, min_landmarks=min_landmarks)
+    register = RegisterOptions(
+        schedule="retina_s16" if schedule == "s16" else "autoregister",
+        space=space,
+        corr_min=corr_min,
+        pose=pose,
+    )
+    options = BatchOptions(
+        occlusion=occlusion,
+        register=register,
+        pose=pose,
+        settings_path=ctx.settings_path,
+        shape_path=shape_path,
+    )
+    names = batch_pictures(workdir, pictlist)
+    if not names:
+        where = pictlist or f"{workdir}/PICTLIST.TXT (or SUMFILES/)"
+        raise SpcUsageError(f"no pictures to process in {where}")
+    ctx.info(f"{len(names)} pictures -> {target}")
+
+    with progress(ctx, "batch", len(names)) as advance:
+
+        def on_result(summary):
+            if summary.failed:
+                click.echo(f"spctool: {summary.picture} {summary.status}", err=True)
+            elif summary.kind != "ok":
+                ctx.info(f"{summary.picture} {summary.status}")
+            advance()
+
+        result = run_batch(
+            workdir,
+            names,
+            options,
+            out_dir=target,
+            jobs=jobs,
+            scheduler=scheduler,
+            force=force,
+            on_result=on_result,
+        )
+
+    emit(result.to_json() if as_json else result.to_text(), output)
+    counts = result.counts()
+    ctx.info(
+        f"{len(result.pictures)} pictures in {result.elapsed_s:.1f} s ({result.mode}, {result.workers} "
+        f"worker(s)): {counts['ok']} ok, {counts['no-pose']} no-pose, {counts['failed']} failed, "
+        f"{counts['resumed']} done earlier"
+    )
+    failed = result.failed
+    if failed:
+        shown = ", ".join(p.picture for p in failed[:5]) + (", ..." if len(failed) > 5 else "")
+        raise SpcResultError(f"{len(failed)} of {len(result.pictures)} pictures failed: {shown}")
+
+
+def register(cli):
+    cli.add_command(batch_cmd)
