@@ -19,9 +19,11 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from spctool.errors import SpcUsageError
 
-__all__ = ["demo_path", "copy_demo", "demo_files"]
+__all__ = ["demo_path", "copy_demo", "demo_files", "picture_errors", "attitude_error", "read_truth"]
 
 
 def demo_path() -> Path:
@@ -58,3 +60,75 @@ def copy_demo(dest, *, overwrite: bool = False) -> Path:
         shutil.copyfile(src / rel, target)
         target.chmod(0o644)
     return dest
+
+
+# ------------------------------------------------------------------------------------------------
+# errors against truth (pure: results in, numbers out)
+
+
+def attitude_error(rotation_estimate, rotation_true):
+    """δθ (rad, camera axes) with R_est = Rot(−δθ)·R_true — the pose solver's own convention
+    (``frames.apply_attitude_update``), so it compares directly with the solver's attitude sigmas."""
+    from spctool.geometry.frames import rotvec_from_rot
+
+    r = np.asarray(rotation_estimate, float) @ np.asarray(rotation_true, float).T
+    return -rotvec_from_rot(r)
+
+
+def picture_errors(truth: dict, picture: str, position, rotation, covariance, measured: dict) -> dict:
+    """Errors of one picture's solution against TRUTH.json.
+
+    ``position`` (3,) body-frame km and ``rotation`` (3, 3) body→camera are the solved pose,
+    ``covariance`` its 6×6 covariance (km, rad; position then attitude, as ``PoseResult``),
+    ``measured`` maps landmark names to measured (sample, line).  Returns position and attitude errors,
+    their 1σ, normalised errors, NEES, whether every component lies within 3σ, and the landmark pixel
+    errors (measured − true pixel).
+    """
+    pic = next((p for p in truth["pictures"] if p["name"] == picture), None)
+    if pic is None:
+        raise SpcUsageError(f"TRUTH.json has no picture {picture}")
+    true_pos = np.asarray(pic["true"]["position"], float)
+    dpos = np.asarray(position, float) - true_pos
+    dth = attitude_error(rotation, pic["true"]["rotation"])
+    cov = np.asarray(covariance, float)
+    err = np.concatenate([dpos, dth])
+    sigma = np.sqrt(np.diag(cov))
+    normalised = err / sigma
+    try:
+        nees = float(err @ np.linalg.solve(cov, err))
+    except np.linalg.LinAlgError:
+        nees = float("nan")
+    pixel_errors = {}
+    for lm in truth["landmarks"]:
+        px = lm["pixels"].get(picture)
+        if px is None or lm["name"] not in measured:
+            continue
+        s, ln = measured[lm["name"]]
+        pixel_errors[lm["name"]] = (float(s - px["sample"]), float(ln - px["line"]))
+    d = np.array(list(pixel_errors.values())) if pixel_errors else np.zeros((0, 2))
+    return {
+        "picture": picture,
+        "position_error_km": dpos,
+        "attitude_error_rad": dth,
+        "sigma_position_km": sigma[:3],
+        "sigma_attitude_rad": sigma[3:],
+        "normalised_error": normalised,
+        "nees": nees,
+        "within_3sigma": bool(np.all(np.abs(normalised) <= 3.0)),
+        "apriori_position_error_km": np.asarray(pic["apriori"]["scobj"], float) * -1.0 - true_pos,
+        "pixel_errors": pixel_errors,
+        "pixel_rms": float(np.sqrt(np.mean(np.sum(d**2, axis=1)))) if len(d) else float("nan"),
+        "pixel_max": float(np.max(np.hypot(d[:, 0], d[:, 1]))) if len(d) else float("nan"),
+    }
+
+
+def read_truth(workdir) -> dict:
+    """TRUTH.json of a simulated working directory."""
+    import json
+
+    path = Path(workdir) / "TRUTH.json"
+    if not path.is_file():
+        raise SpcUsageError(
+            f"{path}: not found (the demo compares against a simulated working directory's truth)"
+        )
+    return json.loads(path.read_text())
