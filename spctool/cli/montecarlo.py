@@ -1,0 +1,298 @@
+"""``montecarlo``: S16's landmark-matching characterisation (Table 2 perturbations → Table 3 statistics).
+
+A thin command over :mod:`spctool.sim.montecarlo`: build or load the scene (the ``s16-50m`` preset, a
+saved ``--scene`` file, or a working directory made by ``spctool simulate``), run the study with a
+progress bar, print the Table 3 report (text or ``--json``) and optionally write the PNG figures and a
+per-sample CSV.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+
+from spctool.cli.common import Context, emit, json_option, output_option, pass_context, progress
+from spctool.errors import SpcResultError, SpcUsageError
+
+_HELP = """Characterise landmark registration by Monte Carlo (S16 Tables 2 and 3, Fig. 8).
+
+One truth photo; for every landmark and sample the knowledge is perturbed with S16 Table 2's
+1-sigma errors -- spacecraft position (0.1667 m per axis) and attitude (0.05 deg per axis),
+landmark position (3.33 cm per axis), maplet heights (3.33 mm) and albedo (0.047), pixel skew
+K_yx (1e-5), principal point (0.1667 px), focal length (0.004 mm), OWEN distortion
+(1e-5, 1e-7, 1e-5, 1e-5, 0, 0) and Sun right ascension/declination (0.3 deg) -- the landmark is
+registered in the unchanged photo and the error truth - measured is recorded, truth being the
+projection of the true landmark with the true camera. Maplet space runs S16's schedule (L = 10
+... 1, search +-5L cells, acceptance rho >= 0.3, no pose update, linearised extraction) plus
+--refine steps at L = 1; image space (S16's Retina direction) searches at L = 4, 2, 1 over +-48
+px with one rendered template, then re-renders it at the estimate for --refine steps at L = 1.
+Scalar perturbations are Latin-Hypercube sampled per landmark
+(--sampling lhs, S16) or plain Monte Carlo (--sampling mc); heights and albedo get an error on
+every maplet node (--fields cell, the default: its mean max rho, about 0.5, is close to S16's
+0.54-0.59, where one bias per maplet, --fields bias, gives about 0.93).
+
+The report has S16 Table 3's layout (means and 1-sigma of the sample/line errors over the
+successful samples, not found, below threshold, success rate, mean max rho) per landmark and for
+all samples, S16's own table beside it, the checks against S16 and the image-space targets, and
+the linear sensitivity of the errors to each perturbation. --json writes the same as one document
+with per-landmark and overall success rates.
+
+Scenes: --preset s16-50m builds S16's camera (Table 1) at 50 m over twelve 99x99 maplets of 1 cm
+named as in S16 Fig. 6, with 3.33 mm truth terrain rendered (cast shadows, detector noise) by the
+simulate machinery (about a minute); --scene FILE keeps that scene: read FILE when it exists,
+else build the scene and save it there. Without --preset/--scene the working directory (-C) must
+come from 'spctool simulate' (TRUTH.json); PICTURE defaults to its first picture.
+
+A sample depends only on (--seed, landmark, sample index): results are identical bit for bit
+whatever --jobs.
+
+Examples:
+
+\b
+  spctool montecarlo --preset s16-50m --scene s16.npz --figures figs
+  spctool montecarlo --preset s16-50m --scene s16.npz --space image --json > image.json
+  spctool montecarlo --preset s16-50m --samples 50 --only position,attitude --sigma-scale 2
+  spctool -C WORLD montecarlo P000000001A1 --samples 100
+"""
+
+
+def _names(text: str | None) -> list[str]:
+    if not text:
+        return []
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def register(cli: click.Group) -> None:
+    @cli.command(
+        "montecarlo", help=_HELP, short_help="S16 Monte Carlo of landmark registration (Table 3, Fig. 8)."
+    )
+    @click.argument("picture", required=False)
+    @click.option(
+        "--preset",
+        type=click.Choice(["s16-50m"]),
+        default=None,
+        help="The built-in scene: S16's camera at 50 m, 12 landmarks, 99x99 maplets of 1 cm.",
+    )
+    @click.option(
+        "--scene",
+        "scene_path",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="Scene cache (.npz): read it when it exists, else build the scene (--preset or -C) and save it.",
+    )
+    @click.option(
+        "--world-seed",
+        type=click.IntRange(min=0),
+        default=16,
+        show_default=True,
+        metavar="N",
+        help="Seed of the preset's world (terrain, noise).",
+    )
+    @click.option(
+        "-l",
+        "--landmarks",
+        "landmarks",
+        metavar="NAMES",
+        help="Comma-separated landmarks to study (default: all of the scene).",
+    )
+    @click.option(
+        "--space",
+        type=click.Choice(["maplet", "image"]),
+        default="maplet",
+        show_default=True,
+        help="maplet: SPC/S16 correlation of the photo resampled onto the maplet; image: the maplet "
+        "rendered into the photo with cast shadows (S16 Retina).",
+    )
+    @click.option(
+        "--samples",
+        type=click.IntRange(min=1),
+        default=500,
+        show_default=True,
+        metavar="N",
+        help="Samples per landmark (S16: 500).",
+    )
+    @click.option(
+        "--seed",
+        type=click.IntRange(min=0),
+        default=0,
+        show_default=True,
+        metavar="N",
+        help="Seed of every perturbation draw (recorded in the report).",
+    )
+    @click.option(
+        "--sampling",
+        type=click.Choice(["lhs", "mc"]),
+        default="lhs",
+        show_default=True,
+        help="Latin Hypercube (S16) or plain Monte Carlo.",
+    )
+    @click.option(
+        "--fields",
+        type=click.Choice(["cell", "bias"]),
+        default="cell",
+        show_default=True,
+        help="Height/albedo errors: i.i.d. on every maplet node, or one bias per maplet.",
+    )
+    @click.option(
+        "--only",
+        "only",
+        metavar="PARAMS",
+        help="Perturb only these (comma-separated): position, attitude, landmark, height, albedo, "
+        "skew, center, focal, distortion, sun.",
+    )
+    @click.option("--without", "without", metavar="PARAMS", help="Do not perturb these (comma-separated).")
+    @click.option(
+        "--sigma-scale",
+        type=click.FloatRange(min=0.0),
+        default=1.0,
+        show_default=True,
+        metavar="F",
+        help="Multiply every Table 2 sigma by F (success versus perturbation size).",
+    )
+    @click.option(
+        "--refine",
+        type=click.IntRange(min=0),
+        default=2,
+        show_default=True,
+        metavar="N",
+        help="Refinement steps at L = 1 that re-extract (maplet) or re-render (image) at the current "
+        "estimate; maplet space with 0 is S16's schedule exactly.",
+    )
+    @click.option(
+        "--jobs",
+        "-j",
+        type=click.IntRange(min=1),
+        default=None,
+        metavar="N",
+        help="Worker processes (default: the CPUs available).",
+    )
+    @click.option(
+        "--figures",
+        "figures_dir",
+        metavar="DIR",
+        type=click.Path(file_okay=False),
+        help="Write montecarlo_scatter.png (S16 Fig. 8), montecarlo_histograms.png and "
+        "montecarlo_success.png (success versus a-priori pixel error) to DIR.",
+    )
+    @click.option(
+        "--samples-csv",
+        "samples_csv",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        help="Write one CSV row per sample (status, rho, a-priori, measured, error, design).",
+    )
+    @click.option(
+        "--check",
+        is_flag=True,
+        help="Exit 1 unless the results meet the targets: image space, over all samples, success "
+        ">= 99.5 %, |mean| <= 0.05 px and 1 sigma <= 0.08 px per axis; maplet space at least as good "
+        "as S16 Table 3 (overall success, worst landmark's |mean| and 1 sigma per axis).",
+    )
+    @json_option
+    @output_option
+    @pass_context
+    def montecarlo_cmd(
+        ctx: Context,
+        picture,
+        preset,
+        scene_path,
+        world_seed,
+        landmarks,
+        space,
+        samples,
+        seed,
+        sampling,
+        fields,
+        only,
+        without,
+        sigma_scale,
+        refine,
+        jobs,
+        figures_dir,
+        samples_csv,
+        check,
+        as_json,
+        output,
+    ):
+        from spctool.sim import montecarlo as mc
+
+        params = _names(only) or [p.name for p in mc.PARAMETERS]
+        drop = set(_names(without))
+        known = {p.name for p in mc.PARAMETERS}
+        bad = [p for p in list(params) + list(drop) if p not in known]
+        if bad:
+            raise SpcUsageError(f"unknown perturbation {', '.join(bad)} (known: {', '.join(sorted(known))})")
+        params = [p for p in params if p not in drop]
+        config = mc.MonteCarloConfig(
+            samples=samples,
+            seed=seed,
+            sampling=sampling,
+            fields=fields,
+            parameters=tuple(params),
+            sigma_scale=sigma_scale,
+            space=space,
+            plan=mc.default_plan(space, refine=refine),
+        )
+        t0 = time.perf_counter()
+        scene = _load_scene(ctx, mc, preset, scene_path, world_seed, picture)
+        scene_s = time.perf_counter() - t0
+        if landmarks:
+            scene = scene.subset(_names(landmarks))
+        total = len(scene) * samples
+        ctx.info(
+            f"{len(scene)} landmarks x {samples} samples, {space} space, {jobs or mc.default_jobs()} job(s)"
+        )
+        with progress(ctx, f"montecarlo {space}", total) as advance:
+            result = mc.run(scene, config, jobs=jobs or mc.default_jobs(), progress=advance)
+        result.timing["scene_s"] = scene_s
+        summary = mc.summarise(result)
+        if as_json:
+            emit(json.dumps(mc.report_document(result, summary), indent=1) + "\n", output)
+        else:
+            emit(mc.format_report(result, summary), output)
+        if figures_dir:
+            for path in mc.write_figures(result, figures_dir):
+                ctx.info(f"wrote {path}")
+        if samples_csv:
+            mc.write_samples_csv(result, samples_csv)
+            ctx.info(f"wrote {samples_csv}")
+        if check:
+            group = "image_targets" if space == "image" else "s16_table3"
+            failed = [k for k, v in summary["checks"].get(group, {}).items() if not v]
+            if failed or not summary["checks"]:
+                raise SpcResultError(
+                    f"montecarlo check ({group}) failed: {', '.join(failed) or 'no landmarks'}"
+                )
+
+
+def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
+    if scene_path and Path(scene_path).is_file():
+        ctx.info(f"reading scene {scene_path}")
+        scene = mc.load_scene(scene_path)
+        if preset and scene.info.get("preset") != preset:
+            raise SpcUsageError(
+                f"{scene_path}: holds {scene.info.get('preset') or 'a working-directory'} scene, "
+                f"not preset {preset}"
+            )
+        if preset and scene.info.get("world_seed") != world_seed:
+            raise SpcUsageError(f"{scene_path}: world seed {scene.info.get('world_seed')}, not {world_seed}")
+        return scene
+    if preset:
+        if picture:
+            raise SpcUsageError("a preset has its own picture: drop PICTURE")
+        ctx.note_once(f"building the {preset} scene (about a minute; --scene FILE keeps it)")
+        scene = mc.s16_scene(world_seed, progress=lambda msg: ctx.info(msg, 2))
+    else:
+        if not (Path(ctx.workdir) / "TRUTH.json").is_file():
+            raise SpcUsageError(
+                f"{ctx.workdir}: no TRUTH.json; give --preset s16-50m, --scene FILE, or -C a world made by "
+                "'spctool simulate'"
+            )
+        scene = mc.scene_from_workdir(ctx.workdir, picture)
+    if scene_path:
+        mc.save_scene(scene, scene_path)
+        ctx.info(f"saved scene {scene_path}")
+    return scene

@@ -1,0 +1,187 @@
+"""Tests of ``spctool montecarlo`` (spctool.cli.montecarlo) on a small rendered scene file."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import register_scene as rs  # noqa: E402
+
+from spctool.sim import montecarlo as mc  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "fixtures" / "demo"
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    """A 99×99-cell landmark (1 cm) at 50 m through S16's optics, saved as a scene file."""
+    sc = rs.scene(q=49, q_truth=90, npx=170, nln=170)
+    m = mc.Knowledge.from_maplet(sc.maplet, "LMK001")
+    scene = mc.Scene(
+        "P0001", sc.photo, sc.thresholds, sc.camera, sc.sun, [m], [sc.maplet.v], info={"preset": None}
+    )
+    return mc.save_scene(scene, tmp_path_factory.mktemp("mc") / "scene.npz")
+
+
+def _doc(result):
+    assert result.exit_code == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+def _strip_timing(doc):
+    doc = dict(doc)
+    doc.pop("timing")
+    return doc
+
+
+def test_json_report(run_cli, scene_file):
+    args = ("montecarlo", "--scene", scene_file, "--samples", 3, "--sigma-scale", 0.2, "--seed", 7, "--json")
+    one = _doc(run_cli(*args, "--jobs", 1))
+    assert one["command"] == "montecarlo" and one["picture"] == "P0001"
+    (row,) = one["landmarks"]
+    assert row["name"] == "LMK001" and row["samples"] == 3
+    assert row["success_rate"] == pytest.approx(row["ok"] / 3)
+    assert one["overall"]["success_rate"] == row["success_rate"]
+    assert row["ok"] == 3 and abs(row["sample_mean"]) < 0.3 and abs(row["line_mean"]) < 0.3
+    assert (one["config"]["seed"], one["config"]["sampling"], one["config"]["fields"]) == (7, "lhs", "cell")
+    steps = [n for _, n in one["config"]["plan"][0]["steps"]]
+    assert steps == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1, 1]
+    assert set(one["checks"]) == {"s16_table3", "image_targets", "image_targets_per_landmark"}
+    assert len(one["s16_table3"]["landmarks"]) == 12
+    assert one["timing"]["samples"] == 3
+    other = _doc(run_cli(*args[:-3], "--seed", 8, "--json", "--jobs", 1))
+    assert other["landmarks"][0]["sample_mean"] != row["sample_mean"]
+
+
+def test_image_space_reproducible_across_jobs(run_cli, scene_file):
+    args = (
+        "montecarlo",
+        "--scene",
+        scene_file,
+        "--space",
+        "image",
+        "--samples",
+        2,
+        "--sigma-scale",
+        0.2,
+        "--json",
+    )
+    one = _doc(run_cli(*args, "--jobs", 1))
+    two = _doc(run_cli(*args, "--jobs", 2))
+    assert _strip_timing(one) == _strip_timing(two)  # bit for bit, whatever --jobs
+    assert one["config"]["space"] == "image" and len(one["config"]["plan"]) == 2
+    assert one["landmarks"][0]["ok"] == 2
+
+
+def test_text_report_figures_and_csv(run_cli, scene_file, tmp_path):
+    res = run_cli(
+        "montecarlo",
+        "--scene",
+        scene_file,
+        "--samples",
+        2,
+        "--sigma-scale",
+        0.2,
+        "--jobs",
+        1,
+        "--sampling",
+        "mc",
+        "--fields",
+        "bias",
+        "--only",
+        "position,attitude,height",
+        "--refine",
+        0,
+        "--figures",
+        tmp_path / "figs",
+        "--samples-csv",
+        tmp_path / "s.csv",
+        "-o",
+        tmp_path / "report.txt",
+    )
+    assert res.exit_code == 0, res.stderr
+    text = (tmp_path / "report.txt").read_text()
+    assert "L-map" in text and "mean max rho" in text and "S16 Table 3" in text
+    assert "2 MC samples per landmark" in text and "terrain errors as one bias" in text
+    assert "steps L = 10, 9, 8, 7, 6, 5, 4, 3, 2, 1," in text
+    assert "(off) camera focal length" in text and "(off) maplet terrain height" not in text
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == [
+        "montecarlo_histograms.png",
+        "montecarlo_scatter.png",
+        "montecarlo_success.png",
+    ]
+    rows = (tmp_path / "s.csv").read_text().splitlines()
+    assert len(rows) == 3 and "z_height0" in rows[0] and "z_focal0" not in rows[0]
+
+
+def test_check_exit_code(run_cli, scene_file):
+    res = run_cli(
+        "montecarlo",
+        "--scene",
+        scene_file,
+        "--samples",
+        2,
+        "--sigma-scale",
+        0.2,
+        "--jobs",
+        1,
+        "--json",
+        "--check",
+    )
+    doc = json.loads(res.stdout)
+    passed = all(doc["checks"]["s16_table3"].values())
+    assert res.exit_code == (0 if passed else 1)
+    if not passed:
+        assert "montecarlo check (s16_table3) failed" in res.stderr
+
+
+def test_usage_errors(run_cli, scene_file, tmp_path):
+    res = run_cli("-C", tmp_path, "montecarlo", "--samples", 1)
+    assert res.exit_code == 2 and "no TRUTH.json" in res.stderr and "Traceback" not in res.stderr
+    res = run_cli("montecarlo", "--scene", scene_file, "--only", "pose")
+    assert res.exit_code == 2 and "unknown perturbation pose" in res.stderr
+    res = run_cli("montecarlo", "--scene", scene_file, "-l", "NOPE")
+    assert res.exit_code == 2 and "NOPE" in res.stderr
+    res = run_cli("montecarlo", "--scene", scene_file, "--preset", "s16-50m")
+    assert res.exit_code == 2 and "not preset s16-50m" in res.stderr
+    res = run_cli("montecarlo", "--preset", "s16-50m", "P0001")
+    assert res.exit_code == 2 and "drop PICTURE" in res.stderr
+    (tmp_path / "bad.npz").write_bytes(b"junk")
+    res = run_cli("montecarlo", "--scene", tmp_path / "bad.npz")
+    assert res.exit_code == 2 and "cannot read the scene" in res.stderr
+
+
+@pytest.mark.skipif(not (DEMO / "TRUTH.json").is_file(), reason="demo world not generated")
+def test_working_directory_made_by_simulate(run_cli, tmp_path):
+    truth = json.loads((DEMO / "TRUTH.json").read_text())
+    pic = truth["pictures"][0]["name"]
+    lm = truth["landmarks"][0]
+    scene = mc.scene_from_workdir(DEMO, pic, [lm["name"]])
+    px = lm["pixels"][pic]
+    assert np.allclose(scene.truth[0], [px["sample"], px["line"]], atol=1e-9)
+    assert np.allclose(scene.sun, truth["pictures"][0]["true"]["sz"])
+    res = run_cli(
+        "-C",
+        DEMO,
+        "montecarlo",
+        pic,
+        "-l",
+        lm["name"],
+        "--samples",
+        1,
+        "--jobs",
+        1,
+        "--json",
+        "--scene",
+        tmp_path / "demo.npz",
+    )
+    doc = _doc(res)
+    assert doc["landmarks"][0]["name"] == lm["name"] and doc["scene"]["workdir"] == str(DEMO)
+    assert (tmp_path / "demo.npz").is_file()

@@ -1,0 +1,483 @@
+"""Tests of spctool.sim.montecarlo: S16 Table 2 sampling, perturbations, the study driver, Table 3
+statistics, report, figures and scene files (spc-algorithms.md §12)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import norm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import register_scene as rs  # noqa: E402
+
+from spctool.errors import SpcUsageError  # noqa: E402
+from spctool.geometry.frames import apply_attitude_update  # noqa: E402
+from spctool.sim import montecarlo as mc  # noqa: E402
+from spctool.stages.register import register  # noqa: E402
+
+# --------------------------------------------------------------------------------------------------
+# a small rendered scene (S16 optics at 50 m, 1 cm maplet cells), shared by the module
+
+
+@pytest.fixture(scope="module")
+def scene():
+    sc = rs.scene(q=24, q_truth=80, npx=120, nln=120)
+    m = mc.Knowledge.from_maplet(sc.maplet, "LMK001")
+    return mc.Scene("P0001", sc.photo, sc.thresholds, sc.camera, sc.sun, [m], [sc.maplet.v], info={"test": 1})
+
+
+def _owen(x, y, p):
+    """SPC OWEN distortion (spc-algorithms.md §1.3 step 4), written independently of the camera."""
+    r = np.hypot(x, y)
+    dx = -p[1] * y * r + p[2] * x * r**2 - p[3] * y * r**3 + p[4] * x * r**4 + p[5] * x * y + p[6] * x * x
+    dy = p[1] * x * r + p[2] * y * r**2 + p[3] * x * r**3 + p[4] * y * r**4 + p[5] * y * y + p[6] * x * y
+    return x + dx, y + dy
+
+
+# --------------------------------------------------------------------------------------------------
+# sampling
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 300), d=st.integers(1, 25), seed=st.integers(0, 2**32 - 1))
+def test_lhs_uses_every_stratum_once_per_dimension(n, d, seed):
+    u = mc.lhs_uniform(n, d, np.random.default_rng(seed))
+    assert u.shape == (n, d)
+    assert np.all((u > 0) & (u < 1))
+    strata = np.floor(u * n).astype(int)
+    for k in range(d):
+        assert np.array_equal(np.sort(strata[:, k]), np.arange(n))
+
+
+@settings(max_examples=20, deadline=None)
+@given(n=st.integers(2, 200), seed=st.integers(0, 10**6), landmark=st.integers(0, 20))
+def test_design_is_lhs_through_the_normal_inverse_cdf(n, seed, landmark):
+    cfg = mc.MonteCarloConfig(samples=n, seed=seed)
+    z = mc.design(cfg, landmark)
+    assert z.shape == (n, len(mc.design_dimensions(cfg)))
+    assert np.all(np.isfinite(z))
+    strata = np.floor(norm.cdf(z) * n).astype(int)
+    for k in range(z.shape[1]):
+        assert np.array_equal(np.sort(strata[:, k]), np.arange(n))
+    # reproducible; landmarks get their own designs
+    assert np.array_equal(z, mc.design(cfg, landmark))
+    assert not np.array_equal(z, mc.design(cfg, landmark + 1))
+
+
+def test_lhs_marginals_are_standard_normal():
+    z = mc.design(mc.MonteCarloConfig(samples=2000, seed=3), 0)
+    # stratified: the mean and the variance are far closer to 0 and 1 than random sampling gives
+    assert np.all(np.abs(z.mean(axis=0)) < 0.01)
+    assert np.all(np.abs(z.std(axis=0) - 1.0) < 0.02)
+    zmc = mc.design(mc.MonteCarloConfig(samples=2000, seed=3, sampling="mc"), 0)
+    assert np.all(np.abs(zmc.mean(axis=0)) < 5.0 / math.sqrt(2000))
+    strata = np.floor(norm.cdf(zmc) * 2000).astype(int)
+    assert any(len(np.unique(strata[:, k])) < 2000 for k in range(zmc.shape[1]))  # not stratified
+
+
+def test_design_dimensions_follow_table_2():
+    cell = mc.design_dimensions(mc.MonteCarloConfig())
+    names = [n for n, _, _ in cell]
+    # 3 position, 3 attitude, 3 landmark, skew, 2 centre, focal, 4 non-zero distortion, 2 sun
+    assert len(cell) == 19 and "height" not in names and "albedo" not in names
+    assert names.count("distortion") == 4
+    bias = mc.design_dimensions(mc.MonteCarloConfig(fields="bias"))
+    assert len(bias) == 21 and ("height", 0, 3.33e-6) in bias and ("albedo", 0, 0.047) in bias
+    two = mc.design_dimensions(mc.MonteCarloConfig(parameters=("sun", "position"), sigma_scale=2.0))
+    assert two == [("position", k, 2 * 1.667e-4) for k in range(3)] + [("sun", 0, 0.6), ("sun", 1, 0.6)]
+    with pytest.raises(SpcUsageError):
+        mc.MonteCarloConfig(parameters=("pose",))
+    with pytest.raises(SpcUsageError):
+        mc.MonteCarloConfig(sampling="sobol")
+    with pytest.raises(SpcUsageError):
+        mc.MonteCarloConfig(samples=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# perturbations
+
+
+def _row(cfg, **values):
+    """A design row with the named (parameter, component) entries set (standard normals)."""
+    dims = mc.design_dimensions(cfg)
+    z = np.zeros(len(dims))
+    for i, (n, k, _) in enumerate(dims):
+        z[i] = values.get(f"{n}{k}", 0.0)
+    return z
+
+
+def test_zero_row_changes_nothing_but_cell_fields(scene):
+    cfg = mc.MonteCarloConfig(fields="bias")
+    p = mc.perturb(scene, 0, _row(cfg), 0, cfg)
+    cam = scene.camera
+    assert np.array_equal(p.camera.scobj, cam.scobj) and np.array_equal(p.camera.rotation, cam.rotation)
+    assert np.array_equal(p.camera.ctr, cam.ctr) and p.camera.mmfl == cam.mmfl
+    assert np.array_equal(p.sun, scene.sun)
+    m0 = scene.maplets[0]
+    assert np.array_equal(p.maplet.heights, m0.heights) and np.array_equal(p.maplet.albedo, m0.albedo)
+    assert np.array_equal(p.maplet.v, m0.v)
+    # a zero OWEN model projects exactly like no model
+    pts = m0.v + 1e-4 * np.array([[1.0, 2.0, 0.5], [-3.0, 1.0, 0.0]])
+    assert np.allclose(np.stack(p.camera.project(pts)), np.stack(cam.project(pts)), rtol=0, atol=1e-9)
+
+
+def test_pose_and_landmark_perturbations(scene):
+    cfg = mc.MonteCarloConfig()
+    p = mc.perturb(scene, 0, _row(cfg, position0=1.0, position2=-2.0, attitude1=1.5, landmark2=-1.0), 0, cfg)
+    assert np.allclose(
+        p.camera.position - scene.camera.position, [1.667e-4, 0, -3.334e-4], rtol=0, atol=1e-15
+    )
+    expected = apply_attitude_update(scene.camera.rotation, np.radians([0.0, 0.075, 0.0]))
+    assert np.array_equal(p.camera.rotation, expected)
+    assert np.allclose(p.maplet.v - scene.maplets[0].v, [0, 0, -3.33e-5], rtol=0, atol=1e-15)
+    assert np.allclose(p.values["attitude"], [0, 0.075, 0])
+
+
+def test_camera_intrinsic_perturbations(scene):
+    cam = scene.camera
+    cfg = mc.MonteCarloConfig(parameters=("center", "focal", "skew", "distortion"))
+    pts = scene.maplets[0].v + np.array([[0.0, 0.0, 0.0], [2e-4, -1e-4, 0.0], [-1e-4, 3e-4, 1e-5]])
+    s0, l0 = cam.project(pts)
+    # principal point: a pure shift of every pixel
+    p = mc.perturb(scene, 0, _row(cfg, center0=1.0, center1=-2.0), 0, cfg)
+    s1, l1 = p.camera.project(pts)
+    assert np.allclose(s1 - s0, 0.1667, atol=1e-9) and np.allclose(l1 - l0, -0.3334, atol=1e-9)
+    # focal length: (pixel − CTR) scales by f'/f (no distortion)
+    p = mc.perturb(scene, 0, _row(cfg, focal0=2.0), 0, cfg)
+    s1, l1 = p.camera.project(pts)
+    ratio = (7.68 + 0.008) / 7.68
+    assert np.allclose(s1 - cam.ctr[0], ratio * (s0 - cam.ctr[0]), atol=1e-9)
+    assert np.allclose(l1 - cam.ctr[1], ratio * (l0 - cam.ctr[1]), atol=1e-9)
+    # skew K21: line += δ·x (x in mm), sample unchanged
+    p = mc.perturb(scene, 0, _row(cfg, skew0=1.0), 0, cfg)
+    s1, l1 = p.camera.project(pts)
+    x_mm = (s0 - cam.ctr[0]) / cam.kmatrix[0, 0]
+    assert np.allclose(s1, s0, atol=1e-9) and np.allclose(l1 - l0, 1e-5 * x_mm, atol=1e-9)
+    assert p.camera.kmatrix[1, 0] == pytest.approx(1e-5)
+    # distortion: an independent OWEN evaluation
+    p = mc.perturb(
+        scene, 0, _row(cfg, distortion0=1.0, distortion1=-1.0, distortion2=2.0, distortion3=1.0), 0, cfg
+    )
+    assert p.camera.model == "OWEN"
+    coef = np.array([0.0, 1e-5, -1e-7, 2e-5, 1e-5, 0.0, 0.0])
+    assert np.allclose(p.camera.coefficients, coef, rtol=0, atol=1e-20)
+    zc = scene.camera.to_camera(pts)
+    xu, yu = 7.68 * zc[:, 0] / zc[:, 2], 7.68 * zc[:, 1] / zc[:, 2]
+    xd, yd = _owen(xu, yu, coef)
+    s1, l1 = p.camera.project(pts)
+    k = cam.kmatrix
+    assert np.allclose(s1, cam.ctr[0] + k[0, 0] * xd + k[0, 1] * yd, atol=1e-9)
+    assert np.allclose(l1, cam.ctr[1] + k[1, 0] * xd + k[1, 1] * yd, atol=1e-9)
+
+
+def test_distortion_needs_owen(scene):
+    other = dataclasses.replace(
+        scene, camera=dataclasses.replace(scene.camera, model="RADIAL", coefficients=[0.0, 0.0, 0.0])
+    )
+    cfg = mc.MonteCarloConfig()
+    with pytest.raises(SpcUsageError, match="OWEN"):
+        mc.perturb(other, 0, _row(cfg, distortion0=1.0), 0, cfg)
+    cfg = mc.MonteCarloConfig(parameters=("position",))
+    assert mc.perturb(other, 0, _row(cfg, position0=1.0), 0, cfg).camera.model == "RADIAL"
+
+
+def test_sun_right_ascension_and_declination(scene):
+    cfg = mc.MonteCarloConfig(parameters=("sun",))
+    p = mc.perturb(scene, 0, _row(cfg, sun0=1.0, sun1=-2.0), 0, cfg)
+    s0, s1 = scene.sun, p.sun
+    assert np.linalg.norm(s1) == pytest.approx(1.0)
+    ra0, dec0 = math.atan2(s0[1], s0[0]), math.asin(s0[2])
+    ra1, dec1 = math.atan2(s1[1], s1[0]), math.asin(s1[2])
+    assert math.degrees(ra1 - ra0) == pytest.approx(0.3, abs=1e-9)
+    assert math.degrees(dec1 - dec0) == pytest.approx(-0.6, abs=1e-9)
+
+
+def test_terrain_errors_cell_and_bias(scene):
+    m0 = scene.maplets[0]
+    cfg = mc.MonteCarloConfig(fields="bias", parameters=("height", "albedo"))
+    p = mc.perturb(scene, 0, _row(cfg, height0=1.0, albedo0=-1.0), 7, cfg)
+    assert np.allclose(p.maplet.heights - m0.heights, 3.33e-6 / m0.scale, atol=1e-12)
+    assert np.allclose(p.maplet.albedo - m0.albedo, -0.047, atol=1e-12)
+    cfg = mc.MonteCarloConfig(fields="cell", parameters=("height", "albedo"), seed=5)
+    a = mc.perturb(scene, 0, _row(cfg), 7, cfg)
+    dh = (a.maplet.heights - m0.heights) * m0.scale
+    da = a.maplet.albedo - m0.albedo
+    n = dh.size
+    assert abs(dh.std() / 3.33e-6 - 1) < 5 / math.sqrt(n) and abs(dh.mean()) < 5 * 3.33e-6 / math.sqrt(n)
+    assert abs(da.std() / 0.047 - 1) < 5 / math.sqrt(n)
+    assert abs(np.corrcoef(dh.ravel(), da.ravel())[0, 1]) < 5 / math.sqrt(n)
+    # one stream per (seed, landmark, sample), the same whether or not the other field is on
+    b = mc.perturb(scene, 0, _row(cfg), 7, cfg)
+    assert np.array_equal(a.maplet.heights, b.maplet.heights)
+    only_h = mc.MonteCarloConfig(fields="cell", parameters=("height",), seed=5)
+    c = mc.perturb(scene, 0, _row(only_h), 7, only_h)
+    assert np.array_equal(c.maplet.heights, a.maplet.heights) and np.array_equal(c.maplet.albedo, m0.albedo)
+    d = mc.perturb(scene, 0, _row(cfg), 8, cfg)
+    assert not np.array_equal(d.maplet.heights, a.maplet.heights)
+    assert np.array_equal(a.maplet.valid, m0.valid)
+
+
+# --------------------------------------------------------------------------------------------------
+# the study
+
+
+def _same(a, b):
+    return np.array_equal(a, b, equal_nan=True)
+
+
+def _cfg(**kw):
+    """The S16 driver with L = 5 … 1: the test maplet has 49×49 cells (L = 10 bins would be too few)."""
+    space = kw.pop("space", "maplet")
+    plan = mc.default_plan(space, refine=kw.pop("refine", 0), s16_spacings=(5, 4, 3, 2, 1))
+    return mc.MonteCarloConfig(space=space, plan=plan, **kw)
+
+
+def test_run_is_reproducible_whatever_jobs_and_chunks(scene):
+    cfg = _cfg(samples=4, seed=11, sigma_scale=0.2)
+    one = mc.run(scene, cfg, jobs=1)
+    again = mc.run(scene, cfg, jobs=1, chunk=1)
+    two = mc.run(scene, cfg, jobs=2, chunk=1)
+    for r in (again, two):
+        assert _same(r.measured, one.measured) and _same(r.apriori, one.apriori)
+        assert _same(r.rho, one.rho) and np.array_equal(r.status, one.status)
+        assert np.array_equal(r.iterations, one.iterations) and np.array_equal(r.z, one.z)
+    assert one.ok.all()  # small perturbations of a good landmark
+    assert np.all(np.abs(one.error) < 0.3)
+    # another seed gives other samples
+    other = mc.run(scene, _cfg(samples=4, seed=12, sigma_scale=0.2), jobs=1)
+    assert not _same(other.apriori, one.apriori)
+
+
+def test_error_is_truth_minus_register(scene):
+    cfg = _cfg(samples=2, seed=2, sigma_scale=0.3)
+    res = mc.run(scene, cfg)
+    z = mc.design(cfg, 0)
+    for j in range(2):
+        p = mc.perturb(scene, 0, z[j], j, cfg)
+        r = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, cfg.plan[0])
+        assert _same(res.measured[0, j], r.measured[0]) and res.status[0, j] == r.status[0]
+        assert _same(res.error[0, j], scene.truth[0] - r.measured[0])
+        assert _same(res.apriori[0, j], np.array(p.camera.project(p.maplet.v[None]), float).reshape(2))
+    assert np.allclose(scene.truth[0], np.array(scene.camera.project(scene.true_v), float).reshape(2))
+
+
+def test_default_plans():
+    (o,) = mc.default_plan("maplet")
+    assert [n for _, n in o.steps] == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1, 1]
+    assert o.extract.linearized and o.extract.criteria is None and o.schedule == "retina_s16"
+    (s16,) = mc.default_plan("maplet", refine=0)
+    assert s16.steps is None and s16.s16_spacings == (10, 9, 8, 7, 6, 5, 4, 3, 2, 1)
+    coarse, fine = mc.default_plan("image", refine=3)
+    assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
+    assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]
+    assert len(mc.default_plan("image", refine=0)) == 1
+    with pytest.raises(SpcUsageError):
+        mc.default_plan("pixel")
+    with pytest.raises(SpcUsageError):
+        mc.MonteCarloConfig(space="maplet", plan=coarse)
+
+
+def test_phases_chain_from_the_previous_measurement(scene):
+    """A two-phase plan equals running the second phase from the first phase's measurement."""
+    cfg = _cfg(samples=1, seed=4, sigma_scale=0.3)
+    second = mc.default_plan("maplet", refine=0, steps=(1, 1))[0]
+    two = mc.MonteCarloConfig(samples=1, seed=4, sigma_scale=0.3, plan=(cfg.plan[0], second))
+    p = mc.perturb(scene, 0, mc.design(cfg, 0)[0], 0, cfg)
+    first = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, cfg.plan[0])
+    then = register(
+        scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, second, apriori=first.measured
+    )
+    both = mc.register_sample(scene, p, two.plan)
+    assert first.status == ["ok"] and both.status == then.status
+    assert _same(both.measured, then.measured) and _same(both.apriori, first.apriori)
+    assert both.iterations[0] == first.iterations[0] + then.iterations[0]
+    assert np.abs(both.measured - first.measured).max() < 0.2
+
+
+# --------------------------------------------------------------------------------------------------
+# statistics and report
+
+
+def _fake_result(statuses, errors, rho, names=("A", "B")):
+    n = len(statuses[0])
+    cfg = mc.MonteCarloConfig(samples=n, parameters=("position",))
+    truth = np.array([[100.0, 200.0], [300.0, 400.0]])[: len(names)]
+    st_ = np.array(statuses, dtype=object).astype(str)
+    meas = truth[:, None, :] - np.asarray(errors, float)
+    meas[st_ != "ok"] = np.nan
+    z = np.random.default_rng(0).standard_normal((len(names), n, 3))
+    return mc.MonteCarloResult(
+        {"preset": "test"},
+        "P1",
+        list(names),
+        truth,
+        cfg,
+        mc.design_dimensions(cfg),
+        z,
+        truth[:, None, :] + z[..., :2],
+        meas,
+        st_,
+        np.asarray(rho, float),
+        np.full((len(names), n), 10),
+    )
+
+
+def test_table3_statistics():
+    statuses = [
+        ["ok", "ok", "ok", "not-found", "low-correlation"],
+        ["ok", "edge-peak", "outside", "ok", "ok"],
+    ]
+    errors = np.zeros((2, 5, 2))
+    errors[0, :3] = [[0.1, -0.2], [0.3, 0.0], [-0.1, 0.1]]
+    errors[1, [0, 3, 4]] = [[0.05, 0.0], [0.05, 0.1], [0.2, -0.1]]
+    rho = [[0.6, 0.7, 0.5, np.nan, 0.2], [0.9, 0.8, np.nan, 0.7, 0.6]]
+    s = mc.summarise(_fake_result(statuses, errors, rho))
+    a, b = s["landmarks"]
+    assert a["sample_mean"] == pytest.approx(0.1) and a["line_mean"] == pytest.approx(-1 / 30)
+    assert a["sample_std"] == pytest.approx(np.std([0.1, 0.3, -0.1], ddof=1))
+    assert a["line_std"] == pytest.approx(np.std([-0.2, 0.0, 0.1], ddof=1))
+    assert (a["not_found"], a["below_threshold"], a["ok"]) == (1, 1, 3)
+    assert a["success_rate"] == pytest.approx(0.6)
+    assert a["mean_max_rho"] == pytest.approx(np.mean([0.6, 0.7, 0.5, 0.2])) and a["rho_defined"] == 4
+    assert (b["not_found"], b["below_threshold"]) == (2, 0)
+    assert b["status_counts"] == {"edge-peak": 1, "ok": 3, "outside": 1}
+    o = s["overall"]
+    assert o["samples"] == 10 and o["ok"] == 6 and o["success_rate"] == pytest.approx(0.6)
+    ok_err = np.concatenate([errors[0, :3], errors[1, [0, 3, 4]]])
+    assert o["sample_mean"] == pytest.approx(ok_err[:, 0].mean())
+    assert o["line_std"] == pytest.approx(ok_err[:, 1].std(ddof=1))
+    assert o["max_abs_sample_mean"] == pytest.approx(0.1) and o["min_success_rate"] == pytest.approx(0.6)
+    assert s["checks"]["image_targets"]["success_rate"] is False
+    assert s["checks"]["image_targets"]["abs_sample_mean"] is False  # pooled mean 0.1 > 0.05
+    assert s["checks"]["image_targets_per_landmark"]["max_abs_sample_mean"] is False
+    assert s["checks"]["image_targets_per_landmark"]["max_line_std"] is False  # std of −0.2, 0, 0.1
+    assert s["checks"]["s16_table3"]["success_rate"] is False
+    assert [mc.status_class(x) for x in ("ok", "low-correlation", "edge-peak", "removed-cov", "outside")] == [
+        "ok",
+        "below",
+        "not-found",
+        "not-found",
+        "not-found",
+    ]
+
+
+def test_s16_table3_transcription_is_consistent():
+    # success = (500 − not found − below threshold)/500 for every row (spc-algorithms.md §8.2)
+    for name, row in mc.S16_TABLE3.items():
+        assert round((500 - row[4] - row[5]) / 500, 2) == pytest.approx(row[6], abs=0.0051), name
+    agg = mc._s16_aggregate()
+    assert agg["success_rate"] == pytest.approx(1 - (sum(r[4] + r[5] for r in mc.S16_TABLE3.values())) / 6000)
+    assert agg["max_abs_sample_mean"] == 0.208 and agg["max_line_std"] == 0.113
+    assert list(mc.S16_TABLE3) == list(mc.S16_LANDMARKS)
+
+
+def test_report_json_and_figures(tmp_path):
+    rng = np.random.default_rng(4)
+    n = 60
+    statuses = [["ok"] * 55 + ["not-found"] * 3 + ["low-correlation"] * 2, ["ok"] * 60]
+    errors = rng.normal(0.0, 0.05, (2, n, 2))
+    rho = rng.uniform(0.4, 0.9, (2, n))
+    res = _fake_result(statuses, errors, rho)
+    res.timing = {"run_s": 1.0, "per_sample_ms": 8.3, "jobs": 1, "samples": 120}
+    text = mc.format_report(res)
+    assert "s mean" in text and "S16 Table 3" in text and "B01980" in text
+    lines = [ln for ln in text.splitlines() if ln.startswith(("A ", "B ", "all "))]
+    assert len(lines) == 3 and lines[0].split()[5:7] == ["3", "2"]
+    doc = mc.report_document(res)
+    json.dumps(doc, allow_nan=False)
+    assert doc["command"] == "montecarlo" and len(doc["landmarks"]) == 2
+    assert doc["landmarks"][0]["success_rate"] == pytest.approx(55 / 60)
+    assert doc["overall"]["success_rate"] == pytest.approx(115 / 120)
+    assert doc["sensitivity"] and doc["dimensions"][0]["parameter"] == "position"
+    paths = mc.write_figures(res, tmp_path / "figs")
+    from PIL import Image
+
+    for p in paths:
+        im = Image.open(p)
+        assert im.format == "PNG" and im.size[0] > 500
+        assert len(np.unique(np.asarray(im.convert("L")))) > 5  # something was drawn
+    csv = mc.write_samples_csv(res, tmp_path / "s.csv").read_text().splitlines()
+    assert len(csv) == 1 + 120 and csv[0].startswith("landmark,sample,status")
+    assert csv[56].split(",")[2] == "not-found"
+
+
+def test_sensitivity_recovers_a_linear_model():
+    rng = np.random.default_rng(9)
+    n = 400
+    res = _fake_result([["ok"] * n, ["ok"] * n], np.zeros((2, n, 2)), np.full((2, n), 0.8))
+    noise = rng.normal(0, 0.001, (2, n, 2))
+    err = (
+        0.02 * res.z[..., [0]] * np.array([1.0, -0.5]) + 0.01 * res.z[..., [2]] * np.array([0.0, 1.0]) + noise
+    )
+    res.measured = res.truth[:, None, :] - (
+        err + np.array([[[0.1, -0.2]], [[0.0, 0.3]]])
+    )  # per-landmark biases
+    sens = mc.sensitivity(res)
+    assert [r["parameter"] for r in sens] == ["position"] * 3
+    assert sens[0]["sample_px_per_sigma"] == pytest.approx(0.02, abs=5e-4)
+    assert sens[0]["line_px_per_sigma"] == pytest.approx(-0.01, abs=5e-4)
+    assert sens[2]["line_px_per_sigma"] == pytest.approx(0.01, abs=5e-4)
+    assert abs(sens[1]["sample_px_per_sigma"]) < 5e-4
+
+
+# --------------------------------------------------------------------------------------------------
+# scenes
+
+
+def test_scene_file_round_trip(scene, tmp_path):
+    path = mc.save_scene(scene, tmp_path / "scene.npz")
+    back = mc.load_scene(path)
+    assert np.array_equal(back.photo, scene.photo) and np.array_equal(back.truth, scene.truth)
+    assert (
+        np.array_equal(back.camera.rotation, scene.camera.rotation)
+        and back.camera.model == scene.camera.model
+    )
+    assert back.names == scene.names and back.thresholds == scene.thresholds and back.info == scene.info
+    for a, b in zip(back.maplets, scene.maplets):
+        for key in ("heights", "albedo", "valid", "v", "ux", "uy", "uz"):
+            assert np.array_equal(getattr(a, key), getattr(b, key))
+        assert a.scale == b.scale
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(SpcUsageError):
+        mc.load_scene(tmp_path / "bad.npz")
+    with pytest.raises(SpcUsageError):
+        scene.subset(["NOPE"])
+
+
+def test_s16_spec_camera_and_scene_window():
+    from spctool.sim.simulate import parse_spec
+
+    spec = parse_spec(mc.s16_spec(16))
+    c = spec.camera
+    assert (c.npx, c.nln, c.mmfl) == (2592, 1944, 7.68)
+    assert c.kmatrix == [[454.54, 0.0, 0.0], [0.0, -454.54, 0.0]]
+    # S16 Table 1: FOV 40.7 x 31.1 deg from 2.2 um pixels
+    assert math.degrees(2 * math.atan(2592 / 2 / 454.54 / 7.68)) == pytest.approx(40.7, abs=0.05)
+    assert math.degrees(2 * math.atan(1944 / 2 / 454.54 / 7.68)) == pytest.approx(31.1, abs=0.05)
+    assert spec.maplets.names == list(mc.S16_LANDMARKS) and spec.maplets.qsz == 49
+    assert spec.maplets.scale_km == 1e-5 and spec.pictures[0].range_km == 0.05
+    # window: half diagonal + 5 sigma of the a-priori error + the L = 10 search, in pixels at 50 m
+    cam = rs.s16_camera(np.zeros(3), np.array([0.0, 0.0, 0.05]), npx=2592, nln=1944)
+    m = mc.Knowledge(
+        "X",
+        np.zeros((99, 99)),
+        np.ones((99, 99)),
+        np.ones((99, 99), bool),
+        1e-5,
+        np.zeros(3),
+        np.eye(3)[0],
+        np.eye(3)[1],
+        np.eye(3)[2],
+    )
+    px = 0.05 * cam.ifov
+    expected = math.sqrt(2) * 49.5e-5 / px + 5 * math.hypot(1.667e-4 / px, math.radians(0.05) / cam.ifov) + 60
+    assert mc.scene_window_half(cam, m) == math.ceil(expected)
