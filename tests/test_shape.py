@@ -728,6 +728,128 @@ def test_embree_agrees_with_numba_on_bennu49k():
     assert (em.any_hit(o, d, t_max) == em.first_hit(o, d, t_max).hit).mean() >= 0.999
 
 
+def noisy_ellipsoid(q: int) -> np.ndarray:
+    """Ellipsoid × (1 + ~1 % smooth relief), a function of the cube-sphere direction only, so the ICQ
+    seam duplicates stay bit-identical (``icq_to_mesh`` references one of each pair)."""
+    axes = np.array([0.30, 0.25, 0.20])
+
+    def radius(u):
+        relief = 0.01 * np.sin(23 * u[..., 0] + 1) * np.sin(17 * u[..., 1] + 2) * np.sin(19 * u[..., 2])
+        return (1.0 + relief) / np.sqrt(np.sum((u / axes) ** 2, axis=-1))
+
+    return icq_from_radius(q, radius)
+
+
+def icq_mesh_rays(rng, verts, n_near=3000, n_far=1500):
+    """Rays for the ICQ-mesh regression: cameras at 1.5–5 body radii and at 1000 km, each aimed at a
+    random surface vertex (jittered), ≥ 4096 rays in all so the coherent-order path is taken."""
+    r_body = float(np.max(np.linalg.norm(verts, axis=1)))
+    n = n_near + n_far
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    dist = np.concatenate([rng.uniform(1.5, 5.0, n_near) * r_body, np.full(n_far, 1000.0)])
+    o = u * dist[:, None]
+    target = verts[rng.integers(0, len(verts), n)] + rng.normal(scale=0.01 * r_body, size=(n, 3))
+    return o, target - o
+
+
+def _same(a: HitResult, b: HitResult) -> bool:
+    return np.array_equal(a.index, b.index) and np.array_equal(a.t, b.t)
+
+
+def _take(res: HitResult, idx) -> HitResult:
+    return HitResult(res.hit[idx], res.t[idx], res.point[idx], res.index[idx], res.u[idx], res.v[idx])
+
+
+def _check_backends_on_icq_mesh(mesh, rng, patches=None):
+    """numba: ray-order path = small batches = brute force (bit for bit); Embree (if importable): the
+    same hits as numba; both honour t_min.  Returns the numba camera hits."""
+    nb = TriangleShape(mesh, backend="numba")
+    o, d = icq_mesh_rays(rng, nb.vertices[np.unique(nb.faces)])
+    cams = nb.first_hit(o, d)
+    assert len(cams) >= 4096 and cams.hit.mean() > 0.9
+    pieces = [nb.first_hit(o[s:s + 2000], d[s:s + 2000]) for s in range(0, len(o), 2000)]
+    assert np.array_equal(cams.index, np.concatenate([p.index for p in pieces]))
+    assert np.array_equal(cams.t, np.concatenate([p.t for p in pieces]))
+    sub = rng.choice(len(o), 300, replace=False)
+    assert _same(_take(cams, sub), nb.brute_force_first_hit(o[sub], d[sub]))
+    # shadow rays leaving the surface (t_min > 0), in one batch of ≥ 4096
+    so = cams.point[cams.hit]
+    sd = rng.normal(size=so.shape)
+    t_min = 1e-6
+    sh = nb.first_hit(so, sd, t_min=t_min)
+    assert len(sh) >= 4096 and 0.2 < sh.hit.mean() < 0.8
+    assert np.all(sh.t[sh.hit] >= t_min)
+    sub = rng.choice(len(so), 300, replace=False)
+    assert _same(_take(sh, sub), nb.brute_force_first_hit(so[sub], sd[sub], t_min=t_min))
+    assert np.array_equal(nb.any_hit(so, sd, t_min=t_min), sh.hit)
+    if embree_available():
+        em = TriangleShape(mesh, backend="embree")
+        for (oo, dd, t0), ref in (((o, d, 0.0), cams), ((so, sd, t_min), sh)):
+            got = em.first_hit(oo, dd, t_min=t0)
+            assert np.all(got.t[got.hit] >= t0)  # was: a shadow ray's own triangle at t ≈ 0
+            # the same triangle and bit-identical t, except (rarely) where single precision cannot
+            # separate two triangles along a grazing ray
+            assert np.mean((got.index == ref.index) & ((got.t == ref.t) | ~ref.hit)) >= 0.9995
+            both = got.hit & ref.hit
+            assert np.mean(got.hit == ref.hit) >= 0.9995
+            assert np.allclose(got.point[both], ref.point[both], rtol=0, atol=1e-9)
+            assert np.mean(em.any_hit(oo, dd, t_min=t0) == ref.hit) >= 0.9995
+    if patches is not None:  # planar cells: the patch and its two triangles are one surface
+        ph = patches.first_hit(o, d)
+        in_cell = ph.hit & (ph.u >= 0) & (ph.u <= 1) & (ph.v >= 0) & (ph.v <= 1)
+        assert in_cell.mean() > 0.9
+        assert np.allclose(ph.point[in_cell], cams.point[in_cell], rtol=0, atol=1e-12)
+    return cams
+
+
+@pytest.mark.parametrize("compact", [False, True])
+def test_icq_mesh_numba_and_embree_agree_with_brute_force(compact):
+    # regression: an ICQ model converted with icq_to_mesh (all 6(Q+1)² vertices, seam duplicates
+    # unreferenced; or compact) traced with ≥ 4096 rays per batch, from near and 1000 km cameras and
+    # as shadow rays with t_min > 0.  The numba BVH was always exact; Embree (float32) was not: it
+    # rounded far cameras' origins by tens of metres (hits up to ~60 m off at 1000 km) and returned
+    # shadow rays' own triangles at t ≈ 0 < t_min (hits ~0.1–0.6 km short of the true ones).
+    from spctool.formats.icq import IcqShape, icq_to_mesh
+
+    q = 32
+    icq = IcqShape(q, noisy_ellipsoid(q))
+    _check_backends_on_icq_mesh(icq_to_mesh(icq, compact=compact), np.random.default_rng(31 + compact))
+
+
+def test_icq_cube_mesh_backends_agree_with_patches():
+    # flat-faced ICQ (a cube): in-cell patch hits and triangle hits are the same points
+    from spctool.formats.icq import IcqShape, icq_to_mesh
+
+    v = cube_points(16) * 0.25
+    _check_backends_on_icq_mesh(icq_to_mesh(IcqShape(16, v)), np.random.default_rng(33), PatchShape(v))
+
+
+def test_degenerate_rays_and_empty_batches_on_both_backends():
+    v, f = triangulate(cube_points(4) * 0.5)
+    backends = ["numba"] + (["embree"] if embree_available() else [])
+    o = np.array([[0.1, 0.2, 3.0], [0.1, 0.2, 3.0], [np.nan, 0, 3], [0.1, 0.2, 3.0], [0.1, 0.2, 3.0],
+                  [0.1, 0.2, 0.0], [0.1, 0.2, 3.0], [5.0, 5.0, 5.0]])
+    d = np.array([[0, 0, -1.0], [0, 0, 0.0], [0, 0, -1], [0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, -2],
+                  [0, 0, -1]])
+    t0 = np.array([0.0, 0, 0, 3.0, -1.0, -10.0, 2.6, 0])  # ray 5 starts inside: t_min < 0 reaches back
+    t1 = np.array([np.inf, np.inf, np.inf, 2.0, 2.4, 10.0, 3.0, np.inf])
+    for b in backends:
+        s = TriangleShape(v, f, backend=b)
+        res = s.first_hit(o, d, t1, t_min=t0)
+        assert res.hit.tolist() == [True, False, False, False, False, True, False, False], b
+        assert res.t[0] == pytest.approx(2.5, abs=1e-15) and res.t[5] == pytest.approx(-0.5, abs=1e-15)
+        assert np.array_equal(s.any_hit(o, d, t1, t_min=t0), res.hit)
+        empty = s.first_hit(np.zeros((0, 3)), [0.0, 0.0, 1.0])  # scalar t_min/t_max: still 0 rays
+        assert len(empty) == 0 and empty.point.shape == (0, 3)
+        assert s.any_hit(np.zeros((0, 3)), np.zeros((0, 3)), t_min=np.zeros(0)).shape == (0,)
+
+
+def test_auto_backend_is_the_exact_numba_bvh():
+    v, f = triangulate(cube_points(2))
+    assert TriangleShape(v, f).backend == "numba"
+
+
 # ------------------------------------------------------------------------------------------------
 # statistics
 # ------------------------------------------------------------------------------------------------

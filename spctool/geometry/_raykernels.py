@@ -690,6 +690,127 @@ def trace_brute(kind, origins, dirs, tmin, tmax, nprim, verts, faces, q, eps, ou
 
 
 # ------------------------------------------------------------------------------------------------
+# single-precision tracers (Embree): ray preparation and double-precision verification
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _clip_one(ox, oy, oz, dx, dy, dz, t0, t1, box):
+    """Unit direction and [t_s, t_e] = [t0, t1] ∩ slab interval of ``box`` (t_s > t_e: no overlap;
+    nd = 0 for an unusable ray)."""
+    nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if not (nd > 0.0 and nd < np.inf and math.isfinite(ox + oy + oz) and t0 <= t1):
+        return 0.0, 0.0, 0.0, 0.0, np.inf, -np.inf
+    dx /= nd
+    dy /= nd
+    dz /= nd
+    ts = t0
+    te = t1
+    for w in range(3):
+        o = ox if w == 0 else (oy if w == 1 else oz)
+        d = dx if w == 0 else (dy if w == 1 else dz)
+        if d == 0.0:
+            if o < box[w] or o > box[3 + w]:
+                te = -np.inf  # parallel to the slab and outside it
+            continue
+        a = (box[w] - o) / d
+        b = (box[3 + w] - o) / d
+        ts = max(ts, min(a, b))
+        te = min(te, max(a, b))
+    return nd, dx, dy, dz, ts, te
+
+
+@njit(cache=True, parallel=True)
+def clip_rays(n, origins, dirs, tmin, tmax, box, slack, ok, org32, dir32, span32):
+    """Prepare rays for a single-precision tracer: clip each ray to ``box`` in double precision.
+
+    A ray's search interval is [t_s, t_e] = [tmin, tmax] ∩ (its slab interval through ``box``),
+    computed along the unit direction.  The tracer's ray (``org32``, unit ``dir32``, length
+    ``span32``; computed in float64, cast by the caller) starts ``slack`` before t_s and runs
+    t_e − t_s + 2·slack.  Its origin thus lies on the box, so single precision works at the scale of
+    the model (~1e-7 of its size) instead of that of a far camera (~1e-7 of 1000 km, which Embree's
+    float32 intersection arithmetic turned into wrong triangles up to 56 m off on the q = 32 Bennu
+    model), and a hit that rounding moves by less than ``slack`` across either end of [t_s, t_e] is
+    still reported.
+    ``ok`` is False for rays that cannot hit (zero/non-finite direction, non-finite origin,
+    tmin > tmax, or missing the box); their other outputs are unset.  ``origins``/``dirs``/
+    ``tmin``/``tmax`` have n or 1 rows, as in :func:`trace`.
+    """
+    # row strides: 1 for per-ray inputs, 0 for a single row shared by every ray
+    so = 1 if origins.shape[0] > 1 else 0
+    sd = 1 if dirs.shape[0] > 1 else 0
+    s0 = 1 if tmin.shape[0] > 1 else 0
+    s1 = 1 if tmax.shape[0] > 1 else 0
+    for r in prange(n):
+        ox = origins[r * so, 0]
+        oy = origins[r * so, 1]
+        oz = origins[r * so, 2]
+        nd, dx, dy, dz, ts, te = _clip_one(ox, oy, oz, dirs[r * sd, 0], dirs[r * sd, 1], dirs[r * sd, 2],
+                                           tmin[r * s0], tmax[r * s1], box)
+        ok[r] = nd > 0.0 and ts <= te
+        if ok[r]:
+            s = ts - slack
+            org32[r, 0] = ox + s * dx
+            org32[r, 1] = oy + s * dy
+            org32[r, 2] = oz + s * dz
+            dir32[r, 0] = dx
+            dir32[r, 1] = dy
+            dir32[r, 2] = dz
+            span32[r] = (te - ts) + 2.0 * slack
+
+
+@njit(cache=True, parallel=True)
+def verify_triangle_hits(idx, prim, origins, dirs, tmin, tmax, slack, verts, faces, out_k, out_t, out_u,
+                         out_v, redo):
+    """Check a single-precision tracer's closest hits in double precision.
+
+    For each ray ``r = idx[j]`` the tracer reported triangle ``prim[j]`` (−1: none).  That triangle
+    is re-intersected with :func:`triangle_hit`, the test the numba traversal uses:
+
+    * inside the triangle with tmin ≤ t < tmax → the hit (t, u, v bit-identical to the numba
+      backend's for that triangle);
+    * inside with t ≥ tmax + ``slack``, or no triangle reported → no hit;
+    * anything else — t < tmin (a self-hit: the tracer's rounding put the ray's own surface inside
+      its range, so a farther hit may be the true answer), t within ``slack`` past tmax (a
+      neighbouring triangle may be hit just before tmax), the ray outside the triangle in double
+      precision, or parallel to it — sets ``redo[r]``: that ray must be traced exactly.
+
+    Outputs are written at ray positions ``r`` (misses: −1, inf, NaN, NaN).
+    """
+    so = 1 if origins.shape[0] > 1 else 0
+    sd = 1 if dirs.shape[0] > 1 else 0
+    s0 = 1 if tmin.shape[0] > 1 else 0
+    s1 = 1 if tmax.shape[0] > 1 else 0
+    for j in prange(idx.shape[0]):
+        r = idx[j]
+        out_k[r] = -1
+        out_t[r] = np.inf
+        out_u[r] = np.nan
+        out_v[r] = np.nan
+        redo[r] = False
+        k = prim[j]
+        if k < 0:
+            continue
+        dx = dirs[r * sd, 0]
+        dy = dirs[r * sd, 1]
+        dz = dirs[r * sd, 2]
+        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ok, t, u, v = triangle_hit(verts, faces, k, origins[r * so, 0], origins[r * so, 1],
+                                   origins[r * so, 2], dx / nd, dy / nd, dz / nd)
+        if ok and t >= tmin[r * s0]:
+            t1 = tmax[r * s1]
+            if t < t1:
+                out_k[r] = k
+                out_t[r] = t
+                out_u[r] = u
+                out_v[r] = v
+                continue
+            if t - t1 > slack:
+                continue
+        redo[r] = True
+
+
+# ------------------------------------------------------------------------------------------------
 # BVH builders
 # ------------------------------------------------------------------------------------------------
 

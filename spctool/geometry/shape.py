@@ -25,8 +25,12 @@ Two representations share one contract (:class:`HitResult`, ``first_hit``, ``any
   on a closed body seen from outside).  The nearest hit along the ray wins (L15 end of §3.2.1).
 
 * :class:`TriangleShape` — a triangle mesh (e.g. an OBJ/VTK plate model), Möller–Trumbore in double
-  precision over a binned-SAH BVH; optionally Embree (``embreex``) for speed, with the hit refined in
-  double precision on the triangle Embree reports.
+  precision over a binned-SAH BVH; optionally Embree (``embreex``, single precision), whose closest
+  hit is verified in double precision on the triangle it reports (rays clipped to the model's box
+  first, self-hits below ``t_min`` and unverifiable rays re-traced by the numba kernel).  The numba
+  BVH is exact (equal to brute force, bit for bit), about as fast as Embree for first hits (Bennu49k;
+  faster on 3 M triangles) though ~2× slower for incoherent shadow rays, and gives the same answer
+  whether or not ``embreex`` is installed, so ``backend="auto"`` means numba; Embree is opt-in.
 
 Both traversals are numba kernels (:mod:`spctool.geometry._raykernels`): a stack-based, nearest-child-
 first walk with t-pruning for first hits and early exit for any-hit queries over a packed 4-wide
@@ -78,6 +82,7 @@ SPC_SMALL_A = 1e-8
 
 _SORT_MIN_RAYS = 4096  # above this many rays, trace them in a coherent order (ray_order)
 _BOX_PAD_REL = 1e-9  # BVH boxes are padded by this fraction of the model's extent (rounding safety)
+_EMBREE_SLACK_REL = 2.0**-16  # Embree rays reach this fraction of the model's size past both ends
 
 
 # ------------------------------------------------------------------------------------------------
@@ -226,7 +231,8 @@ def _rays(origins, directions, t_min, t_max):
     d = _writable(d.reshape(-1, 3))
     t0 = _writable(np.asarray(t_min, dtype=np.float64).reshape(-1))
     t1 = _writable(np.asarray(t_max, dtype=np.float64).reshape(-1))
-    n = max(o.shape[0], d.shape[0], t0.shape[0], t1.shape[0])
+    rows = (o.shape[0], d.shape[0], t0.shape[0], t1.shape[0])
+    n = 0 if 0 in rows else max(rows)  # an empty batch with scalar t_min/t_max is empty, not 1 ray
     for name, a in (("origins", o), ("directions", d), ("t_min", t0), ("t_max", t1)):
         if a.shape[0] not in (1, n):
             raise ValueError(f"{name} has {a.shape[0]} rows, expected 1 or {n}")
@@ -561,10 +567,15 @@ class TriangleShape(_Shape):
 
     ``TriangleShape(mesh)`` takes an object with ``.vertices`` (n, 3) and ``.faces`` (m, 3) 0-based
     (``spctool.formats.mesh.TriangleMesh``); ``TriangleShape(vertices, faces)`` the arrays.
-    ``backend``: ``"numba"`` (always available), ``"embree"`` (requires ``embreex``) or ``"auto"``
-    (Embree when importable).  Embree traces in single precision; its hits are re-intersected in
-    double precision on the reported triangle, so ``t``/``point`` agree with the numba path to
-    rounding, and the chosen triangle on all but rays through edges and vertices.
+    ``backend``: ``"numba"`` (the exact double-precision BVH; also what ``"auto"`` selects) or
+    ``"embree"`` (requires ``embreex``).  Embree traces in single precision: its closest hit is
+    re-intersected in double precision with the numba triangle test and kept only if it lies in
+    [t_min, t_max); rays it cannot settle that way (self-hits of rays leaving the surface, rays
+    through an edge in single precision only) are traced by the numba kernel.  The two backends
+    then agree bit for bit except where single precision cannot resolve the ray's path past an
+    edge or vertex: a grazing ray near an edge, or a ray that only touches the model tangentially at
+    a silhouette vertex or edge (numba's inclusive edges count that as a hit, Embree may not; about
+    1 % of rays aimed *exactly* at vertices from outside; 3 of 2.1 M jittered test rays).
     """
 
     _kind = _rk.KIND_TRIANGLE
@@ -585,8 +596,8 @@ class TriangleShape(_Shape):
             raise ValueError("vertices must be finite")
         if backend not in ("auto", "numba", "embree"):
             raise ValueError(f"backend must be 'auto', 'numba' or 'embree', got {backend!r}")
-        if backend == "auto":
-            backend = "embree" if embree_available() else "numba"
+        if backend == "auto":  # numba: exact and (measured) as fast as Embree, see the class docstring
+            backend = "numba"
         if backend == "embree" and not embree_available():
             raise ValueError("backend='embree' needs the optional package embreex")
         self.vertices = v
@@ -628,58 +639,67 @@ class TriangleShape(_Shape):
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh as _EmbreeMesh
 
-        self._scene = rtcore_scene.EmbreeScene()
+        # robust mode: watertight edges (no ray slips between two triangles sharing an edge)
+        self._scene = rtcore_scene.EmbreeScene(robust=True)
         _EmbreeMesh(self._scene, self.vertices.astype(np.float32), self.faces.astype(np.int32))
-
-    def _embree_run(self, n, o, d, t0, t1, query):
-        """Embree query; rays start at max(t0, 0) (origin moved along the unit direction) and end at
-        t1.  Returns (usable-ray mask, full origins, unit directions, Embree's answer)."""
-        o = np.broadcast_to(o, (n, 3))
-        d = np.broadcast_to(d, (n, 3))
-        t0 = np.broadcast_to(t0, (n,))
-        t1 = np.broadcast_to(t1, (n,))
-        nd = np.linalg.norm(d, axis=1)
-        ok = (nd > 0) & np.isfinite(nd) & np.all(np.isfinite(o), axis=1) & (t0 <= t1) & (t0 >= 0)
-        dn = np.zeros((n, 3))
-        dn[ok] = d[ok] / nd[ok, None]
-        start = np.where(ok, t0, 0.0)
-        span = np.minimum(np.where(ok, t1 - start, 0.0), np.finfo(np.float32).max / 4)
-        res = self._scene.run((o + start[:, None] * dn).astype(np.float32), dn.astype(np.float32),
-                              dists=span.astype(np.float32), query=query,
-                              output=(query == "INTERSECT"))
-        return ok, o, dn, res
+        box = self.bvh_root_box
+        size = max(float(np.max(np.abs(box))), float(np.max(box[3:] - box[:3])))
+        self._embree_slack = _EMBREE_SLACK_REL * size
+        self._embree_box = np.concatenate([box[:3] - self._embree_slack, box[3:] + self._embree_slack])
 
     def _trace(self, any_hit, n, o, d, t0, t1):
-        if self.backend != "embree" or np.any(t0 < 0):  # Embree cannot start behind the origin
+        if self.backend != "embree":
             return self._trace_numba(any_hit, n, o, d, t0, t1)
-        ok, o, dn, res = self._embree_run(n, o, d, t0, t1, "INTERSECT")
-        prim = np.asarray(res["primID"], dtype=np.int64)
-        k = np.where(ok & (prim >= 0), prim, -1)
-        t = np.full(n, np.inf)
-        u = np.full(n, np.nan)
-        v = np.full(n, np.nan)
-        m = k >= 0
-        if m.any():
-            # double-precision re-intersection with the triangle Embree found (unbounded plane hit,
-            # so a ray through an edge keeps Embree's choice of triangle)
-            tri = self.vertices[self.faces[k[m]]]
-            tt, uu, vv = _moller_trumbore_plane(o[m], dn[m], tri)
-            bad = ~np.isfinite(tt)
-            if bad.any():  # parallel in double precision: keep Embree's single-precision values
-                start = np.broadcast_to(t0, (n,))[m][bad]
-                tt[bad] = np.asarray(res["tfar"], np.float64)[m][bad] + start
-                uu[bad] = np.asarray(res["u"], np.float64)[m][bad]
-                vv[bad] = np.asarray(res["v"], np.float64)[m][bad]
-            t[m] = tt
-            u[m] = uu
-            v[m] = vv
+        k, t, u, v = self._trace_embree(any_hit, n, o, d, t0, t1)
         return k, t, u, v, self._points(k, u, v)
 
     def _any(self, n, o, d, t0, t1):
-        if self.backend != "embree" or np.any(t0 < 0):
+        if self.backend != "embree":
             return self._trace_numba(True, n, o, d, t0, t1)[0] >= 0
-        ok, _, _, res = self._embree_run(n, o, d, t0, t1, "OCCLUDED")
-        return ok & (np.asarray(res) >= 0)
+        return self._trace_embree(True, n, o, d, t0, t1)[0] >= 0
+
+    def _trace_embree(self, any_hit, n, o, d, t0, t1):
+        """Embree's closest hit, verified in double precision; rays it cannot settle (see
+        :func:`_raykernels.verify_triangle_hits`) are traced by the numba kernel.
+
+        Embree works in single precision, so the rays are first clipped to the model's box in double
+        precision (:func:`_raykernels.clip_rays`): Embree then sees an origin on the box, not a far
+        camera whose coordinates (and Embree's intersection arithmetic) float32 rounds at ~1e-7 of
+        its distance.  A hit is accepted only if the numba triangle test on the triangle Embree
+        names gives a hit in [t_min, t_max), so ``index``/``t``/``u``/``v`` are bit-identical to the
+        numba backend's whenever Embree names the same triangle.  Any-hit queries use the same
+        verified closest hit (Embree's occlusion query cannot be verified: it reports a shadow
+        ray's own triangle).
+
+        Unclipped and unverified (before this was fixed), Embree was off by up to 56 m (12 km) for
+        cameras 1000 km (1e5 km) from the q = 32 Bennu model, and gave shadow rays leaving the
+        surface their own triangle at t ≈ 0 < t_min, up to 0.6 km short of the true hit — which
+        made the exact numba backend look wrong next to it.  ``tests/test_shape.py`` checks both.
+        """
+        k = np.full(n, -1, np.int64)
+        t = np.full(n, np.inf)
+        u = np.full(n, np.nan)
+        v = np.full(n, np.nan)
+        ok = np.empty(n, np.bool_)
+        org = np.empty((n, 3))
+        dirs = np.empty((n, 3))
+        span = np.empty(n)
+        if n:
+            _rk.clip_rays(n, o, d, t0, t1, self._embree_box, self._embree_slack, ok, org, dirs, span)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            res = self._scene.run(org[idx].astype(np.float32), dirs[idx].astype(np.float32),
+                                  dists=span[idx].astype(np.float32), query="INTERSECT", output=False)
+            prim = np.ascontiguousarray(res, dtype=np.int64)
+            redo = np.zeros(n, np.bool_)
+            _rk.verify_triangle_hits(idx, prim, o, d, t0, t1, self._embree_slack, self._verts, self._faces,
+                                     k, t, u, v, redo)
+            r = np.flatnonzero(redo)
+            if r.size:
+                rk, rt, ru, rv, _ = self._trace_numba(any_hit, r.size, _rows(o, r), _rows(d, r), _rows(t0, r),
+                                                      _rows(t1, r))
+                k[r], t[r], u[r], v[r] = rk, rt, ru, rv
+        return k, t, u, v
 
     @cached_property
     def volume(self) -> float:
@@ -695,21 +715,9 @@ class TriangleShape(_Shape):
         return float(np.sum(np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1))) / 2.0
 
 
-def _moller_trumbore_plane(o, d, tri):
-    """Vectorised Möller–Trumbore without the inside test: (t, u, v); t = inf if parallel."""
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    p = np.cross(d, e2)
-    det = np.einsum("ij,ij->i", e1, p)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / det
-        tv = o - tri[:, 0]
-        u = np.einsum("ij,ij->i", tv, p) * inv
-        qv = np.cross(tv, e1)
-        v = np.einsum("ij,ij->i", d, qv) * inv
-        t = np.einsum("ij,ij->i", e2, qv) * inv
-    t = np.where(det != 0, t, np.inf)
-    return t, u, v
+def _rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` of a per-ray input that has n rows, or the input itself if it has one."""
+    return a if a.shape[0] == 1 else np.ascontiguousarray(a[idx])
 
 
 # ------------------------------------------------------------------------------------------------
