@@ -24,156 +24,46 @@ import click
 import numpy as np
 
 from spctool import __version__
-from spctool.cli.common import Context, emit_table, json_option, output_option, pass_context, progress
-from spctool.errors import SpcFormatError, SpcUsageError
-
-IMAGE_FORMATS = ("pgm", "png", "fits")
-
+from spctool.cli import options
+from spctool.cli.common import Context, emit_table, load_stage_inputs, pass_context, progress
+from spctool.errors import SpcFormatError
 
 # ------------------------------------------------------------------------------------------------
-# option groups
+# options of both commands
 
 
-def _common_options(f):
-    decorators = [
-        click.argument("picture"),
-        click.argument("names", nargs=-1, metavar="[LANDMARK]..."),
-        click.option("--landmarks", "landmarks_table", metavar="TABLE",
-                     type=click.Path(dir_okay=False, allow_dash=True),
-                     help="Landmarks from the 'name' column of a landmark table ('-' = stdin). Default: the "
-                          "named LANDMARKs, else run lithos-select on LMRKLIST.TXT / LMKFILES/."),
-        click.option("--sum", "sum_path", metavar="FILE", type=click.Path(dir_okay=False),
-                     help="The picture's SUM file (default: DIR/SUMFILES/PIC.SUM)."),
-        click.option("--photo", "photo_path", metavar="FILE", type=click.Path(dir_okay=False, exists=True),
-                     help="The photo (FITS, PGM, PNG or .DAT). Default: the picture's IMAGEFILES/ photo."),
-        click.option("--flip-rows", is_flag=True,
-                     help="The photo's rows are stored bottom-up: read line 1 from the last stored row."),
-        click.option("--at-table-pixels", is_flag=True,
-                     help="Place each landmark centre at the table's sample/line (e.g. a register result) "
-                          "instead of its projection with the SUM pose."),
-        click.option("--out-dir", type=click.Path(file_okay=False), default=None, metavar="DIR",
-                     help="Write one image per landmark to DIR (created if needed). Default: no images."),
-        click.option("--image-format", type=click.Choice(IMAGE_FORMATS), default="pgm", show_default=True,
-                     help="Format of the --out-dir images (FITS keeps float values and a header)."),
-        # Stage B
-        click.option("--photometry", type=click.Choice(["spc", "mcewen", "fixed", "lambert"]), default="spc",
-                     show_default=True,
-                     help="Illumination law: SPC lunar-Lambert (no factor 2), McEwen, SPC form with fixed "
-                          "beta, Lambert."),
-        click.option("--beta", type=float, default=0.65, show_default=True, metavar="B",
-                     help="Constant beta of --photometry fixed."),
-        click.option("--alpha0", type=float, default=60.0, show_default=True, metavar="DEG",
-                     help="beta = exp(-phase/alpha0)."),
-        click.option("--shadows", type=click.Choice(["spc", "cast"]), default="spc", show_default=True,
-                     help="spc: dark only where the incidence exceeds 90 deg; cast: also ray-marched cast "
-                          "shadows over the maplet."),
-        click.option("--bg-corr-min", type=float, default=1.0, show_default=True, metavar="RHO",
-                     help="Fit the background phi when the zero-offset correlation exceeds RHO "
-                          "(>= 1: never)."),
-        # Stages C-E
-        click.option("--linearized", is_flag=True,
-                     help="Project nodes with the S16 linearisation about the landmark "
-                          "(default: the full camera model)."),
-        click.option("--subsample", default="auto", show_default=True, metavar="auto|M",
-                     help="Average MxM samples per cell (auto: ceil(sqrt|det J|) when cells exceed pixels)."),
-        click.option("--no-filter", "no_filter", is_flag=True,
-                     help="Skip the extract filter (shadow enhancement, emission cut, visibility march)."),
-        click.option("--ds-mode", type=click.Choice(["seed", "sqrt"]), default="seed", show_default=True,
-                     help="Shadow extension ds = base + floor(1/|det J|) (seed) or floor(1/sqrt|det J|)."),
-        click.option("--ds-base", type=click.IntRange(min=0), default=3, show_default=True, metavar="N",
-                     help="Base shadow extension in cells."),
-        click.option("--lateral", type=click.IntRange(min=0), default=2, show_default=True, metavar="N",
-                     help="Lateral widening of the shadow extension in cells."),
-        click.option("--cos-e-min", type=float, default=0.05, show_default=True, metavar="C",
-                     help="Zero cells whose normal makes cos(emission) < C."),
-        click.option("--vis-tol", type=float, default=0.05, show_default=True, metavar="CELLS",
-                     help="Lowering of the visibility ray march."),
-        click.option("--cast-shadow-trace", is_flag=True,
-                     help="Also zero cells in cast shadow by a march toward the Sun (SPC skips it)."),
-        click.option("--criteria", default="lithos_standard", show_default=True, metavar="SPEC",
-                     help="Removal criteria: lithos_standard, autoregister, or "
-                          "'INVLIM,SLIM,CLIM,ILIM,RSMN,RSMX' (5 values: AUTOREGISTER's form without ILIM)."),
-        click.option("--no-removal", is_flag=True,
-                     help="Report the statistics but never a removed-* status."),
-        click.option("--ill-source", type=click.Choice(["extracted", "predicted"]), default="extracted",
-                     show_default=True,
-                     help="ILL counts non-zero cells of the extracted or predicted image."),
-        click.option("--thresholds", default=None, metavar="T1,T2",
-                     help="DN range used from the photo (default: the SUM THRSH)."),
-        json_option,
-        output_option,
-        pass_context,
-    ]
-    for d in reversed(decorators):
-        f = d(f)
-    return f
+_common_options = options.option_group(
+    options.picture_argument,
+    options.landmark_names_argument,
+    options.landmarks_table_option(
+        "Landmarks from the 'name' column of a landmark table ('-' = stdin). Default: the named "
+        "LANDMARKs, else run lithos-select on LMRKLIST.TXT / LMKFILES/."
+    ),
+    options.sum_option,
+    options.photo_option(),
+    options.flip_rows_option,
+    click.option(
+        "--at-table-pixels",
+        is_flag=True,
+        help="Place each landmark centre at the table's sample/line (e.g. a register result) "
+        "instead of its projection with the SUM pose.",
+    ),
+    options.out_dir_option("Write one image per landmark to DIR (created if needed). Default: no images."),
+    options.image_format_option,
+    options.predict_options,
+    options.extract_options,
+    options.json_option,
+    options.output_option,
+    pass_context,
+)
 
 
-def _thresholds(text, pic):
-    if text is None:
-        return tuple(float(x) for x in pic.thrsh)
-    parts = [p for p in text.replace(",", " ").split() if p]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 2:
-        raise SpcUsageError(f"--thresholds expects two numbers T1,T2, got {text!r}")
-    return values
-
-
-def _options(kw):
-    from spctool.stages.extract import ExtractOptions
-    from spctool.stages.predict import PredictOptions
-
-    popts = PredictOptions(photometry=kw["photometry"], beta=kw["beta"], alpha0_deg=kw["alpha0"],
-                           shadows=kw["shadows"], bg_corr_min=kw["bg_corr_min"])
-    eopts = ExtractOptions(
-        linearized=kw["linearized"], subsample=kw["subsample"], apply_filter=not kw["no_filter"],
-        ds_mode=kw["ds_mode"], ds_base=kw["ds_base"], lateral=kw["lateral"], cos_e_min=kw["cos_e_min"],
-        vis_tol=kw["vis_tol"], cast_shadow_trace=kw["cast_shadow_trace"],
-        criteria=None if kw["no_removal"] else kw["criteria"], ill_source=kw["ill_source"],
-    )
-    return popts, eopts
-
-
-# ------------------------------------------------------------------------------------------------
-# landmarks
-
-
-def _landmark_list(ctx: Context, names, table_path, camera, pic, settings):
-    """[(name, table_pixel or None)] and a note about where they came from."""
-    rows = []
-    if table_path:
-        from spctool.formats.table import read_table
-
-        table = read_table(table_path)
-        smp = table.get("sample")
-        lin = table.get("line")
-        for i, n in enumerate(table.names):
-            pix = None
-            if smp is not None and lin is not None:
-                try:
-                    pix = (float(smp[i]), float(lin[i]))
-                except (TypeError, ValueError):
-                    pix = None
-                if pix is not None and not all(math.isfinite(x) for x in pix):
-                    pix = None
-            rows.append((n, pix))
-    for n in names:
-        rows.append((n, None))
-    if rows:
-        return rows, "given"
-    from spctool.cli.select import load_candidates
-    from spctool.stages.select import SelectOptions, select_maplets
-
-    cand = load_candidates(ctx, (), None)
-    if not len(cand):
-        return [], "selection"
-    result = select_maplets(camera, pic.sz, cand.centres, cand.ux, cand.uy, cand.uz, cand.scale, cand.qsz,
-                            cand.names, SelectOptions.from_settings(settings), shape=None)
-    ctx.info(f"lithos-select: {result.n_selected} of {len(result)} candidate maplets (occlusion not checked)")
-    return [(n, None) for n, sel in zip(result.names, result.selected) if sel], "selection"
+def _table_pixel(pix, source):
+    """The landmark centre --at-table-pixels uses: a table row's finite sample/line, else None (the
+    selection's predicted pixels are not table pixels)."""
+    if source == "selection" or pix is None or not all(map(math.isfinite, pix)):
+        return None
+    return pix
 
 
 # ------------------------------------------------------------------------------------------------
@@ -242,8 +132,12 @@ def _write_image(out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, 
 
     path = out_dir / f"{row['name']}_{row['picture']}_{stage}.{fmt}"
     if fmt == "fits":
-        write_photo(path, np.asarray(image, dtype=np.float64), fmt="fits",
-                    header=_fits_header(row, stage, maplet, popts, eopts, thresholds))
+        write_photo(
+            path,
+            np.asarray(image, dtype=np.float64),
+            fmt="fits",
+            header=_fits_header(row, stage, maplet, popts, eopts, thresholds),
+        )
     else:
         write_photo(path, _to_8bit(image), fmt=fmt)
     return path
@@ -253,40 +147,33 @@ def _write_image(out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, 
 # the shared driver
 
 
-_NAN_COLUMNS = ("lambda", "phi", "correlation", "emission", "incidence", "phase", "cov", "ill", "res",
-                "det_j")
+_NAN_COLUMNS = (
+    "lambda",
+    "phi",
+    "correlation",
+    "emission",
+    "incidence",
+    "phase",
+    "cov",
+    "ill",
+    "res",
+    "det_j",
+)
 
 
 def _run(ctx: Context, stage: str, kw: dict):
-    from spctool.formats.photo import read_photo
     from spctool.formats.table import LandmarkTable
     from spctool.geometry import heightfield
-    from spctool.geometry.camera import Camera
     from spctool.stages.extract import extract
     from spctool.stages.predict import predict, unit_vector
 
     wd = ctx.wd
-    pic = wd.read_picture(kw["sum_path"] if kw["sum_path"] else kw["picture"])
-    settings = ctx.settings()
-    camera = Camera.from_picture(pic, settings)
-    popts, eopts = _options(kw)
-    thresholds = _thresholds(kw["thresholds"], pic)
-
-    photo = None
-    if kw["photo_path"]:
-        photo = read_photo(kw["photo_path"], flip_rows=kw["flip_rows"], npx=pic.npx, nln=pic.nln)
-    elif wd.photo_path(pic.name) is not None:
-        photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln, flip_rows=kw["flip_rows"])
+    inputs = load_stage_inputs(ctx, kw, photo_required=stage == "extracted")
+    pic, camera = inputs.picture.pic, inputs.picture.camera
+    photo, thresholds = inputs.photo, inputs.thresholds
     if photo is None:
-        if stage == "extracted":
-            raise SpcUsageError(f"no photo for picture {pic.name} (IMAGEFILES/{pic.name}.DAT not found; "
-                                "give --photo)")
         ctx.note_once("no photo: brightness fit skipped (lambda = 1, phi = 0)")
-    elif photo.data.shape != (pic.nln, pic.npx):
-        raise SpcUsageError(f"the photo is {photo.npx} x {photo.nln} px but the SUM says "
-                            f"{pic.npx} x {pic.nln}")
-
-    landmarks, source = _landmark_list(ctx, kw["names"], kw["landmarks_table"], camera, pic, settings)
+    popts, eopts = options.predict_extract_options(kw, criteria=None if kw["no_removal"] else kw["criteria"])
     out_dir = Path(kw["out_dir"]) if kw["out_dir"] else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -295,28 +182,39 @@ def _run(ctx: Context, stage: str, kw: dict):
     rows = []
     written = 0
     command = "predict" if stage == "predicted" else "extract"
-    with progress(ctx, f"{command} {pic.name}", len(landmarks)) as advance:
-        for name, table_pixel in landmarks:
+    with progress(ctx, f"{command} {pic.name}", len(inputs.landmarks)) as advance:
+        for name, pixel in inputs.landmarks:
             row = {"name": name, "picture": pic.name}
             try:
                 maplet = wd.read_maplet(name)
             except SpcFormatError as exc:
                 ctx.note_once(f"{name}: no maplet ({exc})")
-                row.update({"sample": math.nan, "line": math.nan, "predicted_sample": math.nan,
-                            "predicted_line": math.nan, **dict.fromkeys(_NAN_COLUMNS, math.nan),
-                            "inv": -1, "ds": -1, "subsample": -1, "status": "no-maplet"})
+                row.update(
+                    {
+                        "sample": math.nan,
+                        "line": math.nan,
+                        "predicted_sample": math.nan,
+                        "predicted_line": math.nan,
+                        **dict.fromkeys(_NAN_COLUMNS, math.nan),
+                        "inv": -1,
+                        "ds": -1,
+                        "subsample": -1,
+                        "status": "no-maplet",
+                    }
+                )
                 rows.append(row)
                 advance()
                 continue
-            center = table_pixel if kw["at_table_pixels"] else None
+            center = _table_pixel(pixel, inputs.source) if kw["at_table_pixels"] else None
             sl = heightfield.slopes(maplet.heights, maplet.valid)
             pred0 = None
             if eopts.ill_source == "predicted":
                 pred0 = predict(maplet, camera.position, sun, popts, slopes=sl)
             ext = None
             if photo is not None:
-                ext = extract(photo, maplet, camera, sun, thresholds, eopts, center, slopes=sl,
-                              prediction=pred0)
+                ext = extract(
+                    photo, maplet, camera, sun, thresholds, eopts, center, slopes=sl, prediction=pred0
+                )
             pred = predict(maplet, camera.position, sun, popts, extracted=ext, slopes=sl)
             ps, pl = camera.project(np.asarray(maplet.v, float))
             uz = unit_vector(maplet.uz, "UZ")
@@ -325,21 +223,53 @@ def _run(ctx: Context, stage: str, kw: dict):
             front = bool(camera.in_front(np.asarray(maplet.v, float)))
             cs = ext.center_sample if ext is not None else (center[0] if center else float(ps))
             cl = ext.center_line if ext is not None else (center[1] if center else float(pl))
-            row.update({
-                "sample": cs, "line": cl, "predicted_sample": float(ps), "predicted_line": float(pl),
-                "lambda": pred.lam, "phi": pred.phi, "correlation": pred.correlation,
-                "emission": emission, "incidence": incidence, "phase": pred.alpha_deg,
-            })
+            row.update(
+                {
+                    "sample": cs,
+                    "line": cl,
+                    "predicted_sample": float(ps),
+                    "predicted_line": float(pl),
+                    "lambda": pred.lam,
+                    "phi": pred.phi,
+                    "correlation": pred.correlation,
+                    "emission": emission,
+                    "incidence": incidence,
+                    "phase": pred.alpha_deg,
+                }
+            )
             if ext is not None:
-                row.update({"cov": ext.cov, "ill": ext.ill, "res": ext.res, "inv": int(ext.inv),
-                            "det_j": ext.det_j, "ds": int(ext.ds), "subsample": int(ext.subsample),
-                            "status": ext.status})
+                row.update(
+                    {
+                        "cov": ext.cov,
+                        "ill": ext.ill,
+                        "res": ext.res,
+                        "inv": int(ext.inv),
+                        "det_j": ext.det_j,
+                        "ds": int(ext.ds),
+                        "subsample": int(ext.subsample),
+                        "status": ext.status,
+                    }
+                )
             else:
-                det_j = float(np.linalg.det(camera.jacobian_maplet(np.asarray(maplet.v, float), maplet.ux,
-                                                                   maplet.uy, maplet.scale)))
-                row.update({"cov": math.nan, "ill": pred.lit_fraction, "res": 1.0 / math.sqrt(abs(det_j))
-                            if det_j else math.inf, "inv": -1, "det_j": det_j, "ds": -1, "subsample": -1,
-                            "status": "ok" if front else "outside"})
+                det_j = float(
+                    np.linalg.det(
+                        camera.jacobian_maplet(
+                            np.asarray(maplet.v, float), maplet.ux, maplet.uy, maplet.scale
+                        )
+                    )
+                )
+                row.update(
+                    {
+                        "cov": math.nan,
+                        "ill": pred.lit_fraction,
+                        "res": 1.0 / math.sqrt(abs(det_j)) if det_j else math.inf,
+                        "inv": -1,
+                        "det_j": det_j,
+                        "ds": -1,
+                        "subsample": -1,
+                        "status": "ok" if front else "outside",
+                    }
+                )
             if not front:
                 row["status"] = "outside"
             rows.append(row)
@@ -349,17 +279,42 @@ def _run(ctx: Context, stage: str, kw: dict):
                 written += 1
             advance()
 
-    columns = ["name", "sample", "line", "predicted_sample", "predicted_line", "emission", "incidence",
-               "phase", "lambda", "phi", "correlation", "cov", "ill", "res", "inv", "det_j", "ds",
-               "subsample", "status"]
-    meta = {"landmark_source": source, "thresholds": list(thresholds), "predict_options": popts.as_dict(),
-            "extract_options": eopts.as_dict(), "images_written": written,
-            "out_dir": None if out_dir is None else str(out_dir)}
-    table = LandmarkTable.from_rows([{c: r[c] for c in columns} for r in rows], picture=pic.name,
-                                    command=command, meta=meta)
+    columns = [
+        "name",
+        "sample",
+        "line",
+        "predicted_sample",
+        "predicted_line",
+        "emission",
+        "incidence",
+        "phase",
+        "lambda",
+        "phi",
+        "correlation",
+        "cov",
+        "ill",
+        "res",
+        "inv",
+        "det_j",
+        "ds",
+        "subsample",
+        "status",
+    ]
+    meta = {
+        "landmark_source": inputs.source,
+        "thresholds": list(thresholds),
+        "predict_options": popts.as_dict(),
+        "extract_options": eopts.as_dict(),
+        "images_written": written,
+        "out_dir": None if out_dir is None else str(out_dir),
+    }
+    table = LandmarkTable.from_rows(
+        [{c: r[c] for c in columns} for r in rows], picture=pic.name, command=command, meta=meta
+    )
     if not rows:
-        table = LandmarkTable(columns={c: [] for c in columns}, picture=pic.name, command=table.command,
-                              meta=table.meta)
+        table = LandmarkTable(
+            columns={c: [] for c in columns}, picture=pic.name, command=table.command, meta=table.meta
+        )
     if out_dir is not None:
         table.comments.append(f"{written} {stage} images written to {out_dir}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import click
 
-from spctool.cli.common import Context, emit, json_option, output_option, pass_context, progress
+from spctool.cli import options
+from spctool.cli.common import Context, emit, pass_context, progress
 from spctool.errors import SpcResultError, SpcUsageError
 
 
@@ -46,65 +47,21 @@ from spctool.errors import SpcResultError, SpcUsageError
     "Overrides --jobs.",
 )
 @click.option("--force", is_flag=True, help="Redo pictures that are already done.")
-@click.option(
-    "--schedule",
-    type=click.Choice(["autoregister", "s16"]),
-    default="autoregister",
-    show_default=True,
-    help="Registration schedule: SPC's AUTOREGISTER (pose solve after each pass) or S16's "
-    "per-landmark spacings 10..1 (see 'spctool register --help').",
-)
-@click.option(
-    "--space",
-    type=click.Choice(["maplet", "image"]),
-    default="maplet",
-    show_default=True,
-    help="Correlate in maplet space (SPC) or image space (S16 Retina).",
-)
-@click.option(
-    "--corr-min",
-    type=float,
-    default=0.3,
-    show_default=True,
-    metavar="RHO",
-    help="Correlation peaks below RHO are low-correlation.",
-)
+@options.pipeline_schedule_option
+@options.space_option
+@options.corr_min_option
 @click.option(
     "--occlusion/--no-occlusion",
     "occlusion",
     default=None,
     help="Occlusion test of lithos-select.  [default: on when a shape model exists]",
 )
-@click.option(
-    "--shape",
-    "shape_path",
-    metavar="FILE",
-    type=click.Path(dir_okay=False, exists=True),
-    help="Shape model for the occlusion test (default: WORKDIR/SHAPEFILES/SHAPE.TXT).",
-)
-@click.option(
-    "--sigma-px",
-    type=float,
-    default=0.1,
-    show_default=True,
-    metavar="PX",
-    help="1-sigma measurement noise per pixel component of the pose solve.",
-)
-@click.option(
-    "--no-prior",
-    is_flag=True,
-    help="Ignore the SUM's SIGMA_VSO / SIGMA_PTG a-priori constraint in the pose solve.",
-)
-@click.option(
-    "--min-landmarks",
-    type=click.IntRange(min=0),
-    default=3,
-    show_default=True,
-    metavar="N",
-    help="Fewer registered landmarks leave the pose unsolved (status no-pose).",
-)
-@json_option
-@output_option
+@options.shape_option(" for the occlusion test", exists=True)
+@options.sigma_px_option()
+@options.no_prior_option
+@options.min_landmarks_option
+@options.json_option
+@options.output_option
 @pass_context
 def batch_cmd(
     ctx: Context,
@@ -160,21 +117,20 @@ def batch_cmd(
       spctool -C WORKDIR batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
     """
     from spctool.batch import BatchOptions, batch_pictures, run_batch
-    from spctool.stages.pose import PoseOptions
     from spctool.stages.register import RegisterOptions
 
     workdir = Path(ctx.workdir)
     if not workdir.is_dir():
         raise SpcUsageError(f"{workdir}: no such working directory")
     target = Path(out_dir) if out_dir else workdir / "BATCH"
-    pose = PoseOptions(sigma_px=sigma_px, use_prior=not no_prior, min_landmarks=min_landmarks)
+    pose = options.pose_options(sigma_px, no_prior, min_landmarks)
     register = RegisterOptions(
-        schedule="retina_s16" if schedule == "s16" else "autoregister",
+        schedule=options.register_schedule(schedule),
         space=space,
         corr_min=corr_min,
         pose=pose,
     )
-    options = BatchOptions(
+    batch_options = BatchOptions(
         occlusion=occlusion,
         register=register,
         pose=pose,
@@ -199,7 +155,7 @@ def batch_cmd(
         result = run_batch(
             workdir,
             names,
-            options,
+            batch_options,
             out_dir=target,
             jobs=jobs,
             scheduler=scheduler,

@@ -1,4 +1,10 @@
-"""Shared pieces of the command line: context, output, progress, messages."""
+"""Shared pieces of the command line: context, output, progress, messages, and reading a command's inputs.
+
+The readers here are the one place where a command turns its input options into objects: the
+picture (SUM, INIT_LITHOS, camera: :func:`load_picture`), its photo (:func:`load_photo`), the shape
+(:func:`load_shape`) and the landmarks (:func:`resolve_landmarks`, :func:`picture_landmarks`).
+The options themselves are declared in :mod:`spctool.cli.options`.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +12,12 @@ import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import click
 
+from spctool.cli.options import picture_thresholds
+from spctool.errors import SpcFormatError, SpcUsageError
 from spctool.formats import atomic
 from spctool.formats.workdir import WorkDir
 
@@ -56,21 +65,6 @@ def emit_table(table, *, as_json: bool, output: str | None = None) -> None:
     emit(table.to_json() if as_json else table.to_text(), output)
 
 
-def json_option(f):
-    return click.option("--json", "as_json", is_flag=True, help="Write one JSON document instead of text.")(f)
-
-
-def output_option(f):
-    return click.option(
-        "-o",
-        "--output",
-        "output",
-        metavar="FILE",
-        default=None,
-        help="Write the table to FILE instead of stdout ('-' = stdout).",
-    )(f)
-
-
 @contextmanager
 def progress(ctx: Context, description: str, total: int | None):
     """A rich progress bar on a TTY; silent otherwise (and with -q).  Yields ``advance(n=1)``."""
@@ -114,3 +108,142 @@ def resolve_landmarks(ctx: Context, specs=(), table: str | None = None) -> list:
     if not specs and not table:
         names = ctx.wd.landmark_names()
     return direct + [ctx.wd.read_landmark(n) for n in names]
+
+
+# ------------------------------------------------------------------------------------------------
+# inputs: picture, photo, shape, landmarks
+
+
+class LoadedPicture(NamedTuple):
+    """A picture ready for a stage: its SUM file, the SUM, the INIT_LITHOS settings, its camera."""
+
+    path: Path
+    pic: Any  # formats.sumfile.SumFile
+    settings: Any  # formats.lithos settings, or None without INIT_LITHOS.TXT
+    camera: Any  # geometry.camera.Camera
+
+
+def sum_path_of(ctx: Context, picture: str, sum_path=None) -> Path:
+    """The SUM file of PICTURE: ``--sum FILE``, else PICTURE itself when it is a .SUM file, else
+    DIR/SUMFILES/PICTURE.SUM."""
+    if sum_path:
+        return Path(sum_path)
+    p = Path(picture)
+    if p.suffix.upper() == ".SUM" and p.exists():
+        return p
+    return ctx.wd.sum_path(picture)
+
+
+def load_picture(ctx: Context, picture: str, sum_path=None) -> LoadedPicture:
+    """Read PICTURE's SUM (:func:`sum_path_of`) and the settings, and build its camera (SUM pose and
+    K-matrix with the INIT_LITHOS DISTORT= model)."""
+    from spctool.formats.sumfile import read_sum
+    from spctool.geometry.camera import Camera
+
+    path = sum_path_of(ctx, picture, sum_path)
+    if not path.exists():
+        raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
+    pic = read_sum(path)
+    settings = ctx.settings()
+    return LoadedPicture(path, pic, settings, Camera.from_picture(pic, settings))
+
+
+def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, required: bool = True):
+    """The photo of picture ``pic``: ``--photo FILE``, else its IMAGEFILES/ photo, checked against the
+    SUM's size.  Without one: SpcUsageError when ``required``, else ``None``."""
+    from spctool.formats.photo import read_photo
+
+    if photo_path:
+        photo = read_photo(photo_path, flip_rows=flip_rows, npx=pic.npx, nln=pic.nln)
+    elif ctx.wd.photo_path(pic.name) is not None:
+        photo = ctx.wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln, flip_rows=flip_rows)
+    elif required:
+        raise SpcUsageError(
+            f"no photo for picture {pic.name} (IMAGEFILES/{pic.name}.DAT not found; give --photo)"
+        )
+    else:
+        return None
+    if photo.data.shape != (pic.nln, pic.npx):
+        raise SpcUsageError(
+            f"the photo is {photo.npx} x {photo.nln} px but the SUM says {pic.npx} x {pic.nln}"
+        )
+    return photo
+
+
+def load_shape(ctx: Context, shape_path=None):
+    """The geometry shape (``geometry.shape.as_shape``) of ``--shape FILE``, else of
+    DIR/SHAPEFILES/SHAPE.TXT; ``None`` when there is none."""
+    model = ctx.wd.read_shape(shape_path)
+    if model is None:
+        return None
+    from spctool.geometry.shape import as_shape
+
+    try:
+        return as_shape(model)
+    except TypeError as exc:
+        raise SpcUsageError(str(exc)) from None
+
+
+def table_pixels(path) -> list[tuple[str, tuple[float, float] | None]]:
+    """(name, (sample, line)) of every row of a landmark table ('-' = stdin); the pixel is None when
+    the table has no sample/line columns or the row holds no numbers there (NaN is kept)."""
+    from spctool.formats.table import read_table
+
+    table = read_table(path)
+    smp, lin = table.get("sample"), table.get("line")
+    rows = []
+    for i, name in enumerate(table.names):
+        pix = None
+        if smp is not None and lin is not None:
+            try:
+                pix = (float(smp[i]), float(lin[i]))
+            except (TypeError, ValueError):
+                pix = None
+        rows.append((name, pix))
+    return rows
+
+
+def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
+    """The landmarks a per-picture stage works on, as ([(name, pixel or None)], source).
+
+    Given landmarks (source ``"given"``): the rows of ``--landmarks TABLE`` with their table pixels
+    (:func:`table_pixels`), then the named ``names`` (no pixel).  With neither, lithos-select
+    (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options, no occlusion test) on the
+    LMRKLIST.TXT / LMKFILES/ candidates gives the selected maplets with their predicted pixels
+    (source ``"selection"``).
+    """
+    rows = table_pixels(table_path) if table_path else []
+    rows += [(n, None) for n in names]
+    if rows:
+        return rows, "given"
+    from spctool.cli.select import load_candidates
+    from spctool.stages.select import SelectOptions
+
+    cand = load_candidates(ctx, (), None)
+    if not len(cand):
+        return [], "selection"
+    res = cand.select(picture.camera, picture.pic.sz, SelectOptions.from_settings(picture.settings))
+    ctx.info(f"lithos-select: {res.n_selected} of {len(res)} candidate maplets (occlusion not checked)")
+    selected = zip(res.names, res.sample, res.line, res.selected)
+    return [(n, (float(s), float(ln))) for n, s, ln, sel in selected if sel], "selection"
+
+
+class StageInputs(NamedTuple):
+    """What a per-landmark stage command reads before its loop (see :func:`load_stage_inputs`)."""
+
+    picture: LoadedPicture
+    thresholds: tuple[float, float]
+    photo: Any  # formats.photo.Photo, or None when not required and there is none
+    landmarks: list  # [(name, pixel or None)] of picture_landmarks
+    source: str  # "given" or "selection"
+
+
+def load_stage_inputs(ctx: Context, kw: dict, *, photo_required: bool = True) -> StageInputs:
+    """The inputs of predict, extract, correlate and register, from their parsed options (``kw``:
+    PICTURE, [LANDMARK]..., --landmarks, --sum, --photo, --flip-rows, --thresholds of
+    :mod:`spctool.cli.options`): the picture and camera, the DN range, the photo and the landmarks."""
+    picture = load_picture(ctx, kw["picture"], kw["sum_path"])
+    thresholds = picture_thresholds(kw["thresholds"], picture.pic)
+    photo = load_photo(ctx, picture.pic, kw["photo_path"], flip_rows=kw["flip_rows"], required=photo_required)
+    landmarks, source = picture_landmarks(ctx, kw["names"], kw["landmarks_table"], picture)
+    return StageInputs(picture, thresholds, photo, landmarks, source)

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import click
 
-from spctool.cli.common import Context, emit, json_option, output_option, pass_context, progress
+from spctool.cli import options
+from spctool.cli.common import Context, emit, pass_context, progress
 from spctool.errors import SpcResultError, SpcUsageError
 
 _HELP = """Characterise landmark registration by Monte Carlo (S16 Tables 2 and 3, Fig. 8).
@@ -98,14 +99,7 @@ def register(cli: click.Group) -> None:
         metavar="NAMES",
         help="Comma-separated landmarks to study (default: all of the scene).",
     )
-    @click.option(
-        "--space",
-        type=click.Choice(["maplet", "image"]),
-        default="maplet",
-        show_default=True,
-        help="maplet: SPC/S16 correlation of the photo resampled onto the maplet; image: the maplet "
-        "rendered into the photo with cast shadows (S16 Retina).",
-    )
+    @options.space_option
     @click.option(
         "--samples",
         type=click.IntRange(min=1),
@@ -191,8 +185,8 @@ def register(cli: click.Group) -> None:
         ">= 99.5 %, |mean| <= 0.05 px and 1 sigma <= 0.08 px per axis; maplet space at least as good "
         "as S16 Table 3 (overall success, worst landmark's |mean| and 1 sigma per axis).",
     )
-    @json_option
-    @output_option
+    @options.json_option
+    @options.output_option
     @pass_context
     def montecarlo_cmd(
         ctx: Context,

@@ -15,7 +15,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from spctool.cli.common import Context, emit_table, json_option, pass_context
+from spctool.cli import options
+from spctool.cli.common import Context, emit_table, load_picture, pass_context
 from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
 
 # ------------------------------------------------------------------------------------------------
@@ -90,28 +91,13 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     return pos, sig, found
 
 
-def _sum_path_of(ctx: Context, picture: str, sum_path) -> Path:
-    if sum_path:
-        return Path(sum_path)
-    p = Path(picture)
-    if p.suffix.upper() == ".SUM" and p.exists():
-        return p
-    return ctx.wd.sum_path(picture)
-
-
 # ------------------------------------------------------------------------------------------------
 # command
 
 
 @click.command("solve-pose")
-@click.argument("picture")
-@click.option(
-    "--sum",
-    "sum_path",
-    metavar="FILE",
-    type=click.Path(dir_okay=False),
-    help="The picture's SUM file (default: PIC itself if it is a .SUM path, else DIR/SUMFILES/PIC.SUM).",
-)
+@options.picture_argument
+@options.sum_option
 @click.option(
     "--measurements",
     "measurements",
@@ -128,19 +114,8 @@ def _sum_path_of(ctx: Context, picture: str, sum_path) -> Path:
     help="Folder of the LMK files giving landmark positions (VLM) and sigmas (SIGMA_LMK).  "
     "[default: DIR/LMKFILES]",
 )
-@click.option(
-    "--sigma-px",
-    type=float,
-    default=0.1,
-    show_default=True,
-    metavar="PX",
-    help="1-sigma measurement noise per pixel component (S16: 0.1 px; 1 px is conservative).",
-)
-@click.option(
-    "--no-prior",
-    is_flag=True,
-    help="Ignore the SUM's SIGMA_VSO / SIGMA_PTG a-priori constraint (needs >= 3 landmarks).",
-)
+@options.sigma_px_option()
+@options.no_prior_option
 @click.option(
     "--estimate-landmarks",
     is_flag=True,
@@ -184,14 +159,7 @@ def _sum_path_of(ctx: Context, picture: str, sum_path) -> Path:
     help="Reject on an absolute pixel residual above PX instead of --reject-sigma.",
 )
 @click.option("--no-reject", is_flag=True, help="No outlier rejection.")
-@click.option(
-    "--min-landmarks",
-    type=click.IntRange(min=0),
-    default=3,
-    show_default=True,
-    metavar="N",
-    help="Fewer usable landmarks is an error (exit 1).",
-)
+@options.min_landmarks_option
 @click.option(
     "--output",
     "sum_output",
@@ -209,7 +177,7 @@ def _sum_path_of(ctx: Context, picture: str, sum_path) -> Path:
     metavar="FILE",
     help="Write the residual table to FILE instead of stdout ('-' = stdout).",
 )
-@json_option
+@options.json_option
 @pass_context
 def solve_pose_cmd(
     ctx: Context,
@@ -262,33 +230,26 @@ def solve_pose_cmd(
       spctool -C WORKDIR register P0001 | spctool -C WORKDIR solve-pose P0001 --measurements - --in-place
       spctool solve-pose fixtures/W48230079013.SUM --lmk-dir fixtures --no-prior --json
     """
-    from spctool.geometry.camera import Camera
-    from spctool.stages.pose import PoseOptions, solve_pose
+    from spctool.stages.pose import solve_pose
 
     if estimate_landmarks and consider_landmarks:
         raise SpcUsageError("give --estimate-landmarks or --consider-landmarks, not both")
     if in_place and sum_output:
         raise SpcUsageError("give --output FILE.SUM or --in-place, not both")
     mode = "estimate" if estimate_landmarks else "consider" if consider_landmarks else "fixed"
-    options = PoseOptions(
+    pose_options = options.pose_options(
+        sigma_px,
+        no_prior,
+        min_landmarks,
         max_iter=max_iter,
         tol=tol,
-        sigma_px=sigma_px,
-        use_prior=not no_prior,
         landmark_mode=mode,
         reject_outliers=not no_reject,
         reject_sigma=reject_sigma,
         reject_px=reject_px,
-        min_landmarks=min_landmarks,
     )
 
-    src_path = _sum_path_of(ctx, picture, sum_path)
-    if not src_path.exists():
-        raise SpcFormatError(src_path, None, f"expected the SUM file of picture {picture} (file not found)")
-    from spctool.formats.sumfile import read_sum
-
-    pic = read_sum(src_path)
-    camera = Camera.from_picture(pic, ctx.settings())
+    src_path, pic, _, camera = load_picture(ctx, picture, sum_path)
     meas = measurements_from_table(measurements) if measurements else measurements_from_sum(pic)
     pos, lsig, found = load_landmarks(ctx, meas.names, lmk_dir)
     use = np.array([s == "ok" for s in meas.status], dtype=bool) & found
@@ -304,7 +265,7 @@ def solve_pose_cmd(
         camera,
         pos[idx],
         y,
-        options,
+        pose_options,
         prior_sigma_position=pic.sigma_vso,
         prior_sigma_attitude=pic.sigma_ptg,
         landmark_sigmas=lsig[idx] if mode != "fixed" else None,
@@ -371,7 +332,7 @@ def solve_pose_cmd(
     meta = {
         "pose": result.pose_dict(),
         "sum_written": wrote,
-        "options": {k: v for k, v in dataclasses.asdict(options).items()},
+        "options": {k: v for k, v in dataclasses.asdict(pose_options).items()},
     }
     table = LandmarkTable(cols, picture=pic.name, command="solve-pose", meta=meta)
     table.comments.append(
@@ -385,7 +346,7 @@ def solve_pose_cmd(
             click.echo(f"spctool: {line}", err=True)
     if not result.converged:
         raise SpcResultError(
-            f"{pic.name}: pose did not converge in {options.max_iter} iterations"
+            f"{pic.name}: pose did not converge in {pose_options.max_iter} iterations"
             + ("; no SUM written" if write_target is not None else "")
         )
 

@@ -8,23 +8,19 @@ import click
 import numpy as np
 
 from spctool import __version__
+from spctool.cli import options
 from spctool.cli.common import (
     Context,
     emit,
     emit_table,
-    json_option,
-    output_option,
+    load_picture,
+    load_shape,
     pass_context,
     resolve_landmarks,
 )
 from spctool.errors import SpcUsageError
 from spctool.formats.table import LandmarkTable
 from spctool.geometry.camera import Camera
-
-
-def _camera(ctx: Context, picture: str) -> tuple[object, Camera]:
-    pic = ctx.wd.read_picture(picture)
-    return pic, Camera.from_picture(pic, ctx.settings())
 
 
 def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable:
@@ -44,11 +40,9 @@ def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable
 
 
 @click.command("project")
-@click.argument("picture")
+@options.picture_argument
 @click.argument("landmarks", nargs=-1)
-@click.option(
-    "--landmarks", "table", metavar="TABLE", help="Take landmark names from a landmark table ('-' = stdin)."
-)
+@options.landmarks_table_option("Take landmark names from a landmark table ('-' = stdin).")
 @click.option(
     "--inverse",
     nargs=2,
@@ -56,16 +50,11 @@ def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable
     metavar="SAMPLE LINE",
     help="Instead: the line of sight of pixel (SAMPLE, LINE) and, with a shape, the surface point hit.",
 )
-@click.option(
-    "--shape",
-    "shape_path",
-    type=click.Path(dir_okay=False),
-    help="Shape model for --inverse (ICQ, OBJ or VTK). Default: SHAPEFILES/SHAPE.TXT if present.",
-)
-@json_option
-@output_option
+@options.shape_option(" for --inverse")
+@options.json_option
+@options.output_option
 @pass_context
-def project_cmd(ctx: Context, picture, landmarks, table, inverse, shape_path, as_json, output):
+def project_cmd(ctx: Context, picture, landmarks, landmarks_table, inverse, shape_path, as_json, output):
     """Project landmarks into PICTURE, or a pixel back onto the body.
 
     LANDMARKS are names (LMKFILES/NAME.LMK), LMK files or landmark tables; default: every
@@ -80,10 +69,10 @@ def project_cmd(ctx: Context, picture, landmarks, table, inverse, shape_path, as
       spctool project SUMFILES/W48230079013.SUM LMKFILES/FA0115.LMK --json
       spctool -C WORKDIR project P0001 --inverse 512.5 512.5
     """
-    pic, camera = _camera(ctx, picture)
+    _, pic, _, camera = load_picture(ctx, picture)
     command = "project " + picture
     if inverse:
-        if landmarks or table:
+        if landmarks or landmarks_table:
             raise SpcUsageError("--inverse takes a pixel, not landmarks")
         sample, line = inverse
         direction = camera.pixel_to_direction(np.array([sample]), np.array([line]))[0]
@@ -98,16 +87,13 @@ def project_cmd(ctx: Context, picture, landmarks, table, inverse, shape_path, as
             "direction_body": direction.tolist(),
             "direction_camera": (camera.rotation @ direction).tolist(),
         }
-        shape_obj = ctx.wd.read_shape(shape_path)
-        if shape_obj is None:
+        shape = load_shape(ctx, shape_path)
+        if shape is None:
             ctx.note_once(
                 "no shape model: the surface point is not computed (give --shape or SHAPEFILES/SHAPE.TXT)"
             )
         else:
-            from spctool.geometry.shape import as_shape
-
-            shp = as_shape(shape_obj)
-            hit = shp.first_hit(camera.position[None, :], direction[None, :])
+            hit = shape.first_hit(camera.position[None, :], direction[None, :])
             if bool(hit.hit[0]):
                 point = hit.point[0]
                 r = float(np.linalg.norm(point))
@@ -130,7 +116,7 @@ def project_cmd(ctx: Context, picture, landmarks, table, inverse, shape_path, as
                 lines.append(f"{key:<20} {value}")
             emit("\n".join(lines) + "\n", output)
         return
-    lms = resolve_landmarks(ctx, landmarks, table)
+    lms = resolve_landmarks(ctx, landmarks, landmarks_table)
     t = project_table(camera, lms, pic.name)
     t.command = command
     emit_table(t, as_json=as_json, output=output)

@@ -25,180 +25,84 @@ import click
 import numpy as np
 
 from spctool import __version__
-from spctool.cli.common import Context, emit_table, json_option, output_option, pass_context, progress
+from spctool.cli import options
+from spctool.cli.common import Context, emit_table, load_stage_inputs, pass_context, progress
 from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
-
-IMAGE_FORMATS = ("pgm", "png", "fits")
-
 
 # ------------------------------------------------------------------------------------------------
 # options shared by both commands
 
 
-def _shared_options(f):
-    decorators = [
-        click.argument("picture"),
-        click.argument("names", nargs=-1, metavar="[LANDMARK]..."),
-        click.option(
-            "--landmarks",
-            "landmarks_table",
-            metavar="TABLE",
-            type=click.Path(dir_okay=False, allow_dash=True),
-            help="Landmarks and a-priori pixels from a landmark table ('-' = stdin), e.g. the output of "
-            "lithos-select. Default: the named LANDMARKs, else run lithos-select on LMRKLIST.TXT / "
-            "LMKFILES/.",
-        ),
-        click.option(
-            "--project",
-            "project",
-            is_flag=True,
-            help="Start from the projection of each landmark with the SUM pose, not the table pixels.",
-        ),
-        click.option(
-            "--sum",
-            "sum_path",
-            metavar="FILE",
-            type=click.Path(dir_okay=False),
-            help="The picture's SUM file (default: DIR/SUMFILES/PIC.SUM).",
-        ),
-        click.option(
-            "--photo",
-            "photo_path",
-            metavar="FILE",
-            type=click.Path(dir_okay=False, exists=True),
-            help="The photo (FITS, PGM, PNG or .DAT). Default: the picture's IMAGEFILES/ photo.",
-        ),
-        click.option(
-            "--flip-rows",
-            is_flag=True,
-            help="The photo's rows are stored bottom-up: read line 1 from the last stored row.",
-        ),
-        click.option(
-            "--space",
-            type=click.Choice(["maplet", "image"]),
-            default="maplet",
-            show_default=True,
-            help="maplet: the photo resampled onto the maplet (SPC); image: the maplet rendered into "
-            "the photo with cast shadows and correlated over the photo (S16 Retina).",
-        ),
-        click.option(
-            "--grid-half",
-            type=click.IntRange(min=1),
-            default=5,
-            show_default=True,
-            metavar="K",
-            help="Correlation grid of (2K+1)^2 whole-cell offsets (search +-K x spacing).",
-        ),
-        click.option(
-            "--min-valid",
-            type=click.IntRange(min=2),
-            default=25,
-            show_default=True,
-            metavar="N",
-            help="Fewer (binned) pixels valid in both images leave an offset undefined.",
-        ),
-        click.option(
-            "--corr-min",
-            type=float,
-            default=0.3,
-            show_default=True,
-            metavar="RHO",
-            help="Peaks below RHO are low-correlation (S16/GIANT 0.3).",
-        ),
-        click.option(
-            "--strict-8",
-            "strict_8",
-            is_flag=True,
-            help="A peak needs all 8 neighbours lower (default: the 4 along the axes).",
-        ),
-        click.option(
-            "--photometry",
-            type=click.Choice(["spc", "mcewen", "fixed", "lambert"]),
-            default="spc",
-            show_default=True,
-            help="Illumination law of the prediction / template.",
-        ),
-        click.option(
-            "--shadows",
-            type=click.Choice(["spc", "cast"]),
-            default="spc",
-            show_default=True,
-            help="Maplet-space prediction: dark only where incidence > 90 deg (spc) or also "
-            "ray-marched cast shadows.",
-        ),
-        click.option(
-            "--linearized",
-            is_flag=True,
-            help="Extract with S16's linearised projection about the landmark (default: full camera model).",
-        ),
-        click.option(
-            "--no-filter",
-            "no_filter",
-            is_flag=True,
-            help="Skip the extract filter (shadow enhancement, emission cut, visibility march).",
-        ),
-        click.option(
-            "--criteria",
-            default=None,
-            metavar="SPEC",
-            help="Removal criteria on the first extraction: lithos_standard, autoregister or "
-            "'INVLIM,SLIM,CLIM,[ILIM,]RSMN,RSMX'; 'none' = no removal. Default: none for correlate "
-            "and the S16 schedule, autoregister (0,50,.25,0,5) for the AUTOREGISTER schedule.",
-        ),
-        click.option(
-            "--thresholds",
-            default=None,
-            metavar="T1,T2",
-            help="DN range used from the photo (default: the SUM THRSH).",
-        ),
-        click.option(
-            "--supersample",
-            type=click.IntRange(1, 16),
-            default=2,
-            show_default=True,
-            metavar="N",
-            help="Image space: NxN rays per template pixel.",
-        ),
-        click.option(
-            "--no-image-shadows",
-            "no_image_shadows",
-            is_flag=True,
-            help="Image space: leave shadowed pixels out instead of correlating them as dark.",
-        ),
-        click.option(
-            "--out-dir",
-            type=click.Path(file_okay=False),
-            default=None,
-            metavar="DIR",
-            help="Write each landmark's (last) correlation surface as an image to DIR.",
-        ),
-        click.option(
-            "--image-format",
-            type=click.Choice(IMAGE_FORMATS),
-            default="pgm",
-            show_default=True,
-            help="Format of the --out-dir images (FITS keeps the float values and a header).",
-        ),
-        json_option,
-        output_option,
-        pass_context,
-    ]
-    for d in reversed(decorators):
-        f = d(f)
-    return f
-
-
-def _thresholds(text, pic):
-    if text is None:
-        return tuple(float(x) for x in pic.thrsh)
-    parts = [p for p in text.replace(",", " ").split() if p]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 2:
-        raise SpcUsageError(f"--thresholds expects two numbers T1,T2, got {text!r}")
-    return values
+_shared_options = options.option_group(
+    options.picture_argument,
+    options.landmark_names_argument,
+    options.landmarks_table_option(
+        "Landmarks and a-priori pixels from a landmark table ('-' = stdin), e.g. the output of "
+        "lithos-select. Default: the named LANDMARKs, else run lithos-select on LMRKLIST.TXT / LMKFILES/."
+    ),
+    click.option(
+        "--project",
+        "project",
+        is_flag=True,
+        help="Start from the projection of each landmark with the SUM pose, not the table pixels.",
+    ),
+    options.sum_option,
+    options.photo_option(),
+    options.flip_rows_option,
+    options.space_option,
+    click.option(
+        "--grid-half",
+        type=click.IntRange(min=1),
+        default=5,
+        show_default=True,
+        metavar="K",
+        help="Correlation grid of (2K+1)^2 whole-cell offsets (search +-K x spacing).",
+    ),
+    click.option(
+        "--min-valid",
+        type=click.IntRange(min=2),
+        default=25,
+        show_default=True,
+        metavar="N",
+        help="Fewer (binned) pixels valid in both images leave an offset undefined.",
+    ),
+    options.corr_min_option,
+    click.option(
+        "--strict-8",
+        "strict_8",
+        is_flag=True,
+        help="A peak needs all 8 neighbours lower (default: the 4 along the axes).",
+    ),
+    options.photometry_option,
+    options.shadows_option,
+    options.linearized_option,
+    options.no_filter_option,
+    options.criteria_option(
+        "Removal criteria on the first extraction: lithos_standard, autoregister or "
+        "'INVLIM,SLIM,CLIM,[ILIM,]RSMN,RSMX'; 'none' = no removal. Default: none for correlate "
+        "and the S16 schedule, autoregister (0,50,.25,0,5) for the AUTOREGISTER schedule."
+    ),
+    options.thresholds_option,
+    click.option(
+        "--supersample",
+        type=click.IntRange(1, 16),
+        default=2,
+        show_default=True,
+        metavar="N",
+        help="Image space: NxN rays per template pixel.",
+    ),
+    click.option(
+        "--no-image-shadows",
+        "no_image_shadows",
+        is_flag=True,
+        help="Image space: leave shadowed pixels out instead of correlating them as dark.",
+    ),
+    options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
+    options.image_format_option,
+    options.json_option,
+    options.output_option,
+    pass_context,
+)
 
 
 def _criteria(text, default):
@@ -230,19 +134,12 @@ def _parse_steps(text):
 
 
 def _register_options(kw, schedule, **extra):
-    from spctool.stages.extract import ExtractOptions
-    from spctool.stages.predict import PredictOptions
     from spctool.stages.register import RegisterOptions
 
     default_criteria = (
         "autoregister" if schedule == "autoregister" and kw.get("_command") == "register" else None
     )
-    eopts = ExtractOptions(
-        linearized=kw["linearized"],
-        apply_filter=not kw["no_filter"],
-        criteria=_criteria(kw["criteria"], default_criteria),
-    )
-    popts = PredictOptions(photometry=kw["photometry"], shadows=kw["shadows"])
+    popts, eopts = options.predict_extract_options(kw, criteria=_criteria(kw["criteria"], default_criteria))
     return RegisterOptions(
         schedule=schedule,
         space=kw["space"],
@@ -266,35 +163,12 @@ class _Inputs:
     """Picture, camera, photo and the landmarks (maplets, positions, a-priori pixels) of one run."""
 
     def __init__(self, ctx: Context, kw):
-        from spctool.formats.photo import read_photo
-        from spctool.geometry.camera import Camera
-
         wd = ctx.wd
-        self.pic = wd.read_picture(kw["sum_path"] if kw["sum_path"] else kw["picture"])
-        self.settings = ctx.settings()
-        self.camera = Camera.from_picture(self.pic, self.settings)
-        self.thresholds = _thresholds(kw["thresholds"], self.pic)
-        if kw["photo_path"]:
-            photo = read_photo(
-                kw["photo_path"], flip_rows=kw["flip_rows"], npx=self.pic.npx, nln=self.pic.nln
-            )
-        else:
-            if wd.photo_path(self.pic.name) is None:
-                raise SpcUsageError(
-                    f"no photo for picture {self.pic.name} (IMAGEFILES/{self.pic.name}.DAT not "
-                    "found; give --photo)"
-                )
-            photo = wd.read_photo(
-                self.pic.name, npx=self.pic.npx, nln=self.pic.nln, flip_rows=kw["flip_rows"]
-            )
-        if photo.data.shape != (self.pic.nln, self.pic.npx):
-            raise SpcUsageError(
-                f"the photo is {photo.npx} x {photo.nln} px but the SUM says {self.pic.npx} x {self.pic.nln}"
-            )
-        self.photo = photo
-        rows = self._landmark_rows(ctx, kw)
+        inputs = load_stage_inputs(ctx, kw)
+        self.sum_path, self.pic, self.camera = inputs.picture.path, inputs.picture.pic, inputs.picture.camera
+        self.thresholds, self.photo, self.source = inputs.thresholds, inputs.photo, inputs.source
         self.names, self.maplets, self.positions, self.apriori, self.missing = [], [], [], [], []
-        for name, pix in rows:
+        for name, pix in inputs.landmarks:
             try:
                 maplet = wd.read_maplet(name)
             except SpcFormatError as exc:
@@ -317,52 +191,6 @@ class _Inputs:
                 self.apriori.append((math.nan, math.nan))
         self.apriori = np.asarray(self.apriori, dtype=np.float64).reshape(-1, 2)
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
-
-    def _landmark_rows(self, ctx, kw):
-        rows = []
-        if kw["landmarks_table"]:
-            from spctool.formats.table import read_table
-
-            table = read_table(kw["landmarks_table"])
-            smp, lin = table.get("sample"), table.get("line")
-            for i, n in enumerate(table.names):
-                pix = None
-                if smp is not None and lin is not None:
-                    try:
-                        pix = (float(smp[i]), float(lin[i]))
-                    except (TypeError, ValueError):
-                        pix = None
-                rows.append((n, pix))
-        rows += [(n, None) for n in kw["names"]]
-        if rows:
-            self.source = "given"
-            return rows
-        from spctool.cli.select import load_candidates
-        from spctool.stages.select import SelectOptions, select_maplets
-
-        self.source = "selection"
-        cand = load_candidates(ctx, (), None)
-        if not len(cand):
-            return []
-        res = select_maplets(
-            self.camera,
-            self.pic.sz,
-            cand.centres,
-            cand.ux,
-            cand.uy,
-            cand.uz,
-            cand.scale,
-            cand.qsz,
-            cand.names,
-            SelectOptions.from_settings(self.settings),
-            shape=None,
-        )
-        ctx.info(f"lithos-select: {res.n_selected} of {len(res)} candidate maplets (occlusion not checked)")
-        return [
-            (n, (float(s), float(ln)))
-            for n, s, ln, sel in zip(res.names, res.sample, res.line, res.selected)
-            if sel
-        ]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -638,20 +466,8 @@ def correlate_cmd(ctx: Context, **kw):
     is_flag=True,
     help="With --write-sum: also remove the LANDMARKS rows of landmarks that failed.",
 )
-@click.option(
-    "--overlay",
-    "overlay",
-    metavar="FILE.png",
-    type=click.Path(dir_okay=False),
-    help="Write the photo with a-priori (yellow) and measured (green) landmark pixels (PNG).",
-)
-@click.option(
-    "--require",
-    type=click.IntRange(min=0),
-    default=None,
-    metavar="N",
-    help="Exit 1 when fewer than N landmarks are registered.",
-)
+@options.overlay_option("Write the photo with a-priori (yellow) and measured (green) landmark pixels (PNG).")
+@options.require_option("Exit 1 when fewer than N landmarks are registered.")
 def register_cmd(ctx: Context, **kw):
     """Measure the landmarks of a picture: iterated predict, extract and correlate.
 
@@ -683,7 +499,7 @@ def register_cmd(ctx: Context, **kw):
     from spctool.stages.register import register as run_register
 
     kw["_command"] = "register"
-    schedule = "retina_s16" if kw["schedule"] in ("s16", "retina_s16") else "autoregister"
+    schedule = options.register_schedule(kw["schedule"])
     extra = {
         "fail_fast": not kw["no_fail_fast"],
         "pose_update": not kw["no_pose_update"],
@@ -756,7 +572,7 @@ def register_cmd(ctx: Context, **kw):
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
     if kw["write_sum_flag"]:
-        path = _write_sum(ctx, kw, inp, result)
+        path = _write_sum(kw, inp, result)
         ctx.info(f"rewrote the LANDMARKS section of {path}")
     if kw["overlay"]:
         from spctool.formats import atomic
@@ -775,12 +591,12 @@ def register_cmd(ctx: Context, **kw):
         )
 
 
-def _write_sum(ctx, kw, inp, result):
+def _write_sum(kw, inp, result):
     """Update the SUM's LANDMARKS rows (new pixels for ok landmarks, added when absent); write atomically
     with a backup.  Only LANDMARKS lines change (formats.sumfile rewrites changed lines only)."""
     from spctool.formats.sumfile import SumLandmark, read_sum, write_sum
 
-    path = Path(kw["sum_path"]) if kw["sum_path"] else ctx.wd.sum_path(kw["picture"])
+    path = inp.sum_path
     pic = read_sum(path)
     rows = list(pic.landmarks)
     index = {lm.name.strip(): k for k, lm in enumerate(rows)}

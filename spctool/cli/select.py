@@ -15,7 +15,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from spctool.cli.common import Context, emit_table, json_option, output_option, pass_context
+from spctool.cli import options
+from spctool.cli.common import Context, emit_table, load_photo, load_picture, load_shape, pass_context
 from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
 from spctool.formats import atomic
 
@@ -37,6 +38,24 @@ class Candidates:
 
     def __len__(self):
         return len(self.names)
+
+    def select(self, camera, sun, options, shape=None):
+        """Stage A on these candidates (:func:`spctool.stages.select.select_maplets`)."""
+        from spctool.stages.select import select_maplets
+
+        return select_maplets(
+            camera,
+            sun,
+            self.centres,
+            self.ux,
+            self.uy,
+            self.uz,
+            self.scale,
+            self.qsz,
+            self.names,
+            options,
+            shape=shape,
+        )
 
 
 def _geometry_of(obj, name=None):
@@ -120,16 +139,6 @@ def load_candidates(ctx: Context, maplets, landmarks_table) -> Candidates:
     )
 
 
-def shape_model(obj):
-    """A geometry shape from what ``formats`` read (see ``geometry.shape.as_shape``)."""
-    from spctool.geometry.shape import as_shape
-
-    try:
-        return as_shape(obj)
-    except TypeError as exc:
-        raise SpcUsageError(str(exc)) from None
-
-
 # ------------------------------------------------------------------------------------------------
 # overlay
 
@@ -203,14 +212,8 @@ def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes
 
 
 @click.command("lithos-select")
-@click.argument("picture")
-@click.option(
-    "--sum",
-    "sum_path",
-    metavar="FILE",
-    type=click.Path(dir_okay=False),
-    help="The picture's SUM file (default: DIR/SUMFILES/PIC.SUM).",
-)
+@options.picture_argument
+@options.sum_option
 @click.option(
     "--maplets",
     "maplets",
@@ -219,20 +222,10 @@ def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes
     help="Candidate landmarks: names (LMKFILES/NAME.LMK, else MAPFILES/NAME.MAP), .LMK or .MAP "
     "files, or a list file of names. Repeatable. Default: LMRKLIST.TXT, else LMKFILES/*.LMK.",
 )
-@click.option(
-    "--landmarks",
-    "landmarks_table",
-    metavar="TABLE",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    help="Candidate landmarks from the 'name' column of a landmark table ('-' = stdin).",
+@options.landmarks_table_option(
+    "Candidate landmarks from the 'name' column of a landmark table ('-' = stdin)."
 )
-@click.option(
-    "--shape",
-    "shape_path",
-    metavar="FILE",
-    type=click.Path(dir_okay=False),
-    help="Shape model for the occlusion test (ICQ, OBJ or VTK). Default: DIR/SHAPEFILES/SHAPE.TXT.",
-)
+@options.shape_option(" for the occlusion test")
 @click.option(
     "--occlusion/--no-occlusion",
     "occlusion",
@@ -320,30 +313,11 @@ def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes
     is_flag=True,
     help="Also list rejected maplets, with the first failed check as status.",
 )
-@click.option(
-    "--require",
-    "require",
-    type=click.IntRange(min=0),
-    default=None,
-    metavar="N",
-    help="Exit 1 when fewer than N maplets are selected.",
-)
-@click.option(
-    "--overlay",
-    "overlay",
-    metavar="FILE.png",
-    type=click.Path(dir_okay=False),
-    help="Write the photo with the selected maplets' outlines and names drawn on it (PNG).",
-)
-@click.option(
-    "--photo",
-    "photo_path",
-    metavar="FILE",
-    type=click.Path(dir_okay=False, exists=True),
-    help="Photo for --overlay (default: the picture's IMAGEFILES/ photo).",
-)
-@json_option
-@output_option
+@options.require_option("Exit 1 when fewer than N maplets are selected.")
+@options.overlay_option("Write the photo with the selected maplets' outlines and names drawn on it (PNG).")
+@options.photo_option(" for --overlay")
+@options.json_option
+@options.output_option
 @pass_context
 def select_cmd(
     ctx: Context,
@@ -394,14 +368,10 @@ def select_cmd(
       spctool lithos-select W48230079013 --sum W48230079013.SUM --maplets FA0115.LMK --maplets FC0098.LMK
       spctool -C WORKDIR lithos-select P600127001 --numlm 50 --overlay sel.png
     """
-    from spctool.geometry.camera import Camera
-    from spctool.stages.select import SelectOptions, select_maplets
+    from spctool.stages.select import SelectOptions
 
-    wd = ctx.wd
-    pic = wd.read_picture(sum_path if sum_path else picture)
-    settings = ctx.settings()
-    camera = Camera.from_picture(pic, settings)
-    options = SelectOptions.from_settings(
+    _, pic, settings, camera = load_picture(ctx, picture, sum_path)
+    select_options = SelectOptions.from_settings(
         settings,
         numlm=numlm,
         reslm=reslm,
@@ -421,28 +391,15 @@ def select_cmd(
 
     shape = None
     if occlusion is not False:
-        if shape_path or wd.shape_path.exists():
-            shape = shape_model(wd.read_shape(shape_path))
+        shape = load_shape(ctx, shape_path)
         if shape is None:
             if occlusion:
                 raise SpcUsageError(
-                    f"--occlusion needs a shape model ({wd.shape_path} not found; give --shape)"
+                    f"--occlusion needs a shape model ({ctx.wd.shape_path} not found; give --shape)"
                 )
             ctx.note_once("no shape model (SHAPEFILES/SHAPE.TXT or --shape): occlusion check skipped")
 
-    result = select_maplets(
-        camera,
-        pic.sz,
-        cand.centres,
-        cand.ux,
-        cand.uy,
-        cand.uz,
-        cand.scale,
-        cand.qsz,
-        cand.names,
-        options,
-        shape=shape,
-    )
+    result = cand.select(camera, pic.sz, select_options, shape=shape)
     counts = result.status_counts()
     meta = {
         "candidates": len(result),
@@ -450,7 +407,7 @@ def select_cmd(
         "status_counts": counts,
         "occlusion": "checked" if result.occlusion_checked else "skipped",
         "half_fov_deg": result.half_fov_deg,
-        "options": options.as_dict(),
+        "options": select_options.as_dict(),
     }
     table = result.to_table(include_rejected=show_all, picture=pic.name, command="lithos-select", meta=meta)
     table.comments.append(
@@ -459,16 +416,7 @@ def select_cmd(
     emit_table(table, as_json=as_json, output=output)
 
     if overlay:
-        if photo_path:
-            from spctool.formats.photo import read_photo
-
-            photo = read_photo(photo_path, npx=pic.npx, nln=pic.nln)
-        else:
-            photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
-        if photo.data.shape != (pic.nln, pic.npx):
-            raise SpcUsageError(
-                f"the photo is {photo.npx} x {photo.nln} px but the SUM says {pic.npx} x {pic.nln}"
-            )
+        photo = load_photo(ctx, pic, photo_path)
         atomic.write_bytes(overlay, render_overlay(photo.data, pic.thrsh, camera, cand, result))
         ctx.info(f"wrote {overlay}")
 

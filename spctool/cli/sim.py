@@ -18,7 +18,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from spctool.cli.common import Context, emit, emit_table, json_option, output_option, pass_context, progress
+from spctool.cli import options
+from spctool.cli.common import Context, emit, emit_table, load_picture, pass_context, progress
 from spctool.errors import SpcUsageError
 
 
@@ -64,8 +65,8 @@ SPEC keys (every key is optional):
 @click.option("--overwrite", is_flag=True, help="Write into a non-empty OUTDIR (replacing same-named files).")
 @click.option("--seed", type=int, default=None, help="Override the SPEC's seed.")
 @click.option("--example", is_flag=True, help="Print a SPEC with every key at its default and exit.")
-@json_option
-@output_option
+@options.json_option
+@options.output_option
 @pass_context
 def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, output):
     from spctool.sim.simulate import load_spec, parse_spec, simulate
@@ -186,12 +187,7 @@ def example_spec() -> str:
 @click.option(
     "--qsz", type=int, default=None, help="Maplet QSZ. Default: each LMK's own (required for --at/--tile)."
 )
-@click.option(
-    "--shape",
-    "shape_path",
-    type=click.Path(dir_okay=False),
-    help="Shape model (ICQ, OBJ or VTK). Default: SHAPEFILES/SHAPE.TXT.",
-)
+@options.shape_option()
 @click.option(
     "--keep-frame",
     is_flag=True,
@@ -201,8 +197,8 @@ def example_spec() -> str:
 @click.option(
     "--overwrite", is_flag=True, help="Replace existing MAP files (and LMK files of new landmarks)."
 )
-@json_option
-@output_option
+@options.json_option
+@options.output_option
 @pass_context
 def make_maplets_cmd(
     ctx: Context,
@@ -354,21 +350,10 @@ def make_maplets_cmd(
     default=None,
     help="Photo format. Default: from the extension of --output.",
 )
-@click.option(
-    "--shape",
-    "shape_path",
-    type=click.Path(dir_okay=False),
-    help="Shape model (ICQ, OBJ or VTK). Default: SHAPEFILES/SHAPE.TXT when present.",
-)
+@options.shape_option()
 @click.option("--no-shape", is_flag=True, help="Render the maplets alone.")
 @click.option("--no-maplets", is_flag=True, help="Render the shape alone.")
-@click.option(
-    "--photometry",
-    type=click.Choice(["spc", "mcewen", "fixed", "lambert"]),
-    default="spc",
-    show_default=True,
-    help="Illumination function (spc-algorithms.md 3.2).",
-)
+@options.photometry_option
 @click.option(
     "--supersample", type=click.IntRange(1, 16), default=2, show_default=True, help="n x n rays per pixel."
 )
@@ -426,13 +411,11 @@ def render_cmd(
       spctool -C WORKDIR render P000000001A1 SM0001 --no-shape --float -o sm0001.fits
     """
     from spctool.formats.photo import Photo, write_photo
-    from spctool.geometry.camera import Camera
     from spctool.sim.simulate import Detector, expose
     from spctool.stages.render import HeightPatch, RenderOptions, cull_patches, render
 
     wd = ctx.wd
-    pic = wd.read_picture(picture)
-    camera = Camera.from_picture(pic, ctx.settings())
+    _, pic, _, camera = load_picture(ctx, picture)
     model = None
     if not no_shape:
         model = wd.read_shape(shape_path)
@@ -448,8 +431,8 @@ def render_cmd(
         ctx.info(f"{len(patches)} of {len(names)} maplets in view")
     if model is None and not patches:
         raise SpcUsageError("nothing to render: no shape and no maplet in view")
-    options = RenderOptions(photometry=photometry, supersample=supersample, shadows=not no_shadows)
-    r = render(camera, pic.sz, model, patches, options, window=window)
+    render_options = RenderOptions(photometry=photometry, supersample=supersample, shadows=not no_shadows)
+    r = render(camera, pic.sz, model, patches, render_options, window=window)
     if fmt is None:
         ext = Path(out).suffix.lower().lstrip(".")
         fmt = {"fit": "fits", "fts": "fits"}.get(ext, ext)
@@ -493,27 +476,10 @@ def render_cmd(
     type=click.Path(file_okay=False, exists=True),
     help="Run on this simulated working directory (with TRUTH.json) instead of the shipped demo.",
 )
-@click.option(
-    "--space",
-    type=click.Choice(["maplet", "image"]),
-    default="maplet",
-    show_default=True,
-    help="Register in maplet space (SPC) or image space (Retina).",
-)
-@click.option(
-    "--schedule",
-    type=click.Choice(["autoregister", "s16"]),
-    default="autoregister",
-    show_default=True,
-    help="Registration schedule.",
-)
-@click.option(
-    "--sigma-px",
-    type=float,
-    default=0.2,
-    show_default=True,
-    metavar="PX",
-    help="1-sigma landmark pixel error given to the pose solve (see the description).",
+@options.space_option
+@options.pipeline_schedule_option
+@options.sigma_px_option(
+    0.2, help="1-sigma landmark pixel error given to the pose solve (see the description)."
 )
 @click.option(
     "--keep",
@@ -522,8 +488,8 @@ def render_cmd(
     type=click.Path(file_okay=False),
     help="Also write the updated SUM files and stage tables under DIR (batch layout).",
 )
-@json_option
-@output_option
+@options.json_option
+@options.output_option
 @pass_context
 def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as_json, output):
     """Run lithos-select -> register -> solve-pose on the shipped demo and print errors against truth.
@@ -562,10 +528,8 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
     from spctool.stages.pose import PoseOptions
 
     pose_options = PoseOptions(sigma_px=sigma_px)
-    reg = RegisterOptions(
-        schedule="retina_s16" if schedule == "s16" else "autoregister", space=space, pose=pose_options
-    )
-    options = BatchOptions(register=reg, pose=pose_options)
+    reg = RegisterOptions(schedule=options.register_schedule(schedule), space=space, pose=pose_options)
+    batch_options = BatchOptions(register=reg, pose=pose_options)
     pictures = [p["name"] for p in truth["pictures"]]
     rows = []
     with tempfile.TemporaryDirectory(prefix="spctool-demo-") as tmp:
@@ -574,7 +538,7 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
             src = copy_demo(Path(tmp) / "demo")
         with progress(ctx, "demo", len(pictures)) as advance:
             for name in pictures:
-                outcome = navigate_picture(src, name, options)
+                outcome = navigate_picture(src, name, batch_options)
                 advance()
                 summary = outcome.summary
                 row = {
@@ -611,7 +575,7 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
                     if not e["within_3sigma"]:
                         row["status"] = "outside-3sigma"
                 if keep:
-                    write_outcome(keep, outcome, options.fingerprint())
+                    write_outcome(keep, outcome, batch_options.fingerprint())
                 rows.append(row)
     table = LandmarkTable.from_rows(
         [{"name": r.pop("picture"), **r} for r in rows],
