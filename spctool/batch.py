@@ -74,7 +74,9 @@ import numpy as np
 from spctool import __version__
 from spctool.errors import SpcError, SpcFormatError, SpcUsageError
 from spctool.formats import atomic
+from spctool.formats.sumfile import with_measured_landmarks, with_pose
 from spctool.formats.workdir import WorkDir
+from spctool.geometry.shape import as_shape
 from spctool.stages.pose import PoseError, PoseOptions
 from spctool.stages.register import RegisterOptions
 
@@ -221,7 +223,7 @@ class SharedData:
         if options.occlusion is not False:
             path = options.shape_path
             if path or self.wd.shape_path.exists():
-                self.shape = _shape_model(self.wd.read_shape(path))
+                self.shape = as_shape(self.wd.read_shape(path))
             if self.shape is None and options.occlusion:
                 raise SpcUsageError(
                     f"the occlusion test needs a shape model ({self.wd.shape_path} not found)"
@@ -282,20 +284,6 @@ def _candidate_row(wd: WorkDir, name: str):
             wd.lmk_path(name), None, f"the LMK (or MAP) file of landmark {name} (file not found)"
         )
     return (name, centre, obj.ux, obj.uy, obj.uz, float(obj.scale), int(obj.qsz))
-
-
-def _shape_model(obj):
-    """A geometry shape from what ``formats`` read: ICQ → bilinear patches, mesh → triangles."""
-    if obj is None or hasattr(obj, "first_hit"):
-        return obj
-    from spctool.geometry.shape import PatchShape, TriangleShape
-
-    verts = np.asarray(getattr(obj, "vertices", None))
-    if verts.ndim == 4:
-        return PatchShape(obj)
-    if getattr(obj, "faces", None) is not None:
-        return TriangleShape(obj)
-    raise SpcUsageError(f"cannot use a {type(obj).__name__} as a shape model")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -560,7 +548,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
 
     # ---- Stage I: solve-pose ---------------------------------------------------------------------
     clock = time.perf_counter()
-    new_pic = _with_landmarks(pic, reg)
+    new_pic = with_measured_landmarks(pic, reg.names, reg.measured, reg.ok)
     use = np.flatnonzero(ok)
     try:
         pose = solve_pose(
@@ -588,41 +576,13 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         summary.dattitude_rad = float(np.linalg.norm(pose.delta_attitude))
         out.pose_table = _pose_table(pic.name, pose, options.pose)
         if pose.converged:
-            rot = pose.rotation
-            new_pic = dataclasses.replace(
-                new_pic,
-                scobj=pose.scobj,
-                cx=rot[0],
-                cy=rot[1],
-                cz=rot[2],
-                sigma_vso=pose.sigma_position,
-                sigma_ptg=pose.sigma_attitude,
-            )
+            new_pic = with_pose(new_pic, pose.scobj, pose.rotation, pose.sigma_position, pose.sigma_attitude)
             summary.status = "ok"
         else:
             summary.status = f"no-pose: did not converge in {options.pose.max_iter} iterations"
     from spctool.formats.sumfile import format_sum
 
     out.sum_text = format_sum(new_pic)
-
-
-def _with_landmarks(pic, reg):
-    """The picture with its LANDMARKS rows updated as ``register --write-sum`` does: ok landmarks get
-    their measured pixel (rows added when absent, flags kept), other rows are left alone."""
-    from spctool.formats.sumfile import SumLandmark
-
-    rows = list(pic.landmarks)
-    index = {lm.name.strip(): k for k, lm in enumerate(rows)}
-    for name, good, m in zip(reg.names, reg.ok, reg.measured):
-        if not good:
-            continue
-        if name in index:
-            old = rows[index[name]]
-            rows[index[name]] = SumLandmark(old.name, float(m[0]), float(m[1]), old.flag)
-        else:
-            rows.append(SumLandmark(name, float(m[0]), float(m[1])))
-            index[name] = len(rows) - 1
-    return dataclasses.replace(pic, landmarks=rows)
 
 
 def _pose_table(picture: str, pose, popts: PoseOptions):

@@ -668,3 +668,24 @@ def test_nom_round_trip_property(nom):
     back = parse_nom(text)
     assert back == nom
     assert format_nom(back) == text
+
+
+def test_with_measured_landmarks_and_with_pose_touch_only_their_lines():
+    from spctool.formats.sumfile import format_sum, parse_sum, with_measured_landmarks, with_pose
+
+    text = (REAL / "rosetta-67p/W48230079013.SUM").read_text()
+    pic = parse_sum(text)
+    new = with_measured_landmarks(pic, ["FC0098", "ZZ0001", "GD0036"], [(1.5, 2.5), (3.0, 4.0), (9, 9)],
+                                  [True, True, False])
+    out = format_sum(new).splitlines()
+    old = text.splitlines()
+    k = old.index("LANDMARKS")
+    # FC0098 gets its new pixel, GD0036 (not ok) is left alone, ZZ0001 is appended; nothing else moves
+    assert out == old[: k + 2] + ["FC0098      1.50      2.50", old[k + 3], "ZZ0001      3.00      4.00"] + old[k + 4 :]
+    dropped = with_measured_landmarks(pic, ["GD0036"], [(0, 0)], [False], drop_failed=True)
+    assert [lm.name for lm in dropped.landmarks] == ["FA0115", "FC0098"]
+    rot = pic.rotation[[1, 2, 0]]
+    posed = format_sum(with_pose(pic, pic.scobj + 0.001, rot, [1e-3] * 3, [1e-4] * 3)).splitlines()
+    changed = {posed[i][63:].strip() for i, (a, b) in enumerate(zip(old, posed)) if a != b}
+    assert changed == {"SCOBJ", "CX", "CY", "CZ", "SIGMA_VSO", "SIGMA_PTG"}
+    assert pic.landmarks[1].sample == 513.55  # the input is not modified

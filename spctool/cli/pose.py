@@ -313,18 +313,9 @@ def solve_pose_cmd(
     wrote = None
     write_target = src_path if in_place else Path(sum_output) if sum_output else None
     if write_target is not None and result.converged:
-        from spctool.formats.sumfile import write_sum
+        from spctool.formats.sumfile import with_pose, write_sum
 
-        rot = result.rotation
-        new_pic = dataclasses.replace(
-            pic,
-            scobj=result.scobj,
-            cx=rot[0],
-            cy=rot[1],
-            cz=rot[2],
-            sigma_vso=result.sigma_position,
-            sigma_ptg=result.sigma_attitude,
-        )
+        new_pic = with_pose(pic, result.scobj, result.rotation, result.sigma_position, result.sigma_attitude)
         backup = write_sum(write_target, new_pic, overwrite=True, backup=in_place)
         wrote = str(write_target)
         ctx.info(f"wrote {write_target}" + (f" (old file kept as {backup})" if backup else ""))

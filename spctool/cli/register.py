@@ -594,26 +594,12 @@ def register_cmd(ctx: Context, **kw):
 def _write_sum(kw, inp, result):
     """Update the SUM's LANDMARKS rows (new pixels for ok landmarks, added when absent); write atomically
     with a backup.  Only LANDMARKS lines change (formats.sumfile rewrites changed lines only)."""
-    from spctool.formats.sumfile import SumLandmark, read_sum, write_sum
+    from spctool.formats.sumfile import read_sum, with_measured_landmarks, write_sum
 
     path = inp.sum_path
-    pic = read_sum(path)
-    rows = list(pic.landmarks)
-    index = {lm.name.strip(): k for k, lm in enumerate(rows)}
-    failed = set()
-    for name, ok, m in zip(result.names, result.ok, result.measured):
-        if ok:
-            if name in index:
-                old = rows[index[name]]
-                rows[index[name]] = SumLandmark(old.name, float(m[0]), float(m[1]), old.flag)
-            else:
-                rows.append(SumLandmark(name, float(m[0]), float(m[1])))
-                index[name] = len(rows) - 1
-        else:
-            failed.add(name)
-    if kw["drop_failed"]:
-        rows = [lm for lm in rows if lm.name.strip() not in failed]
-    pic.landmarks = rows
+    pic = with_measured_landmarks(
+        read_sum(path), result.names, result.measured, result.ok, drop_failed=kw["drop_failed"]
+    )
     write_sum(path, pic, overwrite=True, backup=True)
     return path
 

@@ -16,6 +16,7 @@ shared with :mod:`spctool.formats.landmark` and :mod:`spctool.formats.lithos`.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from dataclasses import dataclass, field
@@ -975,3 +976,50 @@ def read_nom(path) -> Nominal:
 def write_nom(path, nom: Nominal, *, overwrite: bool = True, backup: bool = False):
     """Write a NOM file atomically (returns the backup path if one was made)."""
     return atomic.write_text(path, format_nom(nom), overwrite=overwrite, backup=backup)
+
+
+# ------------------------------------------------------------------------------------------------
+# updates that stages make to a picture (only the changed lines are regenerated on write)
+
+
+def with_pose(pic: Picture, scobj, rotation, sigma_vso=None, sigma_ptg=None) -> Picture:
+    """A copy of ``pic`` with a new SCOBJ, CX/CY/CZ (rows of ``rotation``, body→camera) and, when
+    given, SIGMA_VSO / SIGMA_PTG — the lines LITHOS rewrites after a geometry solve (§0.3)."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    changes = {
+        "scobj": np.asarray(scobj, dtype=np.float64),
+        "cx": rotation[0],
+        "cy": rotation[1],
+        "cz": rotation[2],
+    }
+    if sigma_vso is not None:
+        changes["sigma_vso"] = np.asarray(sigma_vso, dtype=np.float64)
+    if sigma_ptg is not None:
+        changes["sigma_ptg"] = np.asarray(sigma_ptg, dtype=np.float64)
+    return dataclasses.replace(pic, **changes)
+
+
+def with_measured_landmarks(pic: Picture, names, pixels, ok, *, drop_failed: bool = False) -> Picture:
+    """A copy of ``pic`` whose LANDMARKS rows carry new measured pixels, as ``register --write-sum``.
+
+    For every ``ok`` landmark its row gets ``pixels`` (sample, line) — the row's flag is kept — or a
+    row is appended when the SUM has none.  Rows of landmarks that were not measured stay as they are,
+    unless ``drop_failed`` removes the rows of the names given with ``ok`` false.
+    """
+    rows = list(pic.landmarks)
+    index = {lm.name.strip(): k for k, lm in enumerate(rows)}
+    failed = set()
+    for name, good, (sample, line) in zip(names, ok, pixels):
+        name = name.strip()
+        if not good:
+            failed.add(name)
+            continue
+        if name in index:
+            old = rows[index[name]]
+            rows[index[name]] = SumLandmark(old.name, float(sample), float(line), old.flag)
+        else:
+            rows.append(SumLandmark(name, float(sample), float(line)))
+            index[name] = len(rows) - 1
+    if drop_failed:
+        rows = [lm for lm in rows if lm.name.strip() not in failed]
+    return dataclasses.replace(pic, landmarks=rows)
