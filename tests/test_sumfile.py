@@ -681,7 +681,8 @@ def test_with_measured_landmarks_and_with_pose_touch_only_their_lines():
     old = text.splitlines()
     k = old.index("LANDMARKS")
     # FC0098 gets its new pixel, GD0036 (not ok) is left alone, ZZ0001 is appended; nothing else moves
-    assert out == old[: k + 2] + ["FC0098      1.50      2.50", old[k + 3], "ZZ0001      3.00      4.00"] + old[k + 4 :]
+    rows = ["FC0098      1.50      2.50", old[k + 3], "ZZ0001      3.00      4.00"]
+    assert out == old[: k + 2] + rows + old[k + 4 :]
     dropped = with_measured_landmarks(pic, ["GD0036"], [(0, 0)], [False], drop_failed=True)
     assert [lm.name for lm in dropped.landmarks] == ["FA0115", "FC0098"]
     rot = pic.rotation[[1, 2, 0]]
