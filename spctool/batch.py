@@ -875,7 +875,8 @@ def run_batch(
 ) -> BatchResult:
     """Process ``pictures`` (default: the working directory's PICTLIST) and write their outputs.
 
-    ``jobs``: 1 = in this process, N > 1 = N spawn-started worker processes; ``scheduler``: a Dask
+    ``jobs``: 1 = in this process, N > 1 = N spawn-started worker processes, each worker (this process
+    too) computing on one core (numba limited to one thread); ``scheduler``: a Dask
     scheduler address (``tcp://host:port``) or a ``distributed.Client`` — then ``jobs`` is ignored.
     Pictures already done with the same options and input SUM are skipped unless ``force``.
     ``on_result(summary)`` is called in this process as each picture finishes (skipped ones first).
@@ -923,9 +924,18 @@ def run_batch(
     elif todo and int(jobs) > 1:
         mode = "processes"
         _run_processes(int(jobs), workdir, out_dir, names, todo, options, fingerprint, token, record)
-    else:
-        for i in todo:
-            record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, token))
+    elif todo:
+        # one worker = one core: the in-process run is single-threaded like each process worker, so
+        # --jobs N scales with N and the figures of 1 and N workers compare like with like
+        import numba
+
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            for i in todo:
+                record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, token))
+        finally:
+            numba.set_num_threads(threads)
 
     result = BatchResult(
         [r for r in results if r is not None],

@@ -36,7 +36,7 @@ from spctool.errors import SpcResultError, SpcUsageError
     default=1,
     show_default=True,
     metavar="N",
-    help="Local worker processes.",
+    help="Local workers, one core each (1 = in this process).",
 )
 @click.option(
     "--scheduler",
