@@ -2,12 +2,24 @@
 
 Target (synthetic-worlds issue): ≤ 5 s on 2 cores, one ray per pixel, cast shadows on, SPC photometry.
 The same scene with 2×2 supersampling is reported as well (no target).
+
+Image-space templates (register's ``space="image"``, the Monte Carlo's hot spot): one 99×99 maplet of
+``tests/register_scene.py`` (S16 optics at 50 m, 1 cm cells) rendered alone into its ≈ 96×98 px window
+with cast shadows, as :meth:`spctool.stages.register.Registrar._template` does it (footprint, shifted
+camera, render).  Target ≤ 5 ms on one thread: the Monte Carlo's image space renders three templates
+per registration (≈ 5200 px each, ≈ 0.7 of this one's cost) and must do 6000 registrations in ≤ 120 s
+on 2 cores that other work may share (≈ 20 ms per registration at one effective core, ≈ 5 ms of it
+correlation and bookkeeping).  The general trace → shadowed → shade path on the same window is
+reported for comparison (no target).
 """
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
+import numba
 import numpy as np
 
 from spctool.formats.icq import IcqShape, icq_cube_grid
@@ -71,9 +83,60 @@ def _bench(supersample, target=None):
     return run
 
 
+def _template_bench(fused: bool, target=None):
+    def run():
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+        import register_scene as rs
+
+        import spctool.stages.render as rmod
+        from spctool.stages.register import RegisterOptions, Registrar
+
+        sc = rs.scene()
+        reg = Registrar(
+            sc.photo, sc.sun, [sc.maplet], sc.thresholds, RegisterOptions(space="image", supersample=1)
+        )
+        lm = reg.landmarks[0]
+        frac = np.array([0.31, -0.27])
+        real = rmod.render
+
+        def general(camera, sun, shape=None, patches=(), options=None, *, window=None, albedo_fn=None):
+            return rmod._render(camera, sun, shape, patches, options, window, albedo_fn, fused=False)
+
+        def once():
+            lm.tmpl = None
+            return reg._template(lm, sc.camera, frac)[0]
+
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        if not fused:
+            rmod.render = general
+        try:
+            rend = once()
+            best = np.inf
+            for _ in range(20):
+                t0 = time.perf_counter()
+                for _ in range(10):
+                    once()
+                best = min(best, (time.perf_counter() - t0) / 10)
+        finally:
+            rmod.render = real
+            numba.set_num_threads(threads)
+        assert rend.radiance.size > 8000 and np.count_nonzero(rend.coverage) > 3000
+        ms = best * 1e3
+        return ms, "ms", (target is None) or ms <= target
+
+    return run
+
+
 BENCHMARKS = [
     ("render 1024x1024, Q=256 shape + 12 maplets, shadows", "<= 5 s on 2 cores", _bench(1, 5.0)),
     ("render 1024x1024, Q=256 + 12 maplets, 2x2 supersampling", "(no target)", _bench(2)),
+    ("render image-space template 99x99 maplet, 1 thread", "<= 5 ms", _template_bench(True, 5.0)),
+    (
+        "render same template, general trace/shadowed/shade path",
+        "(no target; for comparison)",
+        _template_bench(False),
+    ),
 ]
 
 

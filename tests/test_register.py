@@ -338,3 +338,25 @@ def test_schedule_steps_and_option_checks():
             RegisterOptions(**bad)
     d = RegisterOptions().as_dict()
     assert d["steps"][0] == ["align", 10] and d["corr_min"] == 0.3 and "predict" in d
+
+
+def test_image_space_templates_equal_the_general_renderer(scene, monkeypatch):
+    """The fused template renderer changes nothing but speed: the image-space registration (templates
+    re-rendered at sub-pixel placements) gives the same templates and pixels as trace → shadowed → shade."""
+    import spctool.stages.render as rmod
+
+    cam = rs.pointing_error(scene.camera, 2.3, -1.6)
+    opts = RegisterOptions(space="image", supersample=1, keep_images=True)
+    fast = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+
+    def general(camera, sun, shape=None, patches=(), options=None, *, window=None, albedo_fn=None):
+        return rmod._render(camera, sun, shape, patches, options, window, albedo_fn, fused=False)
+
+    monkeypatch.setattr(rmod, "render", general)
+    ref = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+    assert fast.status == ref.status == ["ok"]
+    np.testing.assert_allclose(fast.measured, ref.measured, rtol=0, atol=1e-9)
+    tf, tr = fast.last_steps[0].template, ref.last_steps[0].template
+    assert tf.radiance.shape == tr.radiance.shape and np.count_nonzero(tr.coverage) > 1000
+    np.testing.assert_allclose(tf.radiance, tr.radiance, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(tf.coverage, tr.coverage)

@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from spctool.errors import SpcUsageError
 from spctool.formats.icq import IcqShape, icq_cube_grid
@@ -240,3 +242,131 @@ def test_height_patch_validation():
         HeightPatch(np.zeros((5, 5)), 0.001, [0, 0, 1], ux, uy, uz, valid=np.zeros((5, 5), bool))
     with pytest.raises(SpcUsageError):
         RenderOptions(photometry="phong")
+
+
+# ------------------------------------------------------------------------------------------------
+# the fused patch-only path (register's image-space templates) equals trace → shadowed → shade
+
+
+def _rough_patches():
+    """Two overlapping rough patches (different sizes, a hole of invalid nodes, an albedo map)."""
+    rng = np.random.default_rng(7)
+    ux, uy, uz = _frame((0.2, -0.1, 1.0))
+    v = np.array([0.3, -0.1, 0.9])
+    out = []
+    for q, scale, shift in ((24, 0.002, 0.0), (15, 0.0015, 0.012)):
+        n = 2 * q + 1
+        h = rng.normal(size=(n, n)).cumsum(0).cumsum(1) * 0.05
+        h -= h.mean()
+        h += 3.0 * np.exp(-((np.arange(n)[:, None] - q) ** 2 + (np.arange(n)[None, :] - q) ** 2) / 40.0)
+        valid = np.ones((n, n), bool)
+        valid[q + 3 : q + 6, q - 8 : q - 5] = False
+        alb = 1.0 + 0.2 * rng.uniform(-1, 1, size=(n, n))
+        out.append(HeightPatch(h, scale, v + shift * (ux + 0.5 * uy), ux, uy, uz, albedo=alb, valid=valid))
+    elev = math.radians(22.0)
+    sun = math.cos(elev) * (0.8 * ux + 0.6 * uy) + math.sin(elev) * uz
+    cam = _camera(
+        v + 0.2 * (uz + 0.35 * ux - 0.2 * uy),
+        v,
+        npx=110,
+        nln=100,
+        model="OWEN",
+        coef=[0, 1e-4, 2e-3, 0, 0, 1e-5, 0],
+    )
+    return out, 3.0 * sun, cam  # an unnormalised Sun vector on purpose
+
+
+@pytest.mark.parametrize(
+    "opts",
+    [
+        RenderOptions(),
+        RenderOptions(supersample=2, photometry="mcewen"),
+        RenderOptions(photometry="lambert", use_albedo=False),
+        RenderOptions(photometry="fixed", shadows=False),
+    ],
+)
+def test_fused_patch_path_equals_the_general_path(opts):
+    from spctool.stages.render import _render
+
+    patches, sun, cam = _rough_patches()
+    win = (5, 104, 3, 97)
+    fast = render(cam, sun, None, patches, opts, window=win)
+    ref = _render(cam, sun, None, patches, opts, win, None, fused=False)
+    assert np.count_nonzero(ref.surface == 1) > 500 and np.count_nonzero(ref.surface == 0) > 500
+    if opts.shadows:
+        assert 200 < np.count_nonzero(ref.shadow) < ref.shadow.size // 2
+    np.testing.assert_allclose(fast.radiance, ref.radiance, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(fast.coverage, ref.coverage)
+    np.testing.assert_array_equal(fast.shadow, ref.shadow)
+    np.testing.assert_array_equal(fast.surface, ref.surface)
+    # one patch alone, as register renders its templates
+    fast1 = render(cam, sun, None, patches[:1], opts, window=win)
+    ref1 = _render(cam, sun, None, patches[:1], opts, win, None, fused=False)
+    np.testing.assert_allclose(fast1.radiance, ref1.radiance, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(fast1.shadow, ref1.shadow)
+
+
+def test_fused_threads_equal_one_thread_and_bad_rays_are_sky(monkeypatch):
+    import spctool.stages.render as rmod
+
+    patches, sun, cam = _rough_patches()
+    ss, ll = _pixels(cam)
+    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
+    d[::97] = np.nan  # rays without a preimage (a folding distortion) are sky
+    ok = np.all(np.isfinite(d), axis=1)
+    s = sun / np.linalg.norm(sun)
+    pset = rmod._PatchSet(patches)
+    args = (cam.position, d, ok, s, s, True, 1e-3, pset.fused_arrays())
+    one = rmod._trace_fused(*args, threads=1)
+    monkeypatch.setattr(rmod, "PARALLEL_MIN_RAYS", 1000)
+    three = rmod._trace_fused(*args, threads=3)
+    hit = one[0] != SKY
+    np.testing.assert_array_equal(one[0], three[0])
+    np.testing.assert_array_equal(one[1][hit], three[1][hit])
+    np.testing.assert_array_equal(one[2], three[2])
+    hit, r, sh, surface = rmod._fused_chunk(cam.position, d, ok, s, pset, RenderOptions())
+    assert np.all(surface[~ok] == SKY) and not np.any(hit[~ok] | sh[~ok]) and np.all(r[~ok] == 0)
+    ref = trace(cam.position, np.where(ok[:, None], d, 0.0), None, pset)
+    np.testing.assert_array_equal(surface[ok], ref.surface[ok])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    q=st.integers(1, 6),
+    base=st.sampled_from([0.0, -3.0, 250.0]),
+    holes=st.booleans(),
+)
+def test_private_crossing_equals_first_crossing(seed, q, base, holes):
+    """render._crossing (cheaper stepping, cells below the ray passed over) equals the geometry kernel
+    bit for bit: viewing rays from above, shadow-like rays from just above the terrain, and rays with
+    zero direction components, against rough terrains with and without missing nodes."""
+    from spctool.geometry._heightkernels import _first_crossing
+    from spctool.stages.render import _crossing
+
+    rng = np.random.default_rng(seed)
+    n = 2 * q + 1
+    h = base + rng.normal(size=(n, n)).cumsum(0) * rng.uniform(0.1, 2.0)
+    valid = rng.uniform(size=(n, n)) > 0.2 if holes else None
+    patch = HeightPatch(h, 0.001, [0, 0, 1.0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], valid=valid)
+    hh, vv, tops = patch.heights, patch.valid, patch.cell_tops
+    lo, hi = patch.height_range
+    for k in range(60):
+        d = rng.normal(size=3)
+        if k % 3 == 0:  # a shadow ray: from just above the terrain at a random point, upward
+            u0, w0 = rng.uniform(0, n - 1, size=2)
+            z0 = float(patch.interpolate(u0 - q, w0 - q)[0]) + 1e-3
+            d[2] = abs(d[2])
+        else:  # a viewing ray from above, from anywhere around the grid
+            u0, w0 = rng.uniform(-3, n + 2, size=2)
+            z0 = hi + rng.uniform(0, 3)
+            d[2] = -abs(d[2])
+        if k % 5 == 1:
+            d[rng.integers(0, 3)] = 0.0
+        if k % 11 == 2:
+            d[:2] = 0.0
+        t0 = 0.0 if k % 2 else rng.uniform(0, 0.5)
+        args = (lo, hi, u0, w0, z0, d[0], d[1], d[2], t0, t0 + rng.uniform(0.5, 30.0))
+        want = _first_crossing(hh, vv, *args)
+        got = _crossing(hh, vv, tops, *args)
+        assert (math.isnan(want) and math.isnan(got)) or got == want, (k, want, got)

@@ -45,6 +45,11 @@ so the SUM pose, the K-matrix and any ``DISTORT=`` model are honoured exactly):
 Pixels are averaged over ``supersample``² sub-pixel rays on a regular grid; ``coverage`` is the
 fraction of sub-rays that hit a surface (sky contributes 0).  Pixels are SPC pixels (1-based,
 centres at integers, ``spc-formats.md`` §0.4): the image array is ``radiance[line − l0, sample − s0]``.
+
+Speed: scenes of patches without a shape (register's image-space templates) take a fused per-ray
+kernel that equals the batch functions :func:`trace` → :func:`shadowed` → :func:`shade` up to rounding
+(≤ 1e-12 relative; the "fused path" section below), runs on the calling thread for small windows and
+reuses each patch's packed maps between renders (``benchmarks/bench_render.py``).
 """
 
 from __future__ import annotations
@@ -58,7 +63,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import _first_crossing
+from spctool.geometry._heightkernels import _cell_f, _first_crossing
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -176,6 +181,22 @@ class HeightPatch:
     def slopes(self):
         """SPC node slopes (:func:`spctool.geometry.heightfield.slopes`): hx, hy, usable."""
         return heightfield.slopes(self.heights, self.valid)
+
+    @cached_property
+    def cell_tops(self) -> np.ndarray:
+        """(2q)×(2q): each cell's highest corner plus 1e-9·(1 + max |h|) cells (far above rounding), −inf
+        for cells with a missing corner; no ray segment above it can cross the cell's terrain."""
+        h, v = self.heights, self.valid
+        top = np.maximum(np.maximum(h[:-1, :-1], h[1:, :-1]), np.maximum(h[:-1, 1:], h[1:, 1:]))
+        full = v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
+        margin = 1e-9 * (1.0 + float(np.abs(h[v]).max()))
+        return np.where(full, top + margin, -np.inf)
+
+    @cached_property
+    def stacked_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """((4, n, n) heights, hx, hy, albedo; valid) as the fused renderer reads them."""
+        hx, hy, _ = self.slopes
+        return np.stack([self.heights, hx, hy, self.albedo]), self.valid
 
     def to_local(self, points) -> np.ndarray:
         """Body points (N, 3) km → maplet-frame (x, y, z) in cells."""
@@ -325,6 +346,356 @@ def _crossings(h, valid, hmin, hmax, q, o, d, t_min, t_max, out):
         )
 
 
+# ------------------------------------------------------------------------------------------------
+# fused path: patches without a shape (register's image-space templates, patch-only photos)
+# ------------------------------------------------------------------------------------------------
+#
+# One pass per sub-ray does what trace → shadowed → shade do for patches when there is no shape, with
+# the same arithmetic in the same order (sphere pre-test, slab, exact bilinear crossing, bilinear
+# interpolation, normals, the shadow ray from just above the own terrain) but without the per-batch
+# temporaries and fancy indexing; the photometric law itself stays in :mod:`spctool.photometry`,
+# applied to the kernel's μ₀, μ, cos α.  Small windows run on the calling thread: a template of a few
+# thousand rays is a couple of ms of work, less than what waking a thread pool costs on a loaded
+# machine (parallel=True kernels made a 77×77 template ~8× slower on 2 busy cores).  The helpers are
+# inlined by LLVM (forceinline): a call per ray with a dozen array arguments cost ~20 % of the work,
+# and numba-level inlining of this much code compiles several times slower.
+
+#: rays from which :func:`_trace_fused` splits a window over threads (when numba has more than one)
+PARALLEL_MIN_RAYS = 1 << 15
+
+
+@numba.njit(forceinline=True, cache=True)
+def _crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
+    """:func:`spctool.geometry._heightkernels._first_crossing`, bit for bit, made cheaper per cell.
+
+    The same clipping, grid-line stepping and per-cell root, with two savings: the next grid-line
+    parameter is recomputed only for the line just crossed (the same division, so the same value), and
+    a cell whose ray segment lies above ``cmax`` (:attr:`HeightPatch.cell_tops`: its highest corner plus a
+    margin far above rounding, −inf for cells with a missing corner, which the crossing never enters)
+    is passed over — the bilinear surface never exceeds its corners, so no root lies there.
+    ``tests/test_render.py`` checks the equality on random terrains, holes and rays.
+    """
+    n0, n1 = h.shape
+    t_lo = t_min
+    t_hi = t_max
+    # Clip to the grid box 0 <= u <= n0-1, 0 <= w <= n1-1 ...
+    if du == 0.0:
+        if u0 < 0.0 or u0 > n0 - 1.0:
+            return math.nan
+    else:
+        ta = (0.0 - u0) / du
+        tb = (n0 - 1.0 - u0) / du
+        if ta > tb:
+            ta, tb = tb, ta
+        t_lo = max(t_lo, ta)
+        t_hi = min(t_hi, tb)
+    if dw == 0.0:
+        if w0 < 0.0 or w0 > n1 - 1.0:
+            return math.nan
+    else:
+        ta = (0.0 - w0) / dw
+        tb = (n1 - 1.0 - w0) / dw
+        if ta > tb:
+            ta, tb = tb, ta
+        t_lo = max(t_lo, ta)
+        t_hi = min(t_hi, tb)
+    # ... and to z <= hmax: above the highest node nothing can be hit.
+    if dz == 0.0:
+        if z0 > hmax:
+            return math.nan
+        if du == 0.0 and dw == 0.0:
+            return math.nan  # zero direction
+    elif dz > 0.0:
+        t_hi = min(t_hi, (hmax - z0) / dz)
+    else:
+        t_lo = max(t_lo, (hmax - z0) / dz)
+    if not (t_lo <= t_hi):
+        return math.nan
+    if dz < 0.0 and du == 0.0 and dw == 0.0:
+        # a vertical ray stays in one cell: one cell below the lowest node it is inside any terrain
+        # (keep at least the start point: a ray starting deep below the surface hits there)
+        t_hi = max(t_lo, min(t_hi, (hmin - 1.0 - z0) / dz))
+
+    # Grid-line crossings ahead, tracked by integer counters (robust to rounding).
+    u_start = u0 + t_lo * du
+    w_start = w0 + t_lo * dw
+    if du > 0.0:
+        iu_next = math.floor(u_start) + 1.0
+        su = 1.0
+    elif du < 0.0:
+        iu_next = math.ceil(u_start) - 1.0
+        su = -1.0
+    else:
+        iu_next = 0.0
+        su = 0.0
+    if dw > 0.0:
+        iw_next = math.floor(w_start) + 1.0
+        sw = 1.0
+    elif dw < 0.0:
+        iw_next = math.ceil(w_start) - 1.0
+        sw = -1.0
+    else:
+        iw_next = 0.0
+        sw = 0.0
+
+    t_a = t_lo
+    tu = (iu_next - u0) / du if su != 0.0 else math.inf
+    tw = (iw_next - w0) / dw if sw != 0.0 else math.inf
+    while True:
+        t_b = min(tu, tw, t_hi)
+        if t_b >= t_a:
+            tm = 0.5 * (t_a + t_b)
+            i = int(math.floor(u0 + tm * du))
+            i = min(max(i, 0), n0 - 2)
+            j = int(math.floor(w0 + tm * dw))
+            j = min(max(j, 0), n1 - 2)
+            if z0 + t_a * dz > cmax[i, j] and z0 + t_b * dz > cmax[i, j]:
+                pass  # the segment passes above the cell's highest corner
+            elif valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
+                fa = _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_a)
+                if fa < 0.0:
+                    return t_a
+                # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
+                h00 = h[i, j]
+                a_lin = h[i + 1, j] - h00
+                b_lin = h[i, j + 1] - h00
+                twist = h[i + 1, j + 1] - h[i + 1, j] - h[i, j + 1] + h00
+                pa = u0 + t_a * du - i
+                qa = w0 + t_a * dw - j
+                a_coef = -twist * du * dw
+                b_coef = dz - a_lin * du - b_lin * dw - twist * (pa * dw + qa * du)
+                hi = math.nan
+                if a_coef > 0.0:
+                    # convex: the minimum may lie strictly inside the segment
+                    s_v = -b_coef / (2.0 * a_coef)
+                    if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
+                        hi = t_a + s_v
+                if math.isnan(hi) and _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
+                    hi = t_b
+                if not math.isnan(hi):
+                    # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
+                    # there).  Numerically stable closed form of the smaller root; bisection only if
+                    # rounding makes it unusable.
+                    disc = b_coef * b_coef - 4.0 * a_coef * fa
+                    den = -b_coef + math.sqrt(max(disc, 0.0))
+                    if den > 0.0:
+                        t_root = t_a + 2.0 * fa / den
+                        if t_root >= t_a and t_root <= hi:
+                            return t_root
+                    lo = t_a
+                    for _ in range(80):
+                        mid = 0.5 * (lo + hi)
+                        if mid <= lo or mid >= hi:
+                            break
+                        if _cell_f(h, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
+                            hi = mid
+                        else:
+                            lo = mid
+                    return 0.5 * (lo + hi)
+        if t_b >= t_hi:
+            return math.nan
+        if tu <= t_b:
+            iu_next += su
+            tu = (iu_next - u0) / du
+        if tw <= t_b:
+            iw_next += sw
+            tw = (iw_next - w0) / dw
+        t_a = max(t_a, t_b)
+
+
+@numba.njit(inline="always", cache=True)
+def _sphere_miss(geo, p, x0, x1, x2, d0, d1, d2):
+    """The ray x + t·d (t ≥ 0) passes outside patch p's bounding sphere (_near_spheres)."""
+    wx = geo[p, 0] - x0
+    wy = geo[p, 1] - x1
+    wz = geo[p, 2] - x2
+    w2 = wx * wx + wy * wy + wz * wz
+    tc = wx * d0 + wy * d1 + wz * d2
+    if tc > 0.0:
+        w2 -= tc * tc
+    return not w2 <= geo[p, 3]
+
+
+@numba.njit(inline="always", cache=True)
+def _slab_local(geo, boxes, p, hi_col, x0, x1, x2, d0, d1, d2):
+    """Maplet-frame ray and box entry/exit of patch p (_local_slab); box hi from boxes[p, hi_col:]."""
+    px = x0 - geo[p, 4]
+    py = x1 - geo[p, 5]
+    pz = x2 - geo[p, 6]
+    inv = geo[p, 16]
+    tn = 0.0
+    tf = _BIG
+    oa0 = (px * geo[p, 7] + py * geo[p, 10] + pz * geo[p, 13]) * inv
+    da0 = (d0 * geo[p, 7] + d1 * geo[p, 10] + d2 * geo[p, 13]) * inv
+    t1, t2 = _slab1(oa0, da0, boxes[p, 0], boxes[p, hi_col])
+    if t1 > tn:
+        tn = t1
+    if t2 < tf:
+        tf = t2
+    oa1 = (px * geo[p, 8] + py * geo[p, 11] + pz * geo[p, 14]) * inv
+    da1 = (d0 * geo[p, 8] + d1 * geo[p, 11] + d2 * geo[p, 14]) * inv
+    t1, t2 = _slab1(oa1, da1, boxes[p, 1], boxes[p, hi_col + 1])
+    if t1 > tn:
+        tn = t1
+    if t2 < tf:
+        tf = t2
+    oa2 = (px * geo[p, 9] + py * geo[p, 12] + pz * geo[p, 15]) * inv
+    da2 = (d0 * geo[p, 9] + d1 * geo[p, 12] + d2 * geo[p, 15]) * inv
+    t1, t2 = _slab1(oa2, da2, boxes[p, 2], boxes[p, hi_col + 2])
+    if t1 > tn:
+        tn = t1
+    if t2 < tf:
+        tf = t2
+    return oa0, oa1, oa2, da0, da1, da2, tn, tf
+
+
+@numba.njit(inline="always", cache=True)
+def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
+    return (
+        w00 * maps[p, c, i, j]
+        + w10 * maps[p, c, i + 1, j]
+        + w01 * maps[p, c, i, j + 1]
+        + w11 * maps[p, c, i + 1, j + 1]
+    )
+
+
+@numba.njit(forceinline=True, cache=True)
+def _patch_ray(
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, geo, boxes, maps, valids, tops, ns, surf, geom, sh
+):
+    """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
+    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does)."""
+    surf[k] = SKY
+    sh[k] = False
+    if not ok[k]:
+        return
+    o0 = origin[0]
+    o1 = origin[1]
+    o2 = origin[2]
+    d0 = dirs[k, 0]
+    d1 = dirs[k, 1]
+    d2 = dirs[k, 2]
+    npatch = geo.shape[0]
+    t = np.inf
+    best = -1
+    lx = 0.0
+    ly = 0.0
+    for p in range(npatch):
+        if _sphere_miss(geo, p, o0, o1, o2, d0, d1, d2):
+            continue
+        a0, a1, a2, b0, b1, b2, tn, tf = _slab_local(geo, boxes, p, 3, o0, o1, o2, d0, d1, d2)
+        tmax = tf if tf < t else t
+        if tmax >= tn:
+            n = ns[p]
+            q = geo[p, 18]
+            tp = _crossing(
+                maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
+            )  # fmt: skip
+            if math.isfinite(tp) and tp < t:
+                t = tp
+                best = p
+                lx = a0 + tp * b0
+                ly = a1 + tp * b1
+    if best < 0:
+        return
+    p = best
+    surf[k] = p
+    # height, slopes and albedo at the hit (HeightPatch.interpolate)
+    n = ns[p]
+    q = geo[p, 18]
+    u = min(max(lx + q, 0.0), n - 1.0)
+    w = min(max(ly + q, 0.0), n - 1.0)
+    i = min(int(math.floor(u)), n - 2)
+    j = min(int(math.floor(w)), n - 2)
+    fu = u - i
+    fw = w - j
+    w00 = (1 - fu) * (1 - fw)
+    w10 = fu * (1 - fw)
+    w01 = (1 - fu) * fw
+    w11 = fu * fw
+    z = _bilinear_at(maps, p, 0, i, j, w00, w10, w01, w11)
+    hx = _bilinear_at(maps, p, 1, i, j, w00, w10, w01, w11)
+    hy = _bilinear_at(maps, p, 2, i, j, w00, w10, w01, w11)
+    alb = _bilinear_at(maps, p, 3, i, j, w00, w10, w01, w11)
+    # unit shading normal (heightfield.normals_body) and the shading geometry (shade)
+    a_ = -hx
+    b_ = -hy
+    n0 = a_ * geo[p, 7] + b_ * geo[p, 8] + geo[p, 9]
+    n1 = a_ * geo[p, 10] + b_ * geo[p, 11] + geo[p, 12]
+    n2 = a_ * geo[p, 13] + b_ * geo[p, 14] + geo[p, 15]
+    nin = 1.0 / math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    n0 = n0 * nin
+    n1 = n1 * nin
+    n2 = n2 * nin
+    dn = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    e0 = -d0 / dn
+    e1 = -d1 / dn
+    e2 = -d2 / dn
+    s0 = sun[0]
+    s1 = sun[1]
+    s2 = sun[2]
+    geom[k, 0] = n0 * s0 + n1 * s1 + n2 * s2
+    geom[k, 1] = n0 * e0 + n1 * e1 + n2 * e2
+    geom[k, 2] = s0 * e0 + s1 * e1 + s2 * e2
+    geom[k, 3] = alb
+    if not shadows or not (n0 * sun_lit[0] + n1 * sun_lit[1] + n2 * sun_lit[2] > 0.0):
+        return
+    # cast shadow (shadowed): the ray toward the Sun from the hit's body point (HeightPatch.to_body)
+    scale = geo[p, 17]
+    x0 = geo[p, 4] + scale * (lx * geo[p, 7] + ly * geo[p, 8] + z * geo[p, 9])
+    x1 = geo[p, 5] + scale * (lx * geo[p, 10] + ly * geo[p, 11] + z * geo[p, 12])
+    x2 = geo[p, 6] + scale * (lx * geo[p, 13] + ly * geo[p, 14] + z * geo[p, 15])
+    for p in range(npatch):
+        own = p == best
+        if not own and _sphere_miss(geo, p, x0, x1, x2, s0, s1, s2):
+            continue
+        # the box raised by the relief: for the own patch its exit is where the ray leaves the column
+        a0, a1, a2, b0, b1, b2, tn, tf = _slab_local(geo, boxes, p, 6, x0, x1, x2, s0, s1, s2)
+        if own:  # start on the terrain (exact local hit), just above it
+            a0 = lx
+            a1 = ly
+            a2 = z + offset
+            tn = 0.0
+        if tf >= tn:
+            n = ns[p]
+            q = geo[p, 18]
+            tp = _crossing(
+                maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf,
+            )  # fmt: skip
+            if math.isfinite(tp):
+                sh[k] = True
+                return
+
+
+@numba.njit(cache=True, nogil=True)
+def _fused_rays(
+    origin, dirs, ok, sun_lit, sun, shadows, offset, geo, boxes, maps, valids, tops, ns, surf, geom, sh
+):
+    """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
+    for k in range(dirs.shape[0]):
+        _patch_ray(
+            k,
+            origin,
+            dirs,
+            ok,
+            sun_lit,
+            sun,
+            shadows,
+            offset,
+            geo,
+            boxes,
+            maps,
+            valids,
+            tops,
+            ns,
+            surf,
+            geom,
+            sh,
+        )
+
+
 def _c64(a):
     return np.require(a, dtype=np.float64, requirements=["C", "W"])
 
@@ -342,6 +713,7 @@ class _PatchSet:
         self.inv = np.zeros(n)
         self.los = np.zeros((n, 3))
         self.his = np.zeros((n, 3))
+        self._fused = None
         for k, p in enumerate(self.patches):
             lo, hi = p.box()
             zc = 0.5 * (lo[2] + hi[2])
@@ -357,6 +729,48 @@ class _PatchSet:
 
     def __len__(self):
         return len(self.patches)
+
+    def fused_arrays(self):
+        """The patches packed for :func:`_patch_ray` (built once per set).
+
+        ``geo`` (P, 21): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
+        row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20);
+        ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
+        ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
+        ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
+        ``ns`` (P,): each patch's 2·QSZ + 1.
+        """
+        if self._fused is None:
+            npatch = len(self)
+            nmax = max(p.heights.shape[0] for p in self.patches)
+            geo = np.zeros((npatch, 21))
+            boxes = np.zeros((npatch, 9))
+            if npatch == 1:  # the common case (templates): the patch's own arrays, no copy
+                maps, valids = (a[None] for a in self.patches[0].stacked_maps)
+                tops = self.patches[0].cell_tops[None]
+            else:
+                maps = np.zeros((npatch, 4, nmax, nmax))
+                valids = np.zeros((npatch, nmax, nmax), bool)
+                tops = np.full((npatch, nmax - 1, nmax - 1), -np.inf)
+            ns = np.zeros(npatch, np.int64)
+            for k, p in enumerate(self.patches):
+                n = p.heights.shape[0]
+                zlo, zhi = p.height_range
+                geo[k, 0:3] = self.centres[k]
+                geo[k, 3] = self.radii2[k]
+                geo[k, 4:7] = self.vs[k]
+                geo[k, 7:16] = self.rots[k].reshape(-1)
+                geo[k, 16] = self.inv[k]
+                geo[k, 17:21] = p.scale, float(p.qsz), zlo, zhi
+                boxes[k, 0:3] = self.los[k]
+                boxes[k, 3:6] = self.his[k]
+                boxes[k, 6:9] = p.box(top_extra=(zhi - zlo) + 1.0)[1]
+                if npatch > 1:
+                    maps[k, :, :n, :n], valids[k, :n, :n] = p.stacked_maps
+                    tops[k, : n - 1, : n - 1] = p.cell_tops
+                ns[k] = n
+            self._fused = geo, boxes, maps, valids, tops, ns
+        return self._fused
 
     def near(self, origins, dirs, use=None):
         """(N, P) bool: rays that may meet each patch's box (bounding-sphere test)."""
@@ -787,12 +1201,81 @@ def render(
     ``camera``: a :class:`spctool.geometry.camera.Camera` (pose and intrinsics); ``sun``: body→Sun
     direction (SUM ``SZ``); ``shape``: an ICQ/mesh/geometry shape or :class:`ShapeSurface` (or None);
     ``patches``: :class:`HeightPatch` objects or maplets.
+
+    Without a shape the rays run through one fused kernel (:func:`_patch_ray`; one thread below
+    :data:`PARALLEL_MIN_RAYS` rays) that equals :func:`trace` → :func:`shadowed` → :func:`shade` up to
+    rounding (≤ 1e-12 relative, ``tests/test_render.py``).
     """
+    return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True)
+
+
+def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None):
+    """(surface, geom, shadow) of sub-rays by :func:`_fused_rays`; windows of at least
+    :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
+    threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
+    n = dirs.shape[0]
+    surface = np.empty(n, np.int32)
+    geom = np.empty((n, 4))
+    sh = np.empty(n, bool)
+    origin, dirs, ok = _c64(origin), _c64(dirs), np.ascontiguousarray(ok, dtype=bool)
+    sun_lit, sun = _c64(sun_lit), _c64(sun)
+    shadows, offset = bool(shadows), float(offset)
+
+    def run(a, b):
+        _fused_rays(
+            origin,
+            dirs[a:b],
+            ok[a:b],
+            sun_lit,
+            sun,
+            shadows,
+            offset,
+            *arrays,
+            surface[a:b],
+            geom[a:b],
+            sh[a:b],
+        )
+
+    threads = numba.get_num_threads() if threads is None else int(threads)
+    if threads < 2 or n < PARALLEL_MIN_RAYS:
+        run(0, n)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        cuts = np.linspace(0, n, threads + 1).astype(np.intp)
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(run, cuts[:-1], cuts[1:]))
+    return surface, geom, sh
+
+
+def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions):
+    """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel."""
+    n = dirs.shape[0]
+    sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
+    surface, geom, sh = _trace_fused(
+        origin, dirs, ok, sun, sun_shade, options.shadows, options.shadow_offset_cells, pset.fused_arrays()
+    )
+    hit = surface != SKY
+    r = np.zeros(n)
+    m = np.flatnonzero(hit)
+    if m.size:  # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo
+        g = geom[m]
+        alpha = np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0)))
+        rm = reflectance(g[:, 0], g[:, 1], alpha, options.photometry)
+        if options.use_albedo:
+            rm = rm * g[:, 3]
+        r[m] = np.where(sh[m], 0.0, rm)
+    return hit, r, sh, surface
+
+
+def _render(camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool) -> Rendering:
+    """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path)."""
     options = options or RenderOptions()
     sun = _vec3(sun, "sun")
     sun = sun / np.linalg.norm(sun)
     surf = None if shape is None else ShapeSurface.from_model(shape)
     plist = _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    use_fused = fused and surf is None and len(plist) > 0
     s0, s1, l0, l1 = _window(camera, window)
     nss = int(options.supersample)
     offs = (np.arange(nss) + 0.5) / nss - 0.5
@@ -816,23 +1299,36 @@ def render(
         shape4 = ll.shape
         dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         ok = np.all(np.isfinite(dirs), axis=1)
-        hits = trace(
-            origin, np.where(ok[:, None], dirs, np.array([0.0, 0.0, 1.0])), surf, plist, albedo_fn=albedo_fn
-        )
-        if not ok.all():
-            hits.surface[~ok] = SKY
-        lit_facing = hits.hit & (np.sum(np.nan_to_num(hits.normal) * sun, axis=1) > 0)
-        sh = (
-            shadowed(hits, sun, surf, plist, options=options, which=lit_facing)
-            if options.shadows
-            else np.zeros(hits.surface.shape[0], bool)
-        )
-        r = shade(hits, dirs, sun, options=options, shadow=sh)
+        if use_fused:
+            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options)
+        else:
+            hits = trace(
+                origin,
+                np.where(ok[:, None], dirs, np.array([0.0, 0.0, 1.0])),
+                surf,
+                plist,
+                albedo_fn=albedo_fn,
+            )
+            if not ok.all():
+                hits.surface[~ok] = SKY
+            lit_facing = hits.hit & (np.sum(np.nan_to_num(hits.normal) * sun, axis=1) > 0)
+            sh = (
+                shadowed(hits, sun, surf, plist, options=options, which=lit_facing)
+                if options.shadows
+                else np.zeros(hits.surface.shape[0], bool)
+            )
+            r = shade(hits, dirs, sun, options=options, shadow=sh)
+            hit, surface = hits.hit, hits.surface
+        sid[a:b] = surface.reshape(shape4)[:, 0, :, 0]
+        if nss == 1:  # one ray per pixel: the means below are the values themselves
+            rad[a:b] = r.reshape(b - a, width)
+            cov[a:b] = hit.reshape(b - a, width)
+            shd[a:b] = sh.reshape(b - a, width)
+            continue
         k = nss * nss
         rad[a:b] = r.reshape(shape4).mean(axis=(1, 3))
-        cov[a:b] = hits.hit.reshape(shape4).sum(axis=(1, 3)) / k
+        cov[a:b] = hit.reshape(shape4).sum(axis=(1, 3)) / k
         shd[a:b] = sh.reshape(shape4).sum(axis=(1, 3)) / k
-        sid[a:b] = hits.surface.reshape(shape4)[:, 0, :, 0]
     return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options)
 
 
