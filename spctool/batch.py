@@ -961,8 +961,11 @@ def _run_processes(
 ) -> None:
     """Run ``task`` (default :func:`process_picture`) for the pictures ``todo`` in spawned processes.
 
-    At most ``jobs`` pictures are in flight, so when a worker process dies (a crash in native code,
-    the OOM killer) the suspects are those few: they are retried one at a time in a one-worker pool,
+    At most ``2 * jobs`` pictures are in flight — one computing and one queued per worker, so a worker
+    that finishes a picture starts its next at once instead of idling while this process collects the
+    result and submits more (this process needs a core for that round trip while the workers hold
+    them all).  When a worker process dies (a crash in native code, the OOM killer)
+    the suspects are those few: they are retried one at a time in a one-worker pool,
     which names the culprit ("failed: worker lost: …") and completes the innocent; the other
     pictures go on in a fresh pool.  A death never stops the batch.
     """
@@ -976,12 +979,13 @@ def _run_processes(
     while queue or suspects:
         solo = bool(suspects)
         source, width = (suspects, 1) if solo else (queue, jobs)
+        depth = 1 if solo else 2 * width  # pictures in flight (docstring)
         pool = _new_pool(min(width, len(source)), workdir, options, token, max(1, cores // width))
         inflight: dict = {}
         broken = False
         try:
             while (source or inflight) and not broken:
-                while source and len(inflight) < width:
+                while source and len(inflight) < depth:
                     i = source.popleft()
                     fut = pool.submit(task, str(workdir), str(out_dir), names[i], options, fingerprint, token)
                     inflight[fut] = i

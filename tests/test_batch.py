@@ -384,3 +384,38 @@ def test_usage_errors(world, tmp_path):
     empty = tmp_path / "empty"
     (empty / "SUMFILES").mkdir(parents=True)
     assert run_batch(empty, out_dir=tmp_path / "o3").pictures == []
+
+
+def _crash_on_p3(workdir, out_dir, picture, options, fingerprint, token):
+    """A worker task (module level: spawn-started workers import it) that kills its process on P3."""
+    import os
+    import time
+
+    if picture == "P3":
+        os._exit(3)
+    time.sleep(0.05)  # keep several pictures in flight when P3's worker dies
+    return PictureSummary(picture=picture, status="ok")
+
+
+def test_worker_death_names_the_culprit_and_completes_the_rest(tmp_path):
+    # up to 2 * jobs pictures are in flight: every suspect of a death is retried alone, so only the
+    # picture that kills its worker is reported lost and all the others complete exactly once
+    names = [f"P{k}" for k in range(9)]
+    got: dict[int, PictureSummary] = {}
+
+    def record(i, s):
+        assert i not in got
+        got[i] = s
+
+    opts = BatchOptions()
+    batch._run_processes(
+        2, tmp_path, tmp_path / "out", names, list(range(len(names))), opts, opts.fingerprint(), "t",
+        record, task=_crash_on_p3,
+    )
+    assert sorted(got) == list(range(len(names)))
+    for i, s in got.items():
+        assert s.picture == names[i]
+        if names[i] == "P3":
+            assert s.status.startswith("failed: worker lost")
+        else:
+            assert s.status == "ok"
