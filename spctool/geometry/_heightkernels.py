@@ -243,15 +243,44 @@ def _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t):
 
 
 @njit(cache=True)
-def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
-    """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none)."""
+def cell_tops(h, valid):
+    """(n0−1, n1−1): each cell's highest corner plus 1e-9·(1 + max |h|) (far above rounding), −inf for
+    cells with a missing corner — no ray segment above it can cross the cell's terrain."""
+    n0, n1 = h.shape
+    big = 0.0
+    for r in range(n0):
+        for c in range(n1):
+            if valid[r, c]:
+                big = max(big, abs(h[r, c]))
+    margin = 1e-9 * (1.0 + big)
+    out = np.empty((n0 - 1, n1 - 1))
+    for r in range(n0 - 1):
+        for c in range(n1 - 1):
+            if valid[r, c] and valid[r + 1, c] and valid[r, c + 1] and valid[r + 1, c + 1]:
+                out[r, c] = max(max(h[r, c], h[r + 1, c]), max(h[r, c + 1], h[r + 1, c + 1])) + margin
+            else:
+                out[r, c] = -np.inf
+    return out
+
+
+@njit(cache=True, forceinline=True)
+def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
+    """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none).
+
+    The ray is clipped to the grid box and to z ≤ hmax, then stepped from grid line to grid line
+    (integer counters, robust to rounding; only the line just crossed is recomputed).  A cell whose ray
+    segment lies above ``cmax`` (:func:`cell_tops`: its highest corner plus a margin far above
+    rounding, −inf where a corner is missing, which the crossing never enters) is passed over: the
+    bilinear surface never exceeds its corners.  Inside a cell the crossing is the exact root of the
+    quadratic the ray meets.
+    """
     n0, n1 = h.shape
     t_lo = t_min
     t_hi = t_max
     # Clip to the grid box 0 <= u <= n0-1, 0 <= w <= n1-1 ...
     if du == 0.0:
         if u0 < 0.0 or u0 > n0 - 1.0:
-            return np.nan
+            return math.nan
     else:
         ta = (0.0 - u0) / du
         tb = (n0 - 1.0 - u0) / du
@@ -261,7 +290,7 @@ def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
         t_hi = min(t_hi, tb)
     if dw == 0.0:
         if w0 < 0.0 or w0 > n1 - 1.0:
-            return np.nan
+            return math.nan
     else:
         ta = (0.0 - w0) / dw
         tb = (n1 - 1.0 - w0) / dw
@@ -272,15 +301,15 @@ def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
     # ... and to z <= hmax: above the highest node nothing can be hit.
     if dz == 0.0:
         if z0 > hmax:
-            return np.nan
+            return math.nan
         if du == 0.0 and dw == 0.0:
-            return np.nan  # zero direction
+            return math.nan  # zero direction
     elif dz > 0.0:
         t_hi = min(t_hi, (hmax - z0) / dz)
     else:
         t_lo = max(t_lo, (hmax - z0) / dz)
     if not (t_lo <= t_hi):
-        return np.nan
+        return math.nan
     if dz < 0.0 and du == 0.0 and dw == 0.0:
         # a vertical ray stays in one cell: one cell below the lowest node it is inside any terrain
         # (keep at least the start point: a ray starting deep below the surface hits there)
@@ -309,9 +338,9 @@ def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
         sw = 0.0
 
     t_a = t_lo
+    tu = (iu_next - u0) / du if su != 0.0 else math.inf
+    tw = (iw_next - w0) / dw if sw != 0.0 else math.inf
     while True:
-        tu = (iu_next - u0) / du if su != 0.0 else np.inf
-        tw = (iw_next - w0) / dw if sw != 0.0 else np.inf
         t_b = min(tu, tw, t_hi)
         if t_b >= t_a:
             tm = 0.5 * (t_a + t_b)
@@ -319,7 +348,9 @@ def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
             i = min(max(i, 0), n0 - 2)
             j = int(math.floor(w0 + tm * dw))
             j = min(max(j, 0), n1 - 2)
-            if valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
+            if z0 + t_a * dz > cmax[i, j] and z0 + t_b * dz > cmax[i, j]:
+                pass  # the segment passes above the cell's highest corner
+            elif valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
                 fa = _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_a)
                 if fa < 0.0:
                     return t_a
@@ -332,7 +363,7 @@ def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
                 qa = w0 + t_a * dw - j
                 a_coef = -twist * du * dw
                 b_coef = dz - a_lin * du - b_lin * dw - twist * (pa * dw + qa * du)
-                hi = np.nan
+                hi = math.nan
                 if a_coef > 0.0:
                     # convex: the minimum may lie strictly inside the segment
                     s_v = -b_coef / (2.0 * a_coef)
@@ -361,11 +392,13 @@ def _first_crossing(h, valid, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
                             lo = mid
                     return 0.5 * (lo + hi)
         if t_b >= t_hi:
-            return np.nan
+            return math.nan
         if tu <= t_b:
             iu_next += su
+            tu = (iu_next - u0) / du
         if tw <= t_b:
             iw_next += sw
+            tw = (iw_next - w0) / dw
         t_a = max(t_a, t_b)
 
 
@@ -383,10 +416,12 @@ def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
     if hmax < hmin:  # no valid node: no terrain
         out[:] = np.nan
         return
+    tops = cell_tops(h, valid)
     for m in range(origins.shape[0]):
         out[m] = _first_crossing(
             h,
             valid,
+            tops,
             hmin,
             hmax,
             origins[m, 0],

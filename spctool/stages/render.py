@@ -63,7 +63,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import _cell_f, _first_crossing
+from spctool.geometry._heightkernels import _first_crossing, cell_tops
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -184,13 +184,8 @@ class HeightPatch:
 
     @cached_property
     def cell_tops(self) -> np.ndarray:
-        """(2q)×(2q): each cell's highest corner plus 1e-9·(1 + max |h|) cells (far above rounding), −inf
-        for cells with a missing corner; no ray segment above it can cross the cell's terrain."""
-        h, v = self.heights, self.valid
-        top = np.maximum(np.maximum(h[:-1, :-1], h[1:, :-1]), np.maximum(h[:-1, 1:], h[1:, 1:]))
-        full = v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
-        margin = 1e-9 * (1.0 + float(np.abs(h[v]).max()))
-        return np.where(full, top + margin, -np.inf)
+        """(2q)×(2q) cell tops for the crossing kernel (:func:`spctool.geometry._heightkernels.cell_tops`)."""
+        return cell_tops(self.heights, self.valid)
 
     @cached_property
     def stacked_maps(self) -> tuple[np.ndarray, np.ndarray]:
@@ -327,12 +322,13 @@ def _in_boxes(points, use, centres, radii2, vs, rots, inv_scales, los, his, out)
 
 
 @numba.njit(parallel=True, cache=True)
-def _crossings(h, valid, hmin, hmax, q, o, d, t_min, t_max, out):
+def _crossings(h, valid, tops, hmin, hmax, q, o, d, t_min, t_max, out):
     """heightfield.intersect_rays for maplet-frame rays, in parallel (same exact crossing kernel)."""
     for m in numba.prange(o.shape[0]):
         out[m] = _first_crossing(
             h,
             valid,
+            tops,
             hmin,
             hmax,
             o[m, 0] + q,
@@ -362,145 +358,6 @@ def _crossings(h, valid, hmin, hmax, q, o, d, t_min, t_max, out):
 
 #: rays from which :func:`_trace_fused` splits a window over threads (when numba has more than one)
 PARALLEL_MIN_RAYS = 1 << 15
-
-
-@numba.njit(forceinline=True, cache=True)
-def _crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
-    """:func:`spctool.geometry._heightkernels._first_crossing`, bit for bit, made cheaper per cell.
-
-    The same clipping, grid-line stepping and per-cell root, with two savings: the next grid-line
-    parameter is recomputed only for the line just crossed (the same division, so the same value), and
-    a cell whose ray segment lies above ``cmax`` (:attr:`HeightPatch.cell_tops`: its highest corner plus a
-    margin far above rounding, −inf for cells with a missing corner, which the crossing never enters)
-    is passed over — the bilinear surface never exceeds its corners, so no root lies there.
-    ``tests/test_render.py`` checks the equality on random terrains, holes and rays.
-    """
-    n0, n1 = h.shape
-    t_lo = t_min
-    t_hi = t_max
-    # Clip to the grid box 0 <= u <= n0-1, 0 <= w <= n1-1 ...
-    if du == 0.0:
-        if u0 < 0.0 or u0 > n0 - 1.0:
-            return math.nan
-    else:
-        ta = (0.0 - u0) / du
-        tb = (n0 - 1.0 - u0) / du
-        if ta > tb:
-            ta, tb = tb, ta
-        t_lo = max(t_lo, ta)
-        t_hi = min(t_hi, tb)
-    if dw == 0.0:
-        if w0 < 0.0 or w0 > n1 - 1.0:
-            return math.nan
-    else:
-        ta = (0.0 - w0) / dw
-        tb = (n1 - 1.0 - w0) / dw
-        if ta > tb:
-            ta, tb = tb, ta
-        t_lo = max(t_lo, ta)
-        t_hi = min(t_hi, tb)
-    # ... and to z <= hmax: above the highest node nothing can be hit.
-    if dz == 0.0:
-        if z0 > hmax:
-            return math.nan
-        if du == 0.0 and dw == 0.0:
-            return math.nan  # zero direction
-    elif dz > 0.0:
-        t_hi = min(t_hi, (hmax - z0) / dz)
-    else:
-        t_lo = max(t_lo, (hmax - z0) / dz)
-    if not (t_lo <= t_hi):
-        return math.nan
-    if dz < 0.0 and du == 0.0 and dw == 0.0:
-        # a vertical ray stays in one cell: one cell below the lowest node it is inside any terrain
-        # (keep at least the start point: a ray starting deep below the surface hits there)
-        t_hi = max(t_lo, min(t_hi, (hmin - 1.0 - z0) / dz))
-
-    # Grid-line crossings ahead, tracked by integer counters (robust to rounding).
-    u_start = u0 + t_lo * du
-    w_start = w0 + t_lo * dw
-    if du > 0.0:
-        iu_next = math.floor(u_start) + 1.0
-        su = 1.0
-    elif du < 0.0:
-        iu_next = math.ceil(u_start) - 1.0
-        su = -1.0
-    else:
-        iu_next = 0.0
-        su = 0.0
-    if dw > 0.0:
-        iw_next = math.floor(w_start) + 1.0
-        sw = 1.0
-    elif dw < 0.0:
-        iw_next = math.ceil(w_start) - 1.0
-        sw = -1.0
-    else:
-        iw_next = 0.0
-        sw = 0.0
-
-    t_a = t_lo
-    tu = (iu_next - u0) / du if su != 0.0 else math.inf
-    tw = (iw_next - w0) / dw if sw != 0.0 else math.inf
-    while True:
-        t_b = min(tu, tw, t_hi)
-        if t_b >= t_a:
-            tm = 0.5 * (t_a + t_b)
-            i = int(math.floor(u0 + tm * du))
-            i = min(max(i, 0), n0 - 2)
-            j = int(math.floor(w0 + tm * dw))
-            j = min(max(j, 0), n1 - 2)
-            if z0 + t_a * dz > cmax[i, j] and z0 + t_b * dz > cmax[i, j]:
-                pass  # the segment passes above the cell's highest corner
-            elif valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
-                fa = _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_a)
-                if fa < 0.0:
-                    return t_a
-                # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
-                h00 = h[i, j]
-                a_lin = h[i + 1, j] - h00
-                b_lin = h[i, j + 1] - h00
-                twist = h[i + 1, j + 1] - h[i + 1, j] - h[i, j + 1] + h00
-                pa = u0 + t_a * du - i
-                qa = w0 + t_a * dw - j
-                a_coef = -twist * du * dw
-                b_coef = dz - a_lin * du - b_lin * dw - twist * (pa * dw + qa * du)
-                hi = math.nan
-                if a_coef > 0.0:
-                    # convex: the minimum may lie strictly inside the segment
-                    s_v = -b_coef / (2.0 * a_coef)
-                    if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
-                        hi = t_a + s_v
-                if math.isnan(hi) and _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
-                    hi = t_b
-                if not math.isnan(hi):
-                    # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
-                    # there).  Numerically stable closed form of the smaller root; bisection only if
-                    # rounding makes it unusable.
-                    disc = b_coef * b_coef - 4.0 * a_coef * fa
-                    den = -b_coef + math.sqrt(max(disc, 0.0))
-                    if den > 0.0:
-                        t_root = t_a + 2.0 * fa / den
-                        if t_root >= t_a and t_root <= hi:
-                            return t_root
-                    lo = t_a
-                    for _ in range(80):
-                        mid = 0.5 * (lo + hi)
-                        if mid <= lo or mid >= hi:
-                            break
-                        if _cell_f(h, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
-                            hi = mid
-                        else:
-                            lo = mid
-                    return 0.5 * (lo + hi)
-        if t_b >= t_hi:
-            return math.nan
-        if tu <= t_b:
-            iu_next += su
-            tu = (iu_next - u0) / du
-        if tw <= t_b:
-            iw_next += sw
-            tw = (iw_next - w0) / dw
-        t_a = max(t_a, t_b)
 
 
 @numba.njit(inline="always", cache=True)
@@ -588,7 +445,7 @@ def _patch_ray(
         if tmax >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _crossing(
+            tp = _first_crossing(
                 maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
                 a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
             )  # fmt: skip
@@ -660,7 +517,7 @@ def _patch_ray(
         if tf >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _crossing(
+            tp = _first_crossing(
                 maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
                 a0 + q, a1 + q, a2, b0, b1, b2, tn, tf,
             )  # fmt: skip
@@ -821,6 +678,7 @@ def _intersect_patch(patch, o, d, tmin, tmax):
         _crossings(
             patch.heights,
             patch.valid,
+            patch.cell_tops,
             zlo,
             zhi,
             float(patch.qsz),
