@@ -46,9 +46,10 @@ index and the summary is in picture order, so ``jobs=1``, ``jobs=N`` (a spawn-st
 Dask cluster (``scheduler``; ``pip install 'spctool[dask]'``; the workers must see the working and
 output directories at the same paths) write byte-identical files.  Data shared by every picture — the
 settings, the candidate landmark geometry, the shape model and a bounded cache of maplets — is loaded
-once per worker process (:class:`SharedData`), not once per picture.  One process computes one
-picture at a time (a process-wide lock: several threads of one Dask worker would otherwise launch
-numba's parallel kernels concurrently), so give Dask workers one thread each.
+once per worker process (:class:`SharedData`), not once per picture, and a long-lived worker keeps
+it from one batch to the next while the files it was read from are unchanged (:func:`inputs_stamp`).
+One process computes one picture at a time (a process-wide lock: several threads of one Dask worker
+would otherwise launch numba's parallel kernels concurrently), so give Dask workers one thread each.
 
 Not done here: LMK ``PICTURES`` sections are not updated — several pictures would write the same LMK
 file concurrently; SPC's own batch updates them in a separate serial step.
@@ -187,9 +188,11 @@ def _jsonable(v):
 class SharedData:
     """Per-process data of a batch: settings, select options, candidate geometry, shape, maplets.
 
-    Built once per (working directory, options) in each worker process (:meth:`get`); the maplet
-    cache is bounded (``options.maplet_cache``) and holds read failures too, so a missing MAP is
-    reported for every picture that selects it without being re-read.
+    Built once per (working directory, options, :func:`inputs_stamp`) in each worker process
+    (:meth:`get`), so a long-lived process (a Dask worker, a Python session running several batches)
+    reuses it for as long as the files it was read from are unchanged.  The maplet cache is bounded
+    (``options.maplet_cache``), checks each MAP file's stat before reuse and holds read failures too,
+    so a missing MAP is reported for every picture that selects it without being re-read.
     """
 
     _lock = threading.Lock()
@@ -233,11 +236,14 @@ class SharedData:
         self._maplets: OrderedDict = OrderedDict()
 
     @classmethod
-    def get(cls, workdir, options: BatchOptions, token: str | None = None) -> SharedData:
-        """The instance for (``workdir``, ``options``, ``token``), built on first use.  A batch passes
-        its own ``token``, so every batch reads the working directory afresh (files may have changed
-        between two batches run by a long-lived Dask worker); the last two instances are kept."""
-        key = (str(Path(workdir).resolve()), options.fingerprint(), token)
+    def get(cls, workdir, options: BatchOptions, stamp: str | None = None) -> SharedData:
+        """The instance for (``workdir``, ``options``, ``stamp``), built on first use.  ``stamp`` is
+        the :func:`inputs_stamp` of the working directory (computed here when None): a batch passes
+        the one it computed once, and an instance is reused only while its input files are unchanged.
+        The last two instances are kept."""
+        if stamp is None:
+            stamp = inputs_stamp(workdir, options)
+        key = (str(Path(workdir).resolve()), options.fingerprint(), stamp)
         with cls._lock:
             data = cls._instances.get(key)
             if data is None:
@@ -254,20 +260,56 @@ class SharedData:
             cls._instances.clear()
 
     def maplet(self, name: str):
-        """The maplet of ``name`` (MAPFILES/, then EXTFILES/), or the SpcFormatError reading it."""
+        """The maplet of ``name`` (MAPFILES/, then EXTFILES/), or the SpcFormatError reading it.
+        A cached maplet is reused only while its file's (path, size, mtime, inode) are unchanged."""
+        stat = _file_stat(self.wd.map_path(name))
         item = self._maplets.get(name)
-        if item is None:
-            try:
-                item = self.wd.read_maplet(name)
-            except SpcFormatError as exc:
-                item = exc
-            if self.options.maplet_cache:
-                self._maplets[name] = item
-                while len(self._maplets) > self.options.maplet_cache:
-                    self._maplets.popitem(last=False)
-        else:
+        if item is not None and item[0] == stat:
             self._maplets.move_to_end(name)
-        return item
+            return item[1]
+        try:
+            value = self.wd.read_maplet(name)
+        except SpcFormatError as exc:
+            value = exc
+        if self.options.maplet_cache:
+            self._maplets[name] = (stat, value)
+            self._maplets.move_to_end(name)
+            while len(self._maplets) > self.options.maplet_cache:
+                self._maplets.popitem(last=False)
+        return value
+
+
+def _file_stat(path: Path) -> tuple:
+    """(path, size, mtime_ns, inode) of a file, or (path,) when it cannot be stat'ed: what decides
+    whether data read from it earlier are still current (an in-place rewrite changes the size or
+    mtime, an atomic replace the inode)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return (str(path),)
+    return (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+
+
+def inputs_stamp(workdir, options: BatchOptions) -> str:
+    """SHA-256 of the stat of every file :class:`SharedData` reads: INIT_LITHOS, LMRKLIST.TXT, each
+    candidate's LMK (or MAP) and the shape model (:func:`_file_stat`).  Cheap (one ``stat`` per file,
+    no reading), so a batch computes it once and a worker rebuilds its shared data only when it
+    changed.  Unreadable lists are left to :class:`SharedData` to report."""
+    wd = WorkDir(Path(workdir).resolve())
+    parts = [str(wd.root), options.fingerprint()]
+    parts.append(_file_stat(Path(options.settings_path) if options.settings_path else wd.settings_path))
+    parts.append(_file_stat(wd.lmrklist_path))
+    try:
+        names = wd.landmark_names()
+    except SpcError as exc:
+        names = []
+        parts.append(str(exc))
+    for name in names:
+        stat = _file_stat(wd.lmk_path(name))
+        parts.append(stat if len(stat) > 1 else _file_stat(wd.map_path(name)))
+    if options.occlusion is not False:
+        parts.append(_file_stat(Path(options.shape_path) if options.shape_path else wd.shape_path))
+    return hashlib.sha256(repr(parts).encode("utf-8")).hexdigest()
 
 
 def _candidate_row(wd: WorkDir, name: str):
@@ -388,28 +430,28 @@ def navigate_picture(
     options: BatchOptions | None = None,
     *,
     shared: SharedData | None = None,
-    token: str | None = None,
+    stamp: str | None = None,
 ) -> PictureOutcome:
     """Run lithos-select → register → solve-pose for one picture of ``workdir`` (module docstring).
 
     Pure apart from reading the working directory: nothing is written (see :func:`write_outcome`).
     Never raises (interrupts apart): any problem — with this picture's files or with the shared data
     — is ``summary.status == "failed: <one line>"``.  ``shared``: the worker's :class:`SharedData`
-    (default: ``SharedData.get(workdir, options, token)``).
+    (default: ``SharedData.get(workdir, options, stamp)``).
     """
     options = options if options is not None else BatchOptions()
     with _COMPUTE_LOCK:
-        return _navigate(workdir, picture, options, shared, token)
+        return _navigate(workdir, picture, options, shared, stamp)
 
 
-def _navigate(workdir, picture, options, shared, token) -> PictureOutcome:
+def _navigate(workdir, picture, options, shared, stamp) -> PictureOutcome:
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     summary = PictureSummary(picture=picture, status="failed: not run", timings=timings)
     out = PictureOutcome(summary)
     try:
         if shared is None:
-            shared = SharedData.get(workdir, options, token)
+            shared = SharedData.get(workdir, options, stamp)
         _run_stages(shared, picture, options, out, timings)
     except Exception as exc:  # noqa: BLE001 - a picture's failure (MemoryError too) never stops the batch
         summary.status = "failed: " + _failure_text(exc)
@@ -700,14 +742,14 @@ def done_summary(workdir, out_dir, picture: str, fingerprint: str) -> PictureSum
 
 
 def process_picture(
-    workdir, out_dir, picture: str, options: BatchOptions, fingerprint: str, token: str | None = None
+    workdir, out_dir, picture: str, options: BatchOptions, fingerprint: str, stamp: str | None = None
 ) -> PictureSummary:
     """Worker task: navigate one picture and write its outputs; returns the summary row.
 
     A failure to write the outputs is reported as the picture's failure too.  ``timings["write_s"]``
     (writing, in the returned summary only: the marker is written before it is known).
     """
-    outcome = navigate_picture(workdir, picture, options, token=token)
+    outcome = navigate_picture(workdir, picture, options, stamp=stamp)
     clock = time.perf_counter()
     try:
         write_outcome(out_dir, outcome, fingerprint)
@@ -843,7 +885,7 @@ def _check_usable(workdir, options: BatchOptions) -> None:
         raise SpcUsageError(f"{options.shape_path}: shape model not found")
 
 
-def _init_worker(workdir, options: BatchOptions, token: str, numba_threads: int) -> None:
+def _init_worker(workdir, options: BatchOptions, stamp: str, numba_threads: int) -> None:
     """ProcessPool initializer: leave Ctrl-C to the parent (it stops the pool), limit numba's threads,
     load the shared data once."""
     import signal
@@ -856,7 +898,7 @@ def _init_worker(workdir, options: BatchOptions, token: str, numba_threads: int)
     except Exception:  # noqa: BLE001 - an optimisation only
         pass
     try:
-        SharedData.get(workdir, options, token)
+        SharedData.get(workdir, options, stamp)
     except Exception:  # noqa: BLE001 - every picture will report the problem itself
         pass
 
@@ -893,7 +935,7 @@ def run_batch(
         raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
     names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
     fingerprint = options.fingerprint()
-    token = uuid.uuid4().hex[:12]  # this batch: shared data are read afresh (SharedData.get)
+    stamp = inputs_stamp(workdir, options)  # workers reuse shared data read from unchanged files
     out_dir.mkdir(parents=True, exist_ok=True)
     tick = on_result or (lambda s: None)
     t0 = time.perf_counter()
@@ -909,7 +951,7 @@ def run_batch(
             todo.append(i)
 
     if todo and scheduler is None and int(jobs) == 1:
-        SharedData.get(workdir, options, token)  # settings, candidates, shape: fail here, once
+        SharedData.get(workdir, options, stamp)  # settings, candidates, shape: fail here, once
     elif todo:
         _check_usable(workdir, options)  # the cheap part of that check; the workers load the rest
 
@@ -920,10 +962,10 @@ def run_batch(
     mode, workers = "local", int(jobs)
     if todo and scheduler is not None:
         mode = "dask"
-        workers = _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, token, record)
+        workers = _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, stamp, record)
     elif todo and int(jobs) > 1:
         mode = "processes"
-        _run_processes(int(jobs), workdir, out_dir, names, todo, options, fingerprint, token, record)
+        _run_processes(int(jobs), workdir, out_dir, names, todo, options, fingerprint, stamp, record)
     elif todo:
         # one worker = one core: the in-process run is single-threaded like each process worker, so
         # --jobs N scales with N and the figures of 1 and N workers compare like with like
@@ -933,7 +975,7 @@ def run_batch(
         numba.set_num_threads(1)
         try:
             for i in todo:
-                record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, token))
+                record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, stamp))
         finally:
             numba.set_num_threads(threads)
 
@@ -957,7 +999,7 @@ def _lost(picture: str, exc: BaseException) -> PictureSummary:
 
 
 def _run_processes(
-    jobs, workdir, out_dir, names, todo, options, fingerprint, token, record, task=None
+    jobs, workdir, out_dir, names, todo, options, fingerprint, stamp, record, task=None
 ) -> None:
     """Run ``task`` (default :func:`process_picture`) for the pictures ``todo`` in spawned processes.
 
@@ -980,14 +1022,14 @@ def _run_processes(
         solo = bool(suspects)
         source, width = (suspects, 1) if solo else (queue, jobs)
         depth = 1 if solo else 2 * width  # pictures in flight (docstring)
-        pool = _new_pool(min(width, len(source)), workdir, options, token, max(1, cores // width))
+        pool = _new_pool(min(width, len(source)), workdir, options, stamp, max(1, cores // width))
         inflight: dict = {}
         broken = False
         try:
             while (source or inflight) and not broken:
                 while source and len(inflight) < depth:
                     i = source.popleft()
-                    fut = pool.submit(task, str(workdir), str(out_dir), names[i], options, fingerprint, token)
+                    fut = pool.submit(task, str(workdir), str(out_dir), names[i], options, fingerprint, stamp)
                     inflight[fut] = i
                 done, _ = wait(inflight, return_when=FIRST_COMPLETED)
                 for fut in done:
@@ -1014,7 +1056,7 @@ def _run_processes(
             pool.shutdown(wait=True)
 
 
-def _new_pool(workers, workdir, options, token, numba_threads):
+def _new_pool(workers, workdir, options, stamp, numba_threads):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
@@ -1022,7 +1064,7 @@ def _new_pool(workers, workdir, options, token, numba_threads):
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=_init_worker,
-        initargs=(str(workdir), options, token, numba_threads),
+        initargs=(str(workdir), options, stamp, numba_threads),
     )
 
 
@@ -1037,7 +1079,7 @@ def _stop_pool(pool) -> None:
             pass
 
 
-def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, token, record) -> int:
+def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, stamp, record) -> int:
     try:
         from distributed import Client, as_completed
     except ImportError:
@@ -1055,7 +1097,8 @@ def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, to
     futures = []
     try:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
-        keys = [f"spctool-batch-{names[i]}-{token}" for i in todo]
+        run_id = uuid.uuid4().hex[:12]  # unique task keys: never shared with another batch
+        keys = [f"spctool-batch-{names[i]}-{run_id}" for i in todo]
         futures = client.map(
             process_picture,
             [str(workdir)] * len(todo),
@@ -1063,7 +1106,7 @@ def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, to
             [names[i] for i in todo],
             [options] * len(todo),
             [fingerprint] * len(todo),
-            [token] * len(todo),
+            [stamp] * len(todo),
             key=keys,
             pure=False,
         )

@@ -5,6 +5,7 @@ LocalCluster on loopback), failure isolation, and resuming an interrupted batch.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -205,7 +206,7 @@ def test_dask_local_cluster_gives_identical_outputs(world, reference, tmp_path):
 
 
 def test_shared_data_are_loaded_once_per_batch(world, tmp_path, monkeypatch):
-    root, _ = world
+    root = Path(shutil.copytree(world[0], tmp_path / "wd"))
     made = []
     original = SharedData.__init__
 
@@ -216,14 +217,46 @@ def test_shared_data_are_loaded_once_per_batch(world, tmp_path, monkeypatch):
     monkeypatch.setattr(SharedData, "__init__", counting)
     result = run_batch(root, out_dir=tmp_path / "o", jobs=1)
     assert len(result.pictures) == N_PICTURES and len(made) == 1
-    # the next batch reads the working directory again (its files may have changed)
-    run_batch(root, out_dir=tmp_path / "o", jobs=1, force=True)
+    # the next batch on unchanged files reuses them (a long-lived worker keeps its shared data) ...
+    again = run_batch(root, out_dir=tmp_path / "o2", jobs=1)
+    assert len(made) == 1 and results_of(again) == results_of(result)
+    # ... and reads them again as soon as one of them changed: an LMK rewritten in place, ...
+    lmk = sorted((root / "LMKFILES").glob("*.LMK"))[0]
+    text = lmk.read_bytes()
+    lmk.write_bytes(text + b"\n")
+    run_batch(root, out_dir=tmp_path / "o3", jobs=1, force=True)
     assert len(made) == 2
-    # direct calls share one instance per (working directory, options)
+    # ... or replaced by another file (new inode), even of the same size and time
+    st = lmk.stat()
+    lmk.with_suffix(".new").write_bytes(lmk.read_bytes())
+    os.replace(lmk.with_suffix(".new"), lmk)
+    os.utime(lmk, ns=(st.st_atime_ns, st.st_mtime_ns))
+    run_batch(root, out_dir=tmp_path / "o4", jobs=1, force=True)
+    assert len(made) == 3
+    # direct calls share one instance per (working directory, options, unchanged inputs)
     SharedData.clear()
     for k in range(2):
         navigate_picture(root, picture_name(k))
-    assert len(made) == 3
+    assert len(made) == 4
+
+
+def test_cached_maplet_is_reread_when_its_file_changes(world, tmp_path):
+    root = Path(shutil.copytree(world[0], tmp_path / "wd"))
+    SharedData.clear()
+    shared = SharedData.get(root, BatchOptions())
+    name = shared.names[0]
+    first = shared.maplet(name)
+    assert shared.maplet(name) is first  # cached
+    path = root / "MAPFILES" / f"{name}.MAP"
+    raw = path.read_bytes()
+    path.write_bytes(raw[:-1] + bytes([raw[-1] ^ 0x01]))  # same size, one albedo bit flipped
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 1_000_000))
+    second = shared.maplet(name)
+    assert second is not first
+    assert shared.maplet(name) is second
+    path.unlink()
+    missing = shared.maplet(name)
+    assert "MAP" in str(missing) and not hasattr(missing, "heights")
 
 
 # ------------------------------------------------------------------------------------------------
