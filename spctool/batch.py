@@ -41,15 +41,19 @@ batch.
 
 Parallelism (:func:`run_batch`) never changes a result: each picture is computed from its own input
 files by the same function with fixed options (no random draws), results are collected by picture
-index and the summary is in picture order, so ``jobs=1``, ``jobs=N`` (a spawn-started
-:class:`~concurrent.futures.ProcessPoolExecutor`, numba limited to cores/N threads per process) and a
-Dask cluster (``scheduler``; ``pip install 'spctool[dask]'``; the workers must see the working and
-output directories at the same paths) write byte-identical files.  Data shared by every picture — the
-settings, the candidate landmark geometry, the shape model and a bounded cache of maplets — is loaded
-once per worker process (:class:`SharedData`), not once per picture, and a long-lived worker keeps
-it from one batch to the next while the files it was read from are unchanged (:func:`inputs_stamp`).
-One process computes one picture at a time (a process-wide lock: several threads of one Dask worker
-would otherwise launch numba's parallel kernels concurrently), so give Dask workers one thread each.
+index and the summary is in picture order, and every picture runs its numba kernels on one thread
+whatever the back end (one worker = one core: more cores are used by more workers), so ``jobs=1``,
+``jobs=N`` (a :class:`~concurrent.futures.ProcessPoolExecutor` of forked or spawned workers,
+:func:`start_method`), a :class:`WorkerPool` kept alive across batches and a Dask cluster
+(``scheduler``; ``pip install 'spctool[dask]'``; the workers must see the working and output
+directories at the same paths) write byte-identical files.
+
+Data shared by every picture — the settings, the candidate landmark geometry, the shape model and a
+bounded cache of maplets — is loaded once per worker process (:class:`SharedData`), not once per
+picture, and a long-lived worker (a Dask worker, a :class:`WorkerPool`) keeps it from one batch to
+the next while the files it was read from are unchanged (:func:`inputs_stamp`).  One process computes
+one picture at a time (a process-wide lock: several threads of one Dask worker would otherwise launch
+numba's parallel kernels concurrently), so give Dask workers one thread each.
 
 Not done here: LMK ``PICTURES`` sections are not updated — several pictures would write the same LMK
 file concurrently; SPC's own batch updates them in a separate serial step.
@@ -57,6 +61,7 @@ file concurrently; SPC's own batch updates them in a separate serial step.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -87,10 +92,13 @@ __all__ = [
     "PictureOutcome",
     "PictureSummary",
     "SharedData",
+    "WorkerPool",
     "batch_pictures",
+    "inputs_stamp",
     "navigate_picture",
     "output_paths",
     "run_batch",
+    "start_method",
 ]
 
 MARKER_FORMAT = "spctool-batch-done/1"
@@ -99,6 +107,8 @@ TABLES_DIR = "TABLES"
 SUMMARY_STEM = "BATCH_SUMMARY"
 #: status words of a picture; the text after ``": "`` is the one-line reason
 STATUSES = ("ok", "no-pose", "failed")
+#: how long a WorkerPool waits for its workers to warm up
+WARM_TIMEOUT_S = 600.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -741,6 +751,28 @@ def done_summary(workdir, out_dir, picture: str, fingerprint: str) -> PictureSum
     return summary
 
 
+@contextlib.contextmanager
+def _one_numba_thread():
+    """Run a picture's numba kernels on one thread (numba's setting is per thread; restored after).
+
+    One worker = one core, whatever the back end: more cores are used by more workers, never by
+    threads inside a picture, so a picture's result never depends on a thread count (a parallel
+    reduction may round differently with another count) and two workers on two cores do not fight
+    over them.
+    """
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
 def process_picture(
     workdir, out_dir, picture: str, options: BatchOptions, fingerprint: str, stamp: str | None = None
 ) -> PictureSummary:
@@ -749,7 +781,8 @@ def process_picture(
     A failure to write the outputs is reported as the picture's failure too.  ``timings["write_s"]``
     (writing, in the returned summary only: the marker is written before it is known).
     """
-    outcome = navigate_picture(workdir, picture, options, stamp=stamp)
+    with _one_numba_thread():
+        outcome = navigate_picture(workdir, picture, options, stamp=stamp)
     clock = time.perf_counter()
     try:
         write_outcome(out_dir, outcome, fingerprint)
@@ -772,6 +805,8 @@ class BatchResult:
     fingerprint: str
     elapsed_s: float = math.nan
     mode: str = "local"
+    #: how local worker processes started (``fork`` / ``spawn``; None in-process and on Dask)
+    start_method: str | None = None
     workers: int = 1
     options: dict = field(default_factory=dict)
 
@@ -830,6 +865,7 @@ class BatchResult:
             "spctool_version": __version__,
             "out_dir": str(self.out_dir),
             "mode": self.mode,
+            "start_method": self.start_method,
             "workers": self.workers,
             "elapsed_s": self.elapsed_s,
             "options_sha256": self.fingerprint,
@@ -885,22 +921,27 @@ def _check_usable(workdir, options: BatchOptions) -> None:
         raise SpcUsageError(f"{options.shape_path}: shape model not found")
 
 
-def _init_worker(workdir, options: BatchOptions, stamp: str, numba_threads: int) -> None:
-    """ProcessPool initializer: leave Ctrl-C to the parent (it stops the pool), limit numba's threads,
-    load the shared data once."""
+def _init_worker(workdir, options, stamp, warm: tuple = (), barrier=None) -> None:
+    """Worker-process initializer: leave Ctrl-C to the parent (it stops the pool); load the shared
+    data of ``workdir`` once; navigate the pictures ``warm`` (nothing written) so their code paths —
+    numba kernels, the photo readers — are loaded before the first real picture; then meet the other
+    workers at ``barrier`` (:class:`WorkerPool`)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        import numba
-
-        numba.set_num_threads(max(1, min(numba_threads, numba.config.NUMBA_NUM_THREADS)))
-    except Exception:  # noqa: BLE001 - an optimisation only
-        pass
-    try:
-        SharedData.get(workdir, options, stamp)
+        if workdir is not None:
+            SharedData.get(workdir, options, stamp)
+            for name in warm:
+                with _one_numba_thread():
+                    navigate_picture(workdir, name, options, stamp=stamp)
     except Exception:  # noqa: BLE001 - every picture will report the problem itself
         pass
+    if barrier is not None:
+        try:
+            barrier.wait(timeout=WARM_TIMEOUT_S)
+        except threading.BrokenBarrierError:
+            pass
 
 
 def run_batch(
@@ -914,12 +955,15 @@ def run_batch(
     force: bool = False,
     on_result: Callable[[PictureSummary], None] | None = None,
     write_summary: bool = True,
+    pool: WorkerPool | None = None,
 ) -> BatchResult:
     """Process ``pictures`` (default: the working directory's PICTLIST) and write their outputs.
 
-    ``jobs``: 1 = in this process, N > 1 = N spawn-started worker processes, each worker (this process
-    too) computing on one core (numba limited to one thread); ``scheduler``: a Dask
-    scheduler address (``tcp://host:port``) or a ``distributed.Client`` — then ``jobs`` is ignored.
+    ``jobs``: 1 = in this process, N > 1 = N worker processes (forked where safe, else spawned:
+    :func:`start_method`), each worker (this process too) computing on one core (numba limited to one
+    thread); ``scheduler``: a Dask
+    scheduler address (``tcp://host:port``) or a ``distributed.Client`` — then ``jobs`` is ignored;
+    ``pool``: a :class:`WorkerPool` whose warm workers run the batch (``jobs`` ignored too).
     Pictures already done with the same options and input SUM are skipped unless ``force``.
     ``on_result(summary)`` is called in this process as each picture finishes (skipped ones first).
     Returns the summaries in picture order; raises only for bad usage (SpcUsageError) and interrupts.
@@ -931,6 +975,12 @@ def run_batch(
         raise SpcUsageError(
             f"--out-dir must differ from the working directory ({workdir}): the batch reads SUMFILES/ there"
         )
+    if scheduler is not None and pool is not None:
+        raise SpcUsageError("a batch runs on a Dask scheduler or on a worker pool, not both")
+    if pool is not None:
+        if pool.closed:
+            raise SpcUsageError("the worker pool is closed")
+        jobs = pool.jobs
     if int(jobs) < 1:
         raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
     names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
@@ -950,7 +1000,7 @@ def run_batch(
         else:
             todo.append(i)
 
-    if todo and scheduler is None and int(jobs) == 1:
+    if todo and scheduler is None and pool is None and int(jobs) == 1:
         SharedData.get(workdir, options, stamp)  # settings, candidates, shape: fail here, once
     elif todo:
         _check_usable(workdir, options)  # the cheap part of that check; the workers load the rest
@@ -959,25 +1009,18 @@ def run_batch(
         results[i] = summary
         tick(summary)
 
-    mode, workers = "local", int(jobs)
+    mode, workers, method = "local", int(jobs), None
     if todo and scheduler is not None:
         mode = "dask"
         workers = _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, stamp, record)
-    elif todo and int(jobs) > 1:
+    elif todo and (int(jobs) > 1 or pool is not None):
         mode = "processes"
-        _run_processes(int(jobs), workdir, out_dir, names, todo, options, fingerprint, stamp, record)
+        method = _run_processes(
+            int(jobs), workdir, out_dir, names, todo, options, fingerprint, stamp, record, pool=pool
+        )
     elif todo:
-        # one worker = one core: the in-process run is single-threaded like each process worker, so
-        # --jobs N scales with N and the figures of 1 and N workers compare like with like
-        import numba
-
-        threads = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            for i in todo:
-                record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, stamp))
-        finally:
-            numba.set_num_threads(threads)
+        for i in todo:
+            record(i, process_picture(workdir, out_dir, names[i], options, fingerprint, stamp))
 
     result = BatchResult(
         [r for r in results if r is not None],
@@ -986,6 +1029,7 @@ def run_batch(
         elapsed_s=time.perf_counter() - t0,
         mode=mode,
         workers=workers,
+        start_method=method,
         options=options.as_dict(),
     )
     if write_summary:
@@ -999,14 +1043,16 @@ def _lost(picture: str, exc: BaseException) -> PictureSummary:
 
 
 def _run_processes(
-    jobs, workdir, out_dir, names, todo, options, fingerprint, stamp, record, task=None
-) -> None:
-    """Run ``task`` (default :func:`process_picture`) for the pictures ``todo`` in spawned processes.
+    jobs, workdir, out_dir, names, todo, options, fingerprint, stamp, record, task=None, pool=None
+) -> str | None:
+    """Run ``task`` (default :func:`process_picture`) for the pictures ``todo`` in worker processes;
+    returns how the (first) workers were started (:func:`start_method`).
 
     At most ``2 * jobs`` pictures are in flight — one computing and one queued per worker, so a worker
     that finishes a picture starts its next at once instead of idling while this process collects the
     result and submits more (this process needs a core for that round trip while the workers hold
-    them all).  When a worker process dies (a crash in native code, the OOM killer)
+    them all).  ``pool``: a :class:`WorkerPool` to run on first (it is not shut down here).  When a
+    worker process dies (a crash in native code, the OOM killer)
     the suspects are those few: they are retried one at a time in a one-worker pool,
     which names the culprit ("failed: worker lost: …") and completes the innocent; the other
     pictures go on in a fresh pool.  A death never stops the batch.
@@ -1017,19 +1063,27 @@ def _run_processes(
 
     task = task or process_picture
     queue, suspects = deque(todo), deque()
-    cores = os.cpu_count() or 1
+    first_method = None
     while queue or suspects:
         solo = bool(suspects)
         source, width = (suspects, 1) if solo else (queue, jobs)
         depth = 1 if solo else 2 * width  # pictures in flight (docstring)
-        pool = _new_pool(min(width, len(source)), workdir, options, stamp, max(1, cores // width))
+        given = pool is not None and not solo and not pool.closed
+        if given:
+            executor, method = pool.executor, pool.method
+        else:
+            method = start_method()
+            executor = _new_pool(min(width, len(source)), method, workdir, options, stamp)
+        first_method = first_method or method
         inflight: dict = {}
         broken = False
         try:
             while (source or inflight) and not broken:
                 while source and len(inflight) < depth:
                     i = source.popleft()
-                    fut = pool.submit(task, str(workdir), str(out_dir), names[i], options, fingerprint, stamp)
+                    fut = executor.submit(
+                        task, str(workdir), str(out_dir), names[i], options, fingerprint, stamp
+                    )
                     inflight[fut] = i
                 done, _ = wait(inflight, return_when=FIRST_COMPLETED)
                 for fut in done:
@@ -1048,23 +1102,134 @@ def _run_processes(
                     record(i, summary)
             suspects.extend(inflight.values())  # in flight when the pool broke
         except BaseException:
-            _stop_pool(pool)
+            pool.close(kill=True) if given else _stop_pool(executor)
             raise
-        if broken:
-            _stop_pool(pool)
+        if given:
+            if broken:
+                pool.close(kill=True)  # a worker died: the caller's pool is unusable from here on
+        elif broken:
+            _stop_pool(executor)
         else:
-            pool.shutdown(wait=True)
+            executor.shutdown(wait=True)
+    return first_method
 
 
-def _new_pool(workers, workdir, options, stamp, numba_threads):
+class WorkerPool:
+    """Local worker processes kept alive from one batch to the next (``run_batch(..., pool=...)``).
+
+    ``spctool batch`` starts its workers for one batch; a pipeline that runs batch after batch from
+    Python — pictures navigated as they are downlinked, a study re-running a batch with other options
+    — keeps them instead, so every batch after the first starts computing at once: each worker keeps
+    its imports, numba's loaded kernels and the :class:`SharedData` of each working directory for as
+    long as its files are unchanged (:func:`inputs_stamp`).  Results are those of any other back end.
+
+    ``warm=(workdir, options)``: each worker, as it starts, loads that directory's shared data and
+    navigates (without writing anything) one picture of each photo format the batch will read, so even
+    the first batch finds its workers ready.  Workers start as :func:`start_method` says.  A pool
+    whose worker died (a crash in native code) is closed; the batch that saw it completes in fresh
+    processes.  Use as a context manager, or call :meth:`close`.
+    """
+
+    def __init__(self, jobs: int, warm: tuple | None = None):
+        jobs = int(jobs)
+        if jobs < 1:
+            raise SpcUsageError(f"a worker pool needs at least 1 worker, got {jobs}")
+        self.jobs = jobs
+        self.method = start_method()
+        self.closed = False
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        context = multiprocessing.get_context(self.method)
+        initargs: tuple = (None, None, None)
+        barrier = None
+        if warm is not None:
+            workdir, options = warm
+            workdir = Path(workdir).resolve()
+            options = options if options is not None else BatchOptions()
+            barrier = context.Barrier(jobs + 1)  # every worker warm, and this process, meet here
+            stamp = inputs_stamp(workdir, options)
+            initargs = (str(workdir), options, stamp, _one_per_format(workdir), barrier)
+        self.executor = ProcessPoolExecutor(
+            max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=initargs
+        )
+        if barrier is not None:
+            started = [self.executor.submit(os.getpid) for _ in range(jobs)]  # starts every worker
+            try:
+                barrier.wait(timeout=WARM_TIMEOUT_S)
+            except threading.BrokenBarrierError:
+                pass  # a worker could not warm up (it died, or took too long): the batch will tell
+            for fut in started:
+                try:
+                    fut.result(timeout=WARM_TIMEOUT_S)
+                except Exception:  # noqa: BLE001 - a dead worker: the first batch reports it
+                    break
+
+    def close(self, kill: bool = False) -> None:
+        """End the workers (``kill``: now, cancelling what has not started)."""
+        if self.closed:
+            return
+        self.closed = True
+        if kill:
+            _stop_pool(self.executor)
+        else:
+            self.executor.shutdown(wait=True)
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close(kill=exc[0] is not None)
+
+
+def _one_per_format(workdir: Path) -> tuple[str, ...]:
+    """The first picture of the working directory's PICTLIST for each photo file suffix."""
+    wd = WorkDir(workdir)
+    seen: dict[str, str] = {}
+    for name in batch_pictures(workdir):
+        path = wd.photo_path(name)
+        if path is not None and wd.sum_path(name).exists():
+            seen.setdefault(path.suffix.upper(), name)
+    return tuple(seen.values())
+
+
+def start_method() -> str:
+    """How local worker processes start: ``fork`` where that is safe, else ``spawn``.
+
+    A forked worker inherits this process's imports (numpy, scipy, numba, spctool: ~0.5 s a spawned
+    worker spends before its first picture) and any shared data already loaded.  Fork is safe here
+    only on Linux (macOS system libraries are not fork-safe), while this process runs a single thread
+    (a lock held by another thread — a progress bar writing to stderr — would stay locked in the
+    child) and before numba's threading layer has started (GNU OpenMP, numba's default on Linux,
+    aborts a forked child that runs a parallel kernel).  ``SPCTOOL_START_METHOD=spawn|fork|forkserver``
+    overrides the choice.
+    """
+    import sys
+
+    forced = os.environ.get("SPCTOOL_START_METHOD", "").strip().lower()
+    if forced:
+        if forced not in ("spawn", "fork", "forkserver"):
+            raise SpcUsageError(f"SPCTOOL_START_METHOD must be spawn, fork or forkserver, got {forced!r}")
+        return forced
+    if not sys.platform.startswith("linux") or threading.active_count() != 1:
+        return "spawn"
+    parallel = sys.modules.get("numba.np.ufunc.parallel")
+    if parallel is not None and getattr(parallel, "_is_initialized", True):
+        layer = getattr(parallel, "_threading_layer", None)
+        if layer != "workqueue":  # numba's own layer is fork-safe; OpenMP and TBB here are not
+            return "spawn"
+    return "fork"
+
+
+def _new_pool(workers, method, workdir, options, stamp):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     return ProcessPoolExecutor(
         max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
+        mp_context=multiprocessing.get_context(method),
         initializer=_init_worker,
-        initargs=(str(workdir), options, stamp, numba_threads),
+        initargs=(str(workdir), options, stamp),
     )
 
 

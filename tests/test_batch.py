@@ -7,6 +7,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +19,7 @@ from click.testing import CliRunner
 
 from spctool import batch
 from spctool.batch import BatchOptions, PictureSummary, SharedData, navigate_picture, output_paths, run_batch
+from spctool.errors import SpcUsageError
 from spctool.formats.landmark import read_lmk
 from spctool.formats.sumfile import read_sum
 from spctool.geometry.camera import Camera
@@ -179,6 +183,62 @@ def test_two_processes_give_identical_outputs(world, reference, tmp_path):
     assert result.mode == "processes"
     assert results_of(result) == results_of(ref)
     assert result_files(tmp_path / "j2") == result_files(ref_out)
+
+
+_FRESH = """
+import json, sys
+from spctool.batch import run_batch
+r = run_batch(sys.argv[1], out_dir=sys.argv[2], jobs=2)
+print(json.dumps({"method": r.start_method, "mode": r.mode, "failed": len(r.failed)}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork is chosen on Linux only")
+def test_forked_workers_of_a_fresh_process_give_identical_outputs(world, reference, tmp_path):
+    # a fresh, single-threaded process that has not started numba's threading layer forks its
+    # workers (they inherit its imports); the outputs are those of the in-process run
+    root, _ = world
+    ref_out, ref = reference
+    env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_START_METHOD"}
+    run = subprocess.run(
+        [sys.executable, "-c", _FRESH, str(root), str(tmp_path / "fork")],
+        capture_output=True, text=True, env=env, timeout=600, check=True,
+    )  # fmt: skip
+    doc = json.loads(run.stdout.strip().splitlines()[-1])
+    assert doc == {"method": "fork", "mode": "processes", "failed": 0}
+    assert result_files(tmp_path / "fork") == result_files(ref_out)
+    summary = json.loads((tmp_path / "fork" / "BATCH_SUMMARY.json").read_text())
+    assert summary["start_method"] == "fork"
+
+
+def test_start_method_forks_only_when_safe(monkeypatch):
+    from numba.np.ufunc import parallel
+
+    monkeypatch.delenv("SPCTOOL_START_METHOD", raising=False)
+    stop = threading.Event()
+    helper = threading.Thread(target=stop.wait)
+    helper.start()
+    try:
+        assert batch.start_method() == "spawn"  # another thread alive: never fork
+    finally:
+        stop.set()
+        helper.join()
+    monkeypatch.setattr(threading, "active_count", lambda: 1)
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.setattr(parallel, "_is_initialized", True)
+    monkeypatch.setattr(parallel, "_threading_layer", "omp")
+    assert batch.start_method() == "spawn"  # GNU OpenMP started: a forked child would abort
+    monkeypatch.setattr(parallel, "_threading_layer", "workqueue")
+    assert batch.start_method() == "fork"  # numba's own layer is fork-safe
+    monkeypatch.setattr(parallel, "_is_initialized", False)
+    assert batch.start_method() == "fork"
+    monkeypatch.setattr(sys, "platform", "darwin")
+    assert batch.start_method() == "spawn"
+    monkeypatch.setenv("SPCTOOL_START_METHOD", "forkserver")
+    assert batch.start_method() == "forkserver"
+    monkeypatch.setenv("SPCTOOL_START_METHOD", "threads")
+    with pytest.raises(SpcUsageError, match="SPCTOOL_START_METHOD"):
+        batch.start_method()
 
 
 def test_dask_local_cluster_gives_identical_outputs(world, reference, tmp_path):
@@ -452,3 +512,56 @@ def test_worker_death_names_the_culprit_and_completes_the_rest(tmp_path):
             assert s.status.startswith("failed: worker lost")
         else:
             assert s.status == "ok"
+
+
+def test_worker_pool_death_closes_the_pool_and_the_batch_completes(tmp_path):
+    names = [f"P{k}" for k in range(7)]
+    got: dict[int, PictureSummary] = {}
+    opts = BatchOptions()
+    with batch.WorkerPool(2) as pool:
+        batch._run_processes(
+            2, tmp_path, tmp_path / "out", names, list(range(len(names))), opts, opts.fingerprint(), "t",
+            lambda i, s: got.__setitem__(i, s), task=_crash_on_p3, pool=pool,
+        )  # fmt: skip
+        assert pool.closed  # a worker died: the caller's pool is not used again
+    assert sorted(got) == list(range(len(names)))
+    assert [got[i].status.startswith("failed: worker lost") for i in range(7)] == [k == 3 for k in range(7)]
+
+
+# ------------------------------------------------------------------------------------------------
+# a worker pool kept alive across batches
+
+
+def _pids(pool) -> set[int]:
+    return {p.pid for p in pool.executor._processes.values()}
+
+
+def test_worker_pool_runs_batch_after_batch_with_the_same_warm_workers(world, reference, tmp_path):
+    root, _ = world
+    ref_out, ref = reference
+    with batch.WorkerPool(2, warm=(root, None)) as pool:
+        assert pool.jobs == 2 and pool.method in ("fork", "spawn")
+        workers = _pids(pool)
+        assert len(workers) == 2  # both started and warmed before the constructor returned
+        first = run_batch(root, out_dir=tmp_path / "a", pool=pool)
+        second = run_batch(root, out_dir=tmp_path / "b", pool=pool, force=True)
+        assert _pids(pool) == workers  # the same processes ran both batches
+        assert first.mode == second.mode == "processes" and first.workers == 2
+        assert first.start_method == pool.method
+    assert pool.closed
+    for result, out in ((first, "a"), (second, "b")):
+        assert results_of(result) == results_of(ref)
+        assert result_files(tmp_path / out) == result_files(ref_out)
+    with pytest.raises(SpcUsageError, match="closed"):
+        run_batch(root, out_dir=tmp_path / "c", pool=pool)
+
+
+def test_worker_pool_usage_errors(world, tmp_path):
+    root, _ = world
+    with pytest.raises(SpcUsageError, match="at least 1"):
+        batch.WorkerPool(0)
+    with batch.WorkerPool(1) as pool:
+        with pytest.raises(SpcUsageError, match="not both"):
+            run_batch(root, out_dir=tmp_path / "x", pool=pool, scheduler="tcp://127.0.0.1:1")
+        one = run_batch(root, out_dir=tmp_path / "one", pool=pool, jobs=5)  # jobs follows the pool
+        assert one.workers == 1 and not one.failed

@@ -143,7 +143,8 @@ def batch_cmd(
         raise SpcUsageError(f"no pictures to process in {where}")
     ctx.info(f"{len(names)} pictures -> {target}")
 
-    with progress(ctx, "batch", len(names)) as advance:
+    # no progress-bar thread: local workers are forked only from a single-threaded process
+    with progress(ctx, "batch", len(names), threaded=False) as advance:
 
         def on_result(summary):
             if summary.failed:

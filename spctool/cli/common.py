@@ -66,8 +66,12 @@ def emit_table(table, *, as_json: bool, output: str | None = None) -> None:
 
 
 @contextmanager
-def progress(ctx: Context, description: str, total: int | None):
-    """A rich progress bar on a TTY; silent otherwise (and with -q).  Yields ``advance(n=1)``."""
+def progress(ctx: Context, description: str, total: int | None, *, threaded: bool = True):
+    """A rich progress bar on a TTY; silent otherwise (and with -q).  Yields ``advance(n=1)``.
+
+    ``threaded=False``: no refresh thread (the bar is redrawn at each ``advance``), for commands that
+    fork worker processes, which is safe only while this process runs a single thread.
+    """
     if ctx.verbosity < 0 or not sys.stderr.isatty():
         yield lambda n=1: None
         return
@@ -79,9 +83,16 @@ def progress(ctx: Context, description: str, total: int | None):
         MofNCompleteColumn(),
         TimeRemainingColumn(),
         transient=True,
+        auto_refresh=threaded,
     ) as bar:
         task = bar.add_task(description, total=total)
-        yield lambda n=1: bar.advance(task, n)
+
+        def advance(n=1):
+            bar.advance(task, n)
+            if not threaded:
+                bar.refresh()
+
+        yield advance
 
 
 def resolve_landmarks(ctx: Context, specs=(), table: str | None = None) -> list:
