@@ -253,7 +253,7 @@ class SharedData:
         The last two instances are kept."""
         if stamp is None:
             stamp = inputs_stamp(workdir, options)
-        key = (str(Path(workdir).resolve()), options.fingerprint(), stamp)
+        key = (str(Path(workdir).resolve()), stamp)  # the stamp covers the options' fingerprint too
         with cls._lock:
             data = cls._instances.get(key)
             if data is None:
