@@ -3,7 +3,9 @@
 Errors a user can cause (bad files, bad usage) end as ONE stderr line
 ``spctool: error: …`` with exit code 2 (1 when a requested check failed);
 ``--debug`` shows the traceback instead.  Commands register themselves from
-their own modules (``spctool/cli/*.py``) in :data:`COMMAND_MODULES`.
+their own modules (``spctool/cli/*.py``, :data:`COMMANDS`), which are imported only
+when one of their commands runs: ``spctool info`` does not pay for numba, nor
+``spctool --version`` for anything.
 """
 
 from __future__ import annotations
@@ -18,25 +20,41 @@ from spctool import __version__
 from spctool.cli.common import Context
 from spctool.errors import SpcError
 
-#: modules whose ``register(cli)`` adds commands, in --help order
-COMMAND_MODULES = (
-    "spctool.cli.select",  # lithos-select
-    "spctool.cli.appearance",  # predict, extract
-    "spctool.cli.register",  # correlate, register
-    "spctool.cli.pose",  # solve-pose
-    "spctool.cli.files",  # info, validate, convert
-    "spctool.cli.project",  # project
-    "spctool.cli.sim",  # simulate, make-maplets, render, demo
-    "spctool.cli.montecarlo",  # montecarlo
-    "spctool.cli.batch",  # batch
-)
+#: every command and the module whose ``register(cli)`` adds it, in --help order (mission stages
+#: first); a test checks this table against what the modules register
+COMMANDS = {
+    "lithos-select": "spctool.cli.select",
+    "predict": "spctool.cli.appearance",
+    "extract": "spctool.cli.appearance",
+    "correlate": "spctool.cli.register",
+    "register": "spctool.cli.register",
+    "solve-pose": "spctool.cli.pose",
+    "info": "spctool.cli.files",
+    "validate": "spctool.cli.files",
+    "convert": "spctool.cli.files",
+    "project": "spctool.cli.project",
+    "simulate": "spctool.cli.sim",
+    "make-maplets": "spctool.cli.sim",
+    "render": "spctool.cli.sim",
+    "demo": "spctool.cli.sim",
+    "montecarlo": "spctool.cli.montecarlo",
+    "batch": "spctool.cli.batch",
+}
+#: the command modules, in --help order
+COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
 
 
 class SpcGroup(click.Group):
     """A click group that reports every error as one line (cli-contract.md exit codes)."""
 
     def list_commands(self, ctx):
-        return list(self.commands)  # registration order, mission stages first
+        return list(COMMANDS)  # mission stages first
+
+    def get_command(self, ctx, name):
+        """The command ``name``, importing its module on first use (:data:`COMMANDS`)."""
+        if name not in self.commands and name in COMMANDS:
+            importlib.import_module(COMMANDS[name]).register(self)
+        return self.commands.get(name)
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         args = list(sys.argv[1:] if args is None else args)
@@ -82,7 +100,7 @@ class SpcGroup(click.Group):
 
 def _first_command_index(group, args):
     for i, a in enumerate(args):
-        if a in group.commands:
+        if a in COMMANDS:
             return i
     return len(args)
 
@@ -128,20 +146,6 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
     ctx.obj = Context(
         workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
     )
-
-
-def _register_all():
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue
-            raise
-        module.register(cli)
-
-
-_register_all()
 
 
 if __name__ == "__main__":  # pragma: no cover

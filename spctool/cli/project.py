@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
@@ -20,7 +21,9 @@ from spctool.cli.common import (
 )
 from spctool.errors import SpcUsageError
 from spctool.formats.table import LandmarkTable
-from spctool.geometry.camera import Camera
+
+if TYPE_CHECKING:
+    from spctool.geometry.camera import Camera
 
 
 def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable:

@@ -24,7 +24,7 @@ from spctool.errors import SpcUsageError
 
 
 def _spec_help() -> str:
-    from spctool.sim.simulate import spec_help
+    from spctool.sim.spec_keys import spec_help
 
     return spec_help(96)
 
@@ -124,7 +124,7 @@ def example_spec() -> str:
     """A SPEC.toml with every key at its default (comments carry the help text)."""
     import json
 
-    from spctool.sim.simulate import DEFAULT_PICTURES, PICTURE_KEYS, SPEC_KEYS
+    from spctool.sim.spec_keys import DEFAULT_PICTURES, PICTURE_KEYS, SPEC_KEYS
 
     def val(v):
         if isinstance(v, bool):

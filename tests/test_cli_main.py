@@ -1,0 +1,61 @@
+"""The command group: the static command table matches what the command modules register, and a
+command imports only its own module (``spctool --version`` and ``spctool info`` never load numba)."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import subprocess
+import sys
+
+import click
+from click.testing import CliRunner
+
+from spctool.cli.main import COMMAND_MODULES, COMMANDS, cli
+
+
+def test_command_table_matches_the_modules():
+    registered = {}
+    for module in COMMAND_MODULES:
+        group = click.Group()
+        importlib.import_module(module).register(group)
+        for name in group.commands:
+            registered[name] = module
+    assert registered == COMMANDS
+
+
+def test_every_command_resolves_and_has_help_with_an_example():
+    runner = CliRunner()
+    listed = cli.list_commands(click.Context(cli))
+    assert listed == list(COMMANDS)
+    for name in listed:
+        result = runner.invoke(cli, [name, "--help"])
+        assert result.exit_code == 0, (name, result.output)
+        assert "Example" in result.output, name
+    bad = runner.invoke(cli, ["no-such-command"])
+    assert bad.exit_code == 2 and "no-such-command" in bad.output
+
+
+_PROBE = """
+import json, sys
+from spctool.cli.main import cli
+try:
+    cli.main(sys.argv[1:], standalone_mode=False)
+except SystemExit:
+    pass
+heavy = ("numba", "scipy", "astropy", "spctool.stages.register", "spctool.sim.simulate")
+print(json.dumps([m for m in heavy if m in sys.modules]))
+"""
+
+
+def _loaded(*args) -> list[str]:
+    run = subprocess.run([sys.executable, "-c", _PROBE, *args], capture_output=True, text=True, check=True)
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_commands_import_only_what_they_need(tmp_path):
+    assert _loaded("--version") == []
+    assert _loaded("--help") == []  # the command modules are light: the numerics load when a command runs
+    sum_file = tmp_path / "X.SUM"
+    sum_file.write_text("not a sum file\n")
+    assert "numba" not in _loaded("info", str(sum_file))
