@@ -1081,10 +1081,19 @@ def _run_processes(
             while (source or inflight) and not broken:
                 while source and len(inflight) < depth:
                     i = source.popleft()
-                    fut = executor.submit(
-                        task, str(workdir), str(out_dir), names[i], options, fingerprint, stamp
-                    )
+                    try:
+                        fut = executor.submit(
+                            task, str(workdir), str(out_dir), names[i], options, fingerprint, stamp
+                        )
+                    except (BrokenProcessPool, RuntimeError):  # a given pool broke between batches
+                        if not given:
+                            raise
+                        source.appendleft(i)
+                        broken = True
+                        break
                     inflight[fut] = i
+                if broken:
+                    break
                 done, _ = wait(inflight, return_when=FIRST_COMPLETED)
                 for fut in done:
                     i = inflight.pop(fut)
@@ -1142,28 +1151,33 @@ class WorkerPool:
 
         context = multiprocessing.get_context(self.method)
         initargs: tuple = (None, None, None)
-        barrier = None
         if warm is not None:
             workdir, options = warm
             workdir = Path(workdir).resolve()
             options = options if options is not None else BatchOptions()
-            barrier = context.Barrier(jobs + 1)  # every worker warm, and this process, meet here
+            # the workers meet at a barrier once warm: no worker takes a task before all are ready
+            barrier = context.Barrier(jobs)
             stamp = inputs_stamp(workdir, options)
             initargs = (str(workdir), options, stamp, _one_per_format(workdir), barrier)
         self.executor = ProcessPoolExecutor(
             max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=initargs
         )
-        if barrier is not None:
-            started = [self.executor.submit(os.getpid) for _ in range(jobs)]  # starts every worker
+        if warm is not None:
+            # jobs tasks at once start every worker (spawned workers start on demand); the first
+            # result means every worker is past the barrier, so warm
+            from concurrent.futures import FIRST_COMPLETED, wait
+            from concurrent.futures.process import BrokenProcessPool
+
+            started = [self.executor.submit(os.getpid) for _ in range(jobs)]
+            done, _ = wait(started, timeout=WARM_TIMEOUT_S + 60, return_when=FIRST_COMPLETED)
             try:
-                barrier.wait(timeout=WARM_TIMEOUT_S)
-            except threading.BrokenBarrierError:
-                pass  # a worker could not warm up (it died, or took too long): the batch will tell
-            for fut in started:
-                try:
-                    fut.result(timeout=WARM_TIMEOUT_S)
-                except Exception:  # noqa: BLE001 - a dead worker: the first batch reports it
-                    break
+                for fut in done:
+                    fut.result()
+            except BrokenProcessPool as exc:
+                self.close(kill=True)
+                raise SpcUsageError(
+                    f"the worker pool could not start: a worker died warming up ({_one_line(exc)})"
+                ) from None
 
     def close(self, kill: bool = False) -> None:
         """End the workers (``kill``: now, cancelling what has not started)."""

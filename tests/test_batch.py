@@ -10,6 +10,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -565,3 +566,32 @@ def test_worker_pool_usage_errors(world, tmp_path):
             run_batch(root, out_dir=tmp_path / "x", pool=pool, scheduler="tcp://127.0.0.1:1")
         one = run_batch(root, out_dir=tmp_path / "one", pool=pool, jobs=5)  # jobs follows the pool
         assert one.workers == 1 and not one.failed
+
+
+def test_worker_pool_whose_worker_died_between_batches_is_replaced(world, reference, tmp_path):
+    import signal
+
+    root, _ = world
+    ref_out, ref = reference
+    with batch.WorkerPool(2, warm=(root, None)) as pool:
+        os.kill(next(iter(_pids(pool))), signal.SIGKILL)  # e.g. the OOM killer, while the pool is idle
+        for _ in range(100):  # the executor notices the death
+            if pool.executor._broken:
+                break
+            time.sleep(0.05)
+        result = run_batch(root, out_dir=tmp_path / "after", pool=pool)
+        assert pool.closed
+    assert results_of(result) == results_of(ref)
+    assert result_files(tmp_path / "after") == result_files(ref_out)
+
+
+def _die(*args, **kwargs):
+    os._exit(3)
+
+
+def test_worker_pool_that_cannot_warm_up_is_an_error(world, monkeypatch):
+    root, _ = world
+    monkeypatch.setenv("SPCTOOL_START_METHOD", "fork")  # the forked workers inherit the patch below
+    monkeypatch.setattr(batch, "navigate_picture", _die)
+    with pytest.raises(SpcUsageError, match="could not start"):
+        batch.WorkerPool(2, warm=(root, None))
