@@ -300,13 +300,14 @@ def _file_stat(path: Path) -> tuple:
     return (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
 
 
-def inputs_stamp(workdir, options: BatchOptions) -> str:
+def inputs_stamp(workdir, options: BatchOptions, fingerprint: str | None = None) -> str:
     """SHA-256 of the stat of every file :class:`SharedData` reads: INIT_LITHOS, LMRKLIST.TXT, each
     candidate's LMK (or MAP) and the shape model (:func:`_file_stat`).  Cheap (one ``stat`` per file,
     no reading), so a batch computes it once and a worker rebuilds its shared data only when it
-    changed.  Unreadable lists are left to :class:`SharedData` to report."""
+    changed.  Unreadable lists are left to :class:`SharedData` to report.  ``fingerprint``: the
+    options' :meth:`BatchOptions.fingerprint` when the caller has it already."""
     wd = WorkDir(Path(workdir).resolve())
-    parts = [str(wd.root), options.fingerprint()]
+    parts = [str(wd.root), fingerprint or options.fingerprint()]
     parts.append(_file_stat(Path(options.settings_path) if options.settings_path else wd.settings_path))
     parts.append(_file_stat(wd.lmrklist_path))
     try:
@@ -961,8 +962,8 @@ def run_batch(
 
     ``jobs``: 1 = in this process, N > 1 = N worker processes (forked where safe, else spawned:
     :func:`start_method`), each worker (this process too) computing on one core (numba limited to one
-    thread); ``scheduler``: a Dask
-    scheduler address (``tcp://host:port``) or a ``distributed.Client`` — then ``jobs`` is ignored;
+    thread); ``scheduler``: a Dask scheduler address (``tcp://host:port``) or a
+    ``distributed.Client`` — then ``jobs`` is ignored;
     ``pool``: a :class:`WorkerPool` whose warm workers run the batch (``jobs`` ignored too).
     Pictures already done with the same options and input SUM are skipped unless ``force``.
     ``on_result(summary)`` is called in this process as each picture finishes (skipped ones first).
@@ -985,7 +986,7 @@ def run_batch(
         raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
     names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
     fingerprint = options.fingerprint()
-    stamp = inputs_stamp(workdir, options)  # workers reuse shared data read from unchanged files
+    stamp = inputs_stamp(workdir, options, fingerprint)  # workers reuse data of unchanged files
     out_dir.mkdir(parents=True, exist_ok=True)
     tick = on_result or (lambda s: None)
     t0 = time.perf_counter()
@@ -1073,7 +1074,7 @@ def _run_processes(
             executor, method = pool.executor, pool.method
         else:
             method = start_method()
-            executor = _new_pool(min(width, len(source)), method, workdir, options, stamp)
+            executor = _new_pool(min(width, len(source)), method, (str(workdir), options, stamp))
         first_method = first_method or method
         inflight: dict = {}
         broken = False
@@ -1146,22 +1147,18 @@ class WorkerPool:
         self.jobs = jobs
         self.method = start_method()
         self.closed = False
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        context = multiprocessing.get_context(self.method)
         initargs: tuple = (None, None, None)
         if warm is not None:
+            import multiprocessing
+
             workdir, options = warm
             workdir = Path(workdir).resolve()
             options = options if options is not None else BatchOptions()
             # the workers meet at a barrier once warm: no worker takes a task before all are ready
-            barrier = context.Barrier(jobs)
+            barrier = multiprocessing.get_context(self.method).Barrier(jobs)
             stamp = inputs_stamp(workdir, options)
             initargs = (str(workdir), options, stamp, _one_per_format(workdir), barrier)
-        self.executor = ProcessPoolExecutor(
-            max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=initargs
-        )
+        self.executor = _new_pool(jobs, self.method, initargs)
         if warm is not None:
             # jobs tasks at once start every worker (spawned workers start on demand); the first
             # result means every worker is past the barrier, so warm
@@ -1235,7 +1232,8 @@ def start_method() -> str:
     return "fork"
 
 
-def _new_pool(workers, method, workdir, options, stamp):
+def _new_pool(workers: int, method: str, initargs: tuple):
+    """Worker processes started by ``method``, each running :func:`_init_worker` with ``initargs``."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
@@ -1243,7 +1241,7 @@ def _new_pool(workers, method, workdir, options, stamp):
         max_workers=workers,
         mp_context=multiprocessing.get_context(method),
         initializer=_init_worker,
-        initargs=(str(workdir), options, stamp),
+        initargs=initargs,
     )
 
 
