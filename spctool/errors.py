@@ -47,6 +47,37 @@ class SpcUsageError(SpcError):
     """Bad command-line usage that click itself cannot detect (exit code 2)."""
 
 
+class SpcEnvironmentError(SpcError):
+    """The machine refused: permissions, a full disk, an I/O error (exit code 3).
+
+    Names the user's path (never a hidden temporary file) and what went wrong.
+    """
+
+    exit_code = 3
+
+    def __init__(self, path: str | os.PathLike | None, reason: str):
+        self.path = os.fspath(path) if path is not None else "<output>"
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+    @classmethod
+    def from_oserror(cls, exc: OSError, path: str | os.PathLike | None = None) -> SpcEnvironmentError:
+        """Wrap ``exc``; ``path`` (the user's file) wins over the name the OS reported."""
+        where = path if path is not None else (exc.filename if exc.filename is not None else None)
+        reason = exc.strerror or type(exc).__name__
+        return cls(where, reason[:1].lower() + reason[1:])
+
+
+#: documented exit codes of every command (cli --help, man EXIT STATUS, README)
+EXIT_CODES = {
+    0: "success",
+    1: "the command ran but its result failed a requirement (e.g. nothing registered, implausible pose)",
+    2: "bad usage or bad input (one line on stderr naming the file, the line and what was expected)",
+    3: "environment: permission denied, disk full, I/O error (the line names your path)",
+    130: "interrupted (Ctrl-C)",
+}
+
+
 class SpcResultError(SpcError):
     """The command ran but its result failed a requested check (exit code 1)."""
 

@@ -18,7 +18,7 @@ import click
 
 from spctool import __version__
 from spctool.cli.common import Context
-from spctool.errors import SpcError
+from spctool.errors import SpcEnvironmentError, SpcError
 
 #: every command and the module whose ``register(cli)`` adds it, in --help order (mission stages
 #: first); a test checks this table against what the modules register
@@ -63,9 +63,9 @@ class SpcGroup(click.Group):
             rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
         except click.exceptions.Exit as exc:
             sys.exit(exc.exit_code)
-        except click.exceptions.Abort:
-            click.echo("spctool: error: aborted", err=True)
-            sys.exit(1)
+        except click.exceptions.Abort:  # click turns Ctrl-C at a prompt into Abort
+            click.echo("spctool: error: interrupted", err=True)
+            sys.exit(130)
         except click.ClickException as exc:
             if debug:
                 traceback.print_exc()
@@ -84,6 +84,12 @@ class SpcGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("spctool: error: interrupted", err=True)
             sys.exit(130)
+        except OSError as exc:  # the machine refused (permissions, disk full, EIO): exit 3
+            if debug:
+                traceback.print_exc()
+            err = SpcEnvironmentError.from_oserror(exc)
+            click.echo(f"spctool: error: {_one_line(str(err))}", err=True)
+            sys.exit(err.exit_code)
         except Exception as exc:  # a bug: still one line unless --debug
             if debug:
                 traceback.print_exc()
