@@ -9,10 +9,15 @@ cli-contract.md does::
 * **select** (Stage A, :func:`spctool.stages.select.select_maplets`): the candidates of LMRKLIST.TXT
   (else LMKFILES/*.LMK) at their LMK VLM (else the MAP's V), options from INIT_LITHOS
   (:meth:`SelectOptions.from_settings`), the occlusion test when the working directory has a shape;
-* **register** (Stage H, :func:`spctool.stages.register.register`): the selected landmarks, starting at
-  their selected pixels, with the MAPFILES/ maplets; the default schedule is SPC's AUTOREGISTER
-  (spc-algorithms.md §9.2–9.3: align at spacing 2 and 1 with a pose solve after each pass, drop
-  ρ < 0.5, align at 1) because that is what SPC's own batch seeds (``make_scriptA.seed``) run;
+* **register** (Stage H): the selected landmarks, starting at their selected pixels, with the MAPFILES/
+  maplets.  By default **two-pass navigation** (:func:`spctool.stages.navigate.navigate`, issue #15:
+  a coarse-to-fine acquisition reaching ±25 px, a pose solve, every landmark registered again from the
+  solved pose, a second pose solve), because a single pass from the a-priori pose loses pictures whose
+  a-priori error exceeds its first search (SPC's AUTOREGISTER seed searches ±10 cells at spacing 2 and
+  lost a whole picture with a 14 px error on the independent world, :mod:`spctool.sim.independent`).
+  ``BatchOptions(two_pass=None)`` runs the single pass of :func:`spctool.stages.register.register`
+  with ``register.schedule`` (default SPC's AUTOREGISTER, spc-algorithms.md §9.2–9.3, what SPC's own
+  batch seeds ``make_scriptA.seed`` run);
 * **solve-pose** (Stage I, :func:`spctool.stages.pose.solve_pose`): the landmarks registered ``ok`` at
   their LMK VLM, from the SUM's a-priori pose with SIGMA_VSO / SIGMA_PTG as prior (spc-algorithms.md
   §10.3).
@@ -83,6 +88,7 @@ from spctool.formats import atomic
 from spctool.formats.sumfile import with_measured_landmarks, with_pose
 from spctool.formats.workdir import WorkDir
 from spctool.geometry.shape import as_shape
+from spctool.stages.navigate import NavigateOptions
 from spctool.stages.pose import PoseError, PoseOptions
 from spctool.stages.register import RegisterOptions
 
@@ -128,6 +134,11 @@ class BatchOptions:
     * ``occlusion`` — None: run the occlusion test when a shape model exists; True: require one;
       False: never.
     * ``register`` — :class:`RegisterOptions` (default: the AUTOREGISTER schedule in maplet space).
+    * ``two_pass`` — :class:`NavigateOptions` of two-pass navigation (the default path,
+      :func:`spctool.stages.navigate.navigate`: acquisition reaching ±25 px, pose, re-registration from
+      the solved pose, pose; its ``register``/``pose`` are replaced by ``register`` (space, thresholds,
+      stage options; the schedule is the navigation's) and ``pose``); None = the single pass of
+      ``register.schedule``.
     * ``pose`` — :class:`PoseOptions` of the final solve (the AUTOREGISTER passes use ``register.pose``).
     * ``settings_path`` / ``shape_path`` — explicit INIT_LITHOS and shape files (default: the working
       directory's INIT_LITHOS.TXT and SHAPEFILES/SHAPE.TXT when present).
@@ -138,6 +149,7 @@ class BatchOptions:
     occlusion: bool | None = None
     register: RegisterOptions = field(default_factory=_default_register)
     pose: PoseOptions = field(default_factory=PoseOptions)
+    two_pass: NavigateOptions | None = field(default_factory=NavigateOptions)
     settings_path: str | None = None
     shape_path: str | None = None
     maplet_cache: int = 4096
@@ -165,6 +177,9 @@ class BatchOptions:
             "occlusion": self.occlusion,
             "register": self.register.as_dict(),
             "pose": dataclasses.asdict(self.pose),
+            "two_pass": None
+            if self.two_pass is None
+            else {k: v for k, v in self.two_pass.as_dict().items() if k not in ("register", "pose")},
             "settings_path": self.settings_path,
             "shape_path": self.shape_path,
         }
@@ -552,34 +567,43 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     positions = shared.centres[idx] if len(idx) else np.zeros((0, 3))
     apriori = np.asarray(apriori, dtype=np.float64).reshape(-1, 2)
     ropts = options.register
-    reg = register(
-        photo,
-        camera,
-        pic.sz,
-        maplets,
-        tuple(float(x) for x in pic.thrsh),
-        ropts,
+    stage_kw = dict(
         apriori=apriori,
         names=names,
         positions=positions,
         prior_sigma_position=pic.sigma_vso,
         prior_sigma_attitude=pic.sigma_ptg,
     )
+    thrsh = tuple(float(x) for x in pic.thrsh)
+    nav = None
+    if options.two_pass is not None:  # two-pass navigation (the final solve below repeats pass 2's)
+        from spctool.stages.navigate import navigate
+
+        nopts = dataclasses.replace(options.two_pass, register=ropts, pose=options.pose)
+        nav = navigate(photo, camera, pic.sz, maplets, thrsh, nopts, **stage_kw)
+        reg = nav.final.register
+    else:
+        reg = register(photo, camera, pic.sz, maplets, thrsh, ropts, **stage_kw)
     out.register = reg
     ok = reg.ok
     summary.found = int(ok.sum())
+    schedule = ropts.schedule if nav is None else f"two-pass ({len(nav.passes)} run)"
     meta = {
         "landmark_source": "selection",
-        "schedule": ropts.schedule,
+        "schedule": schedule,
         "space": ropts.space,
         "thresholds": [float(x) for x in pic.thrsh],
         "status_counts": reg.status_counts(),
         "registered": summary.found,
-        "passes": reg.passes,
+        "passes": reg.passes if nav is None else [p.as_dict() for p in nav.passes],
         "options": ropts.as_dict(),
-        "warnings": list(reg.warnings),
+        "warnings": list(reg.warnings) + ([] if nav is None else list(nav.warnings)),
     }
-    table = reg.to_table(picture=pic.name, command="register", meta=meta)
+    table = (
+        reg.to_table(picture=pic.name, command="register", meta=meta)
+        if nav is None
+        else nav.to_table(picture=pic.name, command="register", meta=meta)
+    )
     if missing:
         from spctool.formats.table import LandmarkTable
 
@@ -587,6 +611,9 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         for name in missing:
             row = {k: math.nan for k in table.columns}
             row.update(name=name, iterations=0, spacing=0, status="no-maplet")
+            for c in ("status_1", "pose_status"):  # the two-pass table's word columns
+                if c in row:
+                    row[c] = "no-maplet" if c == "status_1" else "-"
             k = shared.index[name]
             row.update(sample=float(sel.sample[k]), line=float(sel.line[k]))
             row.update(apriori_sample=float(sel.sample[k]), apriori_line=float(sel.line[k]))
@@ -594,7 +621,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         table = LandmarkTable.from_rows(rows, picture=pic.name, command="register", meta=meta)
     table.comments.append(
         f"registered {summary.found} of {len(reg) + len(missing)} landmarks "
-        f"({ropts.schedule}, {ropts.space} space)"
+        f"({schedule}, {ropts.space} space)"
     )
     out.register_table = table
     timings["register_s"] = time.perf_counter() - clock

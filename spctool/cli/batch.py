@@ -47,7 +47,15 @@ from spctool.errors import SpcResultError, SpcUsageError
     "Overrides --jobs.",
 )
 @click.option("--force", is_flag=True, help="Redo pictures that are already done.")
-@options.pipeline_schedule_option
+@click.option(
+    "--schedule",
+    type=click.Choice(["two-pass", "autoregister", "s16"]),
+    default="two-pass",
+    show_default=True,
+    help="two-pass: acquisition reaching +-25 px, pose, every landmark again from the solved pose, "
+    "pose (see 'spctool navigate --help'); autoregister or s16: the old single pass of that "
+    "register schedule.",
+)
 @options.space_option
 @options.corr_min_option
 @click.option(
@@ -87,9 +95,10 @@ def batch_cmd(
     PICTLIST.TXT, else every SUMFILES/*.SUM); pictures flagged '!' or '#' are left out.  For each
     picture the maplets it can see are selected (LMRKLIST.TXT candidates, INIT_LITHOS options,
     occlusion with the shape model), registered in its photo and the spacecraft position and
-    attitude solved from the registered pixels with the SUM's sigmas as prior, exactly as the
-    commands lithos-select, register (here with the AUTOREGISTER schedule by default) and
-    solve-pose do one by one.
+    attitude solved from the registered pixels with the SUM's sigmas as prior, as the commands
+    lithos-select and navigate (two-pass navigation, the default) do one by one; --schedule
+    autoregister or s16 runs the old single pass (lithos-select, register with that schedule,
+    solve-pose).
 
     Outputs, written atomically to --out-dir: SUMFILES/PIC.SUM (the input SUM with the registered
     LANDMARKS rows and, when the pose converged, the solved SCOBJ, CX, CY, CZ, SIGMA_VSO,
@@ -117,6 +126,7 @@ def batch_cmd(
       spctool -C WORKDIR batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
     """
     from spctool.batch import BatchOptions, batch_pictures, run_batch
+    from spctool.stages.navigate import NavigateOptions
     from spctool.stages.register import RegisterOptions
 
     workdir = Path(ctx.workdir)
@@ -125,7 +135,7 @@ def batch_cmd(
     target = Path(out_dir) if out_dir else workdir / "BATCH"
     pose = options.pose_options(sigma_px, no_prior, min_landmarks)
     register = RegisterOptions(
-        schedule=options.register_schedule(schedule),
+        schedule="retina_s16" if schedule == "two-pass" else options.register_schedule(schedule),
         space=space,
         corr_min=corr_min,
         pose=pose,
@@ -134,6 +144,7 @@ def batch_cmd(
         occlusion=occlusion,
         register=register,
         pose=pose,
+        two_pass=NavigateOptions() if schedule == "two-pass" else None,
         settings_path=ctx.settings_path,
         shape_path=shape_path,
     )

@@ -29,6 +29,7 @@ COMMANDS = {
     "correlate": "spctool.cli.register",
     "register": "spctool.cli.register",
     "solve-pose": "spctool.cli.pose",
+    "navigate": "spctool.cli.navigate",
     "info": "spctool.cli.files",
     "validate": "spctool.cli.files",
     "convert": "spctool.cli.files",

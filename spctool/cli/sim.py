@@ -529,7 +529,7 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
 
     pose_options = PoseOptions(sigma_px=sigma_px)
     reg = RegisterOptions(schedule=options.register_schedule(schedule), space=space, pose=pose_options)
-    batch_options = BatchOptions(register=reg, pose=pose_options)
+    batch_options = BatchOptions(register=reg, pose=pose_options, two_pass=None)  # its --schedule
     pictures = [p["name"] for p in truth["pictures"]]
     rows = []
     with tempfile.TemporaryDirectory(prefix="spctool-demo-") as tmp:
