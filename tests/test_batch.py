@@ -148,14 +148,39 @@ def test_sum_copy_changes_only_pose_and_landmark_lines(world, reference):
 
 
 def test_batch_equals_the_command_chain(world, reference, tmp_path):
-    """lithos-select --json | register --schedule autoregister --write-sum | solve-pose --output gives
-    the batch's SUM byte for byte (JSON tables keep every digit)."""
+    """lithos-select --json | navigate --output gives the (two-pass) batch's SUM byte for byte."""
     from spctool.cli.main import cli
 
     root, _ = world
     out, _ = reference
     wd = copy_world(root, tmp_path / "wd")
     name = picture_name(1)
+    runner = CliRunner()
+
+    def run(*args):
+        res = runner.invoke(cli, ["-C", str(wd), *args], catch_exceptions=False)
+        assert res.exit_code == 0, res.stderr
+        return res
+
+    run("lithos-select", name, "--json", "-o", str(tmp_path / "sel.json"))
+    final = tmp_path / "final.SUM"
+    run(
+        "navigate", name, "--landmarks", str(tmp_path / "sel.json"), "--json", "-o",
+        str(tmp_path / "nav.json"), "--output", str(final),
+    )  # fmt: skip
+    assert final.read_bytes() == (out / "SUMFILES" / f"{name}.SUM").read_bytes()
+
+
+def test_single_pass_batch_equals_the_register_chain(world, tmp_path):
+    """BatchOptions(two_pass=None): lithos-select --json | register --schedule autoregister --write-sum |
+    solve-pose --output gives the batch's SUM byte for byte (JSON tables keep every digit)."""
+    from spctool.cli.main import cli
+
+    root, _ = world
+    name = picture_name(1)
+    out = tmp_path / "single"
+    run_batch(root, [name], BatchOptions(two_pass=None), out_dir=out)
+    wd = copy_world(root, tmp_path / "wd")
     runner = CliRunner()
 
     def run(*args):

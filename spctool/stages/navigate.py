@@ -69,7 +69,8 @@ class NavigateOptions:
     * ``refine_spacings`` — pass 2's steps from the solved pose ((2, 1): search ±10 cells).
     * ``min_landmarks`` — landmarks needed for a pose (3; fewer is ``no-pose``).
     * ``register`` — the :class:`RegisterOptions` every step starts from (space, correlation
-      thresholds, prediction/extraction options; schedule and steps are set here).
+      thresholds, prediction/extraction options; schedule and steps are set here, and removal
+      criteria apply only when given explicitly — ``criteria="default"`` means none).
     * ``pose`` — the :class:`PoseOptions` of both pose solves (outlier rejection on by default).
     """
 
@@ -282,6 +283,10 @@ def navigate(
     )
     tick = progress or (lambda k=1: None)
     base = dataclasses.replace(opts.register, schedule="retina_s16", steps=None, fail_fast=True)
+    if isinstance(opts.register.criteria, str) and opts.register.criteria == "default":
+        # the schedule here is S16's: no removal criteria unless asked for (an AUTOREGISTER schedule's
+        # derived default 0,50,.25,0,5 does not carry over)
+        base = dataclasses.replace(base, extract=dataclasses.replace(base.extract, criteria=None))
     kw = dict(names=names, positions=pos, prior_sigma_position=prior_sigma_position)
     kw["prior_sigma_attitude"] = prior_sigma_attitude
     warnings: list[str] = []
