@@ -1,0 +1,70 @@
+"""``spctool navigate``: its --help examples run as written on the shipped demo (fixtures/demo), the
+JSON reports both passes, --output writes the SUM, and exit codes (1 without a pose / too few)."""
+
+from __future__ import annotations
+
+import json
+import shlex
+
+
+def _examples():
+    from spctool.cli.navigate import navigate_cmd
+
+    lines = navigate_cmd.help.split("Example:")[1].splitlines()
+    return [ln.strip() for ln in lines if ln.strip().startswith("spctool ")]
+
+
+def test_help_examples_run_on_the_demo(run_cli, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    examples = _examples()
+    assert len(examples) >= 3 and examples[0].startswith("spctool demo --copy-to")
+    for line in examples:
+        res = run_cli(*shlex.split(line)[1:])
+        assert res.exit_code == 0, (line, res.stderr)
+    doc = json.loads((tmp_path / "nav.json").read_text())
+    assert len(doc["passes"]) == 2
+    p1, p2 = doc["passes"]
+    assert p1["found"] == p2["found"] == doc["registered"] == len(doc["landmarks"])
+    assert {"sample_1", "line_1", "status_1", "residual_sample", "pose_status"} <= set(doc["landmarks"][0])
+    assert p2["rms_after_px"] < p1["rms_after_px"]
+    assert doc["pose"]["converged"] is True
+    from spctool.formats.sumfile import read_sum
+
+    new = read_sum(tmp_path / "new.SUM")
+    old = read_sum(tmp_path / "demo" / "SUMFILES" / "P000000001A1.SUM")
+    assert len(new.landmarks) == p2["found"]
+    assert not (new.scobj == old.scobj).all()
+
+
+def test_demo_truth_is_met(run_cli, tmp_path, monkeypatch):
+    """On the demo, the solved pose reproduces the true pose's landmark pixels to a fraction of a pixel,
+    and pass 2 is at least as close as pass 1."""
+    import numpy as np
+
+    from spctool.formats.landmark import read_lmk
+    from spctool.formats.sumfile import read_sum
+    from spctool.geometry.camera import Camera
+
+    monkeypatch.chdir(tmp_path)
+    assert run_cli("demo", "--copy-to", "demo").exit_code == 0
+    truth = json.loads((tmp_path / "demo" / "TRUTH.json").read_text())
+    true = next(p for p in truth["pictures"] if p["name"] == "P000000001A1")["true"]
+    res = run_cli("-C", "demo", "navigate", "P000000001A1", "--output", "new.SUM")
+    assert res.exit_code == 0, res.stderr
+    cam = Camera.from_picture(read_sum(tmp_path / "new.SUM"))
+    true_cam = cam.with_pose(scobj=np.array(true["scobj"]), rotation=np.array(true["rotation"]))
+    v = np.array([read_lmk(p).vlm for p in sorted((tmp_path / "demo" / "LMKFILES").glob("*.LMK"))])
+    s1, l1, f1 = cam.project_with_mask(v)
+    s0, l0, f0 = true_cam.project_with_mask(v)
+    inside = f0 & f1 & (s0 > 1) & (s0 < cam.npx) & (l0 > 1) & (l0 < cam.nln)
+    assert inside.sum() >= 3
+    d = np.hypot(s1 - s0, l1 - l0)[inside]
+    assert np.max(d) < 0.5
+
+
+def test_no_landmarks_found_is_exit_1(run_cli, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert run_cli("demo", "--copy-to", "demo").exit_code == 0
+    res = run_cli("-C", "demo", "navigate", "P000000001A1", "--min-landmarks", "1000")
+    assert res.exit_code == 1
+    assert "no-pose" in res.stderr and "Traceback" not in res.stderr
