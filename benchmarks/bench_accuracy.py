@@ -1,7 +1,8 @@
 """Registration accuracy and cost on an independent world (issue #15; :mod:`spctool.sim.independent`).
 
 The world is ray-traced by trimesh + Embree (not spctool's renderer): 16 maplets of 99×99 cells at
-5 cm, three pictures at 200 m (5.7 cm per pixel) whose a-priori poses put the landmarks up to 6, 14 and
+5 cm, six pictures at 200 m (5.7 cm per pixel; Sun 38–60° from the zenith, all six views of
+:data:`spctool.sim.independent.VIEWS`) whose a-priori poses put the landmarks up to 6, 14, 20, 10, 17 and
 20 px from their true pixels, Lambert shading, cast shadows, noise; built for a faceted truth (mesh of
 half-cell facets, flat-shaded) and a smooth one (third-of-a-cell facets, interpolated normals).  Lines:
 
@@ -33,7 +34,15 @@ def _spec(truth):
     from spctool.sim.independent import IndependentSpec
 
     return IndependentSpec(
-        truth=truth, n_side=4, qsz=49, scale_km=5e-5, spacing_cells=60.0, range_km=0.2, npx=300, seed=16
+        truth=truth,
+        n_side=4,
+        qsz=49,
+        scale_km=5e-5,
+        spacing_cells=60.0,
+        range_km=0.2,
+        npx=300,
+        seed=16,
+        apriori_px=(6.0, 14.0, 20.0, 10.0, 17.0, 20.0),
     )
 
 

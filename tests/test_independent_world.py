@@ -221,3 +221,22 @@ def test_navigate_cli_on_the_independent_world(worlds, run_cli, tmp_path):
     bad = run_cli("-C", root, "navigate", p["name"], "--single-pass", "--require", "10")
     assert bad.exit_code == 1 and "fewer than --require 10" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_pass_2_without_a_pose_keeps_pass_1(worlds, monkeypatch):
+    """A pass-2 pose failure does not lose the picture: pass 1's pose and pixels stand, with a warning."""
+    from spctool.stages import navigate as nav_mod
+
+    real = nav_mod._solve
+    calls = []
+
+    def second_fails(*a, **k):
+        calls.append(1)
+        return (None, "simulated failure") if len(calls) == 2 else real(*a, **k)
+
+    monkeypatch.setattr(nav_mod, "_solve", second_fails)
+    root, doc = worlds["facet"]
+    res, true_px = _navigate(root, doc["pictures"][0])
+    assert res.status == "ok" and len(res.passes) == 2
+    assert res.final is res.passes[0] and res.pose is res.passes[0].pose
+    assert any("simulated failure" in w for w in res.warnings)

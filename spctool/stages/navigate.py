@@ -32,7 +32,8 @@ registered again with the solved camera, starting at the projection of its posit
 landmark is in the result when pass 2 measured it (``ok``); its pass-1 pixel is kept for the report.
 
 When pass 1 yields no pose (fewer than ``min_landmarks`` found, degenerate geometry), pass 2 is not run
-and the result says why (``status`` ``no-pose``); nothing is silently dropped.  ``passes=1`` stops after
+and the result says why (``status`` ``no-pose``); when pass 2 cannot solve a pose the pass-1 pose and
+measurements stand (with a warning); nothing is silently dropped.  ``passes=1`` stops after
 pass 1 (the old single-pass path with the pose solve).
 """
 
@@ -165,8 +166,9 @@ class PassResult:
 
 @dataclass
 class NavigateResult:
-    """Both passes of :func:`navigate`.  ``final`` is the last pass that ran; ``status``: ``ok`` (a
-    converged pose from the last pass), ``no-pose: <reason>``."""
+    """Both passes of :func:`navigate`.  ``final`` is the last pass with a pose (else the last pass
+    run); ``status``: ``ok`` (a converged pose: pass 2's, or pass 1's when pass 2 could not solve one,
+    with a warning), ``no-pose: <reason>``."""
 
     names: list[str]
     passes: list[PassResult]
@@ -177,7 +179,8 @@ class NavigateResult:
 
     @property
     def final(self) -> PassResult:
-        return self.passes[-1]
+        solved = [p for p in self.passes if p.pose is not None]
+        return solved[-1] if solved else self.passes[-1]
 
     @property
     def pose(self) -> PoseResult | None:
@@ -353,9 +356,9 @@ def navigate(
     passes.append(
         PassResult(reg2, pose2 if err2 is None else None, err2, ref_steps, time.perf_counter() - t0)
     )
-    if err2 is not None:
-        warnings.append(f"pass 2: no pose ({err2}); the pass-1 pose stands")
-        return NavigateResult(names, passes, "no-pose: " + err2, final_camera, warnings, opts)
+    if err2 is not None:  # never lose a picture pass 1 navigated
+        warnings.append(f"pass 2: no pose ({err2}); the pass-1 pose and measurements stand")
+        return NavigateResult(names, passes, "ok", final_camera, warnings, opts)
     final_camera = camera.with_pose(scobj=pose2.scobj, rotation=pose2.rotation)
     lost = [names[i] for i in np.flatnonzero(reg1.ok & ~reg2.ok)]
     if lost:
