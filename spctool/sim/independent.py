@@ -229,8 +229,11 @@ class _Tracer:
         self.ray = RayMeshIntersector(self.mesh)
         self.albedo = np.asarray(vertex_albedo, float)
         self.smooth = smooth
-        self.face_normals = np.asarray(self.mesh.face_normals)
-        self.vertex_normals = np.asarray(self.mesh.vertex_normals) if smooth else None
+        # plain arrays: trimesh re-hashes its tracked arrays on every access
+        self.verts = np.array(self.mesh.vertices, dtype=np.float64)
+        self.faces = np.array(self.mesh.faces, dtype=np.int64)
+        self.face_normals = np.array(self.mesh.face_normals, dtype=np.float64)
+        self.vertex_normals = np.array(self.mesh.vertex_normals, dtype=np.float64) if smooth else None
 
     def shade(self, origins, dirs, sun):
         """Lambert radiance per ray (NaN where the ray misses) with cast shadows."""
@@ -240,9 +243,8 @@ class _Tracer:
         out = np.full(len(origins), np.nan)
         if len(iray) == 0:
             return out
-        tri = self.mesh.vertices[self.mesh.faces[itri]]
-        bary = trimesh.triangles.points_to_barycentric(tri, loc)
-        fidx = self.mesh.faces[itri]
+        fidx = self.faces[itri]
+        bary = trimesh.triangles.points_to_barycentric(self.verts[fidx], loc)
         alb = np.einsum("ij,ij->i", bary, self.albedo[fidx])
         if self.smooth:
             nrm = np.einsum("ij,ijk->ik", bary, self.vertex_normals[fidx])
@@ -330,7 +332,6 @@ def build_world(root, spec: IndependentSpec | None = None) -> dict:
     from spctool.formats.mesh import TriangleMesh
     from spctool.formats.photo import write_photo
     from spctool.formats.sumfile import Picture, write_sum
-    from spctool.geometry.shape import embree_available
     from spctool.sim.maplets import make_maplets
     from spctool.stages.render import ShapeSurface
 
@@ -359,9 +360,7 @@ def build_world(root, spec: IndependentSpec | None = None) -> dict:
     gx, gy = gx.ravel(), gy.ravel()
     centres = v0 + s * (gx[:, None] * ux + gy[:, None] * uy + terrain.height(gx, gy)[:, None] * uz)
     names = [f"IW{i:04d}" for i in range(len(gx))]
-    surface = ShapeSurface.from_model(
-        TriangleMesh(body, faces), backend="embree" if embree_available() else "auto"
-    )
+    surface = ShapeSurface.from_model(TriangleMesh(body, faces))  # spctool's own ray caster (GET_HEIGHTS)
     pairs = make_maplets(surface, names, centres, s, int(spec.qsz))
     n = 2 * int(spec.qsz) + 1
     t = np.arange(n, dtype=np.float64) - spec.qsz
