@@ -1,0 +1,91 @@
+"""Two-pass navigation (spctool.stages.navigate): the acquisition schedule by hand and as a property,
+option validation, and the passes on spctool's own S16-like scene (the independent world is in
+test_independent_world.py)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from spctool.errors import SpcUsageError
+from spctool.stages.navigate import NavigateOptions, acquisition_steps
+
+
+def test_acquisition_steps_by_hand():
+    opts = NavigateOptions()
+    # 49 cells: S16's L = 10 would leave 4 bins; L0 = 49 // 12 = 4, k0 = ceil(25 / 4) + 1 = 8
+    assert acquisition_steps(49, 1.0, opts) == [(4, 8), (2, 5), (1, 5)]
+    # 99 cells (S16's maplets), 1.43 cells per px at 50 m: reach 35.75 cells, L0 = 8, k0 = 6
+    assert acquisition_steps(99, 1.43, opts) == [(8, 6), (4, 5), (2, 5), (1, 5)]
+    # large maplets: S16's L = 10 with its +-5 bins reaches 50 cells >= 25 px at 1 cell/px
+    assert acquisition_steps(301, 1.0, opts) == [(10, 5), (5, 5), (2, 5), (1, 5)]
+    # tiny maplets: spacing 1 with a wide grid
+    assert acquisition_steps(11, 1.0, opts) == [(1, 26)]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    size=st.integers(5, 401),
+    per_px=st.floats(0.2, 5.0),
+    reach=st.floats(1.0, 60.0),
+)
+def test_acquisition_reaches_and_keeps_bins(size, per_px, reach):
+    opts = NavigateOptions(reach_px=reach)
+    steps = acquisition_steps(size, per_px, opts)
+    l0, k0 = steps[0]
+    # the first step reaches the requested pixels plus a bin (a peak at the reach is not on the border)
+    assert k0 * l0 >= reach * per_px + l0 - 1e-9
+    assert l0 == 1 or size // l0 >= opts.min_bins
+    assert l0 <= opts.max_spacing
+    # each finer step reaches at least the previous spacing (the previous step's quantisation)
+    for (a, _), (b, k) in zip(steps, steps[1:]):
+        assert b < a and k * b >= a / 2
+    assert steps[-1][0] == 1
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"passes": 3},
+        {"reach_px": 0},
+        {"reach_px": math.inf},
+        {"refine_spacings": ()},
+        {"refine_spacings": (2, 0)},
+        {"min_landmarks": 0},
+        {"min_bins": 2},
+    ],
+)
+def test_bad_options_are_refused(kw):
+    with pytest.raises(SpcUsageError):
+        NavigateOptions(**kw)
+
+
+def test_two_passes_on_the_s16_scene():
+    """spctool's own rendered S16 scene (99x99 maplet, 50 m): a 12 px pointing error is acquired, and
+    pass 2 (from the solved pose) lands within 0.1 px of the truth pixel."""
+    import numpy as np
+    import register_scene as rs
+
+    from spctool.stages.navigate import navigate
+    from spctool.stages.pose import PoseOptions
+
+    sc = rs.scene()
+    cam = rs.pointing_error(sc.camera, 9.0, -8.0)
+    res = navigate(
+        sc.photo,
+        cam,
+        sc.sun,
+        [sc.maplet],
+        sc.thresholds,
+        NavigateOptions(min_landmarks=1, pose=PoseOptions(min_landmarks=1)),
+        prior_sigma_position=np.full(3, 1e-6),
+        prior_sigma_attitude=np.full(3, 1e-2),
+    )
+    assert res.status == "ok", res.status
+    assert [p.found for p in res.passes] == [1, 1]
+    err1 = np.linalg.norm(res.passes[0].register.measured[0] - sc.truth_pixel)
+    err2 = np.linalg.norm(res.passes[1].register.measured[0] - sc.truth_pixel)
+    assert err2 < 0.1, (err1, err2)
