@@ -4,7 +4,7 @@ mesh finer than the maplets, Lambert shading, cast shadows, noise, a-priori erro
 
 Thresholds asserted are the ones met on this branch (measured, maplet space, both truths):
 two-pass rms 0.022-0.030 px, max 0.060 px; one-pass rms 0.09-0.23 px; image space two-pass rms
-0.044-0.063 px, max 0.10 px.  The issue's targets (two-pass <= 0.03 px, one pass <= 0.05 px, max <= 0.1 px)
+0.053-0.054 px, max 0.116 px.  The issue's targets (two-pass <= 0.03 px, one pass <= 0.05 px, max <= 0.1 px)
 are printed beside the figures (``pytest -s``) and re-measured after the correlation numerics of the
 same issue (2-D quadric peak, converged final step) are merged.
 """
@@ -158,14 +158,15 @@ def test_two_pass_navigation_maplet_space(worlds, truth):
               f"two-pass rms {rms2:.3f} max {max2:.3f}")  # fmt: skip
 
 
-def test_two_pass_navigation_image_space(worlds):
-    root, doc = worlds["facet"]
+@pytest.mark.parametrize("truth", ["facet", "smooth"])
+def test_two_pass_navigation_image_space(worlds, truth):
+    root, doc = worlds[truth]
     for p in doc["pictures"]:
         res, true_px = _navigate(root, p, space="image")
         assert res.status == "ok"
         assert res.passes[0].register.ok.all() and res.passes[1].register.ok.all()
         e2 = _errors(res.passes[1].register, true_px)
-        assert float(np.sqrt(np.mean(e2**2))) <= 0.08 and e2.max() <= 0.15  # measured 0.044-0.063 / 0.10
+        assert float(np.sqrt(np.mean(e2**2))) <= 0.08 and e2.max() <= 0.15  # measured 0.053 / 0.116
 
 
 def test_single_pass_autoregister_loses_the_14px_picture_two_pass_keeps_it(worlds):
@@ -240,3 +241,17 @@ def test_pass_2_without_a_pose_keeps_pass_1(worlds, monkeypatch):
     assert res.status == "ok" and len(res.passes) == 2
     assert res.final is res.passes[0] and res.pose is res.passes[0].pose
     assert any("simulated failure" in w for w in res.warnings)
+
+
+def test_batch_cli_default_is_two_pass(worlds, run_cli, tmp_path):
+    import json as _json
+
+    root, doc = worlds["smooth"]
+    res = run_cli("-C", root, "batch", "--out-dir", tmp_path / "two", "--json")
+    assert res.exit_code == 0, res.stderr
+    rows = _json.loads(res.stdout)["pictures"]
+    assert [r["status"] for r in rows] == ["ok"] * 3 and [r["found"] for r in rows] == [9] * 3
+    old = run_cli("-C", root, "batch", "--out-dir", tmp_path / "one", "--schedule", "autoregister", "--json")
+    assert old.exit_code == 0  # a no-pose picture is a result, not a failure
+    rows = _json.loads(old.stdout)["pictures"]
+    assert rows[1]["status"].startswith("no-pose")
