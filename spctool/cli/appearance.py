@@ -50,6 +50,15 @@ _common_options = options.option_group(
     ),
     options.out_dir_option("Write one image per landmark to DIR (created if needed). Default: no images."),
     options.image_format_option,
+    click.option(
+        "--sheet",
+        "sheet",
+        metavar="FILE.png",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="Write every landmark's image on one page, enlarged (nearest neighbour) and captioned with "
+        "its name, correlation and status (PNG; no-data cells dark red).",
+    ),
     options.predict_options,
     options.extract_options,
     options.json_option,
@@ -181,6 +190,7 @@ def _run(ctx: Context, stage: str, kw: dict):
 
     rows = []
     written = 0
+    tiles = []  # --sheet: (caption, image, valid)
     command = "predict" if stage == "predicted" else "extract"
     with progress(ctx, f"{command} {pic.name}", len(inputs.landmarks)) as advance:
         for name, pixel in inputs.landmarks:
@@ -277,6 +287,9 @@ def _run(ctx: Context, stage: str, kw: dict):
                 image = pred.image if stage == "predicted" else ext.image
                 _write_image(out_dir, kw["image_format"], stage, row, image, maplet, popts, eopts, thresholds)
                 written += 1
+            if kw["sheet"] and front:
+                image, valid = (pred.image, pred.lit) if stage == "predicted" else (ext.image, ext.valid)
+                tiles.append((f"{name} rho {row['correlation']:.2f} {row['status']}", image, valid))
             advance()
 
     columns = [
@@ -317,6 +330,12 @@ def _run(ctx: Context, stage: str, kw: dict):
         )
     if out_dir is not None:
         table.comments.append(f"{written} {stage} images written to {out_dir}")
+    if kw["sheet"]:
+        from spctool import figures
+
+        title = f"{pic.name}  {stage} maplet images ({len(tiles)}), North up"
+        figures.contact_sheet(tiles, title=title).save(kw["sheet"])
+        ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
 

@@ -234,39 +234,103 @@ def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space
     return path
 
 
-def render_overlay(photo_data, thrsh, names, apriori, measured, ok) -> bytes:
-    """PNG bytes: the photo stretched to 8 bits, a-priori pixels as yellow crosses, measured ones as green
-    crosses joined to them (red X where registration failed), with the landmark names."""
-    import io
+def render_overlay(
+    photo_data, thrsh, names, apriori, measured, ok, *, status=None, picture="", subtitle="", magnify=None
+) -> bytes:
+    """PNG bytes of :func:`spctool.figures.register_overlay`: the photo with each landmark's shift drawn
+    as a vector magnified by a stated factor, coloured by status, with legend, title and a reference
+    vector (``status`` default: ok / not-found from ``ok``)."""
+    from spctool import figures
 
-    from PIL import Image, ImageDraw
+    if status is None:
+        status = ["ok" if o else "not-found" for o in ok]
+    fig = figures.register_overlay(
+        photo_data,
+        thrsh,
+        names,
+        apriori,
+        measured,
+        status,
+        picture=picture,
+        subtitle=subtitle,
+        magnify=magnify,
+    )
+    return fig.png()
 
-    from spctool.cli.select import stretch_8bit
 
-    gray = stretch_8bit(photo_data, thrsh)
-    img = Image.fromarray(np.repeat(gray[:, :, None], 3, axis=2), mode="RGB")
-    draw = ImageDraw.Draw(img)
-    yellow, green, red = (255, 210, 0), (60, 230, 60), (255, 60, 60)
-    for k, name in enumerate(names):  # PIL draws one primitive at a time
-        a = apriori[k] - 1.0  # SPC 1-based → PIL 0-based
-        if not np.all(np.isfinite(a)):
+def write_panels(out_dir: Path, inp, result, opts) -> int:
+    """One PNG per landmark with a last correlation step (:func:`spctool.figures.landmark_panel`):
+    predicted | extracted | surface (maplet space; the prediction is redrawn at the final pose), or
+    template | photo window at the template's placement | surface (image space)."""
+    from spctool import figures
+    from spctool.stages.predict import predict
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    camera = result.camera
+    written = 0
+    for i, (name, st) in enumerate(zip(result.names, result.last_steps)):
+        if st is None:
             continue
-        draw.line([(a[0] - 4, a[1]), (a[0] + 4, a[1])], fill=yellow)
-        draw.line([(a[0], a[1] - 4), (a[0], a[1] + 4)], fill=yellow)
-        if ok[k] and np.all(np.isfinite(measured[k])):
-            m = measured[k] - 1.0
-            draw.line([(a[0], a[1]), (m[0], m[1])], fill=green)
-            draw.line([(m[0] - 4, m[1]), (m[0] + 4, m[1])], fill=green)
-            draw.line([(m[0], m[1] - 4), (m[0], m[1] + 4)], fill=green)
-            colour = green
+        corr = st.correlation
+        common = dict(
+            peak_index=corr.peak_index,
+            subpixel=corr.subpixel,
+            spacing=int(corr.spacing),
+            rho=float(corr.peak),
+            status=result.status[i],
+            shift=tuple(float(x) for x in (result.measured[i] - result.apriori[i])),
+        )
+        if st.extraction is not None:
+            pred = predict(inp.maplets[i], camera.position, inp.pic.sz, opts.predict)
+            fig = figures.landmark_panel(
+                name,
+                inp.pic.name,
+                pred.image,
+                st.extraction.image,
+                corr.surface,
+                left_valid=pred.lit,
+                middle_valid=st.extraction.valid,
+                axes=("UY", "UX"),
+                unit="cells",
+                note="maplet space, North up; yellow + = landmark centre V; prediction at the final pose",
+                **common,
+            )
+        elif st.template is not None:
+            tmpl = st.template
+            s0, s1, l0, l1 = tmpl.window
+            c0 = np.asarray(camera.project(inp.positions[i][None, :]), float).reshape(2)
+            ds, dl = (int(v) for v in np.rint(st.center - c0))
+            win = _photo_window(inp.photo.data, s0 + ds, s1 + ds, l0 + dl, l1 + dl)
+            fig = figures.landmark_panel(
+                name,
+                inp.pic.name,
+                tmpl.radiance,
+                win,
+                corr.surface,
+                left_valid=tmpl.coverage >= 1.0 - 1e-12,
+                middle_valid=np.isfinite(win),
+                labels=("template (rendered)", "photo window"),
+                axes=("sample", "line"),
+                unit="px",
+                note=f"image space; photo samples {s0 + ds}-{s1 + ds}, lines {l0 + dl}-{l1 + dl}",
+                **common,
+            )
         else:
-            draw.line([(a[0] - 3, a[1] - 3), (a[0] + 3, a[1] + 3)], fill=red)
-            draw.line([(a[0] - 3, a[1] + 3), (a[0] + 3, a[1] - 3)], fill=red)
-            colour = red
-        draw.text((float(a[0]) + 5.0, float(a[1]) - 12.0), name, fill=colour)
-    buf = io.BytesIO()
-    img.save(buf, format="PNG")
-    return buf.getvalue()
+            continue
+        fig.save(out_dir / f"{name}_{inp.pic.name}_panel.png")
+        written += 1
+    return written
+
+
+def _photo_window(data, s0, s1, l0, l1):
+    """Photo DN over samples s0..s1, lines l0..l1 (1-based inclusive); NaN outside the photo."""
+    out = np.full((l1 - l0 + 1, s1 - s0 + 1), np.nan)
+    nln, npx = data.shape
+    a, b = max(l0, 1), min(l1, nln)
+    c, d = max(s0, 1), min(s1, npx)
+    if a <= b and c <= d:
+        out[a - l0 : b - l0 + 1, c - s0 : d - s0 + 1] = data[a - 1 : b, c - 1 : d]
+    return out
 
 
 def _missing_rows(names, columns):
@@ -294,6 +358,14 @@ def _missing_rows(names, columns):
     show_default=True,
     metavar="N",
     help="Bin both images by NxN and correlate over +-K bins (search +-K x N cells).",
+)
+@click.option(
+    "--sheet",
+    "sheet",
+    metavar="FILE.png",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write every landmark's correlation surface on one page, enlarged, peak marked in red (PNG).",
 )
 def correlate_cmd(ctx: Context, **kw):
     """One correlation of each landmark: offset, peak and peak quality.
@@ -345,7 +417,7 @@ def correlate_cmd(ctx: Context, **kw):
         "spacing",
         "status",
     ]
-    rows, written = [], 0
+    rows, written, tiles = [], 0, []
     with progress(ctx, f"correlate {inp.pic.name}", len(reg)) as advance:
         for i, name in enumerate(inp.names):
             row = {
@@ -389,6 +461,12 @@ def correlate_cmd(ctx: Context, **kw):
             if out_dir is not None:
                 _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space)
                 written += 1
+            if kw["sheet"]:
+                from spctool.figures import surface_tile
+
+                tiles.append(
+                    (f"{name} rho {st.correlation.peak:.2f} {st.status}", surface_tile(st.correlation))
+                )
             advance()
     rows += _missing_rows(inp.missing, columns)
     meta = {
@@ -409,6 +487,14 @@ def correlate_cmd(ctx: Context, **kw):
     )
     if out_dir is not None:
         table.comments.append(f"{written} correlation surfaces written to {out_dir}")
+    if kw["sheet"]:
+        from spctool.figures import contact_sheet
+
+        title = (
+            f"{inp.pic.name}  correlation surfaces, spacing {kw['spacing']} (viridis per tile; red = peak)"
+        )
+        contact_sheet(tiles, title=title).save(kw["sheet"])
+        ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
 
@@ -466,7 +552,26 @@ def correlate_cmd(ctx: Context, **kw):
     is_flag=True,
     help="With --write-sum: also remove the LANDMARKS rows of landmarks that failed.",
 )
-@options.overlay_option("Write the photo with a-priori (yellow) and measured (green) landmark pixels (PNG).")
+@options.overlay_option(
+    "Write the photo with each landmark's shift (measured - a-priori) as a vector magnified by "
+    "--magnify, coloured by status, with legend and title (PNG)."
+)
+@click.option(
+    "--magnify",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    metavar="F",
+    help="--overlay: draw shift vectors F times their length.  [default: the median shift drawn ~40 px]",
+)
+@click.option(
+    "--panels",
+    "panels",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
+    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
+)
 @options.require_option("Exit 1 when fewer than N landmarks are registered.")
 def register_cmd(ctx: Context, **kw):
     """Measure the landmarks of a picture: iterated predict, extract and correlate.
@@ -507,6 +612,8 @@ def register_cmd(ctx: Context, **kw):
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])
+    if kw["panels"]:
+        extra["keep_images"] = True  # the last extraction / template of every landmark, for the panels
     if kw["drop_corr"] is not None:
         seed = RegisterOptions.__dataclass_fields__["autoregister_steps"].default
         extra["autoregister_steps"] = tuple(
@@ -580,10 +687,22 @@ def register_cmd(ctx: Context, **kw):
         atomic.write_bytes(
             kw["overlay"],
             render_overlay(
-                inp.photo.data, inp.pic.thrsh, result.names, result.apriori, result.measured, result.ok
+                inp.photo.data,
+                inp.pic.thrsh,
+                result.names,
+                result.apriori,
+                result.measured,
+                result.ok,
+                status=result.status,
+                picture=inp.pic.name,
+                subtitle=f"({kw['schedule']}, {opts.space} space)",
+                magnify=kw["magnify"],
             ),
         )
         ctx.info(f"wrote {kw['overlay']}")
+    if kw["panels"]:
+        n = write_panels(Path(kw["panels"]), inp, result, opts)
+        ctx.info(f"wrote {n} panels to {kw['panels']}")
     if kw["require"] is not None and int(result.ok.sum()) < kw["require"]:
         raise SpcResultError(
             f"{inp.pic.name}: {int(result.ok.sum())} landmarks registered, fewer than "
