@@ -542,18 +542,26 @@ def surface_tile(corr) -> np.ndarray:
 
 
 class _Axes:
-    """A plotting box mapping data (x, y) to canvas pixels, with ticks and labels."""
+    """A plotting box mapping data (x, y) to canvas pixels, with ticks and labels.  ``ylog``: the y
+    axis is logarithmic (ylim > 0; bars start at ylim[0]); ``yint``: integer y ticks only."""
 
-    def __init__(self, cv: _Canvas, box, xlim, ylim, xlabel="", ylabel="", xticks=True):
+    def __init__(
+        self, cv: _Canvas, box, xlim, ylim, xlabel="", ylabel="", xticks=True, ylog=False, yint=False
+    ):
         self.cv, self.box = cv, [float(v) for v in box]
-        self.xlim, self.ylim = xlim, ylim
+        self.xlim, self.ylim, self.ylog = xlim, ylim, ylog
         x0, y0, x1, y1 = self.box
         cv.draw.rectangle([x0, y0, x1, y1], outline=BLACK)
-        for t in ticks(*ylim, 5):
+        if ylog:
+            lo, hi = math.floor(math.log10(ylim[0])), math.ceil(math.log10(ylim[1]))
+            yt = [m * 10.0**e for e in range(lo, hi + 1) for m in (1, 2, 5)]
+        else:
+            yt = [t for t in ticks(*ylim, 5) if not yint or t == round(t)]
+        for t in yt:
             if ylim[0] <= t <= ylim[1]:
                 ty = self.y(t)
                 cv.draw.line([(x0 - 4, ty), (x0, ty)], fill=BLACK)
-                cv.draw.line([(x0, ty), (x1, ty)], fill=(225, 225, 225))
+                cv.draw.line([(x0 + 1, ty), (x1 - 1, ty)], fill=(225, 225, 225))
                 cv.text((x0 - 6, ty), fmt(t, 3), 11, anchor="rm")
         if xticks:
             for t in ticks(*xlim, 6):
@@ -572,13 +580,19 @@ class _Axes:
 
     def y(self, v):
         _, y0, _, y1 = self.box
-        return y1 - (v - self.ylim[0]) / ((self.ylim[1] - self.ylim[0]) or 1.0) * (y1 - y0)
+        lo, hi = self.ylim
+        if self.ylog:
+            v, lo, hi = (math.log10(max(float(x), 1e-300)) for x in (v, lo, hi))
+        return y1 - (v - lo) / ((hi - lo) or 1.0) * (y1 - y0)
 
     def bar(self, xa, xb, h, fill):
-        if h > 0:
-            self.cv.draw.rectangle(
-                [self.x(xa), self.y(min(h, self.ylim[1])), self.x(xb), self.y(0)], fill=fill
-            )
+        """A bar from the axis bottom to ``h`` (clipped to the box); returns its top's canvas y."""
+        if not h > 0:
+            return None
+        base = self.ylim[0]
+        top = self.y(min(max(h, base), self.ylim[1]))
+        self.cv.draw.rectangle([self.x(xa), top, self.x(xb), self.y(base)], fill=fill)
+        return top
 
 
 def histogram_counts(values, edges) -> np.ndarray:
@@ -599,14 +613,17 @@ def pose_plot(
     rms_before: float = math.nan,
     rms_after: float = math.nan,
     magnify: float | None = None,
+    magnify_after: float | None = None,
     shape=None,
 ) -> Figure:
     """solve-pose residuals (measured − predicted, px) before (orange) and after (blue) the solve,
-    drawn from each measured pixel magnified by ``magnify`` (default: the median before-residual drawn
-    ≈ 40 px) over the photo (``photo`` None: a grey frame of ``shape`` (lines, samples)), and a
-    histogram of the residual lengths.  Rows whose status is not ok are marked by an × in their status
-    colour.  ``extra['tips_before']`` / ``extra['tips_after']``: canvas tips of the vectors;
-    ``extra['hist']``: (edges, counts_before, counts_after)."""
+    drawn from each measured pixel toward the predicted one, over the photo (``photo`` None: a grey
+    frame of ``shape`` (lines, samples)), with one histogram of the residual lengths before and one
+    after.  The two sets have their own magnification (default: each median drawn ≈ 40 px, after at
+    least as magnified as before), both stated in the title and legend.  Rows whose status is not ok
+    are marked by an × in their status colour.  ``extra['tips_before']`` / ``extra['tips_after']``:
+    canvas tips of the vectors; ``extra['hist']``: ((edges, counts) before, (edges, counts) after);
+    ``extra['magnify_after']``."""
     if photo is not None:
         rgb = photo_rgb(getattr(photo, "data", photo), thrsh)
     else:
@@ -617,83 +634,69 @@ def pose_plot(
     status = [str(s) for s in status]
     ok = np.array([s == "ok" for s in status], bool)
     mag = float(magnify) if magnify else auto_magnify(rb[ok])
+    mag_a = float(magnify_after) if magnify_after else max(mag, auto_magnify(ra[ok]))
     z = _photo_zoom(rgb.shape[:2], 560)
-    rgb = upscale(rgb, z)
-    if max(rgb.shape[:2]) > 900:  # very large photos: draw at a reduced integer scale
-        step = int(math.ceil(max(rgb.shape[:2]) / 900))
-        rgb = rgb[::step, ::step]
-        zoom = 1.0 / step
-    else:
-        zoom = float(z)
-    head, hist_w, pad = 56, 340, 20
-    cv = _Canvas(rgb.shape[1] + hist_w + 3 * pad + 30, max(rgb.shape[0], 420) + head + 10)
+    step = max(1, int(math.ceil(max(rgb.shape[:2]) / 1000)))  # very large photos: drawn reduced
+    rgb = upscale(rgb, z)[::step, ::step]
+    zoom = z / step
+    head, side, pad = 56, 360, 20
+    cv = _Canvas(rgb.shape[1] + side + 2 * pad, max(rgb.shape[0], 640) + head + 10)
     cv.paste(rgb, (0, head))
-    fig = Figure(cv.image, 0.0, float(head), zoom, mag)
-    if zoom < 1:
-        fig.x0 = fig.y0 = 0.0
-        fig.y0 = float(head)
+    fig = Figure(cv.image, 0.0, float(head), zoom, mag, extra={"magnify_after": mag_a})
     tips_b = np.full(m.shape, np.nan)
     tips_a = np.full(m.shape, np.nan)
-    for k in range(len(status)):
+    for k in range(len(status)):  # PIL draws one primitive at a time
         if not np.all(np.isfinite(m[k])):
             continue
         p = fig.xy(*m[k])
         if not ok[k]:
             cv.cross(p, 4, status_colour(status[k]), width=2, diagonal=True)
             continue
-        for res, colour, tips in ((rb, BEFORE, tips_b), (ra, AFTER, tips_a)):
+        for res, colour, tips, f in ((rb, BEFORE, tips_b, mag), (ra, AFTER, tips_a, mag_a)):
             if np.all(np.isfinite(res[k])):
-                # the vector points from the measured pixel toward the predicted one (−residual)
-                tip = (p[0] - mag * zoom * res[k, 0], p[1] - mag * zoom * res[k, 1])
+                # from the measured pixel toward the predicted one (− residual)
+                tip = (p[0] - f * zoom * res[k, 0], p[1] - f * zoom * res[k, 1])
                 cv.arrow(p, tip, colour, width=2, head=7)
                 tips[k] = tip
         cv.cross(p, 3, WHITE, width=1)
     fig.extra["tips_before"], fig.extra["tips_after"] = tips_b, tips_a
     n_ok = int(ok.sum())
-    cv.text((8, 6), f"{picture}  solve-pose: {n_ok} landmarks used of {len(status)}", 17)
+    cv.text((8, 6), f"{picture}  solve-pose: {n_ok} of {len(status)} landmarks used", 17)
     cv.text(
         (8, 30),
-        f"rms residual {fmt(rms_before, 3)} px before -> {fmt(rms_after, 3)} px after;"
-        f"  vectors measured -> predicted, x{fmt(mag)}",
+        f"rms residual {fmt(rms_before, 3)} px before -> {fmt(rms_after, 3)} px after;  vectors from the "
+        f"measured pixel toward the predicted one, before x{fmt(mag)}, after x{fmt(mag_a)}",
         13,
     )
-    fig.extra["hist"] = _residual_histogram(
-        cv, rb[ok], ra[ok], rgb.shape[1] + 2 * pad + 30, head + 30, hist_w
-    )
-    lx = rgb.shape[1] + 2 * pad + 30
-    cv.legend(
-        (lx, head + 300),
-        [(BEFORE, "before (a-priori pose)", "line"), (AFTER, "after (solved pose)", "line")]
-        + [(status_colour(s), f"{s} (not used)", "xmark") for s in sorted(set(status) - {"ok"})],
-    )
+    x = rgb.shape[1] + pad + 40
+    hb = _residual_histogram(cv, rb[ok], x, head + 30, side - 50, BEFORE, "before the solve")
+    ha = _residual_histogram(cv, ra[ok], x, head + 250, side - 50, AFTER, "after the solve")
+    fig.extra["hist"] = (hb, ha)
+    items = [
+        (BEFORE, f"before (a-priori pose) x{fmt(mag)}", "line"),
+        (AFTER, f"after (solved) x{fmt(mag_a)}", "line"),
+    ]
+    items += [(status_colour(s), f"{s} (not used)", "xmark") for s in sorted(set(status) - {"ok"})]
+    cv.legend((x - 30, head + 470), items)
     return fig
 
 
-def _residual_histogram(cv, rb, ra, x, y, w):
-    nb, na = np.hypot(rb[:, 0], rb[:, 1]), np.hypot(ra[:, 0], ra[:, 1])
-    allv = np.concatenate([nb[np.isfinite(nb)], na[np.isfinite(na)]])
-    top = float(allv.max()) if allv.size else 1.0
-    top = top if top > 0 else 1.0
-    step = nice_number(top / 8.0) or 1.0
+def _residual_histogram(cv, res, x, y, w, colour, title):
+    """Histogram of the residual lengths |res| (px) in a box at (x, y); returns (edges, counts)."""
+    n = np.hypot(res[:, 0], res[:, 1])
+    n = n[np.isfinite(n)]
+    top = float(n.max()) if n.size else 1.0
+    step = nice_number((top if top > 0 else 1.0) / 8.0)
     edges = np.arange(0.0, top + step * 1.0001, step)
     if len(edges) < 2:
         edges = np.array([0.0, step])
-    cb, ca = histogram_counts(nb, edges), histogram_counts(na, edges)
-    ymax = max(1, int(max(cb.max(initial=0), ca.max(initial=0))))
-    ax = _Axes(
-        cv,
-        (x, y, x + w - 20, y + 210),
-        (0.0, float(edges[-1])),
-        (0.0, ymax * 1.1),
-        "residual length (px)",
-        "landmarks",
-    )
+    counts = histogram_counts(n, edges)
+    ymax = max(1, int(counts.max(initial=0)))
+    ax = _Axes(cv, (x, y + 16, x + w, y + 166), (0.0, float(edges[-1])), (0.0, ymax * 1.1), yint=True)
+    cv.text((x, y), f"{title}: residual length (px), landmarks per bin", 12)
     for k in range(len(edges) - 1):
-        a, b = edges[k], edges[k + 1]
-        mid = (a + b) / 2
-        ax.bar(a + 0.05 * step, mid, cb[k], BEFORE)
-        ax.bar(mid, b - 0.05 * step, ca[k], AFTER)
-    return edges, cb, ca
+        ax.bar(edges[k] + 0.05 * step, edges[k + 1] - 0.05 * step, counts[k], colour)
+    return edges, counts
 
 
 # ------------------------------------------------------------------------------------------------
@@ -702,35 +705,39 @@ def _residual_histogram(cv, rb, ra, x, y, w):
 
 def batch_summary(pictures, rms_before, rms_after, selected, found, status, *, title: str = "") -> Figure:
     """Two panels over the pictures of a batch (in list order): rms residual before / after the pose
-    solve (px), and landmarks found (registered) beside selected; failed pictures are marked by a red
-    × on the axis.  ``extra['x']`` = canvas x of each picture's slot centre, ``extra['axes']`` =
-    (rms axes box, count axes box)."""
+    solve (px, logarithmic axis), and landmarks found (registered) beside selected; pictures whose
+    status is not ok are marked by an × on the axis (red: failed, orange: no pose).  With room, each
+    bar carries its value.  ``extra['bars']``: {(picture index, key): (x_centre, y_top)} with key in
+    rms_before, rms_after, selected, found; ``extra['axes']``: the two axes boxes."""
     n = len(pictures)
     rb = np.asarray(rms_before, np.float64)
     ra = np.asarray(rms_after, np.float64)
     sel = np.asarray(selected, np.float64)
     fnd = np.asarray(found, np.float64)
-    slot = max(6, min(60, 1100 // max(1, n)))
+    slot = max(4, min(110, 1100 // max(1, n)))
     left, pad = 70, 20
     label_names = slot >= 14
+    values_on_bars = slot >= 60
     plot_w = slot * max(1, n)
-    width = left + plot_w + 260
-    h1 = h2 = 200
-    cv = _Canvas(width, 50 + h1 + 50 + h2 + (90 if label_names else 40))
+    width = max(left + plot_w + 200, 560)
+    h1 = h2 = 220
+    cv = _Canvas(width, 56 + h1 + 56 + h2 + (96 if label_names else 40))
     cv.text((pad, 8), title or f"batch: {n} pictures", 17)
-    fin = np.concatenate([rb[np.isfinite(rb)], ra[np.isfinite(ra)]])
-    ytop = float(fin.max()) * 1.15 if fin.size and fin.max() > 0 else 1.0
+    fin = np.concatenate([rb[np.isfinite(rb) & (rb > 0)], ra[np.isfinite(ra) & (ra > 0)]])
+    lo = 10.0 ** math.floor(math.log10(fin.min())) if fin.size else 0.01
+    hi = 10.0 ** math.ceil(math.log10(fin.max() * 1.3)) if fin.size else 10.0
     a1 = _Axes(
         cv,
-        (left, 50, left + plot_w, 50 + h1),
+        (left, 56, left + plot_w, 56 + h1),
         (0.0, float(max(1, n))),
-        (0.0, ytop),
+        (lo, hi),
         "",
-        "rms residual (px)",
+        "rms residual (px, log scale)",
         xticks=False,
+        ylog=True,
     )
     ctop = float(np.nanmax(np.concatenate([sel, fnd, [1.0]]))) * 1.15
-    y2 = 50 + h1 + 50
+    y2 = 56 + h1 + 56
     a2 = _Axes(
         cv,
         (left, y2, left + plot_w, y2 + h2),
@@ -739,31 +746,33 @@ def batch_summary(pictures, rms_before, rms_after, selected, found, status, *, t
         "",
         "landmarks",
         xticks=False,
+        yint=True,
     )
-    xs = []
+    bars = {}
     for k in range(n):
-        a, b = k + 0.1, k + 0.9
-        mid = k + 0.5
-        xs.append(a1.x(mid))
-        for ax, (v1, c1), (v2, c2) in (
-            (a1, (rb[k], BEFORE), (ra[k], AFTER)),
-            (a2, (sel[k], (150, 150, 220)), (fnd[k], (40, 170, 40))),
+        a, b, mid = k + 0.08, k + 0.92, k + 0.5
+        for ax, pair in (
+            (a1, (("rms_before", rb[k], BEFORE), ("rms_after", ra[k], AFTER))),
+            (a2, (("selected", sel[k], (150, 150, 220)), ("found", fnd[k], (40, 170, 40)))),
         ):
-            if math.isfinite(v1):
-                ax.bar(a, mid, v1, c1)
-            if math.isfinite(v2):
-                ax.bar(mid, b, v2, c2)
-        if str(status[k]) not in ("ok",):
+            for (key, v, colour), (xa, xb) in zip(pair, ((a, mid), (mid, b))):
+                top = ax.bar(xa, xb, v, colour) if math.isfinite(v) else None
+                if top is not None:
+                    bars[(k, key)] = ((ax.x(xa) + ax.x(xb)) / 2, top)
+                    if values_on_bars:
+                        text = fmt(v, 2) if key.startswith("rms") else str(int(v))
+                        cv.text(((ax.x(xa) + ax.x(xb)) / 2, top - 2), text, 10, anchor="md")
+        if str(status[k]) != "ok":
             colour = (220, 0, 0) if str(status[k]).startswith("failed") else (255, 140, 0)
             for ax in (a1, a2):
-                cv.cross((ax.x(mid), ax.y(0) - 6), 4, colour, width=2, diagonal=True)
+                cv.cross((ax.x(mid), ax.box[3] - 7), 5, colour, width=2, diagonal=True)
         if label_names:
-            lbl = Image.new("RGB", (80, 14), WHITE)
-            ImageDraw.Draw(lbl).text((0, 0), str(pictures[k])[-12:], fill=BLACK, font=font(11))
-            rot = lbl.rotate(60, expand=True, fillcolor=WHITE)
-            cv.image.paste(rot, (int(a1.x(mid) - rot.size[0] + 6), int(y2 + h2 + 4)))
+            mask = Image.new("L", (100, 14), 0)
+            ImageDraw.Draw(mask).text((0, 0), str(pictures[k])[-14:], fill=255, font=font(11))
+            mask = mask.rotate(60, expand=True)
+            cv.image.paste(BLACK, (int(a2.x(mid) - mask.size[0] + 6), int(y2 + h2 + 4)), mask)
     lx = left + plot_w + 16
-    cv.legend((lx, 50), [(BEFORE, "rms before", "box"), (AFTER, "rms after", "box")])
+    cv.legend((lx, 56), [(BEFORE, "a-priori pose", "box"), (AFTER, "solved pose", "box")])
     cv.legend(
         (lx, y2),
         [
@@ -775,4 +784,4 @@ def batch_summary(pictures, rms_before, rms_after, selected, found, status, *, t
     )
     if not label_names:
         cv.text((left, y2 + h2 + 6), f"pictures 1 .. {n} in list order", 12)
-    return Figure(cv.image, extra={"x": xs, "axes": (a1.box, a2.box), "ylim": (a1.ylim, a2.ylim)})
+    return Figure(cv.image, extra={"bars": bars, "axes": (a1.box, a2.box)})

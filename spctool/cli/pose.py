@@ -177,6 +177,17 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     metavar="FILE",
     help="Write the residual table to FILE instead of stdout ('-' = stdout).",
 )
+@click.option(
+    "--plot",
+    "plot",
+    metavar="FILE.png",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the residuals before (orange) and after (blue) the solve as vectors over the photo, "
+    "magnified by a stated factor, beside a histogram of their lengths (PNG).",
+)
+@options.photo_option(" for --plot")
+@options.flip_rows_option
 @options.json_option
 @pass_context
 def solve_pose_cmd(
@@ -198,6 +209,9 @@ def solve_pose_cmd(
     sum_output,
     in_place,
     table_output,
+    plot,
+    photo_path,
+    flip_rows,
     as_json,
 ):
     """Solve the spacecraft position and camera attitude from measured landmark pixels.
@@ -331,6 +345,8 @@ def solve_pose_cmd(
         f"{'converged' if result.converged else 'NOT converged'}; residuals measured - predicted (px)"
     )
     emit_table(table, as_json=as_json, output=table_output)
+    if plot:
+        _plot(ctx, plot, pic, photo_path, flip_rows, meas, res0, res1, status, result)
 
     if ctx.verbosity >= (1 if as_json else 0):
         for line in result.summary_lines():
@@ -340,6 +356,30 @@ def solve_pose_cmd(
             f"{pic.name}: pose did not converge in {pose_options.max_iter} iterations"
             + ("; no SUM written" if write_target is not None else "")
         )
+
+
+def _plot(ctx, path, pic, photo_path, flip_rows, meas, res0, res1, status, result):
+    from spctool import figures
+    from spctool.cli.common import load_photo
+
+    photo = load_photo(ctx, pic, photo_path, flip_rows=flip_rows, required=False)
+    if photo is None:
+        ctx.note_once(f"no photo for picture {pic.name}: --plot draws on a blank frame")
+    fig = figures.pose_plot(
+        None if photo is None else photo.data,
+        pic.thrsh,
+        meas.names,
+        np.stack([meas.sample, meas.line], axis=-1),
+        res0,
+        res1,
+        status,
+        picture=pic.name,
+        rms_before=result.rms_before,
+        rms_after=result.rms_after,
+        shape=(pic.nln, pic.npx),
+    )
+    fig.save(path)
+    ctx.info(f"wrote {path}")
 
 
 def register(cli):
