@@ -172,8 +172,23 @@ class Figure:
         return self.x0 + (sample - 1.0) * self.zoom + h, self.y0 + (line - 1.0) * self.zoom + h
 
     def png(self) -> bytes:
+        """PNG bytes; the figure's geometry (``x0``, ``y0``, ``zoom``, ``magnify`` and the scalar or
+        short-tuple ``extra`` entries) is stored as JSON in a ``spctool`` text chunk."""
+        import json
+
+        from PIL.PngImagePlugin import PngInfo
+
+        geometry = {"x0": self.x0, "y0": self.y0, "zoom": self.zoom, "magnify": self.magnify}
+        for k, v in self.extra.items():
+            if isinstance(v, (int, float, str)) or (
+                isinstance(v, tuple) and len(v) <= 4 and all(isinstance(x, (int, float)) for x in v)
+            ):
+                geometry[k] = v
+        info = PngInfo()
+        info.add_text("Software", "spctool")
+        info.add_text("spctool", json.dumps(geometry))
         buf = io.BytesIO()
-        self.image.save(buf, format="PNG", optimize=True)
+        self.image.save(buf, format="PNG", optimize=True, pnginfo=info)
         return buf.getvalue()
 
     def save(self, path) -> None:
@@ -319,20 +334,20 @@ def register_overlay(
     for s in status:
         counts[s] = counts.get(s, 0) + 1
     tips = np.full((len(status), 2), np.nan)
-    for k in range(len(status)):  # PIL draws one primitive at a time
-        if not np.all(np.isfinite(apriori[k])):
-            continue
+    # marks and names first, vectors on top (PIL draws one primitive at a time)
+    shown = [k for k in range(len(status)) if np.all(np.isfinite(apriori[k]))]
+    for k in shown:
         a = fig.xy(*apriori[k])
-        cv.cross(a, 5, APRIORI, width=1)
-        colour = status_colour(status[k])
-        if has[k]:
-            tip = (a[0] + mag * z * shift[k, 0], a[1] + mag * z * shift[k, 1])
-            cv.arrow(a, tip, colour, width=2, head=7)
-            tips[k] = tip
-        else:
-            cv.cross(a, 4, colour, width=2, diagonal=True)
         if label:
-            cv.text((a[0] + 7, a[1] + 4), names[k], 11, fill=colour)
+            cv.text((a[0] + 7, a[1] + 4), names[k], 11, fill=status_colour(status[k]))
+        cv.cross(a, 5, APRIORI, width=1)
+        if not has[k]:
+            cv.cross(a, 4, status_colour(status[k]), width=2, diagonal=True)
+    for k in shown:
+        if has[k]:
+            a = fig.xy(*apriori[k])
+            tips[k] = (a[0] + mag * z * shift[k, 0], a[1] + mag * z * shift[k, 1])
+            cv.arrow(a, tuple(tips[k]), status_colour(status[k]), width=2, head=7)
     fig.extra["tips"] = tips
 
     n = len(status)
@@ -446,7 +461,7 @@ def landmark_panel(
         r = max(5, ks // 2)
         cv.draw.ellipse([px - r, py - r, px + r, py + r], outline=PEAK, width=2)
         cv.cross((px, py), r + 3, PEAK, width=2)
-        peak_xy = (px, py)
+        peak_xy = (float(px), float(py))
     bx = xs[2] + t3.shape[1] + 10
     cv.colour_bar((bx, y, bx + bar_w, y + t3.shape[0]), vmin, vmax, "rho")
     # axes of the surface
@@ -645,20 +660,18 @@ def pose_plot(
     fig = Figure(cv.image, 0.0, float(head), zoom, mag, extra={"magnify_after": mag_a})
     tips_b = np.full(m.shape, np.nan)
     tips_a = np.full(m.shape, np.nan)
-    for k in range(len(status)):  # PIL draws one primitive at a time
-        if not np.all(np.isfinite(m[k])):
-            continue
-        p = fig.xy(*m[k])
-        if not ok[k]:
-            cv.cross(p, 4, status_colour(status[k]), width=2, diagonal=True)
-            continue
-        for res, colour, tips, f in ((rb, BEFORE, tips_b, mag), (ra, AFTER, tips_a, mag_a)):
-            if np.all(np.isfinite(res[k])):
+    shown = [k for k in range(len(status)) if np.all(np.isfinite(m[k]))]
+    for k in shown:  # marks first, then the vectors on top (PIL draws one primitive at a time)
+        cv.cross(
+            fig.xy(*m[k]), *((3, WHITE, 1) if ok[k] else (4, status_colour(status[k]), 2)), diagonal=not ok[k]
+        )
+    for res, colour, tips, f in ((rb, BEFORE, tips_b, mag), (ra, AFTER, tips_a, mag_a)):
+        for k in shown:
+            if ok[k] and np.all(np.isfinite(res[k])):
                 # from the measured pixel toward the predicted one (− residual)
-                tip = (p[0] - f * zoom * res[k, 0], p[1] - f * zoom * res[k, 1])
-                cv.arrow(p, tip, colour, width=2, head=7)
-                tips[k] = tip
-        cv.cross(p, 3, WHITE, width=1)
+                p = fig.xy(*m[k])
+                tips[k] = (p[0] - f * zoom * res[k, 0], p[1] - f * zoom * res[k, 1])
+                cv.arrow(p, tuple(tips[k]), colour, width=2, head=7)
     fig.extra["tips_before"], fig.extra["tips_after"] = tips_b, tips_a
     n_ok = int(ok.sum())
     cv.text((8, 6), f"{picture}  solve-pose: {n_ok} of {len(status)} landmarks used", 17)

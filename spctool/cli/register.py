@@ -259,67 +259,74 @@ def render_overlay(
 
 
 def write_panels(out_dir: Path, inp, result, opts) -> int:
-    """One PNG per landmark with a last correlation step (:func:`spctool.figures.landmark_panel`):
-    predicted | extracted | surface (maplet space; the prediction is redrawn at the final pose), or
-    template | photo window at the template's placement | surface (image space)."""
+    """One PNG per landmark with a last correlation step (:func:`write_panel`); returns the count."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for i, st in enumerate(result.last_steps):
+        shift = result.measured[i] - result.apriori[i]
+        if st is not None and write_panel(out_dir, inp, i, st, result.camera, opts, result.status[i], shift):
+            written += 1
+    return written
+
+
+def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
+    """DIR/LANDMARK_PICTURE_panel.png of landmark ``i``'s correlation step ``st``
+    (:func:`spctool.figures.landmark_panel`): predicted | extracted | surface (maplet space; the
+    prediction is redrawn with ``camera``), or template | photo window at the template's placement |
+    surface (image space).  ``shift``: the (dsample, dline) reported for the landmark."""
     from spctool import figures
     from spctool.stages.predict import predict
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    camera = result.camera
-    written = 0
-    for i, (name, st) in enumerate(zip(result.names, result.last_steps)):
-        if st is None:
-            continue
-        corr = st.correlation
-        common = dict(
-            peak_index=corr.peak_index,
-            subpixel=corr.subpixel,
-            spacing=int(corr.spacing),
-            rho=float(corr.peak),
-            status=result.status[i],
-            shift=tuple(float(x) for x in (result.measured[i] - result.apriori[i])),
+    name = inp.names[i]
+    corr = st.correlation
+    common = dict(
+        peak_index=corr.peak_index,
+        subpixel=corr.subpixel,
+        spacing=int(corr.spacing),
+        rho=float(corr.peak),
+        status=status,
+        shift=tuple(float(x) for x in shift),
+    )
+    if st.extraction is not None:
+        pred = predict(inp.maplets[i], camera.position, inp.pic.sz, opts.predict)
+        fig = figures.landmark_panel(
+            name,
+            inp.pic.name,
+            pred.image,
+            st.extraction.image,
+            corr.surface,
+            left_valid=pred.lit,
+            middle_valid=st.extraction.valid,
+            axes=("UY", "UX"),
+            unit="cells",
+            note="maplet space, North up; yellow + = landmark centre V; prediction at the final pose",
+            **common,
         )
-        if st.extraction is not None:
-            pred = predict(inp.maplets[i], camera.position, inp.pic.sz, opts.predict)
-            fig = figures.landmark_panel(
-                name,
-                inp.pic.name,
-                pred.image,
-                st.extraction.image,
-                corr.surface,
-                left_valid=pred.lit,
-                middle_valid=st.extraction.valid,
-                axes=("UY", "UX"),
-                unit="cells",
-                note="maplet space, North up; yellow + = landmark centre V; prediction at the final pose",
-                **common,
-            )
-        elif st.template is not None:
-            tmpl = st.template
-            s0, s1, l0, l1 = tmpl.window
-            c0 = np.asarray(camera.project(inp.positions[i][None, :]), float).reshape(2)
-            ds, dl = (int(v) for v in np.rint(st.center - c0))
-            win = _photo_window(inp.photo.data, s0 + ds, s1 + ds, l0 + dl, l1 + dl)
-            fig = figures.landmark_panel(
-                name,
-                inp.pic.name,
-                tmpl.radiance,
-                win,
-                corr.surface,
-                left_valid=tmpl.coverage >= 1.0 - 1e-12,
-                middle_valid=np.isfinite(win),
-                labels=("template (rendered)", "photo window"),
-                axes=("sample", "line"),
-                unit="px",
-                note=f"image space; photo samples {s0 + ds}-{s1 + ds}, lines {l0 + dl}-{l1 + dl}",
-                **common,
-            )
-        else:
-            continue
-        fig.save(out_dir / f"{name}_{inp.pic.name}_panel.png")
-        written += 1
-    return written
+    elif st.template is not None:
+        tmpl = st.template
+        s0, s1, l0, l1 = tmpl.window
+        c0 = np.asarray(camera.project(np.asarray(inp.maplets[i].v, float)[None, :]), float).reshape(2)
+        ds, dl = (int(v) for v in np.rint(st.center - c0))
+        win = _photo_window(inp.photo.data, s0 + ds, s1 + ds, l0 + dl, l1 + dl)
+        fig = figures.landmark_panel(
+            name,
+            inp.pic.name,
+            tmpl.radiance,
+            win,
+            corr.surface,
+            left_valid=tmpl.coverage >= 1.0 - 1e-12,
+            middle_valid=np.isfinite(win),
+            labels=("template (rendered)", "photo window"),
+            axes=("sample", "line"),
+            unit="px",
+            note=f"image space; photo samples {s0 + ds}-{s1 + ds}, lines {l0 + dl}-{l1 + dl}",
+            **common,
+        )
+    else:
+        return None
+    path = out_dir / f"{name}_{inp.pic.name}_panel.png"
+    fig.save(path)
+    return path
 
 
 def _photo_window(data, s0, s1, l0, l1):
@@ -366,6 +373,15 @@ def _missing_rows(names, columns):
     type=click.Path(dir_okay=False),
     default=None,
     help="Write every landmark's correlation surface on one page, enlarged, peak marked in red (PNG).",
+)
+@click.option(
+    "--panels",
+    "panels",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
+    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
 )
 def correlate_cmd(ctx: Context, **kw):
     """One correlation of each landmark: offset, peak and peak quality.
@@ -461,6 +477,9 @@ def correlate_cmd(ctx: Context, **kw):
             if out_dir is not None:
                 _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space)
                 written += 1
+            if kw["panels"]:
+                Path(kw["panels"]).mkdir(parents=True, exist_ok=True)
+                write_panel(Path(kw["panels"]), inp, i, st, inp.camera, opts, st.status, shift)
             if kw["sheet"]:
                 from spctool.figures import surface_tile
 
