@@ -39,6 +39,7 @@ COMMANDS = {
     "demo": "spctool.cli.sim",
     "montecarlo": "spctool.cli.montecarlo",
     "batch": "spctool.cli.batch",
+    "warmup": "spctool.cli.jit",
 }
 #: the command modules, in --help order
 COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
@@ -152,6 +153,10 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
     ctx.obj = Context(
         workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
     )
+    if not ctx.resilient_parsing:  # not while completing
+        from spctool.cli.jit import first_run_note
+
+        first_run_note(ctx.obj, ctx.invoked_subcommand)
 
 
 if __name__ == "__main__":  # pragma: no cover

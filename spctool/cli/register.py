@@ -619,7 +619,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
       spctool -C WORKDIR register P600127001 FC0098 --space image --json
     """
-    from spctool.stages.register import RegisterOptions
+    from spctool.stages.register import RegisterOptions, schedule_steps
     from spctool.stages.register import register as run_register
 
     kw["_command"] = "register"
@@ -640,9 +640,9 @@ def register_cmd(ctx: Context, **kw):
         )
     opts = _register_options(kw, schedule, **extra)
     inp = _Inputs(ctx, kw)
-    with progress(
-        ctx, f"register {inp.pic.name}", None if schedule == "autoregister" else len(inp.names)
-    ) as adv:
+    # AUTOREGISTER visits every active landmark once per align pass (fewer after a drop)
+    passes = sum(k == "align" for k, _ in schedule_steps(opts)) if schedule == "autoregister" else 1
+    with progress(ctx, f"register {inp.pic.name}", passes * len(inp.names)) as adv:
         result = run_register(
             inp.photo,
             inp.camera,

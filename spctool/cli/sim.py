@@ -81,7 +81,17 @@ def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, 
         data = sp.to_dict()
         data["seed"] = int(seed)
         sp = parse_spec(data, base=sp.base, where=str(spec))
-    result = simulate(sp, outdir, overwrite=overwrite, progress=lambda m: ctx.info(m))
+    # the simulator names each step as it starts: global shape, landmarks, truth patches and maplets,
+    # one render per picture, truth
+    with progress(ctx, "simulate", 4 + len(sp.pictures)) as advance:
+        started = []
+
+        def step(message):
+            ctx.info(message)
+            advance(1 if started else 0, description=f"simulate: {message}")
+            started.append(message)
+
+        result = simulate(sp, outdir, overwrite=overwrite, progress=step)
     table = truth_table(result.truth)
     table.command = f"simulate {spec} {outdir}"
     table.meta["outdir"] = str(outdir)
@@ -280,13 +290,18 @@ def make_maplets_cmd(
     for j in jobs:
         groups.setdefault((j[2], j[3], j[4] is not None), []).append(j)
     results = {}
-    for (s, q, keep), group in groups.items():
-        frames = None
-        if keep:
-            frames = tuple(np.array([g[4][a] for g in group]) for a in range(3))
-        made = make_maplets(surf, [g[0] for g in group], np.array([g[1] for g in group]), s, q, frames=frames)
-        for g, (m, lm) in zip(group, made):
-            results[g[0]] = (m, lm, g[5])
+    with progress(ctx, "make-maplets", len(jobs)) as advance:
+        for (s, q, keep), group in groups.items():
+            for c0 in range(0, len(group), 64):  # each maplet is independent: chunks for the progress bar
+                chunk = group[c0 : c0 + 64]
+                frames = None
+                if keep:
+                    frames = tuple(np.array([g[4][a] for g in chunk]) for a in range(3))
+                centres = np.array([g[1] for g in chunk])
+                made = make_maplets(surf, [g[0] for g in chunk], centres, s, q, frames=frames)
+                for g, (m, lm) in zip(chunk, made):
+                    results[g[0]] = (m, lm, g[5])
+                advance(len(chunk))
     (wd.root / "MAPFILES").mkdir(parents=True, exist_ok=True)
     (wd.root / "LMKFILES").mkdir(parents=True, exist_ok=True)
     rows = []
@@ -432,7 +447,9 @@ def render_cmd(
     if model is None and not patches:
         raise SpcUsageError("nothing to render: no shape and no maplet in view")
     render_options = RenderOptions(photometry=photometry, supersample=supersample, shadows=not no_shadows)
-    r = render(camera, pic.sz, model, patches, render_options, window=window)
+    lines = camera.nln if window is None else max(0, int(window[3]) - int(window[2]) + 1)
+    with progress(ctx, f"render {pic.name}", lines) as advance:
+        r = render(camera, pic.sz, model, patches, render_options, window=window, progress=advance)
     if fmt is None:
         ext = Path(out).suffix.lower().lstrip(".")
         fmt = {"fit": "fits", "fts": "fits"}.get(ext, ext)
