@@ -114,7 +114,7 @@ def test_register_json_missing_maplet_and_require(world):
     res = invoke(root, "register", PIC, LMK, "NOMAP1", "--json", "--steps", "4,2,1")
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
-    assert doc["command"] == "register" and doc["schedule"] == "retina_s16" and doc["space"] == "maplet"
+    assert doc["command"] == "register" and doc["schedule"] == "s16" and doc["space"] == "maplet"
     rows = {r["name"]: r for r in doc["landmarks"]}
     assert rows[LMK]["status"] == "ok" and rows[LMK]["iterations"] == 3
     assert rows["NOMAP1"]["status"] == "no-maplet" and rows["NOMAP1"]["sample"] is None

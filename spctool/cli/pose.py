@@ -219,7 +219,7 @@ def solve_pose_cmd(
     Minimises the weighted pixel residuals (1/sigma_px^2) of the landmarks' LMK positions
     projected with the picture's camera (SUM + INIT_LITHOS distortion), plus the a-priori term
     from the SUM's SIGMA_VSO (km, body axes) and SIGMA_PTG (rad, camera axes), by Gauss-Newton
-    with step halving (spc-algorithms.md 10).  The attitude change is the rotation vector
+    with step halving.  The attitude change is the rotation vector
     theta with [CX;CY;CZ]_new = Rot(-theta) [CX;CY;CZ]_old, in camera axes.  Outliers are
     rejected worst first and named on stderr, in the status column and in the JSON.
 

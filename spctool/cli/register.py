@@ -80,7 +80,7 @@ _shared_options = options.option_group(
     options.criteria_option(
         "Removal criteria on the first extraction: lithos_standard, autoregister or "
         "'INVLIM,SLIM,CLIM,[ILIM,]RSMN,RSMX'; 'none' = no removal. Default: none for correlate "
-        "and the S16 schedule, autoregister (0,50,.25,0,5) for the AUTOREGISTER schedule."
+        "and the s16 schedule, autoregister (0,50,.25,0,5) for the AUTOREGISTER schedule."
     ),
     options.thresholds_option,
     click.option(
@@ -389,12 +389,12 @@ def correlate_cmd(ctx: Context, **kw):
     Maplet space (default): the prediction (SPC illumination, one view vector, dark only where the
     incidence exceeds 90 deg) is correlated with the photo resampled onto the maplet with the landmark
     at its a-priori pixel.  Both images are binned by --spacing N (same phase, anchored at the centre
-    node); the normalised cross-correlation (Pearson, with the square root L15 Eq. 3.58 lacks) is taken
-    over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both images.  The peak is
-    refined by one parabola per axis (the corrected L15 Eq. 3.65) and checked: edge-peak (on the grid
-    border), not-found (a neighbour not lower, or no defined value), low-correlation (below
-    --corr-min).  Image space: the maplet rendered into the photo (cast shadows) is correlated with the
-    photo itself, offsets in pixels.
+    node); the normalised cross-correlation (Pearson, with the square root that Liounis 2015 Eq. 3.58
+    lacks) is taken over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both
+    images.  The peak is refined by one parabola per axis (Liounis 2015 Eq. 3.65, corrected) and
+    checked: edge-peak (on the grid border), not-found (a neighbour not lower, or no defined value),
+    low-correlation (below --corr-min).  Image space: the maplet rendered into the photo (cast shadows)
+    is correlated with the photo itself, offsets in pixels.
 
     Columns: name, sample and line (the a-priori pixel used), offset_x and offset_y (maplet cells along
     UX and UY; image space: pixels along line and sample), dsample and dline (the implied pixel shift,
@@ -528,8 +528,8 @@ def correlate_cmd(ctx: Context, **kw):
     type=click.Choice(["s16", "retina_s16", "autoregister"]),
     default="s16",
     show_default=True,
-    help="s16: per landmark, spacings 10..1, no pose update (S16); autoregister: all landmarks at "
-    "spacing 2, then 1, drop below 0.5, then 1, with a pose solve after each pass (SPC).",
+    help="s16: per landmark, spacings 10..1, no pose update (Shoemaker et al. 2016); autoregister: all "
+    "landmarks at spacing 2, then 1, drop below 0.5, then 1, with a pose solve after each pass (SPC).",
 )
 @click.option(
     "--steps",
@@ -548,7 +548,7 @@ def correlate_cmd(ctx: Context, **kw):
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
-    help="S16 schedule: keep going after a failed step (default: stop the landmark).",
+    help="s16 schedule: keep going after a failed step (default: stop the landmark).",
 )
 @click.option(
     "--no-pose-update",
@@ -595,14 +595,15 @@ def correlate_cmd(ctx: Context, **kw):
 def register_cmd(ctx: Context, **kw):
     """Measure the landmarks of a picture: iterated predict, extract and correlate.
 
-    Schedule s16 (default; S16's template-matching loop): for each landmark, starting at its a-priori
-    pixel, correlate at spacing L = 10, 9, ..., 1 (search +-5L cells, acceptance rho >= 0.3) and move
-    the pixel by J_xy times the offset (L15 Eq. 3.67, S16 Eq. 19) after each step; the pose is not
-    changed.  Schedule autoregister (SPC's AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the
-    first pass, then all landmarks at spacing 2, a pose solve, spacing 1, a pose solve, landmarks with
-    rho < 0.5 dropped, spacing 1 and a last pose solve; each pass re-predicts and re-extracts with the
-    updated pose.  --space image correlates the maplet rendered into the photo (with cast shadows)
-    against the photo itself, so the search is not limited by the maplet's extent (S16 Retina).
+    Schedule s16 (default; the template-matching loop of Shoemaker et al. 2016): for each landmark,
+    starting at its a-priori pixel, correlate at spacing L = 10, 9, ..., 1 (search +-5L cells,
+    acceptance rho >= 0.3) and move the pixel by J_xy times the offset (Liounis 2015 Eq. 3.67, Shoemaker
+    et al. 2016 Eq. 19) after each step; the pose is not changed.  Schedule autoregister (SPC's
+    AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the first pass, then all landmarks at spacing
+    2, a pose solve, spacing 1, a pose solve, landmarks with rho < 0.5 dropped, spacing 1 and a last
+    pose solve; each pass re-predicts and re-extracts with the updated pose.  --space image correlates
+    the maplet rendered into the photo (with cast shadows) against the photo itself, so the search is
+    not limited by the maplet's extent (as in the Retina system, Wright et al. 2016).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
@@ -670,7 +671,7 @@ def register_cmd(ctx: Context, **kw):
                 written += 1
     meta = {
         "landmark_source": inp.source,
-        "schedule": schedule,
+        "schedule": "s16" if schedule == "retina_s16" else schedule,  # the --schedule word
         "space": opts.space,
         "thresholds": list(inp.thresholds),
         "status_counts": result.status_counts(),
@@ -693,7 +694,7 @@ def register_cmd(ctx: Context, **kw):
         )
     table.comments.append(
         f"registered {int(result.ok.sum())} of {len(result) + len(inp.missing)} landmarks "
-        f"({schedule}, {opts.space} space)"
+        f"({'s16' if schedule == 'retina_s16' else schedule}, {opts.space} space)"
     )
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
@@ -714,7 +715,7 @@ def register_cmd(ctx: Context, **kw):
                 result.ok,
                 status=result.status,
                 picture=inp.pic.name,
-                subtitle=f"({kw['schedule']}, {opts.space} space)",
+                subtitle=f"({'s16' if schedule == 'retina_s16' else schedule}, {opts.space} space)",
                 magnify=kw["magnify"],
             ),
         )
