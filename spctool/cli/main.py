@@ -40,6 +40,7 @@ COMMANDS = {
     "montecarlo": "spctool.cli.montecarlo",
     "batch": "spctool.cli.batch",
     "warmup": "spctool.cli.jit",
+    "man": "spctool.cli.completion",
 }
 #: the command modules, in --help order
 COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))

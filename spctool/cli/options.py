@@ -91,9 +91,25 @@ def require_option(help: str):
 # inputs: picture, photo, landmarks, shape
 
 
-picture_argument = click.argument("picture")
+def complete_picture(ctx, param, incomplete):
+    """Shell completion: the working directory's picture names (:mod:`spctool.cli.completion`)."""
+    from spctool.cli import completion
 
-landmark_names_argument = click.argument("names", nargs=-1, metavar="[LANDMARK]...")
+    return completion.complete_picture(ctx, param, incomplete)
+
+
+def complete_landmark(ctx, param, incomplete):
+    """Shell completion: the working directory's landmark names (:mod:`spctool.cli.completion`)."""
+    from spctool.cli import completion
+
+    return completion.complete_landmark(ctx, param, incomplete)
+
+
+picture_argument = click.argument("picture", shell_complete=complete_picture)
+
+landmark_names_argument = click.argument(
+    "names", nargs=-1, metavar="[LANDMARK]...", shell_complete=complete_landmark
+)
 
 sum_option = click.option(
     "--sum",

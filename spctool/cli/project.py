@@ -44,7 +44,7 @@ def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable
 
 @click.command("project")
 @options.picture_argument
-@click.argument("landmarks", nargs=-1)
+@click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
 @options.landmarks_table_option("Take landmark names from a landmark table ('-' = stdin).")
 @click.option(
     "--inverse",

@@ -169,7 +169,7 @@ def example_spec() -> str:
 
 
 @click.command("make-maplets")
-@click.argument("landmarks", nargs=-1)
+@click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
 @click.option(
     "--at",
     "at",
@@ -352,8 +352,8 @@ def make_maplets_cmd(
 
 
 @click.command("render")
-@click.argument("picture")
-@click.argument("landmarks", nargs=-1)
+@click.argument("picture", shell_complete=options.complete_picture)
+@click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
 @click.option(
     "-o",
     "--output",
