@@ -410,14 +410,17 @@ def landmark_panel(
     unit: str = "cells",
     tile: int = 240,
     note: str = "",
+    mark_centre: bool = True,
 ) -> Figure:
     """Three tiles side by side: ``left`` | ``middle`` (e.g. predicted | extracted maplet images, axis 0
-    down, no-data cells dark red) | the correlation ``surface`` (viridis over its finite range, NaN grey;
-    zero offset marked by a small black +, the sub-pixel peak ``peak_index + subpixel`` by a red cross
-    and circle), each upscaled nearest-neighbour to about ``tile`` px, a colour bar for ρ and the
+    down, no-data cells dark red) | the correlation ``surface`` (viridis over its finite range, NaN
+    grey; zero offset marked by a small black +, the sub-pixel peak ``peak_index + subpixel`` by a red
+    cross and circle), each upscaled nearest-neighbour to about ``tile`` px, a colour bar for ρ and the
     figures underneath.  ``axes``: names of the surface's column and row offset directions.
-    ``Figure.extra['peak']`` = canvas (x, y) of the peak marker, ``extra['surface_origin']`` = canvas
-    (x, y) of the surface's cell (0, 0) centre and ``extra['cell']`` = canvas px per surface cell.
+    ``mark_centre``: a yellow + on the centre cell of both images (the landmark centre V of maplet
+    images).  ``Figure.extra['peak']`` = canvas (x, y) of the peak marker, ``extra['surface_origin']`` =
+    canvas (x, y) of the surface's cell (0, 0) centre and ``extra['cell']`` = canvas px per surface
+    cell.
     """
     pad, head, foot = 14, 44, 64
     t1, k1, _ = _image_tile(left, left_valid, tile, labels[0])
@@ -431,8 +434,33 @@ def landmark_panel(
     t3 = upscale(colormap(s, vmin, vmax), ks)
     th = max(t1.shape[0], t2.shape[0], t3.shape[0])
     bar_w = 16
-    width = pad * 4 + t1.shape[1] + t2.shape[1] + t3.shape[1] + bar_w + 56
-    cv = _Canvas(width, head + 20 + th + 28 + foot)
+    # the figures under the tiles (measured first: they set the width when the tiles are narrow)
+    ok = "ok" if status == "ok" else status or "?"
+    g0 = (s.shape[0] - 1) // 2
+    if peak_index is not None:
+        dr, dc = (float(v) if math.isfinite(float(v)) else 0.0 for v in subpixel)
+        off = (spacing * (peak_index[0] - g0 + dr), spacing * (peak_index[1] - g0 + dc))
+        last = f"last step: peak at ({fmt(off[1], 3)}, {fmt(off[0], 3)}) {unit} along ({axes[0]}, {axes[1]})"
+    else:
+        last = "last step: no peak"
+    lines = [
+        (
+            f"rho = {fmt(rho, 4)}    measured - a-priori = ({fmt(shift[0], 3)}, {fmt(shift[1], 3)}) px "
+            f"(sample, line)    status: {ok}",
+            15,
+            status_colour(status) if status not in ("ok", "") else BLACK,
+        ),
+        (f"{last};  surface: {s.shape[0]}x{s.shape[1]} offsets of {spacing} {unit}", 12, (60, 60, 60)),
+        (
+            f"surface columns: offset along {axes[0]}, rows: along {axes[1]} (down); black + = zero offset, "
+            "red = sub-pixel peak; dark red = no data",
+            12,
+            (60, 60, 60),
+        ),
+    ]
+    text_w = max(font(size).getlength(t) for t, size, _ in lines)
+    width = int(max(pad * 4 + t1.shape[1] + t2.shape[1] + t3.shape[1] + bar_w + 56, text_w + 2 * pad))
+    cv = _Canvas(width, head + 20 + th + 28 + foot + 18)
     cv.text((pad, 8), f"{name}  in  {picture}", 18)
     if note:
         cv.text((pad, 30), note, 12, fill=(60, 60, 60))
@@ -445,18 +473,16 @@ def landmark_panel(
         cv.draw.rectangle([x - 1, y - 1, x + t.shape[1], y + t.shape[0]], outline=BLACK)
         xs.append(x)
         x += t.shape[1] + pad
-    # maplet-image centres (V) on the two image tiles
-    for xt, t, k in ((xs[0], t1, k1), (xs[1], t2, k2)):
-        c = ((t.shape[1] // k - 1) // 2) * k + (k - 1) / 2
-        r = ((t.shape[0] // k - 1) // 2) * k + (k - 1) / 2
-        cv.cross((xt + c, y + r), max(4, k), APRIORI, width=1)
+    if mark_centre:  # maplet-image centres (V) on the two image tiles
+        for xt, t, k in ((xs[0], t1, k1), (xs[1], t2, k2)):
+            c = ((t.shape[1] // k - 1) // 2) * k + (k - 1) / 2
+            r = ((t.shape[0] // k - 1) // 2) * k + (k - 1) / 2
+            cv.cross((xt + c, y + r), max(4, k), APRIORI, width=1)
     # surface: zero offset and the peak
-    g0 = (s.shape[0] - 1) // 2
     ox, oy = xs[2] + (ks - 1) / 2, y + (ks - 1) / 2
     cv.cross((ox + g0 * ks, oy + g0 * ks), max(3, ks // 3), BLACK, width=1)
     peak_xy = None
     if peak_index is not None:
-        dr, dc = (float(v) if math.isfinite(float(v)) else 0.0 for v in subpixel)
         px, py = ox + (peak_index[1] + dc) * ks, oy + (peak_index[0] + dr) * ks
         r = max(5, ks // 2)
         cv.draw.ellipse([px - r, py - r, px + r, py + r], outline=PEAK, width=2)
@@ -464,33 +490,10 @@ def landmark_panel(
         peak_xy = (float(px), float(py))
     bx = xs[2] + t3.shape[1] + 10
     cv.colour_bar((bx, y, bx + bar_w, y + t3.shape[0]), vmin, vmax, "rho")
-    # axes of the surface
     cv.text((xs[2] + t3.shape[1] / 2, y + t3.shape[0] + 4), f"offset {axes[0]} ->", 12, anchor="ma")
-    cv.text((xs[2] - 3, y + t3.shape[0] / 2 - 8), f"{axes[1]}", 12, anchor="rm")
-    cv.text((xs[2] - 3, y + t3.shape[0] / 2 + 8), "v", 12, anchor="rm")
     fy = y + th + 26
-    ok = "ok" if status == "ok" else status or "?"
-    if peak_index is not None:
-        g = (s.shape[0] - 1) // 2
-        dr, dc = (float(v) if math.isfinite(float(v)) else 0.0 for v in subpixel)
-        off = (spacing * (peak_index[0] - g + dr), spacing * (peak_index[1] - g + dc))
-        last = f"last step: peak at ({fmt(off[1], 3)}, {fmt(off[0], 3)}) {unit} along ({axes[0]}, {axes[1]})"
-    else:
-        last = "last step: no peak"
-    cv.text(
-        (pad, fy),
-        f"rho = {fmt(rho, 4)}    measured - a-priori = ({fmt(shift[0], 3)}, {fmt(shift[1], 3)}) px "
-        f"(sample, line)    status: {ok}",
-        15,
-        fill=status_colour(status) if status not in ("ok", "") else BLACK,
-    )
-    cv.text(
-        (pad, fy + 22),
-        f"{last}; surface: {s.shape[0]}x{s.shape[1]} offsets of {spacing} {unit}; black + = zero offset, "
-        "red = sub-pixel peak; dark red = no data",
-        12,
-        fill=(60, 60, 60),
-    )
+    for k, (text, size, colour) in enumerate(lines):
+        cv.text((pad, fy + (0 if k == 0 else 6 + 16 * k)), text, size, fill=colour)
     return Figure(
         cv.image,
         extra={

@@ -319,7 +319,9 @@ def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
             labels=("template (rendered)", "photo window"),
             axes=("sample", "line"),
             unit="px",
-            note=f"image space; photo samples {s0 + ds}-{s1 + ds}, lines {l0 + dl}-{l1 + dl}",
+            note=f"image space; photo samples {s0 + ds}-{s1 + ds}, lines {l0 + dl}-{l1 + dl} "
+            "(where the template sat for the last step)",
+            mark_centre=False,
             **common,
         )
     else:

@@ -93,6 +93,7 @@ def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, 
             started.append(message)
 
         result = simulate(sp, outdir, overwrite=overwrite, progress=step)
+        advance(1, description="simulate: done")
     table = truth_table(result.truth)
     table.command = f"simulate {spec} {outdir}"
     table.meta["outdir"] = str(outdir)
