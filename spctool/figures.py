@@ -376,6 +376,18 @@ def _overlay_legend(cv: _Canvas, counts, mag, z, width, head):
     cv.text((x + 6, y + 18), f"{fmt(ref)} px shift (x{fmt(mag)})", 12)
 
 
+def titled(image, title: str, subtitle: str = "", head: int = 52) -> Figure:
+    """``image`` (a Pillow image or PNG bytes) under a white title band (``Figure.y0`` = band height)."""
+    if isinstance(image, (bytes, bytearray)):
+        image = Image.open(io.BytesIO(image)).convert("RGB")
+    cv = _Canvas(image.size[0], image.size[1] + head)
+    cv.image.paste(image, (0, head))
+    cv.text((8, 6), title, 17)
+    if subtitle:
+        cv.text((8, 30), subtitle, 13)
+    return Figure(cv.image, 0.0, float(head))
+
+
 # ------------------------------------------------------------------------------------------------
 # one landmark: predicted | extracted | correlation surface
 

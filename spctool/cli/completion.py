@@ -121,7 +121,7 @@ def man_cmd(ctx: Context, name, install_dir, raw):
 
     \b
       spctool man register
-      spctool man --install ~/.local/share/man/man1 && man spctool-register
+      spctool man --install mandir/man1 && man -M mandir spctool-register
       spctool man solve-pose --raw > spctool-solve-pose.1
     """
     from spctool.cli.manpages import all_pages

@@ -419,7 +419,16 @@ def select_cmd(
 
     if overlay:
         photo = load_photo(ctx, pic, photo_path)
-        atomic.write_bytes(overlay, render_overlay(photo.data, pic.thrsh, camera, cand, result))
+        from spctool.figures import titled
+
+        others = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()) if s != "ok")
+        fig = titled(
+            render_overlay(photo.data, pic.thrsh, camera, cand, result),
+            f"{pic.name}  lithos-select: {result.n_selected} of {len(result)} candidate maplets selected",
+            f"outlines: selected maplets at the SUM pose; occlusion {meta['occlusion']}"
+            + (f"; rejected: {others}" if others else ""),
+        )
+        atomic.write_bytes(overlay, fig.png())
         ctx.info(f"wrote {overlay}")
 
     if require is not None and result.n_selected < require:
