@@ -12,7 +12,8 @@ from running Stage A (:func:`spctool.stages.select.select_maplets`) on LMRKLIST.
 Image files are ``<OUT-DIR>/<LANDMARK>_<PICTURE>_predicted.<ext>`` / ``…_extracted.<ext>``; array
 axis 0 (UX, ≈ South) runs down the image and axis 1 (UY, ≈ East) across, so North is up.  PGM and
 PNG are 8-bit, linearly scaled so the image maximum is 255 (0 = no data / dark); FITS holds the
-float64 values with the landmark, picture and stage parameters in the header.
+float64 values with the landmark, picture and stage parameters in the header.  ``--sheet FILE.png``
+puts every landmark's image on one page, enlarged (:func:`spctool.figures.contact_sheet`).
 """
 
 from __future__ import annotations

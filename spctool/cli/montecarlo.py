@@ -283,7 +283,16 @@ def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
         if picture:
             raise SpcUsageError("a preset has its own picture: drop PICTURE")
         ctx.note_once(f"building the {preset} scene (about a minute; --scene FILE keeps it)")
-        scene = mc.s16_scene(world_seed, progress=lambda msg: ctx.info(msg, 2))
+        # the builder names each step as it starts: 3 world steps, then one render per landmark
+        with progress(ctx, f"building {preset}", 3 + len(mc.S16_LANDMARKS)) as advance:
+            started = []
+
+            def step(msg):
+                ctx.info(msg, 2)
+                advance(1 if started else 0, description=f"{preset}: {msg}")
+                started.append(msg)
+
+            scene = mc.s16_scene(world_seed, progress=step)
     else:
         if not (Path(ctx.workdir) / "TRUTH.json").is_file():
             raise SpcUsageError(

@@ -4,7 +4,8 @@ Loads the picture (SUM) and INIT_LITHOS (camera distortion), the measured landma
 table from ``register`` or the SUM's own LANDMARKS section) and the landmark positions (LMK VLM and
 SIGMA_LMK), runs :func:`spctool.stages.pose.solve_pose` and writes the residual table of
 cli-contract.md; ``--output``/``--in-place`` write the SUM with the solved SCOBJ, CX/CY/CZ and
-SIGMA_VSO/SIGMA_PTG (every other line byte-identical).
+SIGMA_VSO/SIGMA_PTG (every other line byte-identical); ``--plot`` draws the residuals before and after
+(:func:`spctool.figures.pose_plot`).
 """
 
 from __future__ import annotations

@@ -13,7 +13,9 @@ a-priori pixel is the projection of V with the SUM camera.
 ``correlate`` runs one correlation at one spacing; ``--out-dir`` writes each surface as an image
 (``<LANDMARK>_<PICTURE>_surface.<ext>``: PGM/PNG map ρ ∈ [−1, 1] to 0…255, NaN to 0; FITS keeps the
 float values).  ``register`` runs a whole schedule; ``--write-sum`` rewrites only the SUM's LANDMARKS
-section (atomic, ``.bak`` kept); ``--overlay`` draws a-priori and measured pixels on the photo.
+section (atomic, ``.bak`` kept).  Figures (:mod:`spctool.figures`): ``register --overlay`` draws each
+landmark's magnified shift on the photo; ``--panels DIR`` (both commands) writes predicted | extracted |
+correlation surface per landmark; ``correlate --sheet`` puts every surface on one page.
 """
 
 from __future__ import annotations
