@@ -150,6 +150,10 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
 
     Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
     centres at integers, line 1 = first stored row.
+
+    Man pages: 'spctool man COMMAND'.  Shell completion (picture and landmark names of the
+    working directory too): eval "$(_SPCTOOL_COMPLETE=bash_source spctool)" in ~/.bashrc
+    (zsh: zsh_source, fish: fish_source).
     """
     ctx.obj = Context(
         workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
