@@ -183,7 +183,7 @@ class Figure:
         geometry = {"x0": self.x0, "y0": self.y0, "zoom": self.zoom, "magnify": self.magnify}
         for k, v in self.extra.items():
             if isinstance(v, (int, float, str)) or (
-                isinstance(v, tuple) and len(v) <= 4 and all(isinstance(x, (int, float)) for x in v)
+                isinstance(v, tuple) and len(v) <= 200 and all(isinstance(x, (int, float)) for x in v)
             ):
                 geometry[k] = v
         info = PngInfo()
@@ -308,13 +308,14 @@ def register_overlay(
     picture: str = "",
     subtitle: str = "",
     magnify: float | None = None,
-    label: bool = True,
+    label: bool | None = None,
 ) -> Figure:
     """The photo with every landmark's registration drawn on it.
 
     A-priori pixels are yellow crosses; a landmark measured (status ok, or any row with a finite
     measured pixel) gets a vector from its a-priori pixel to a-priori + ``magnify`` × (measured −
     a-priori), coloured by status; landmarks without a measurement get an × in their status colour.
+    Names are written next to each landmark when ``label`` (default: up to 80 landmarks).
     ``magnify`` (default :func:`auto_magnify`: the median shift drawn ≈ 40 px) is stated in the title
     and by a reference vector under the legend.  ``Figure.extra['tips']`` holds each vector's canvas tip.
     """
@@ -336,6 +337,8 @@ def register_overlay(
     for s in status:
         counts[s] = counts.get(s, 0) + 1
     tips = np.full((len(status), 2), np.nan)
+    if label is None:
+        label = len(status) <= 80
     # marks and names first, vectors on top (PIL draws one primitive at a time)
     shown = [k for k in range(len(status)) if np.all(np.isfinite(apriori[k]))]
     for k in shown:
@@ -814,4 +817,15 @@ def batch_summary(pictures, rms_before, rms_after, selected, found, status, *, t
     )
     if not label_names:
         cv.text((left, y2 + h2 + 6), f"pictures 1 .. {n} in list order", 12)
-    return Figure(cv.image, extra={"bars": bars, "axes": (a1.box, a2.box)})
+    return Figure(
+        cv.image,
+        extra={
+            "bars": bars,
+            "axes": (a1.box, a2.box),
+            "rms_box": tuple(a1.box),
+            "rms_ylim": (float(lo), float(hi)),
+            "count_box": tuple(a2.box),
+            "count_ylim": (0.0, float(ctop)),
+            "slot_x": tuple(float(a1.x(k + 0.5)) for k in range(n)) if n <= 200 else (),
+        },
+    )

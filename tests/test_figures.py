@@ -292,3 +292,35 @@ def test_predict_and_extract_sheets(request, tmp_path):
         assert res.exit_code == 0, res.output
         _, px = _geometry(tmp_path / f"{cmd}.png")
         assert px.shape[0] >= 160 and px.std() > 5
+
+
+def test_batch_writes_the_summary_figure_and_plots(tmp_path):
+    import math
+
+    from batch_world import make_world
+
+    world = tmp_path / "world"
+    make_world(world, n_pictures=2, n_landmarks=5)
+    out = tmp_path / "out"
+    res = invoke(world, "batch", "--out-dir", out, "--plots")
+    assert res.exit_code == 0, res.output
+    t = [ln.split() for ln in res.stdout.splitlines() if ln.strip() and not ln.startswith("#")]
+    head, rows = t[0], t[1:]
+    geo, px = _geometry(out / "BATCH_SUMMARY.png")
+    assert px.shape[0] > 400 and px.std() > 5
+    x0, y0, x1, y1 = geo["rms_box"]
+    lo, hi = geo["rms_ylim"]
+    for k, row in enumerate(rows):
+        # the before/after bars reach the table's rms on the log axis (computed here from the table)
+        for key, colour, dx in (
+            ("rms_before_px", figures.BEFORE, -0.2),
+            ("rms_after_px", figures.AFTER, 0.2),
+        ):
+            v = float(row[head.index(key)])
+            top = y1 - (math.log10(v) - math.log10(lo)) / (math.log10(hi) - math.log10(lo)) * (y1 - y0)
+            x = geo["slot_x"][k] + dx * (x1 - x0) / len(rows)
+            assert tuple(px[int(top) + 2, int(x)]) == colour and tuple(px[int(top) - 2, int(x)]) != colour
+    for pic in (r[0] for r in rows):
+        for kind in ("register", "pose"):
+            _, p = _geometry(out / "PLOTS" / f"{pic}.{kind}.png")
+            assert p.shape[0] > 150 and p.std() > 5
