@@ -324,3 +324,19 @@ def test_batch_writes_the_summary_figure_and_plots(tmp_path):
         for kind in ("register", "pose"):
             _, p = _geometry(out / "PLOTS" / f"{pic}.{kind}.png")
             assert p.shape[0] > 150 and p.std() > 5
+
+
+def test_zoom_enlarges_out_dir_images_cell_by_cell(request, tmp_path):
+    world = request.getfixturevalue("world")
+    root = world[0]
+    for cmd, stem in (("predict", "predicted"), ("correlate", "surface")):
+        for zoom in ("1", "4"):
+            out = tmp_path / f"{cmd}{zoom}"
+            res = invoke(root, cmd, PIC, LMK, "--out-dir", out, "--image-format", "png", "--zoom", zoom)
+            assert res.exit_code == 0, res.output
+        with Image.open(tmp_path / f"{cmd}1" / f"{LMK}_{PIC}_{stem}.png") as a:
+            small = np.asarray(a)
+        with Image.open(tmp_path / f"{cmd}4" / f"{LMK}_{PIC}_{stem}.png") as b:
+            big = np.asarray(b)
+        assert big.shape == (4 * small.shape[0], 4 * small.shape[1])
+        assert np.array_equal(big[::4, ::4], small) and np.array_equal(big[3::4, 3::4], small)

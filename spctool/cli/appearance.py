@@ -51,6 +51,7 @@ _common_options = options.option_group(
     ),
     options.out_dir_option("Write one image per landmark to DIR (created if needed). Default: no images."),
     options.image_format_option,
+    options.image_zoom_option,
     click.option(
         "--sheet",
         "sheet",
@@ -137,7 +138,9 @@ def _fits_header(row: dict, stage: str, maplet, popts, eopts, thresholds) -> dic
     return out
 
 
-def _write_image(out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, popts, eopts, thresholds):
+def _write_image(
+    out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, popts, eopts, thresholds, zoom: int = 1
+):
     from spctool.formats.photo import write_photo
 
     path = out_dir / f"{row['name']}_{row['picture']}_{stage}.{fmt}"
@@ -149,7 +152,8 @@ def _write_image(out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, 
             header=_fits_header(row, stage, maplet, popts, eopts, thresholds),
         )
     else:
-        write_photo(path, _to_8bit(image), fmt=fmt)
+        k = int(zoom)
+        write_photo(path, np.repeat(np.repeat(_to_8bit(image), k, axis=0), k, axis=1), fmt=fmt)
     return path
 
 
@@ -286,7 +290,18 @@ def _run(ctx: Context, stage: str, kw: dict):
             rows.append(row)
             if out_dir is not None and front:
                 image = pred.image if stage == "predicted" else ext.image
-                _write_image(out_dir, kw["image_format"], stage, row, image, maplet, popts, eopts, thresholds)
+                _write_image(
+                    out_dir,
+                    kw["image_format"],
+                    stage,
+                    row,
+                    image,
+                    maplet,
+                    popts,
+                    eopts,
+                    thresholds,
+                    kw["zoom"],
+                )
                 written += 1
             if kw["sheet"] and front:
                 image, valid = (pred.image, pred.lit) if stage == "predicted" else (ext.image, ext.valid)

@@ -72,6 +72,16 @@ image_format_option = click.option(
     help="Format of the --out-dir images (FITS keeps the float values and a header).",
 )
 
+image_zoom_option = click.option(
+    "--zoom",
+    "zoom",
+    type=click.IntRange(1, 64),
+    default=1,
+    show_default=True,
+    metavar="N",
+    help="Enlarge the PGM/PNG --out-dir images N times, each cell an NxN block (FITS keeps the data).",
+)
+
 
 def overlay_option(help: str):
     """``--overlay FILE.png``: the photo with the command's results drawn on it."""

@@ -101,6 +101,7 @@ _shared_options = options.option_group(
     ),
     options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
     options.image_format_option,
+    options.image_zoom_option,
     options.json_option,
     options.output_option,
     pass_context,
@@ -207,7 +208,7 @@ def surface_to_8bit(surface) -> np.ndarray:
     )
 
 
-def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space: str) -> Path:
+def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space: str, zoom: int = 1) -> Path:
     from spctool.formats.photo import write_photo
 
     path = out_dir / f"{name}_{picture}_surface.{fmt}"
@@ -232,7 +233,8 @@ def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space
                 hdr[k] = (float(v), "offset along array axis 0/1, full-resolution cells or px")
         write_photo(path, np.asarray(corr.surface, dtype=np.float64), fmt="fits", header=hdr)
     else:
-        write_photo(path, surface_to_8bit(corr.surface), fmt=fmt)
+        k = int(zoom)
+        write_photo(path, np.repeat(np.repeat(surface_to_8bit(corr.surface), k, axis=0), k, axis=1), fmt=fmt)
     return path
 
 
@@ -479,7 +481,7 @@ def correlate_cmd(ctx: Context, **kw):
             )
             rows.append(row)
             if out_dir is not None:
-                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space)
+                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space, kw["zoom"])
                 written += 1
             if kw["panels"]:
                 Path(kw["panels"]).mkdir(parents=True, exist_ok=True)
@@ -671,7 +673,7 @@ def register_cmd(ctx: Context, **kw):
         out_dir.mkdir(parents=True, exist_ok=True)
         for name, st in zip(result.names, result.last_steps):
             if st is not None:
-                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space)
+                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space, kw["zoom"])
                 written += 1
     meta = {
         "landmark_source": inp.source,
