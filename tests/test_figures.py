@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from spctool import figures
@@ -53,6 +55,16 @@ def test_nice_number_and_ticks():
     assert [figures.nice_number(x) for x in (0.7, 3.0, 9.9, 12.0, 49.0)] == [0.5, 2.0, 5.0, 10.0, 20.0]
     t = figures.ticks(0.0, 3.7)
     assert t[0] == 0.0 and t[-1] <= 3.7 and len(set(np.round(np.diff(t), 9))) == 1
+
+
+@given(st.integers(1, 9), st.integers(1, 40), st.integers(1, 30))
+@settings(max_examples=60, deadline=None)
+def test_figure_xy_lands_in_the_enlarged_pixel(z, s, ln):
+    # canvas position of SPC pixel (s, ln) is inside the z x z block that pixel becomes
+    fig = figures.Figure(Image.new("RGB", (1, 1)), x0=3.0, y0=7.0, zoom=float(z))
+    x, y = fig.xy(s, ln)
+    assert 3 + (s - 1) * z <= x <= 3 + s * z - 1 and 7 + (ln - 1) * z <= y <= 7 + ln * z - 1
+    assert x - (3 + (s - 1) * z) == pytest.approx((z - 1) / 2)  # the block's centre
 
 
 def test_upscale_is_nearest_neighbour():
