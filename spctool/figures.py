@@ -359,14 +359,15 @@ def register_overlay(
     summary = ", ".join(f"{c} {s}" for s, c in sorted(counts.items(), key=lambda kv: (kv[0] != "ok", kv[0])))
     cv.text((8, 6), f"{picture}  register: {counts.get('ok', 0)} of {n} landmarks ok", 17)
     cv.text((8, 30), f"{summary or 'no landmarks'}   {subtitle}   vectors x{fmt(mag)}", 13)
-    _overlay_legend(cv, counts, mag, z, rgb.shape[1], head)
+    with_vectors = {status[k] for k in shown if has[k]}
+    _overlay_legend(cv, counts, with_vectors, mag, z, rgb.shape[1], head)
     return fig
 
 
-def _overlay_legend(cv: _Canvas, counts, mag, z, width, head):
+def _overlay_legend(cv: _Canvas, counts, with_vectors, mag, z, width, head):
     items = [(APRIORI, "a-priori pixel", "cross")]
     for s in sorted(counts, key=lambda s: (s != "ok", s)):
-        kind = "line" if s in ("ok", "low-correlation", "edge-peak") else "xmark"
+        kind = "line" if s in with_vectors else "xmark"
         items.append((status_colour(s), f"{s} ({counts[s]})", kind))
     # measure first, then draw at the top right
     w = max(cv.text_width(lbl, 13) for _, lbl, _ in items) + 34
