@@ -16,4 +16,8 @@ echo '$ spctool -C demo batch --out-dir run1 > summary.txt'
 spctool -C $D batch --out-dir $OUT/run1 > $OUT/summary.txt
 echo '$ spctool simulate --example > world.toml && spctool simulate world.toml world > truth.txt'
 spctool simulate --example > $OUT/world.toml && spctool simulate $OUT/world.toml $OUT/world > $OUT/truth.txt
+echo '$ spctool demo > demo.txt'
+spctool demo > $OUT/demo.txt
+echo '$ spctool montecarlo --preset s16-50m --samples 5 --scene s16.npz > mc.txt'
+spctool montecarlo --preset s16-50m --samples 5 --scene $OUT/s16.npz > $OUT/mc.txt
 echo done
