@@ -114,7 +114,7 @@ def test_register_json_missing_maplet_and_require(world):
     res = invoke(root, "register", PIC, LMK, "NOMAP1", "--json", "--steps", "4,2,1")
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
-    assert doc["command"] == "register" and doc["schedule"] == "retina_s16" and doc["space"] == "maplet"
+    assert doc["command"] == "register" and doc["schedule"] == "s16" and doc["space"] == "maplet"
     rows = {r["name"]: r for r in doc["landmarks"]}
     assert rows[LMK]["status"] == "ok" and rows[LMK]["iterations"] == 3
     assert rows["NOMAP1"]["status"] == "no-maplet" and rows["NOMAP1"]["sample"] is None
@@ -194,15 +194,25 @@ def test_write_sum_rewrites_only_the_landmarks_section(world, tmp_path):
 def test_register_overlay(world, tmp_path):
     root, sc, _ = world
     out = tmp_path / "reg.png"
-    res = invoke(root, "register", PIC, LMK, "--steps", "2,1", "--overlay", out)
+    res = invoke(root, "register", PIC, LMK, "--steps", "2,1", "--overlay", out, "--magnify", "10")
     assert res.exit_code == 0, res.output
+    t = LandmarkTable.parse_text(res.stdout)
+    assert t["status"] == ["ok"]
     from PIL import Image
 
     with Image.open(out) as img:
-        assert img.mode == "RGB" and img.size == (sc.camera.npx, sc.camera.nln)
+        # the photo enlarged by a whole factor under a title band
+        z = img.size[0] // sc.camera.npx
+        assert img.mode == "RGB" and img.size[0] == z * sc.camera.npx and img.size[1] > z * sc.camera.nln
         px = np.asarray(img)
-    # green (measured) and yellow (a-priori) marks are drawn
-    assert np.any((px[..., 1] > 200) & (px[..., 0] < 100)) and np.any((px[..., 0] > 200) & (px[..., 2] < 50))
+    head = px.shape[0] - z * sc.camera.nln
+    # the shift vector's tip sits at a-priori + 10 x (measured - a-priori), in the ok colour (green)
+    x = (t["apriori_sample"][0] - 1 + 10 * t["dsample"][0]) * z + (z - 1) / 2
+    y = head + (t["apriori_line"][0] - 1 + 10 * t["dline"][0]) * z + (z - 1) / 2
+    tip = px[int(round(y)) - 1 : int(round(y)) + 2, int(round(x)) - 1 : int(round(x)) + 2].reshape(-1, 3)
+    assert any(tuple(c) == (40, 230, 40) for c in tip)
+    # the a-priori cross is yellow
+    assert np.any((px[..., 0] > 200) & (px[..., 1] > 200) & (px[..., 2] < 50))
 
 
 def test_correlate_one_pass_writes_surfaces(world, tmp_path):

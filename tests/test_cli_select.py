@@ -223,7 +223,9 @@ def test_overlay_png(workdir, tmp_path):
     res = invoke(workdir, "--overlay", str(png))
     assert res.exit_code == 0, res.stderr
     img = np.asarray(Image.open(io.BytesIO(png.read_bytes())).convert("RGB"))
-    assert img.shape == (1024, 1024, 3)
+    head = img.shape[0] - 1024  # the title band above the photo
+    assert head > 0 and img.shape[1:] == (1024, 3) and np.all(img[:head] == 255, axis=-1).mean() > 0.5
+    img = img[head:]
     pic = read_sum(REAL / f"{PIC}.SUM")
     s, ln = np.meshgrid(np.arange(pic.npx), np.arange(pic.nln))
     gray = stretch_8bit((1000 + 20 * s + 10 * ln).astype(np.uint16), pic.thrsh)

@@ -13,8 +13,8 @@ def test_demo_recovers_pose_within_3_sigma(run_cli):
     r = run_cli("-q", "demo", "--json")
     assert r.exit_code == 0, r.stdout + r.stderr
     doc = json.loads(r.stdout)
-    rows = doc["landmarks"]
-    assert len(rows) == 4
+    rows = doc["pictures"]
+    assert len(rows) == 4 and all(r["picture"].startswith("P") for r in rows)
     for row in rows:
         assert row["status"] == "ok" and row["within_3sigma"] is True
         assert row["found"] >= 10

@@ -12,7 +12,8 @@ from running Stage A (:func:`spctool.stages.select.select_maplets`) on LMRKLIST.
 Image files are ``<OUT-DIR>/<LANDMARK>_<PICTURE>_predicted.<ext>`` / ``…_extracted.<ext>``; array
 axis 0 (UX, ≈ South) runs down the image and axis 1 (UY, ≈ East) across, so North is up.  PGM and
 PNG are 8-bit, linearly scaled so the image maximum is 255 (0 = no data / dark); FITS holds the
-float64 values with the landmark, picture and stage parameters in the header.
+float64 values with the landmark, picture and stage parameters in the header.  ``--sheet FILE.png``
+puts every landmark's image on one page, enlarged (:func:`spctool.figures.contact_sheet`).
 """
 
 from __future__ import annotations
@@ -50,6 +51,16 @@ _common_options = options.option_group(
     ),
     options.out_dir_option("Write one image per landmark to DIR (created if needed). Default: no images."),
     options.image_format_option,
+    options.image_zoom_option,
+    click.option(
+        "--sheet",
+        "sheet",
+        metavar="FILE.png",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="Write every landmark's image on one page, enlarged (nearest neighbour) and captioned with "
+        "its name, correlation and status (PNG; no-data cells dark red).",
+    ),
     options.predict_options,
     options.extract_options,
     options.json_option,
@@ -102,7 +113,7 @@ def _fits_header(row: dict, stage: str, maplet, popts, eopts, thresholds) -> dic
         "PHASE": (row["phase"], "deg"),
         "THRSH1": (float(thresholds[0]), "lowest DN used"),
         "THRSH2": (float(thresholds[1]), "highest DN used"),
-        "LINEARIZ": (bool(eopts.linearized), "S16 linearised projection"),
+        "LINEARIZ": (bool(eopts.linearized), "linearised projection about V"),
         "FILTER": (bool(eopts.apply_filter), "extract filter applied"),
         "DSMODE": (eopts.ds_mode, "shadow extension formula"),
         "COV": (row["cov"], "fraction of nodes covered by the photo"),
@@ -127,7 +138,9 @@ def _fits_header(row: dict, stage: str, maplet, popts, eopts, thresholds) -> dic
     return out
 
 
-def _write_image(out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, popts, eopts, thresholds):
+def _write_image(
+    out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, popts, eopts, thresholds, zoom: int = 1
+):
     from spctool.formats.photo import write_photo
 
     path = out_dir / f"{row['name']}_{row['picture']}_{stage}.{fmt}"
@@ -139,7 +152,8 @@ def _write_image(out_dir: Path, fmt: str, stage: str, row: dict, image, maplet, 
             header=_fits_header(row, stage, maplet, popts, eopts, thresholds),
         )
     else:
-        write_photo(path, _to_8bit(image), fmt=fmt)
+        k = int(zoom)
+        write_photo(path, np.repeat(np.repeat(_to_8bit(image), k, axis=0), k, axis=1), fmt=fmt)
     return path
 
 
@@ -181,6 +195,7 @@ def _run(ctx: Context, stage: str, kw: dict):
 
     rows = []
     written = 0
+    tiles = []  # --sheet: (caption, image, valid)
     command = "predict" if stage == "predicted" else "extract"
     with progress(ctx, f"{command} {pic.name}", len(inputs.landmarks)) as advance:
         for name, pixel in inputs.landmarks:
@@ -275,8 +290,22 @@ def _run(ctx: Context, stage: str, kw: dict):
             rows.append(row)
             if out_dir is not None and front:
                 image = pred.image if stage == "predicted" else ext.image
-                _write_image(out_dir, kw["image_format"], stage, row, image, maplet, popts, eopts, thresholds)
+                _write_image(
+                    out_dir,
+                    kw["image_format"],
+                    stage,
+                    row,
+                    image,
+                    maplet,
+                    popts,
+                    eopts,
+                    thresholds,
+                    kw["zoom"],
+                )
                 written += 1
+            if kw["sheet"] and front:
+                image, valid = (pred.image, pred.lit) if stage == "predicted" else (ext.image, ext.valid)
+                tiles.append((f"{name} rho {row['correlation']:.2f} {row['status']}", image, valid))
             advance()
 
     columns = [
@@ -317,6 +346,12 @@ def _run(ctx: Context, stage: str, kw: dict):
         )
     if out_dir is not None:
         table.comments.append(f"{written} {stage} images written to {out_dir}")
+    if kw["sheet"]:
+        from spctool import figures
+
+        title = f"{pic.name}  {stage} maplet images ({len(tiles)}), North up"
+        figures.contact_sheet(tiles, title=title).save(kw["sheet"])
+        ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
 
@@ -329,18 +364,22 @@ def _run(ctx: Context, stage: str, kw: dict):
 def predict_cmd(ctx: Context, **kw):
     """Illuminated maplet images of a picture's landmarks, with the brightness fit.
 
-    For each landmark the maplet is illuminated with one landmark-to-camera vector and the Sun
-    vector of the SUM (L15 3.3.1, S16 Eq. 12-17): normals from SPC's slope hierarchy, the chosen
-    illumination law, dark only where the incidence exceeds 90 deg (--shadows cast adds ray-marched
-    cast shadows).  When the photo is available it is extracted too (see 'spctool extract') and the
-    brightness scale lambda = mean(extracted)/mean(predicted) is fitted over cells non-zero in both;
-    phi (background) is fitted by least squares only when the zero-offset correlation exceeds
-    --bg-corr-min.  Without a photo lambda = 1 and phi = 0.
+    For each landmark the maplet is illuminated with one landmark-to-camera vector and the Sun vector of
+    the SUM (Liounis 2015 sec. 3.3.1; Shoemaker et al. 2016 Eq. 12-17): normals from SPC's slope
+    hierarchy, the chosen illumination law, dark only where the incidence exceeds 90 deg (--shadows cast
+    adds ray-marched cast shadows).  When the photo is available it is extracted too (see 'spctool
+    extract') and the brightness scale lambda = mean(extracted)/mean(predicted) is fitted over cells
+    non-zero in both; phi (background) is fitted by least squares only when the zero-offset correlation
+    exceeds --bg-corr-min.  Without a photo lambda = 1 and phi = 0.
 
     Columns: name, sample and line (pixel of the landmark centre used), predicted_sample and
     predicted_line (its projection with the SUM pose), emission, incidence, phase (degrees),
-    lambda, phi, correlation (zero offset), cov, ill, res, inv (per mille), det_j (pixels per
-    cell), ds (shadow extension), subsample, status (ok, outside, no-maplet, removed-<criterion>).
+    lambda (brightness scale), phi (background), correlation (zero-offset rho between prediction
+    and extraction), cov (fraction of maplet nodes inside the photo), ill (fraction of nodes lit),
+    res (photo pixel size / maplet scale), inv (per mille of nodes removed as hidden or seen too
+    obliquely), det_j (determinant of d(sample, line)/d(x, y), pixels per cell), ds (shadow
+    extension, cells), subsample (samples per cell axis), status (ok, outside, no-maplet,
+    removed-<criterion>); -1 or nan where a value needs the photo.
 
     With --out-dir DIR the predicted images are written as DIR/LANDMARK_PICTURE_predicted.pgm
     (or .png, .fits); North (-UX) is up and East (UY) to the right.
@@ -359,14 +398,14 @@ def predict_cmd(ctx: Context, **kw):
 def extract_cmd(ctx: Context, **kw):
     """The photo resampled onto each landmark's maplet, filtered and judged.
 
-    Every maplet node is projected with the full camera model (--linearized: S16's linearisation
-    about the landmark), the photo is sampled with SPC's BRT0 bilinear rule (DN outside the SUM
-    THRSH are missing; one missing corner is repaired), averaging MxM samples per cell when cells
-    are larger than pixels.  The extract filter then extends shadows away from the Sun by
-    ds = 3 + floor(1/|det J|) cells (and 2 cells sideways), zeroes cells seen at cos(emission)
-    < 0.05 and cells hidden by the terrain (ray march toward the camera).  COV, ILL, RES and INV
-    are computed and the removal criteria (LITHOS 'INVLIM,SLIM,CLIM,ILIM,RSMN,RSMX', default
-    0,60,.25,.25,0,3) give the status.
+    Every maplet node is projected with the full camera model (--linearized: the linearisation about the
+    landmark of Shoemaker et al. 2016), the photo is sampled with SPC's BRT0 bilinear rule (DN outside
+    the SUM THRSH are missing; one missing corner is repaired), averaging MxM samples per cell when
+    cells are larger than pixels.  The extract filter then extends shadows away from the Sun by ds = 3 +
+    floor(1/|det J|) cells (and 2 cells sideways), zeroes cells seen at cos(emission) < 0.05 and cells
+    hidden by the terrain (ray march toward the camera).  COV, ILL, RES and INV are computed and the
+    removal criteria (LITHOS 'INVLIM,SLIM,CLIM,ILIM,RSMN,RSMX', default 0,60,.25,.25,0,3) give the
+    status.
 
     Columns: as for 'spctool predict'.  With --out-dir DIR the extracted images are written as
     DIR/LANDMARK_PICTURE_extracted.pgm (or .png, .fits).

@@ -68,6 +68,12 @@ from spctool.errors import SpcResultError, SpcUsageError
 @options.sigma_px_option()
 @options.no_prior_option
 @options.min_landmarks_option
+@click.option(
+    "--plots",
+    is_flag=True,
+    help="Also draw every picture's register overlay and solve-pose residual plot into DIR/PLOTS/.",
+)
+@click.option("--no-figure", "no_figure", is_flag=True, help="Do not write BATCH_SUMMARY.png.")
 @options.json_option
 @options.output_option
 @pass_context
@@ -86,6 +92,8 @@ def batch_cmd(
     sigma_px,
     no_prior,
     min_landmarks,
+    plots,
+    no_figure,
     as_json,
     output,
 ):
@@ -104,9 +112,11 @@ def batch_cmd(
     LANDMARKS rows and, when the pose converged, the solved SCOBJ, CX, CY, CZ, SIGMA_VSO,
     SIGMA_PTG; every other line unchanged), TABLES/PIC.select.txt, TABLES/PIC.register.txt,
     TABLES/PIC.pose.txt (the stages' landmark tables), TABLES/PIC.done.json (written last) and
-    BATCH_SUMMARY.txt / BATCH_SUMMARY.json.  A batch is resumable: a picture whose done-marker
-    matches the options and its input SUM is skipped unless --force, so an interrupted batch
-    continues where it stopped.  The results do not depend on --jobs or --scheduler.
+    BATCH_SUMMARY.txt / BATCH_SUMMARY.json, and the figure BATCH_SUMMARY.png (rms residual before
+    and after and landmarks found vs selected per picture; --no-figure: none); --plots adds
+    PLOTS/PIC.register.png and PLOTS/PIC.pose.png per picture.  A batch is resumable: a picture
+    whose done-marker matches the options and its input SUM is skipped unless --force, so an
+    interrupted batch continues where it stopped.  The results do not depend on --jobs or --scheduler.
 
     Summary columns (one row per picture, in list order): picture, candidates, selected (maplets
     selected), found (landmarks registered), used (in the pose solve), rms_before_px and
@@ -176,6 +186,15 @@ def batch_cmd(
         )
 
     emit(result.to_json() if as_json else result.to_text(), output)
+    if not no_figure or plots:
+        from spctool.cli import figures
+
+        if not no_figure:
+            ctx.info(f"wrote {figures.batch_summary_figure(result, target / 'BATCH_SUMMARY.png')}")
+        if plots:
+            ctx.info(
+                f"wrote {figures.picture_plots(ctx, result, target, workdir)} plots to {target / 'PLOTS'}"
+            )
     counts = result.counts()
     ctx.info(
         f"{len(result.pictures)} pictures in {result.elapsed_s:.1f} s ({result.mode}, {result.workers} "

@@ -67,14 +67,16 @@ def emit_table(table, *, as_json: bool, output: str | None = None) -> None:
 
 @contextmanager
 def progress(ctx: Context, description: str, total: int | None, *, threaded: bool = True):
-    """A rich progress bar on a TTY; silent otherwise (and with -q).  Yields ``advance(n=1)``.
+    """A rich progress bar on a TTY; silent otherwise (and with -q).  Yields
+    ``advance(n=1, description=None)`` (a new ``description`` replaces the bar's text).
 
     ``threaded=False``: no refresh thread (the bar is redrawn at each ``advance``), for commands that
     fork worker processes, which is safe only while this process runs a single thread.
     """
     if ctx.verbosity < 0 or not sys.stderr.isatty():
-        yield lambda n=1: None
+        yield lambda n=1, description=None: None
         return
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(
@@ -84,10 +86,13 @@ def progress(ctx: Context, description: str, total: int | None, *, threaded: boo
         TimeRemainingColumn(),
         transient=True,
         auto_refresh=threaded,
+        console=Console(stderr=True),  # stdout may be a pipe or file carrying the table
     ) as bar:
         task = bar.add_task(description, total=total)
 
-        def advance(n=1):
+        def advance(n=1, description=None):
+            if description is not None:
+                bar.update(task, description=description)
             bar.advance(task, n)
             if not threaded:
                 bar.refresh()

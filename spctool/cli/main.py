@@ -40,6 +40,8 @@ COMMANDS = {
     "demo": "spctool.cli.sim",
     "montecarlo": "spctool.cli.montecarlo",
     "batch": "spctool.cli.batch",
+    "warmup": "spctool.cli.jit",
+    "man": "spctool.cli.completion",
 }
 #: the command modules, in --help order
 COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
@@ -149,10 +151,18 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
 
     Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
     centres at integers, line 1 = first stored row.
+
+    Man pages: 'spctool man COMMAND'.  Shell completion (picture and landmark names of the
+    working directory too): eval "$(_SPCTOOL_COMPLETE=bash_source spctool)" in ~/.bashrc
+    (zsh: zsh_source, fish: fish_source).
     """
     ctx.obj = Context(
         workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
     )
+    if not ctx.resilient_parsing:  # not while completing
+        from spctool.cli.jit import first_run_note
+
+        first_run_note(ctx.obj, ctx.invoked_subcommand)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -20,20 +20,22 @@ from spctool.errors import SpcResultError, SpcUsageError
 
 _HELP = """Characterise landmark registration by Monte Carlo (S16 Tables 2 and 3, Fig. 8).
 
-One truth photo; for every landmark and sample the knowledge is perturbed with S16 Table 2's
-1-sigma errors -- spacecraft position (0.1667 m per axis) and attitude (0.05 deg per axis),
-landmark position (3.33 cm per axis), maplet heights (3.33 mm) and albedo (0.047), pixel skew
-K_yx (1e-5), principal point (0.1667 px), focal length (0.004 mm), OWEN distortion
-(1e-5, 1e-7, 1e-5, 1e-5, 0, 0) and Sun right ascension/declination (0.3 deg) -- the landmark is
-registered in the unchanged photo and the error truth - measured is recorded, truth being the
-projection of the true landmark with the true camera. Maplet space runs S16's schedule (L = 10
-... 1, search +-5L cells, acceptance rho >= 0.3, no pose update, linearised extraction) plus
---refine steps at L = 1; image space (S16's Retina direction) searches at L = 4, 2, 1 over +-48
-px with one rendered template, then re-renders it at the estimate for --refine steps at L = 1.
-Scalar perturbations are Latin-Hypercube sampled per landmark
-(--sampling lhs, S16) or plain Monte Carlo (--sampling mc); heights and albedo get an error on
-every maplet node (--fields cell, the default: its mean max rho, about 0.5, is close to S16's
-0.54-0.59, where one bias per maplet, --fields bias, gives about 0.93).
+S16 is Shoemaker et al. 2016, "Performance Characterization of a Landmark Measurement System for
+ARRM Terrain Relative Navigation" (README, References).
+
+One truth photo; for every landmark and sample the knowledge is perturbed with S16 Table 2's 1-sigma
+errors -- spacecraft position (0.1667 m per axis) and attitude (0.05 deg per axis), landmark position
+(3.33 cm per axis), maplet heights (3.33 mm) and albedo (0.047), pixel skew K_yx (1e-5), principal point
+(0.1667 px), focal length (0.004 mm), OWEN distortion (1e-5, 1e-7, 1e-5, 1e-5, 0, 0) and Sun right
+ascension/declination (0.3 deg) -- the landmark is registered in the unchanged photo and the error truth
+- measured is recorded, truth being the projection of the true landmark with the true camera. Maplet
+space runs S16's schedule (L = 10 ... 1, search +-5L cells, acceptance rho >= 0.3, no pose update,
+linearised extraction) plus --refine steps at L = 1; image space (the direction of the Retina system,
+Wright et al. 2016) searches at L = 4, 2, 1 over +-48 px with one rendered template, then re-renders it
+at the estimate for --refine steps at L = 1. Scalar perturbations are Latin-Hypercube sampled per
+landmark (--sampling lhs, S16) or plain Monte Carlo (--sampling mc); heights and albedo get an error on
+every maplet node (--fields cell, the default: its mean max rho, about 0.5, is close to S16's 0.54-0.59,
+where one bias per maplet, --fields bias, gives about 0.93).
 
 The report has S16 Table 3's layout (means and 1-sigma of the sample/line errors over the
 successful samples, not found, below threshold, success rate, mean max rho) per landmark and for
@@ -68,14 +70,17 @@ def _names(text: str | None) -> list[str]:
 
 def register(cli: click.Group) -> None:
     @cli.command(
-        "montecarlo", help=_HELP, short_help="S16 Monte Carlo of landmark registration (Table 3, Fig. 8)."
+        "montecarlo",
+        help=_HELP,
+        short_help="Monte Carlo of landmark registration (Shoemaker et al. 2016, Table 3).",
     )
     @click.argument("picture", required=False)
     @click.option(
         "--preset",
         type=click.Choice(["s16-50m"]),
         default=None,
-        help="The built-in scene: S16's camera at 50 m, 12 landmarks, 99x99 maplets of 1 cm.",
+        help="The built-in scene: the camera of Shoemaker et al. 2016 at 50 m, 12 landmarks, 99x99 "
+        "maplets of 1 cm.",
     )
     @click.option(
         "--scene",
@@ -106,7 +111,7 @@ def register(cli: click.Group) -> None:
         default=500,
         show_default=True,
         metavar="N",
-        help="Samples per landmark (S16: 500).",
+        help="Samples per landmark (Shoemaker et al. 2016: 500).",
     )
     @click.option(
         "--seed",
@@ -121,7 +126,7 @@ def register(cli: click.Group) -> None:
         type=click.Choice(["lhs", "mc"]),
         default="lhs",
         show_default=True,
-        help="Latin Hypercube (S16) or plain Monte Carlo.",
+        help="Latin Hypercube (as Shoemaker et al. 2016) or plain Monte Carlo.",
     )
     @click.option(
         "--fields",
@@ -153,7 +158,7 @@ def register(cli: click.Group) -> None:
         show_default=True,
         metavar="N",
         help="Refinement steps at L = 1 that re-extract (maplet) or re-render (image) at the current "
-        "estimate; maplet space with 0 is S16's schedule exactly.",
+        "estimate; maplet space with 0 is the schedule of Shoemaker et al. 2016 exactly.",
     )
     @click.option(
         "--jobs",
@@ -168,7 +173,7 @@ def register(cli: click.Group) -> None:
         "figures_dir",
         metavar="DIR",
         type=click.Path(file_okay=False),
-        help="Write montecarlo_scatter.png (S16 Fig. 8), montecarlo_histograms.png and "
+        help="Write montecarlo_scatter.png (Shoemaker et al. 2016, Fig. 8), montecarlo_histograms.png and "
         "montecarlo_success.png (success versus a-priori pixel error) to DIR.",
     )
     @click.option(
@@ -183,7 +188,7 @@ def register(cli: click.Group) -> None:
         is_flag=True,
         help="Exit 1 unless the results meet the targets: image space, over all samples, success "
         ">= 99.5 %, |mean| <= 0.05 px and 1 sigma <= 0.08 px per axis; maplet space at least as good "
-        "as S16 Table 3 (overall success, worst landmark's |mean| and 1 sigma per axis).",
+        "as Shoemaker et al. 2016, Table 3 (overall success, worst landmark's |mean| and 1 sigma per axis).",
     )
     @options.json_option
     @options.output_option
@@ -278,7 +283,16 @@ def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
         if picture:
             raise SpcUsageError("a preset has its own picture: drop PICTURE")
         ctx.note_once(f"building the {preset} scene (about a minute; --scene FILE keeps it)")
-        scene = mc.s16_scene(world_seed, progress=lambda msg: ctx.info(msg, 2))
+        # the builder names each step as it starts: 3 world steps, then one render per landmark
+        with progress(ctx, f"building {preset}", 3 + len(mc.S16_LANDMARKS)) as advance:
+            started = []
+
+            def step(msg):
+                ctx.info(msg, 2)
+                advance(1 if started else 0, description=f"{preset}: {msg}")
+                started.append(msg)
+
+            scene = mc.s16_scene(world_seed, progress=step)
     else:
         if not (Path(ctx.workdir) / "TRUTH.json").is_file():
             raise SpcUsageError(

@@ -72,6 +72,16 @@ image_format_option = click.option(
     help="Format of the --out-dir images (FITS keeps the float values and a header).",
 )
 
+image_zoom_option = click.option(
+    "--zoom",
+    "zoom",
+    type=click.IntRange(1, 64),
+    default=1,
+    show_default=True,
+    metavar="N",
+    help="Enlarge the PGM/PNG --out-dir images N times, each cell an NxN block (FITS keeps the data).",
+)
+
 
 def overlay_option(help: str):
     """``--overlay FILE.png``: the photo with the command's results drawn on it."""
@@ -91,9 +101,25 @@ def require_option(help: str):
 # inputs: picture, photo, landmarks, shape
 
 
-picture_argument = click.argument("picture")
+def complete_picture(ctx, param, incomplete):
+    """Shell completion: the working directory's picture names (:mod:`spctool.cli.completion`)."""
+    from spctool.cli import completion
 
-landmark_names_argument = click.argument("names", nargs=-1, metavar="[LANDMARK]...")
+    return completion.complete_picture(ctx, param, incomplete)
+
+
+def complete_landmark(ctx, param, incomplete):
+    """Shell completion: the working directory's landmark names (:mod:`spctool.cli.completion`)."""
+    from spctool.cli import completion
+
+    return completion.complete_landmark(ctx, param, incomplete)
+
+
+picture_argument = click.argument("picture", shell_complete=complete_picture)
+
+landmark_names_argument = click.argument(
+    "names", nargs=-1, metavar="[LANDMARK]...", shell_complete=complete_landmark
+)
 
 sum_option = click.option(
     "--sum",
@@ -153,8 +179,7 @@ photometry_option = click.option(
     type=click.Choice(PHOTOMETRY_LAWS),
     default="spc",
     show_default=True,
-    help="Illumination law (spc-algorithms.md 3.2): SPC lunar-Lambert (no factor 2), McEwen, SPC form "
-    "with fixed beta, Lambert.",
+    help="Illumination law: SPC lunar-Lambert (no factor 2), McEwen, SPC form with fixed beta, Lambert.",
 )
 
 shadows_option = click.option(
@@ -169,7 +194,8 @@ shadows_option = click.option(
 linearized_option = click.option(
     "--linearized",
     is_flag=True,
-    help="Project nodes with the S16 linearisation about the landmark (default: the full camera model).",
+    help="Project nodes with the linearisation about the landmark of Shoemaker et al. 2016 (default: the "
+    "full camera model).",
 )
 
 no_filter_option = click.option(
@@ -356,7 +382,7 @@ space_option = click.option(
     default="maplet",
     show_default=True,
     help="maplet: the photo resampled onto the maplet (SPC); image: the maplet rendered into the photo "
-    "with cast shadows and correlated over the photo (S16 Retina).",
+    "with cast shadows and correlated over the photo (as the Retina system does, Wright et al. 2016).",
 )
 
 corr_min_option = click.option(
@@ -365,7 +391,7 @@ corr_min_option = click.option(
     default=0.3,
     show_default=True,
     metavar="RHO",
-    help="Correlation peaks below RHO are low-correlation (S16/GIANT 0.3).",
+    help="Correlation peaks below RHO are low-correlation (0.3 as in Shoemaker et al. 2016 and NASA GIANT).",
 )
 
 #: --schedule of the whole-pipeline commands (batch, demo); 'register' offers retina_s16 too
@@ -374,8 +400,8 @@ pipeline_schedule_option = click.option(
     type=click.Choice(["autoregister", "s16"]),
     default="autoregister",
     show_default=True,
-    help="Registration schedule: SPC's AUTOREGISTER (pose solve after each pass) or S16's "
-    "per-landmark spacings 10..1 (see 'spctool register --help').",
+    help="Registration schedule: SPC's AUTOREGISTER (pose solve after each pass) or the "
+    "per-landmark spacings 10..1 of Shoemaker et al. 2016 (see 'spctool register --help').",
 )
 
 
@@ -397,8 +423,8 @@ def sigma_px_option(default: float = 0.1, help: str | None = None):
         show_default=True,
         metavar="PX",
         help=help
-        or "1-sigma measurement noise per pixel component of the pose solve (S16: 0.1 px; 1 px is "
-        "conservative).",
+        or "1-sigma measurement noise per pixel component of the pose solve (Shoemaker et al. 2016: "
+        "0.1 px; 1 px is conservative).",
     )
 
 

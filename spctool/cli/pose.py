@@ -4,7 +4,8 @@ Loads the picture (SUM) and INIT_LITHOS (camera distortion), the measured landma
 table from ``register`` or the SUM's own LANDMARKS section) and the landmark positions (LMK VLM and
 SIGMA_LMK), runs :func:`spctool.stages.pose.solve_pose` and writes the residual table of
 cli-contract.md; ``--output``/``--in-place`` write the SUM with the solved SCOBJ, CX/CY/CZ and
-SIGMA_VSO/SIGMA_PTG (every other line byte-identical).
+SIGMA_VSO/SIGMA_PTG (every other line byte-identical); ``--plot`` draws the residuals before and after
+(:func:`spctool.figures.pose_plot`).
 """
 
 from __future__ import annotations
@@ -177,6 +178,17 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     metavar="FILE",
     help="Write the residual table to FILE instead of stdout ('-' = stdout).",
 )
+@click.option(
+    "--plot",
+    "plot",
+    metavar="FILE.png",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the residuals before (orange) and after (blue) the solve as vectors over the photo, "
+    "magnified by a stated factor, beside a histogram of their lengths (PNG).",
+)
+@options.photo_option(" for --plot")
+@options.flip_rows_option
 @options.json_option
 @pass_context
 def solve_pose_cmd(
@@ -198,6 +210,9 @@ def solve_pose_cmd(
     sum_output,
     in_place,
     table_output,
+    plot,
+    photo_path,
+    flip_rows,
     as_json,
 ):
     """Solve the spacecraft position and camera attitude from measured landmark pixels.
@@ -205,7 +220,7 @@ def solve_pose_cmd(
     Minimises the weighted pixel residuals (1/sigma_px^2) of the landmarks' LMK positions
     projected with the picture's camera (SUM + INIT_LITHOS distortion), plus the a-priori term
     from the SUM's SIGMA_VSO (km, body axes) and SIGMA_PTG (rad, camera axes), by Gauss-Newton
-    with step halving (spc-algorithms.md 10).  The attitude change is the rotation vector
+    with step halving.  The attitude change is the rotation vector
     theta with [CX;CY;CZ]_new = Rot(-theta) [CX;CY;CZ]_old, in camera axes.  Outliers are
     rejected worst first and named on stderr, in the status column and in the JSON.
 
@@ -331,6 +346,8 @@ def solve_pose_cmd(
         f"{'converged' if result.converged else 'NOT converged'}; residuals measured - predicted (px)"
     )
     emit_table(table, as_json=as_json, output=table_output)
+    if plot:
+        _plot(ctx, plot, pic, photo_path, flip_rows, meas, res0, res1, status, result)
 
     if ctx.verbosity >= (1 if as_json else 0):
         for line in result.summary_lines():
@@ -340,6 +357,30 @@ def solve_pose_cmd(
             f"{pic.name}: pose did not converge in {pose_options.max_iter} iterations"
             + ("; no SUM written" if write_target is not None else "")
         )
+
+
+def _plot(ctx, path, pic, photo_path, flip_rows, meas, res0, res1, status, result):
+    from spctool import figures
+    from spctool.cli.common import load_photo
+
+    photo = load_photo(ctx, pic, photo_path, flip_rows=flip_rows, required=False)
+    if photo is None:
+        ctx.note_once(f"no photo for picture {pic.name}: --plot draws on a blank frame")
+    fig = figures.pose_plot(
+        None if photo is None else photo.data,
+        pic.thrsh,
+        meas.names,
+        np.stack([meas.sample, meas.line], axis=-1),
+        res0,
+        res1,
+        status,
+        picture=pic.name,
+        rms_before=result.rms_before,
+        rms_after=result.rms_after,
+        shape=(pic.nln, pic.npx),
+    )
+    fig.save(path)
+    ctx.info(f"wrote {path}")
 
 
 def register(cli):

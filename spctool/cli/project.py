@@ -44,7 +44,7 @@ def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable
 
 @click.command("project")
 @options.picture_argument
-@click.argument("landmarks", nargs=-1)
+@click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
 @options.landmarks_table_option("Take landmark names from a landmark table ('-' = stdin).")
 @click.option(
     "--inverse",
@@ -62,8 +62,13 @@ def project_cmd(ctx: Context, picture, landmarks, landmarks_table, inverse, shap
 
     LANDMARKS are names (LMKFILES/NAME.LMK), LMK files or landmark tables; default: every
     landmark of LMRKLIST.TXT (else LMKFILES/). The camera is the SUM's pose and K-matrix with the
-    INIT_LITHOS DISTORT= model matching the picture. Rows give the predicted SPC pixel
-    (1-based sample, line) and status ok / outside / behind.
+    INIT_LITHOS DISTORT= model matching the picture.
+
+    Columns: name, sample and line (the predicted SPC pixel, 1-based), range_km (spacecraft to
+    landmark), status (ok, outside the photo, behind the camera).  --inverse prints the line of
+    sight of one pixel instead: in_image, spacecraft_position (km, body frame), direction_body and
+    direction_camera (unit vectors) and, with a shape, the surface_point, range_km, latitude_deg,
+    longitude_deg and radius_km where it meets the body.
 
     Example:
 

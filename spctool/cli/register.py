@@ -13,7 +13,9 @@ a-priori pixel is the projection of V with the SUM camera.
 ``correlate`` runs one correlation at one spacing; ``--out-dir`` writes each surface as an image
 (``<LANDMARK>_<PICTURE>_surface.<ext>``: PGM/PNG map ρ ∈ [−1, 1] to 0…255, NaN to 0; FITS keeps the
 float values).  ``register`` runs a whole schedule; ``--write-sum`` rewrites only the SUM's LANDMARKS
-section (atomic, ``.bak`` kept); ``--overlay`` draws a-priori and measured pixels on the photo.
+section (atomic, ``.bak`` kept).  Figures (:mod:`spctool.figures`): ``register --overlay`` draws each
+landmark's magnified shift on the photo; ``--panels DIR`` (both commands) writes predicted | extracted |
+correlation surface per landmark; ``correlate --sheet`` puts every surface on one page.
 """
 
 from __future__ import annotations
@@ -80,7 +82,7 @@ _shared_options = options.option_group(
     options.criteria_option(
         "Removal criteria on the first extraction: lithos_standard, autoregister or "
         "'INVLIM,SLIM,CLIM,[ILIM,]RSMN,RSMX'; 'none' = no removal. Default: none for correlate "
-        "and the S16 schedule, autoregister (0,50,.25,0,5) for the AUTOREGISTER schedule."
+        "and the s16 schedule, autoregister (0,50,.25,0,5) for the AUTOREGISTER schedule."
     ),
     options.thresholds_option,
     click.option(
@@ -99,6 +101,7 @@ _shared_options = options.option_group(
     ),
     options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
     options.image_format_option,
+    options.image_zoom_option,
     options.json_option,
     options.output_option,
     pass_context,
@@ -205,7 +208,7 @@ def surface_to_8bit(surface) -> np.ndarray:
     )
 
 
-def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space: str) -> Path:
+def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space: str, zoom: int = 1) -> Path:
     from spctool.formats.photo import write_photo
 
     path = out_dir / f"{name}_{picture}_surface.{fmt}"
@@ -230,43 +233,117 @@ def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space
                 hdr[k] = (float(v), "offset along array axis 0/1, full-resolution cells or px")
         write_photo(path, np.asarray(corr.surface, dtype=np.float64), fmt="fits", header=hdr)
     else:
-        write_photo(path, surface_to_8bit(corr.surface), fmt=fmt)
+        k = int(zoom)
+        write_photo(path, np.repeat(np.repeat(surface_to_8bit(corr.surface), k, axis=0), k, axis=1), fmt=fmt)
     return path
 
 
-def render_overlay(photo_data, thrsh, names, apriori, measured, ok) -> bytes:
-    """PNG bytes: the photo stretched to 8 bits, a-priori pixels as yellow crosses, measured ones as green
-    crosses joined to them (red X where registration failed), with the landmark names."""
-    import io
+def render_overlay(
+    photo_data, thrsh, names, apriori, measured, ok, *, status=None, picture="", subtitle="", magnify=None
+) -> bytes:
+    """PNG bytes of :func:`spctool.figures.register_overlay`: the photo with each landmark's shift drawn
+    as a vector magnified by a stated factor, coloured by status, with legend, title and a reference
+    vector (``status`` default: ok / not-found from ``ok``)."""
+    from spctool import figures
 
-    from PIL import Image, ImageDraw
+    if status is None:
+        status = ["ok" if o else "not-found" for o in ok]
+    fig = figures.register_overlay(
+        photo_data,
+        thrsh,
+        names,
+        apriori,
+        measured,
+        status,
+        picture=picture,
+        subtitle=subtitle,
+        magnify=magnify,
+    )
+    return fig.png()
 
-    from spctool.cli.select import stretch_8bit
 
-    gray = stretch_8bit(photo_data, thrsh)
-    img = Image.fromarray(np.repeat(gray[:, :, None], 3, axis=2), mode="RGB")
-    draw = ImageDraw.Draw(img)
-    yellow, green, red = (255, 210, 0), (60, 230, 60), (255, 60, 60)
-    for k, name in enumerate(names):  # PIL draws one primitive at a time
-        a = apriori[k] - 1.0  # SPC 1-based → PIL 0-based
-        if not np.all(np.isfinite(a)):
-            continue
-        draw.line([(a[0] - 4, a[1]), (a[0] + 4, a[1])], fill=yellow)
-        draw.line([(a[0], a[1] - 4), (a[0], a[1] + 4)], fill=yellow)
-        if ok[k] and np.all(np.isfinite(measured[k])):
-            m = measured[k] - 1.0
-            draw.line([(a[0], a[1]), (m[0], m[1])], fill=green)
-            draw.line([(m[0] - 4, m[1]), (m[0] + 4, m[1])], fill=green)
-            draw.line([(m[0], m[1] - 4), (m[0], m[1] + 4)], fill=green)
-            colour = green
-        else:
-            draw.line([(a[0] - 3, a[1] - 3), (a[0] + 3, a[1] + 3)], fill=red)
-            draw.line([(a[0] - 3, a[1] + 3), (a[0] + 3, a[1] - 3)], fill=red)
-            colour = red
-        draw.text((float(a[0]) + 5.0, float(a[1]) - 12.0), name, fill=colour)
-    buf = io.BytesIO()
-    img.save(buf, format="PNG")
-    return buf.getvalue()
+def write_panels(out_dir: Path, inp, result, opts) -> int:
+    """One PNG per landmark with a last correlation step (:func:`write_panel`); returns the count."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for i, st in enumerate(result.last_steps):
+        shift = result.measured[i] - result.apriori[i]
+        if st is not None and write_panel(out_dir, inp, i, st, result.camera, opts, result.status[i], shift):
+            written += 1
+    return written
+
+
+def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
+    """DIR/LANDMARK_PICTURE_panel.png of landmark ``i``'s correlation step ``st``
+    (:func:`spctool.figures.landmark_panel`): predicted | extracted | surface (maplet space; the
+    prediction is redrawn with ``camera``), or template | photo window at the template's placement |
+    surface (image space).  ``shift``: the (dsample, dline) reported for the landmark."""
+    from spctool import figures
+    from spctool.stages.predict import predict
+
+    name = inp.names[i]
+    corr = st.correlation
+    common = dict(
+        peak_index=corr.peak_index,
+        subpixel=corr.subpixel,
+        spacing=int(corr.spacing),
+        rho=float(corr.peak),
+        status=status,
+        shift=tuple(float(x) for x in shift),
+    )
+    if st.extraction is not None:
+        pred = predict(inp.maplets[i], camera.position, inp.pic.sz, opts.predict)
+        fig = figures.landmark_panel(
+            name,
+            inp.pic.name,
+            pred.image,
+            st.extraction.image,
+            corr.surface,
+            left_valid=pred.lit,
+            middle_valid=st.extraction.valid,
+            axes=("UY", "UX"),
+            unit="cells",
+            note="maplet space, North up; yellow + = landmark centre V; prediction at the final pose",
+            **common,
+        )
+    elif st.template is not None:
+        tmpl = st.template
+        s0, s1, l0, l1 = tmpl.window
+        c0 = np.asarray(camera.project(np.asarray(inp.maplets[i].v, float)[None, :]), float).reshape(2)
+        ds, dl = (int(v) for v in np.rint(st.center - c0))
+        win = _photo_window(inp.photo.data, s0 + ds, s1 + ds, l0 + dl, l1 + dl)
+        fig = figures.landmark_panel(
+            name,
+            inp.pic.name,
+            tmpl.radiance,
+            win,
+            corr.surface,
+            left_valid=tmpl.coverage >= 1.0 - 1e-12,
+            middle_valid=np.isfinite(win),
+            labels=("template (rendered)", "photo window"),
+            axes=("sample", "line"),
+            unit="px",
+            note=f"image space; photo samples {s0 + ds}-{s1 + ds}, lines {l0 + dl}-{l1 + dl} "
+            "(where the template sat for the last step)",
+            mark_centre=False,
+            **common,
+        )
+    else:
+        return None
+    path = out_dir / f"{name}_{inp.pic.name}_panel.png"
+    fig.save(path)
+    return path
+
+
+def _photo_window(data, s0, s1, l0, l1):
+    """Photo DN over samples s0..s1, lines l0..l1 (1-based inclusive); NaN outside the photo."""
+    out = np.full((l1 - l0 + 1, s1 - s0 + 1), np.nan)
+    nln, npx = data.shape
+    a, b = max(l0, 1), min(l1, nln)
+    c, d = max(s0, 1), min(s1, npx)
+    if a <= b and c <= d:
+        out[a - l0 : b - l0 + 1, c - s0 : d - s0 + 1] = data[a - 1 : b, c - 1 : d]
+    return out
 
 
 def _missing_rows(names, columns):
@@ -295,18 +372,35 @@ def _missing_rows(names, columns):
     metavar="N",
     help="Bin both images by NxN and correlate over +-K bins (search +-K x N cells).",
 )
+@click.option(
+    "--sheet",
+    "sheet",
+    metavar="FILE.png",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write every landmark's correlation surface on one page, enlarged, peak marked in red (PNG).",
+)
+@click.option(
+    "--panels",
+    "panels",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
+    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
+)
 def correlate_cmd(ctx: Context, **kw):
     """One correlation of each landmark: offset, peak and peak quality.
 
     Maplet space (default): the prediction (SPC illumination, one view vector, dark only where the
     incidence exceeds 90 deg) is correlated with the photo resampled onto the maplet with the landmark
     at its a-priori pixel.  Both images are binned by --spacing N (same phase, anchored at the centre
-    node); the normalised cross-correlation (Pearson, with the square root L15 Eq. 3.58 lacks) is taken
-    over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both images.  The peak is
-    refined by one parabola per axis (the corrected L15 Eq. 3.65) and checked: edge-peak (on the grid
-    border), not-found (a neighbour not lower, or no defined value), low-correlation (below
-    --corr-min).  Image space: the maplet rendered into the photo (cast shadows) is correlated with the
-    photo itself, offsets in pixels.
+    node); the normalised cross-correlation (Pearson, with the square root that Liounis 2015 Eq. 3.58
+    lacks) is taken over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both
+    images.  The peak is refined by one parabola per axis (Liounis 2015 Eq. 3.65, corrected) and
+    checked: edge-peak (on the grid border), not-found (a neighbour not lower, or no defined value),
+    low-correlation (below --corr-min).  Image space: the maplet rendered into the photo (cast shadows)
+    is correlated with the photo itself, offsets in pixels.
 
     Columns: name, sample and line (the a-priori pixel used), offset_x and offset_y (maplet cells along
     UX and UY; image space: pixels along line and sample), dsample and dline (the implied pixel shift,
@@ -345,7 +439,7 @@ def correlate_cmd(ctx: Context, **kw):
         "spacing",
         "status",
     ]
-    rows, written = [], 0
+    rows, written, tiles = [], 0, []
     with progress(ctx, f"correlate {inp.pic.name}", len(reg)) as advance:
         for i, name in enumerate(inp.names):
             row = {
@@ -387,8 +481,17 @@ def correlate_cmd(ctx: Context, **kw):
             )
             rows.append(row)
             if out_dir is not None:
-                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space)
+                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space, kw["zoom"])
                 written += 1
+            if kw["panels"]:
+                Path(kw["panels"]).mkdir(parents=True, exist_ok=True)
+                write_panel(Path(kw["panels"]), inp, i, st, inp.camera, opts, st.status, shift)
+            if kw["sheet"]:
+                from spctool.figures import surface_tile
+
+                tiles.append(
+                    (f"{name} rho {st.correlation.peak:.2f} {st.status}", surface_tile(st.correlation))
+                )
             advance()
     rows += _missing_rows(inp.missing, columns)
     meta = {
@@ -409,6 +512,14 @@ def correlate_cmd(ctx: Context, **kw):
     )
     if out_dir is not None:
         table.comments.append(f"{written} correlation surfaces written to {out_dir}")
+    if kw["sheet"]:
+        from spctool.figures import contact_sheet
+
+        title = (
+            f"{inp.pic.name}  correlation surfaces, spacing {kw['spacing']} (viridis per tile; red = peak)"
+        )
+        contact_sheet(tiles, title=title).save(kw["sheet"])
+        ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
 
@@ -423,8 +534,8 @@ def correlate_cmd(ctx: Context, **kw):
     type=click.Choice(["s16", "retina_s16", "autoregister"]),
     default="s16",
     show_default=True,
-    help="s16: per landmark, spacings 10..1, no pose update (S16); autoregister: all landmarks at "
-    "spacing 2, then 1, drop below 0.5, then 1, with a pose solve after each pass (SPC).",
+    help="s16: per landmark, spacings 10..1, no pose update (Shoemaker et al. 2016); autoregister: all "
+    "landmarks at spacing 2, then 1, drop below 0.5, then 1, with a pose solve after each pass (SPC).",
 )
 @click.option(
     "--steps",
@@ -443,7 +554,7 @@ def correlate_cmd(ctx: Context, **kw):
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
-    help="S16 schedule: keep going after a failed step (default: stop the landmark).",
+    help="s16 schedule: keep going after a failed step (default: stop the landmark).",
 )
 @click.option(
     "--no-pose-update",
@@ -466,19 +577,39 @@ def correlate_cmd(ctx: Context, **kw):
     is_flag=True,
     help="With --write-sum: also remove the LANDMARKS rows of landmarks that failed.",
 )
-@options.overlay_option("Write the photo with a-priori (yellow) and measured (green) landmark pixels (PNG).")
+@options.overlay_option(
+    "Write the photo with each landmark's shift (measured - a-priori) as a vector magnified by "
+    "--magnify, coloured by status, with legend and title (PNG)."
+)
+@click.option(
+    "--magnify",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    metavar="F",
+    help="--overlay: draw shift vectors F times their length.  [default: the median shift drawn ~40 px]",
+)
+@click.option(
+    "--panels",
+    "panels",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
+    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
+)
 @options.require_option("Exit 1 when fewer than N landmarks are registered.")
 def register_cmd(ctx: Context, **kw):
     """Measure the landmarks of a picture: iterated predict, extract and correlate.
 
-    Schedule s16 (default; S16's template-matching loop): for each landmark, starting at its a-priori
-    pixel, correlate at spacing L = 10, 9, ..., 1 (search +-5L cells, acceptance rho >= 0.3) and move
-    the pixel by J_xy times the offset (L15 Eq. 3.67, S16 Eq. 19) after each step; the pose is not
-    changed.  Schedule autoregister (SPC's AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the
-    first pass, then all landmarks at spacing 2, a pose solve, spacing 1, a pose solve, landmarks with
-    rho < 0.5 dropped, spacing 1 and a last pose solve; each pass re-predicts and re-extracts with the
-    updated pose.  --space image correlates the maplet rendered into the photo (with cast shadows)
-    against the photo itself, so the search is not limited by the maplet's extent (S16 Retina).
+    Schedule s16 (default; the template-matching loop of Shoemaker et al. 2016): for each landmark,
+    starting at its a-priori pixel, correlate at spacing L = 10, 9, ..., 1 (search +-5L cells,
+    acceptance rho >= 0.3) and move the pixel by J_xy times the offset (Liounis 2015 Eq. 3.67, Shoemaker
+    et al. 2016 Eq. 19) after each step; the pose is not changed.  Schedule autoregister (SPC's
+    AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the first pass, then all landmarks at spacing
+    2, a pose solve, spacing 1, a pose solve, landmarks with rho < 0.5 dropped, spacing 1 and a last
+    pose solve; each pass re-predicts and re-extracts with the updated pose.  --space image correlates
+    the maplet rendered into the photo (with cast shadows) against the photo itself, so the search is
+    not limited by the maplet's extent (as in the Retina system, Wright et al. 2016).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
@@ -495,7 +626,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
       spctool -C WORKDIR register P600127001 FC0098 --space image --json
     """
-    from spctool.stages.register import RegisterOptions
+    from spctool.stages.register import RegisterOptions, schedule_steps
     from spctool.stages.register import register as run_register
 
     kw["_command"] = "register"
@@ -507,6 +638,8 @@ def register_cmd(ctx: Context, **kw):
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])
+    if kw["panels"]:
+        extra["keep_images"] = True  # the last extraction / template of every landmark, for the panels
     if kw["drop_corr"] is not None:
         seed = RegisterOptions.__dataclass_fields__["autoregister_steps"].default
         extra["autoregister_steps"] = tuple(
@@ -514,9 +647,9 @@ def register_cmd(ctx: Context, **kw):
         )
     opts = _register_options(kw, schedule, **extra)
     inp = _Inputs(ctx, kw)
-    with progress(
-        ctx, f"register {inp.pic.name}", None if schedule == "autoregister" else len(inp.names)
-    ) as adv:
+    # AUTOREGISTER visits every active landmark once per align pass (fewer after a drop)
+    passes = sum(k == "align" for k, _ in schedule_steps(opts)) if schedule == "autoregister" else 1
+    with progress(ctx, f"register {inp.pic.name}", passes * len(inp.names)) as adv:
         result = run_register(
             inp.photo,
             inp.camera,
@@ -540,11 +673,11 @@ def register_cmd(ctx: Context, **kw):
         out_dir.mkdir(parents=True, exist_ok=True)
         for name, st in zip(result.names, result.last_steps):
             if st is not None:
-                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space)
+                _write_surface(out_dir, kw["image_format"], name, inp.pic.name, st, opts.space, kw["zoom"])
                 written += 1
     meta = {
         "landmark_source": inp.source,
-        "schedule": schedule,
+        "schedule": "s16" if schedule == "retina_s16" else schedule,  # the --schedule word
         "space": opts.space,
         "thresholds": list(inp.thresholds),
         "status_counts": result.status_counts(),
@@ -567,7 +700,7 @@ def register_cmd(ctx: Context, **kw):
         )
     table.comments.append(
         f"registered {int(result.ok.sum())} of {len(result) + len(inp.missing)} landmarks "
-        f"({schedule}, {opts.space} space)"
+        f"({'s16' if schedule == 'retina_s16' else schedule}, {opts.space} space)"
     )
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
@@ -580,10 +713,22 @@ def register_cmd(ctx: Context, **kw):
         atomic.write_bytes(
             kw["overlay"],
             render_overlay(
-                inp.photo.data, inp.pic.thrsh, result.names, result.apriori, result.measured, result.ok
+                inp.photo.data,
+                inp.pic.thrsh,
+                result.names,
+                result.apriori,
+                result.measured,
+                result.ok,
+                status=result.status,
+                picture=inp.pic.name,
+                subtitle=f"({'s16' if schedule == 'retina_s16' else schedule}, {opts.space} space)",
+                magnify=kw["magnify"],
             ),
         )
         ctx.info(f"wrote {kw['overlay']}")
+    if kw["panels"]:
+        n = write_panels(Path(kw["panels"]), inp, result, opts)
+        ctx.info(f"wrote {n} panels to {kw['panels']}")
     if kw["require"] is not None and int(result.ok.sum()) < kw["require"]:
         raise SpcResultError(
             f"{inp.pic.name}: {int(result.ok.sum())} landmarks registered, fewer than "

@@ -230,7 +230,7 @@ def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes
     "--occlusion/--no-occlusion",
     "occlusion",
     default=None,
-    help="Run the occlusion test (L15 3.2.1). Default: on when a shape model is available.",
+    help="Run the occlusion test (Liounis 2015 sec. 3.2.1). Default: on when a shape model is available.",
 )
 @click.option(
     "--occlusion-tol",
@@ -304,7 +304,8 @@ def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes
     "--jacobian",
     type=click.Choice(["central", "analytic"]),
     default=None,
-    help="Pixel/maplet-cell Jacobian for the resolution: one-cell central differences (L15) or exact. "
+    help="Pixel/maplet-cell Jacobian for the resolution: one-cell central differences (as in Liounis "
+    "2015) or exact. "
     " [default: central]",
 )
 @click.option(
@@ -347,7 +348,7 @@ def select_cmd(
 ):
     """Select the maplets a picture can see, with predicted pixels and geometry.
 
-    The checks follow L15 3.2 in order; a rejected maplet's status is the first one it fails:
+    The checks follow Liounis 2015 sec. 3.2 in order; a rejected maplet's status is the first one it fails:
     outside (field-of-view cone), backfacing (maplet faces away from the camera), too-oblique
     (only with --max-emission), unlit (Sun below the maplet plane), too-coarse (pixel footprint
     >= RESLM x scale, applied when more than NUMLM maplets pass), too-big (maplet larger than the
@@ -355,10 +356,11 @@ def select_cmd(
     hides the landmark).  The occlusion test needs a shape model; without one it is skipped with
     a note on stderr.
 
-    Columns: name, sample and line (predicted SPC pixel of the landmark), range_km,
-    resolution_km_px, emission, incidence and phase (degrees), fraction_in_photo (fraction of the
-    3x3 box points inside the photo) and status.  An empty selection is a valid result (exit 0)
-    unless --require N asks for more.
+    Columns: name, sample and line (predicted SPC pixel of the landmark), range_km (spacecraft to
+    landmark), resolution_km_px (photo pixel footprint at the landmark), emission, incidence and phase
+    (degrees), fraction_in_photo (fraction of the 3x3 box points inside the photo) and status (ok =
+    selected, else the name of the first check failed, as above).  An empty selection is a valid result
+    (exit 0) unless --require N asks for more.
 
     Example:
 
@@ -417,7 +419,16 @@ def select_cmd(
 
     if overlay:
         photo = load_photo(ctx, pic, photo_path)
-        atomic.write_bytes(overlay, render_overlay(photo.data, pic.thrsh, camera, cand, result))
+        from spctool.figures import titled
+
+        others = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()) if s != "ok")
+        fig = titled(
+            render_overlay(photo.data, pic.thrsh, camera, cand, result),
+            f"{pic.name}  lithos-select: {result.n_selected} of {len(result)} candidate maplets selected",
+            f"outlines: selected maplets at the SUM pose; occlusion {meta['occlusion']}"
+            + (f"; rejected: {others}" if others else ""),
+        )
+        atomic.write_bytes(overlay, fig.png())
         ctx.info(f"wrote {overlay}")
 
     if require is not None and result.n_selected < require:

@@ -35,16 +35,17 @@ def _spec_help() -> str:
 
 _SIMULATE_HELP = """Build a synthetic SPC working directory OUTDIR from SPEC (TOML), with its truth.
 
-The world: an ICQ shape (ellipsoid or [body] shape) carrying power-law craters, boulders,
-fractal roughness and albedo; landmarks with maplets derived (smoothed, down-sampled) from truth
-patches truth_factor times finer (S16: 3 mm truth under 1 cm maplets); photos ray-traced with cast
-shadows from the truth, through the SPC camera with its DISTORT= model, with detector noise; SUM
+The world: an ICQ shape (ellipsoid or [body] shape) carrying power-law craters, boulders, fractal
+roughness and albedo; landmarks with maplets derived (smoothed, down-sampled) from truth patches
+truth_factor times finer (Shoemaker et al. 2016: 3 mm truth under 1 cm maplets); photos ray-traced with
+cast shadows from the truth, through the SPC camera with its DISTORT= model, with detector noise; SUM
 and NOM files holding a perturbed a-priori pose; INIT_LITHOS.TXT, PICTLIST.TXT, LMRKLIST.TXT and
-TRUTH.json (true poses and the true pixel of every landmark in every picture). Every random draw
-comes from the SPEC seed: the same SPEC gives the same bytes.
+TRUTH.json (true poses and the true pixel of every landmark in every picture). Every random draw comes
+from the SPEC seed: the same SPEC gives the same bytes.
 
-Prints one row per landmark and picture: the true pixel (true_sample, true_line), whether it is
-in the photo, visible and in cast shadow, and the emission/incidence/phase angles.
+Prints one row per landmark and picture.  Columns: name (landmark), picture, true_sample and
+true_line (the true pixel), emission, incidence and phase (degrees), status (ok, outside the photo,
+occluded by the terrain, shadowed: in cast shadow).
 
 Example:
 
@@ -81,7 +82,18 @@ def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, 
         data = sp.to_dict()
         data["seed"] = int(seed)
         sp = parse_spec(data, base=sp.base, where=str(spec))
-    result = simulate(sp, outdir, overwrite=overwrite, progress=lambda m: ctx.info(m))
+    # the simulator names each step as it starts: global shape, landmarks, truth patches and maplets,
+    # one render per picture, truth
+    with progress(ctx, "simulate", 4 + len(sp.pictures)) as advance:
+        started = []
+
+        def step(message):
+            ctx.info(message)
+            advance(1 if started else 0, description=f"simulate: {message}")
+            started.append(message)
+
+        result = simulate(sp, outdir, overwrite=overwrite, progress=step)
+        advance(1, description="simulate: done")
     table = truth_table(result.truth)
     table.command = f"simulate {spec} {outdir}"
     table.meta["outdir"] = str(outdir)
@@ -158,7 +170,7 @@ def example_spec() -> str:
 
 
 @click.command("make-maplets")
-@click.argument("landmarks", nargs=-1)
+@click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
 @click.option(
     "--at",
     "at",
@@ -218,12 +230,15 @@ def make_maplets_cmd(
     """Maplets from the working directory's shape, as SPC's GET_HEIGHTS projects it.
 
     Every node's vertical line (along -UZ) is intersected with the shape and the highest surface
-    point is kept (spc-algorithms.md 2.2); the albedo is the ICQ 4th column (or 1). New landmarks
+    point is kept; the albedo is the ICQ 4th column (or 1). New landmarks
     (--at, --tile) get SPC's ORIENT frame at the shape's fitted normal (UY East, UX South) and V on
     the surface; LANDMARKS named on the command line (LMKFILES/NAME.LMK) are re-framed the same way
     unless --keep-frame. Writes MAPFILES/NAME.MAP and LMKFILES/NAME.LMK, and adds new names to
-    LMRKLIST.TXT. Prints one row per maplet: name, latitude, longitude, radius, valid fraction and
-    height range (cells).
+    LMRKLIST.TXT.
+
+    Columns (one row per maplet): name, latitude and longitude (degrees, of V), radius_km (|V|),
+    scale_km (cell size), qsz (half-size, cells), valid_fraction (nodes that met the shape), hmin
+    and hmax (lowest and highest height, cells), status.
 
     Example:
 
@@ -280,13 +295,18 @@ def make_maplets_cmd(
     for j in jobs:
         groups.setdefault((j[2], j[3], j[4] is not None), []).append(j)
     results = {}
-    for (s, q, keep), group in groups.items():
-        frames = None
-        if keep:
-            frames = tuple(np.array([g[4][a] for g in group]) for a in range(3))
-        made = make_maplets(surf, [g[0] for g in group], np.array([g[1] for g in group]), s, q, frames=frames)
-        for g, (m, lm) in zip(group, made):
-            results[g[0]] = (m, lm, g[5])
+    with progress(ctx, "make-maplets", len(jobs)) as advance:
+        for (s, q, keep), group in groups.items():
+            for c0 in range(0, len(group), 64):  # each maplet is independent: chunks for the progress bar
+                chunk = group[c0 : c0 + 64]
+                frames = None
+                if keep:
+                    frames = tuple(np.array([g[4][a] for g in chunk]) for a in range(3))
+                centres = np.array([g[1] for g in chunk])
+                made = make_maplets(surf, [g[0] for g in chunk], centres, s, q, frames=frames)
+                for g, (m, lm) in zip(chunk, made):
+                    results[g[0]] = (m, lm, g[5])
+                advance(len(chunk))
     (wd.root / "MAPFILES").mkdir(parents=True, exist_ok=True)
     (wd.root / "LMKFILES").mkdir(parents=True, exist_ok=True)
     rows = []
@@ -333,8 +353,8 @@ def make_maplets_cmd(
 
 
 @click.command("render")
-@click.argument("picture")
-@click.argument("landmarks", nargs=-1)
+@click.argument("picture", shell_complete=options.complete_picture)
+@click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
 @click.option(
     "-o",
     "--output",
@@ -432,7 +452,9 @@ def render_cmd(
     if model is None and not patches:
         raise SpcUsageError("nothing to render: no shape and no maplet in view")
     render_options = RenderOptions(photometry=photometry, supersample=supersample, shadows=not no_shadows)
-    r = render(camera, pic.sz, model, patches, render_options, window=window)
+    lines = camera.nln if window is None else max(0, int(window[3]) - int(window[2]) + 1)
+    with progress(ctx, f"render {pic.name}", lines) as advance:
+        r = render(camera, pic.sz, model, patches, render_options, window=window, progress=advance)
     if fmt is None:
         ext = Path(out).suffix.lower().lstrip(".")
         fmt = {"fit": "fits", "fts": "fits"}.get(ext, ext)
@@ -495,15 +517,24 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
     """Run lithos-select -> register -> solve-pose on the shipped demo and print errors against truth.
 
     The demo is a small simulated SPC working directory installed with spctool (twelve maplets,
-    four photos with a-priori poses a few pixels off, OWEN distortion, TRUTH.json). For every
-    picture the table gives the landmarks found, the measured-minus-true landmark pixel rms and
-    maximum, the position and attitude errors of the solved pose and their reported 1-sigma, and
-    whether every pose component lies within 3 sigma. Exit code 1 when one does not.
+    four photos with a-priori poses a few pixels off, OWEN distortion, TRUTH.json). Exit code 1
+    when a pose component of some picture lies outside 3 sigma.
 
-    The pose solve weighs each landmark pixel with --sigma-px (default 0.2 px): registration
-    against maplets that are smoothed, coarser versions of the truth errs by about 0.1 px per axis
-    with biases that do not average out (S16 Table 3: biases up to 0.2 px, 1-sigma up to 0.11 px),
-    so the solver's 0.1 px default would understate the pose covariance here.
+    Columns (one row per picture): picture; selected (maplets lithos-select chose); found
+    (landmarks registered); status (ok, no-pose, failed: ..., outside-3sigma); pixel_rms and
+    pixel_max (registered minus true landmark pixel, px); position_error_m (solved minus true
+    spacecraft position, m) beside position_3sigma_m (3 x the reported 1-sigma, m) and
+    apriori_position_error_m (the SUM's a-priori error, m); attitude_error_urad and
+    attitude_3sigma_urad (the same for the camera attitude, microradians); max_normalised_error
+    (largest |error| / 1-sigma over the six pose components); nees (normalised estimation error
+    squared: e' C^-1 e of the 6-component pose error e with the reported covariance C; about 6
+    on average when C is honest, much larger when it is overconfident); within_3sigma (every
+    component within 3 sigma).  --json writes {"pictures": [{"picture": ..., ...}]} like batch.
+
+    The pose solve weighs each landmark pixel with --sigma-px (default 0.2 px): registration against
+    maplets that are smoothed, coarser versions of the truth errs by about 0.1 px per axis with biases
+    that do not average out (Shoemaker et al. 2016, Table 3: biases up to 0.2 px, 1-sigma up to 0.11
+    px), so the solver's 0.1 px default would understate the pose covariance here.
 
     Example:
 
@@ -577,12 +608,16 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
                 if keep:
                     write_outcome(keep, outcome, batch_options.fingerprint())
                 rows.append(row)
-    table = LandmarkTable.from_rows(
-        [{"name": r.pop("picture"), **r} for r in rows],
-        command="demo",
-        meta={"space": space, "schedule": schedule},
-    )
-    emit_table(table, as_json=as_json, output=output)
+    table = LandmarkTable.from_rows(rows, command="demo", meta={"space": space, "schedule": schedule})
+    if as_json:  # one object per picture under "pictures", as batch writes them
+        import json
+
+        doc = table.to_json_dict()
+        del doc["picture"]
+        doc["pictures"] = doc.pop("landmarks")
+        emit(json.dumps(doc, indent=2, allow_nan=False) + "\n", output)
+    else:
+        emit_table(table, as_json=False, output=output)
     if any(r.get("within_3sigma") is not True for r in rows):
         raise click.exceptions.Exit(1)
 

@@ -81,7 +81,13 @@ SPEC_KEYS: tuple[tuple[str, str, object, str, str], ...] = (
     ("maplets", "positions", [], "latlons", "[[lat_deg, lon_deg], ...] planetocentric; default: automatic"),
     ("maplets", "scale_km", 0.0005, "float", "maplet SCALE (km per cell)"),
     ("maplets", "qsz", 24, "int", "maplet QSZ: (2*qsz+1)^2 cells"),
-    ("maplets", "truth_factor", 3, "int", "truth cells per maplet cell (S16: 3 mm truth under 1 cm maplets)"),
+    (
+        "maplets",
+        "truth_factor",
+        3,
+        "int",
+        "truth cells per maplet cell (Shoemaker et al. 2016: 3 mm truth under 1 cm maplets)",
+    ),
     ("maplets", "margin", 12, "int", "truth patch extends this many maplet cells beyond the maplet"),
     (
         "maplets",
@@ -117,7 +123,7 @@ SPEC_KEYS: tuple[tuple[str, str, object, str, str], ...] = (
     ("maplets", "mapvers", 0, "int", "MAP version byte (INIT_LITHOS MAPVERS=)"),
     ("camera", "npx", 768, "int", "photo width (samples)"),
     ("camera", "nln", 768, "int", "photo height (lines)"),
-    ("camera", "mmfl", 7.68, "float", "focal length (mm; S16 Table 1)"),
+    ("camera", "mmfl", 7.68, "float", "focal length (mm; Shoemaker et al. 2016, Table 1)"),
     (
         "camera",
         "ctr",
@@ -130,7 +136,8 @@ SPEC_KEYS: tuple[tuple[str, str, object, str, str], ...] = (
         "kmatrix",
         [[454.54, 0.0, 0.0], [0.0, -454.54, 0.0]],
         "kmatrix",
-        "2x3 K-matrix in px/mm (S16: Kx = 454.54, Ky = -454.54; third column multiplies x*y)",
+        "2x3 K-matrix in px/mm (Shoemaker et al. 2016: Kx = 454.54, Ky = -454.54; third column "
+        "multiplies x*y)",
     ),
     ("camera", "distortion", "OWEN", "str", "INIT_LITHOS DISTORT= model (OWEN, RADIAL, ... or NONE)"),
     (
@@ -154,7 +161,7 @@ SPEC_KEYS: tuple[tuple[str, str, object, str, str], ...] = (
     ("detector", "read_noise_electrons", 20.0, "float", "Gaussian read noise (electrons); 0 = none"),
     ("detector", "shot_noise", True, "bool", "add Gaussian shot noise (variance = signal electrons)"),
     ("detector", "supersample", 2, "int", "n x n rays per pixel"),
-    ("detector", "photometry", "spc", "str", "spc, mcewen, fixed or lambert (spc-algorithms.md 3.2)"),
+    ("detector", "photometry", "spc", "str", "spc, mcewen, fixed or lambert (illumination law)"),
     ("detector", "shadows", True, "bool", "trace cast shadows"),
     (
         "perturbation",

@@ -1052,7 +1052,15 @@ def _window(camera, window):
 
 
 def render(
-    camera, sun, shape=None, patches=(), options: RenderOptions | None = None, *, window=None, albedo_fn=None
+    camera,
+    sun,
+    shape=None,
+    patches=(),
+    options: RenderOptions | None = None,
+    *,
+    window=None,
+    albedo_fn=None,
+    progress=None,
 ) -> Rendering:
     """Render the pixels of ``window`` = (s0, s1, l0, l1) (1-based, inclusive; default the whole photo).
 
@@ -1062,9 +1070,10 @@ def render(
 
     Without a shape the rays run through one fused kernel (:func:`_patch_ray`; one thread below
     :data:`PARALLEL_MIN_RAYS` rays) that equals :func:`trace` → :func:`shadowed` → :func:`shade` up to
-    rounding (≤ 1e-12 relative, ``tests/test_render.py``).
+    rounding (≤ 1e-12 relative, ``tests/test_render.py``).  ``progress(n)`` is called with the number
+    of lines done after each batch of rays.
     """
-    return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True)
+    return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress)
 
 
 def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None):
@@ -1126,7 +1135,9 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
     return hit, r, sh, surface
 
 
-def _render(camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool) -> Rendering:
+def _render(
+    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None
+) -> Rendering:
     """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path)."""
     options = options or RenderOptions()
     sun = _vec3(sun, "sun")
@@ -1178,6 +1189,8 @@ def _render(camera, sun, shape, patches, options, window, albedo_fn, *, fused: b
             r = shade(hits, dirs, sun, options=options, shadow=sh)
             hit, surface = hits.hit, hits.surface
         sid[a:b] = surface.reshape(shape4)[:, 0, :, 0]
+        if progress is not None:
+            progress(b - a)
         if nss == 1:  # one ray per pixel: the means below are the values themselves
             rad[a:b] = r.reshape(b - a, width)
             cov[a:b] = hit.reshape(b - a, width)

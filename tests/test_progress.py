@@ -1,0 +1,74 @@
+"""Progress and first-run feedback: render reports every line once (and the same pixels as without a
+callback), the progress helper is silent when stderr is not a terminal or with -q, and the
+first-use compile note appears exactly when a command's kernels are missing from numba's cache."""
+
+from __future__ import annotations
+
+import numpy as np
+from click.testing import CliRunner
+from test_render import _camera, sphere  # noqa: F401  (sphere is a fixture)
+
+from spctool.cli import jit
+from spctool.cli.common import Context, progress
+from spctool.cli.main import cli
+from spctool.stages.render import RenderOptions, render
+
+
+def test_render_progress_counts_every_line_once(request):
+    shape = request.getfixturevalue("sphere")
+    cam = _camera([0.0, -4.0, 1.0], [0.0, 0.0, 0.0], npx=60, nln=50, k=10.0)
+    opt = RenderOptions(supersample=2, chunk=600)  # 50 samples x 4 sub-rays: 3 lines per batch
+    calls = []
+    r = render(cam, [1.0, -0.5, 0.3], shape, [], opt, window=(5, 54, 3, 47), progress=calls.append)
+    assert sum(calls) == 45 and calls == [3] * 15
+    plain = render(cam, [1.0, -0.5, 0.3], shape, [], opt, window=(5, 54, 3, 47))
+    np.testing.assert_array_equal(r.radiance, plain.radiance)
+
+
+def test_progress_is_silent_off_a_terminal_and_with_quiet(capsys):
+    for verbosity in (0, -1):
+        with progress(Context(verbosity=verbosity), "work", 3) as advance:
+            advance()
+            advance(2, description="more work")
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == ""
+
+
+def test_first_run_note_only_when_the_command_kernels_are_cold(monkeypatch, tmp_path):
+    cold = {"maplet"}
+    monkeypatch.setattr(jit, "_index_path", lambda m, n: tmp_path / (n if jit_family(m, n) in cold else "x"))
+    (tmp_path / "x").write_text("")
+
+    def jit_family(module, name):
+        return next(f for f, ks in jit.FAMILIES.items() if (module, name) in ks)
+
+    assert jit.cold_families(["camera", "maplet", "rays"]) == ["maplet"]
+    said = []
+    monkeypatch.setattr(Context, "note_once", lambda self, m: said.append(m))
+    jit.first_run_note(Context(), "register", args=["register", "P1"])
+    assert len(said) == 1 and "maplet" in said[0] and "spctool warmup" in said[0]
+    for command, args, verbosity in (
+        ("solve-pose", ["solve-pose", "P1"], 0),  # camera only: warm
+        ("register", ["register", "--help"], 0),
+        ("register", ["register", "P1"], -1),  # -q
+        ("info", ["info", "X.SUM"], 0),
+    ):
+        jit.first_run_note(Context(verbosity=verbosity), command, args=args)
+    assert len(said) == 1
+
+
+def test_every_command_with_kernels_is_known_to_the_note():
+    from spctool.cli.main import COMMANDS
+
+    assert set(jit.COMMAND_FAMILIES) <= set(COMMANDS)
+    for fams in jit.COMMAND_FAMILIES.values():
+        assert set(fams) <= set(jit.FAMILIES)
+    # the sentinels exist and are cached kernels with an index path
+    for fam in jit.FAMILIES:
+        for module, name in jit.FAMILIES[fam]:
+            assert jit._index_path(module, name) is not None
+
+
+def test_warmup_help_runs():
+    res = CliRunner().invoke(cli, ["warmup", "--help"])
+    assert res.exit_code == 0 and "Compile and cache" in res.output
