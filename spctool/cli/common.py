@@ -42,6 +42,11 @@ class Context:
         if self.verbosity >= level:
             click.echo(f"spctool: {message}", err=True)
 
+    def warn(self, message: str) -> None:
+        """A warning on stderr (``spctool: warning: …``): a result that must not pass unnoticed."""
+        if self.verbosity >= 0:
+            click.echo(f"spctool: warning: {message}", err=True)
+
     def note_once(self, message: str) -> None:
         """A one-time note on stderr (e.g. 'no shape: occlusion skipped'), silenced by -q."""
         if self.verbosity >= 0 and message not in self._said:
