@@ -1,0 +1,126 @@
+"""The analyst workflow on the shipped demo (issue 16): defaults that work, no silent wrong answers.
+
+Every test runs spctool as a user would (the click command, stdout and stderr apart) on a copy of the
+demo working directory (``spctool demo --copy-to``).
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from spctool.formats.table import LandmarkTable
+
+PIC1, PIC2 = "P000000001A1", "P000000002A1"
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """The README session with default options: lithos-select -> register on PIC1 (run once)."""
+    from click.testing import CliRunner
+
+    from spctool.cli.main import cli
+
+    def run(*args, input=None):
+        return CliRunner().invoke(cli, [str(a) for a in args], input=input, catch_exceptions=False)
+
+    root = tmp_path_factory.mktemp("wf")
+    demo = root / "demo"
+    assert run("demo", "--copy-to", demo).exit_code == 0
+    sel = run("-C", demo, "lithos-select", PIC1)
+    assert sel.exit_code == 0, sel.stderr
+    (root / "sel.txt").write_text(sel.stdout)
+    reg = run("-C", demo, "register", PIC1, "--landmarks", root / "sel.txt")
+    (root / "reg.txt").write_text(reg.stdout)
+    return run, root, demo, sel, reg
+
+
+def test_readme_session_registers_every_demo_landmark(session):
+    run, root, demo, sel, reg = session
+    assert reg.exit_code == 0, reg.stderr
+    t = LandmarkTable.parse_text(reg.stdout)
+    assert len(t) == 12 and t["status"] == ["ok"] * 12
+    # the 49x49 maplets cannot take S16's L = 10: the schedule is capped and a note says so
+    assert "spacings above L = 4 skipped" in reg.stderr and "49x49" in reg.stderr
+    pose = run(
+        "-C", demo, "solve-pose", PIC1, "--measurements", root / "reg.txt", "--output", root / "new.SUM"
+    )
+    assert pose.exit_code == 0, pose.stderr
+    head = [c for c in LandmarkTable.parse_text(pose.stdout).comments]
+    assert any(c.startswith("position_km") and "sigma_km" in c for c in head)
+    assert any("cost/dof" in c and "dof" in c for c in head)
+    assert any("position-attitude correlation" in c for c in head)
+    assert "fit: plausible" in head
+
+
+def test_nothing_registered_is_a_warning_and_require_exit_1(session):
+    run, root, demo, sel, reg = session
+    r = run("-C", demo, "register", PIC1, "B01980", "--no-spacing-cap")
+    assert r.exit_code == 0 and LandmarkTable.parse_text(r.stdout)["status"] == ["not-found"]
+    warn = [ln for ln in r.stderr.splitlines() if "warning" in ln]
+    assert warn == [f"spctool: warning: {PIC1}: registered 0 of 1 landmarks: 1 not-found at spacing 10"]
+    r = run("-C", demo, "register", PIC1, "B01980", "--no-spacing-cap", "--require", "1")
+    assert r.exit_code == 1 and "fewer than --require 1" in r.stderr
+
+
+def test_solve_pose_refuses_another_pictures_table(session):
+    run, root, demo, sel, reg = session
+    r = run("-C", demo, "solve-pose", PIC2, "--measurements", root / "reg.txt", "--output", root / "x.SUM")
+    assert r.exit_code == 2
+    assert r.stderr.strip().splitlines() == [
+        f"spctool: error: {root / 'reg.txt'}: the table is for picture {PIC1}, not {PIC2} "
+        "(--any-picture uses it anyway)"
+    ]
+    # forced past the header check, the fit itself is implausible: table written, no SUM, exit 1
+    r = run(
+        "-C",
+        demo,
+        "solve-pose",
+        PIC2,
+        "--measurements",
+        root / "reg.txt",
+        "--any-picture",
+        "--output",
+        root / "x.SUM",
+    )
+    assert r.exit_code == 1 and not (root / "x.SUM").exists()
+    assert "implausible fit" in r.stderr.splitlines()[-1] and "no SUM written" in r.stderr
+    assert "fit: IMPLAUSIBLE" in r.stdout
+    r = run(
+        "-C",
+        demo,
+        "solve-pose",
+        PIC2,
+        "--measurements",
+        root / "reg.txt",
+        "--any-picture",
+        "--output",
+        root / "x.SUM",
+        "--force",
+    )
+    assert r.exit_code == 0 and (root / "x.SUM").exists() and "warning: " in r.stderr
+
+
+def test_solve_pose_output_onto_its_input_keeps_a_backup(session, tmp_path):
+    run, root, demo, sel, reg = session
+    wd = tmp_path / "d"
+    shutil.copytree(demo, wd)
+    target = wd / "SUMFILES" / f"{PIC1}.SUM"
+    before = target.read_bytes()
+    r = run("-C", wd, "solve-pose", PIC1, "--measurements", root / "reg.txt", "--output", target)
+    assert r.exit_code == 0, r.stderr
+    assert (wd / "SUMFILES" / f"{PIC1}.SUM.bak").read_bytes() == before and target.read_bytes() != before
+
+
+def test_batch_like_json_keeps_full_covariance(session):
+    run, root, demo, sel, reg = session
+    import json
+
+    r = run("-C", demo, "solve-pose", PIC1, "--measurements", root / "reg.txt", "--json")
+    pose = json.loads(r.stdout)["pose"]
+    cov = np.array(pose["covariance"])
+    assert cov.shape == (6, 6) and np.array(pose["covariance_formal"]).shape == (6, 6)
+    np.testing.assert_allclose(cov, np.array(pose["covariance_formal"]) * pose["covariance_scale"])
+    assert pose["plausible"] is True and 0 <= pose["position_attitude_correlation"] <= 1
