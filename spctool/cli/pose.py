@@ -364,7 +364,7 @@ def solve_pose_cmd(
         f"solved with {result.n_used} landmarks, {result.iterations} iterations, "
         f"{'converged' if result.converged else 'NOT converged'}; residuals measured - predicted (px)"
     )
-    table.comments.extend(pose_header(result))
+    table.comments.extend(result.header_lines())
     emit_table(table, as_json=as_json, output=table_output)
 
     if ctx.verbosity >= (1 if as_json else 0):
@@ -382,24 +382,6 @@ def solve_pose_cmd(
                 + ("; no SUM written (--force writes it)" if write_target is not None else "")
             )
         ctx.warn(f"{pic.name}: implausible fit (written because of --force): {result.implausible}")
-
-
-def pose_header(result) -> list[str]:
-    """The header block of the solve-pose text table: solved pose, 1-sigma, chi2/dof, correlation."""
-    p, sp, sa = result.position, result.sigma_position, result.sigma_attitude
-    lines = [
-        f"position_km {p[0]:.9f} {p[1]:.9f} {p[2]:.9f}  sigma_km {sp[0]:.3e} {sp[1]:.3e} {sp[2]:.3e}",
-        "attitude_change_rad {:+.4e} {:+.4e} {:+.4e}  sigma_rad {:.3e} {:.3e} {:.3e}".format(
-            *result.delta_attitude, *sa
-        ),
-        f"chi2 {result.chi2:.4g} cost {result.cost:.4g} dof {result.dof} cost/dof {result.reduced_chi2:.3g}"
-        f"  rms_px before {result.rms_before:.4f} after {result.rms_after:.4f}",
-        f"covariance_scale {result.covariance_scale:.4g}"
-        + (" (cost/dof > 1: sigmas x sqrt)" if result.covariance_scale != 1.0 else "")
-        + f"  max |position-attitude correlation| {result.position_attitude_correlation:.3f}",
-        "fit: plausible" if result.plausible else f"fit: IMPLAUSIBLE ({result.implausible})",
-    ]
-    return lines
 
 
 def register(cli):

@@ -309,6 +309,22 @@ class PoseResult:
             }
         return out
 
+    def header_lines(self) -> list[str]:
+        """The header block of a solve-pose text table: solved pose, 1σ, χ²/dof, correlation, verdict."""
+        p, sp, sa = self.position, self.sigma_position, self.sigma_attitude
+        return [
+            f"position_km {p[0]:.9f} {p[1]:.9f} {p[2]:.9f}  sigma_km {sp[0]:.3e} {sp[1]:.3e} {sp[2]:.3e}",
+            "attitude_change_rad {:+.4e} {:+.4e} {:+.4e}  sigma_rad {:.3e} {:.3e} {:.3e}".format(
+                *self.delta_attitude, *sa
+            ),
+            f"chi2 {self.chi2:.4g} cost {self.cost:.4g} dof {self.dof} cost/dof {self.reduced_chi2:.3g}"
+            f"  rms_px before {self.rms_before:.4f} after {self.rms_after:.4f}",
+            f"covariance_scale {self.covariance_scale:.4g}"
+            + (" (cost/dof > 1: sigmas x sqrt)" if self.covariance_scale != 1.0 else "")
+            + f"  max |position-attitude correlation| {self.position_attitude_correlation:.3f}",
+            "fit: plausible" if self.plausible else f"fit: IMPLAUSIBLE ({self.implausible})",
+        ]
+
     def summary_lines(self) -> list[str]:
         """Human summary (pose change, 1σ, rms before/after) for stderr."""
         dp = self.delta_position
