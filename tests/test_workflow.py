@@ -124,3 +124,57 @@ def test_batch_like_json_keeps_full_covariance(session):
     assert cov.shape == (6, 6) and np.array(pose["covariance_formal"]).shape == (6, 6)
     np.testing.assert_allclose(cov, np.array(pose["covariance_formal"]) * pose["covariance_scale"])
     assert pose["plausible"] is True and 0 <= pose["position_attitude_correlation"] <= 1
+
+
+# ------------------------------------------------------------------------------------------------
+# one rule for the working directory: -C like git -C, a SUM path's SUMFILES/ parent (gap 3, 4)
+
+
+def test_sum_path_and_dash_c_give_identical_pixels(session, monkeypatch):
+    run, root, demo, sel, reg = session
+    monkeypatch.chdir(root)
+    by_c = run("-C", "demo", "project", PIC1)  # relative -C
+    by_path = run("project", f"demo/SUMFILES/{PIC1}.SUM", "demo/LMKFILES/B01980.LMK")
+    inside = run("-C", "demo", "project", f"SUMFILES/{PIC1}.SUM", "LMKFILES/B01980.LMK")  # git -C
+    assert by_c.exit_code == by_path.exit_code == inside.exit_code == 0, by_path.stderr + inside.stderr
+    t_c, t_p, t_i = (LandmarkTable.parse_text(r.stdout) for r in (by_c, by_path, inside))
+    k = t_c.names.index("B01980")
+    assert (t_p["sample"][0], t_p["line"][0]) == (t_c["sample"][k], t_c["line"][k])
+    assert (t_i["sample"][0], t_i["line"][0]) == (t_c["sample"][k], t_c["line"][k])
+    assert "distortion" not in by_path.stderr
+    # selection and pose by SUM path use the same INIT_LITHOS, shape and LMK files
+    a = run("-C", "demo", "lithos-select", PIC1)
+    b = run("lithos-select", f"demo/SUMFILES/{PIC1}.SUM")
+    assert a.stdout.split("\n", 3)[3] == b.stdout.split("\n", 3)[3]
+    a = run("-C", "demo", "solve-pose", PIC1, "--measurements", "../reg.txt", "--json")
+    b = run("solve-pose", f"demo/SUMFILES/{PIC1}.SUM", "--measurements", "reg.txt", "--json")
+    import json
+
+    pa, pb = json.loads(a.stdout)["pose"], json.loads(b.stdout)["pose"]
+    assert pa["position"] == pb["position"] and pa["covariance"] == pb["covariance"]
+
+
+def test_a_picture_without_distortion_model_says_so(session, tmp_path, monkeypatch):
+    run, root, demo, sel, reg = session
+    shutil.copy(demo / "SUMFILES" / f"{PIC1}.SUM", tmp_path / "lone.SUM")
+    monkeypatch.chdir(tmp_path)
+    r = run("project", "lone.SUM", str(demo / "LMKFILES" / "B01980.LMK"))
+    assert r.exit_code == 0
+    assert (
+        f"spctool: note: {PIC1}: projected without a distortion model (no INIT_LITHOS.TXT in .)" in r.stderr
+    )
+    inside = run("-C", demo, "project", PIC1, "B01980")
+    s0 = LandmarkTable.parse_text(r.stdout)["sample"][0]
+    assert abs(s0 - LandmarkTable.parse_text(inside.stdout)["sample"][0]) > 1e-3  # OWEN distortion
+    assert run("-q", "project", "lone.SUM", str(demo / "LMKFILES" / "B01980.LMK")).stderr == ""
+
+
+def test_dash_c_errors_and_leaves_the_callers_directory(session, tmp_path, monkeypatch):
+    import os
+
+    run, root, demo, sel, reg = session
+    monkeypatch.chdir(tmp_path)
+    r = run("-C", "nowhere", "info", "x")
+    assert r.exit_code == 2 and r.stderr.strip() == "spctool: error: -C nowhere: no such working directory"
+    run("-C", demo, "info", f"SUMFILES/{PIC1}.SUM")
+    assert os.getcwd() == str(tmp_path)

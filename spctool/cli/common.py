@@ -28,6 +28,7 @@ class Context:
     settings_path: str | None = None
     verbosity: int = 0
     debug: bool = False
+    explicit_workdir: bool = False  # -C DIR given (the process runs in DIR, like git -C)
     _said: set = field(default_factory=set)
 
     @property
@@ -150,18 +151,42 @@ def sum_path_of(ctx: Context, picture: str, sum_path=None) -> Path:
     return ctx.wd.sum_path(picture)
 
 
+def adopt_sum_workdir(ctx: Context, sum_path: Path) -> None:
+    """The one rule for a picture named by its SUM path: without -C, a SUM in a folder named SUMFILES
+    makes that folder's parent the working directory (INIT_LITHOS.TXT, SHAPEFILES/, IMAGEFILES/,
+    LMKFILES/, MAPFILES/ are found there, as with ``-C``)."""
+    if ctx.explicit_workdir:
+        return
+    parent = Path(sum_path).parent
+    if parent.name.upper() == "SUMFILES":
+        root = parent.parent
+        if root.resolve() != Path(ctx.workdir).resolve():
+            ctx.workdir = str(root) if str(root) else "."
+            ctx.info(f"working directory {ctx.workdir} (the SUM file's SUMFILES/ parent)")
+
+
 def load_picture(ctx: Context, picture: str, sum_path=None) -> LoadedPicture:
-    """Read PICTURE's SUM (:func:`sum_path_of`) and the settings, and build its camera (SUM pose and
-    K-matrix with the INIT_LITHOS DISTORT= model)."""
+    """Read PICTURE's SUM (:func:`sum_path_of`, :func:`adopt_sum_workdir`) and the settings, and build
+    its camera (SUM pose and K-matrix with the INIT_LITHOS DISTORT= model; a note on stderr when the
+    picture has no distortion model)."""
     from spctool.formats.sumfile import read_sum
     from spctool.geometry.camera import Camera
 
     path = sum_path_of(ctx, picture, sum_path)
     if not path.exists():
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
+    adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
     settings = ctx.settings()
-    return LoadedPicture(path, pic, settings, Camera.from_picture(pic, settings))
+    camera = Camera.from_picture(pic, settings)
+    if camera.model.upper() == "NONE":
+        where = (
+            f"no INIT_LITHOS.TXT in {ctx.wd.root}"
+            if settings is None and not ctx.settings_path
+            else "no DISTORT= model for it in the INIT_LITHOS settings"
+        )
+        ctx.note_once(f"{pic.name}: projected without a distortion model ({where})")
+    return LoadedPicture(path, pic, settings, camera)
 
 
 def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, required: bool = True):

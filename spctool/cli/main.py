@@ -11,6 +11,7 @@ when one of their commands runs: ``spctool info`` does not pay for numba, nor
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 import traceback
 
@@ -18,7 +19,7 @@ import click
 
 from spctool import __version__
 from spctool.cli.common import Context
-from spctool.errors import SpcEnvironmentError, SpcError
+from spctool.errors import SpcEnvironmentError, SpcError, SpcUsageError
 
 #: every command and the module whose ``register(cli)`` adds it, in --help order (mission stages
 #: first); a test checks this table against what the modules register
@@ -59,6 +60,16 @@ class SpcGroup(click.Group):
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         args = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in args[: _first_command_index(self, args)]
+        cwd = os.getcwd()  # -C changes directory (like git -C); restored for callers in this process
+        try:
+            return self._main(args, prog_name, complete_var, standalone_mode, debug, extra)
+        finally:
+            try:
+                os.chdir(cwd)
+            except OSError:
+                pass
+
+    def _main(self, args, prog_name, complete_var, standalone_mode, debug, extra):
         try:
             rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
         except click.exceptions.Exit as exc:
@@ -120,10 +131,12 @@ def _one_line(text: str) -> str:
 @click.option(
     "-C",
     "workdir",
-    default=".",
+    default=None,
     metavar="DIR",
     type=click.Path(file_okay=False),
-    help="SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...). Default: current directory.",
+    help="Run as if started in DIR, the SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...), "
+    "like git -C: relative paths on the command line are relative to DIR. Default: the current "
+    "directory, or the working directory of a PICTURE given as DIR/SUMFILES/NAME.SUM.",
 )
 @click.option(
     "--settings",
@@ -149,8 +162,19 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
     Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
     centres at integers, line 1 = first stored row.
     """
+    if workdir is not None:
+        try:
+            os.chdir(workdir)
+        except FileNotFoundError:
+            raise SpcUsageError(f"-C {workdir}: no such working directory") from None
+        except OSError as exc:
+            raise SpcUsageError(f"-C {workdir}: {(exc.strerror or 'cannot change to it').lower()}") from None
     ctx.obj = Context(
-        workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
+        workdir=".",
+        settings_path=settings,
+        verbosity=-1 if quiet else verbose,
+        debug=debug,
+        explicit_workdir=workdir is not None,
     )
 
 

@@ -285,7 +285,7 @@ def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
                 f"{ctx.workdir}: no TRUTH.json; give --preset s16-50m, --scene FILE, or -C a world made by "
                 "'spctool simulate'"
             )
-        scene = mc.scene_from_workdir(ctx.workdir, picture)
+        scene = mc.scene_from_workdir(str(Path(ctx.workdir).resolve()), picture)  # -C: cwd is DIR
     if scene_path:
         mc.save_scene(scene, scene_path)
         ctx.info(f"saved scene {scene_path}")
