@@ -178,3 +178,48 @@ def test_dash_c_errors_and_leaves_the_callers_directory(session, tmp_path, monke
     assert r.exit_code == 2 and r.stderr.strip() == "spctool: error: -C nowhere: no such working directory"
     run("-C", demo, "info", f"SUMFILES/{PIC1}.SUM")
     assert os.getcwd() == str(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------------
+# exit codes documented, unknown landmark the same everywhere, register selects like lithos-select
+
+
+def test_exit_codes_in_help_and_every_man_page():
+    from click.testing import CliRunner
+
+    from spctool.cli.main import cli
+    from spctool.cli.manpages import all_pages
+    from spctool.errors import EXIT_CODES
+
+    top = CliRunner().invoke(cli, ["--help"]).stdout
+    assert "Exit codes" in top and all(f"{c:>3}  {t}" in top for c, t in EXIT_CODES.items())
+    for name, page in all_pages().items():
+        for section in (".SH EXIT STATUS", ".SH FILES", ".SH ENVIRONMENT"):
+            assert section in page, (name, section)
+        assert all(f".B {c}\n" in page for c in EXIT_CODES), name
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("lithos-select", PIC1, "--maplets", "NOSUCH"),
+        ("predict", PIC1, "NOSUCH"),
+        ("extract", PIC1, "NOSUCH"),
+        ("correlate", PIC1, "NOSUCH"),
+        ("register", PIC1, "NOSUCH"),
+        ("project", PIC1, "NOSUCH"),
+    ],
+)
+def test_unknown_landmark_is_exit_2_in_every_command(session, args):
+    run, root, demo, sel, reg = session
+    r = run("-C", demo, *args)
+    assert r.exit_code == 2 and r.stdout == ""
+    errors = [ln for ln in r.stderr.splitlines() if ": note:" not in ln]
+    assert len(errors) == 1 and "NOSUCH" in errors[0] and "file not found" in errors[0]
+
+
+def test_register_without_landmarks_checks_occlusion_like_lithos_select(session):
+    run, root, demo, sel, reg = session
+    r = run("-v", "-C", demo, "register", PIC1, "--steps", "1")
+    assert "12 of 12 candidate maplets (occlusion checked)" in r.stderr
+    assert LandmarkTable.parse_text(r.stdout).names == LandmarkTable.parse_text(sel.stdout).names

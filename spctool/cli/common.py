@@ -231,11 +231,12 @@ def table_pixels(path) -> list[tuple[str, tuple[float, float] | None]]:
     from spctool.formats.table import read_table
 
     table = read_table(path)
-    smp, lin = table.get("sample"), table.get("line")
+    cols = table.pixel_columns("<stdin>" if str(path) == "-" else path)
+    smp, lin = cols if cols is not None else (None, None)
     rows = []
     for i, name in enumerate(table.names):
         pix = None
-        if smp is not None and lin is not None:
+        if cols is not None:
             try:
                 pix = (float(smp[i]), float(lin[i]))
             except (TypeError, ValueError):
@@ -248,12 +249,19 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
     """The landmarks a per-picture stage works on, as ([(name, pixel or None)], source).
 
     Given landmarks (source ``"given"``): the rows of ``--landmarks TABLE`` with their table pixels
-    (:func:`table_pixels`), then the named ``names`` (no pixel).  With neither, lithos-select
-    (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options, no occlusion test) on the
+    (:func:`table_pixels`), then the named ``names`` (no pixel; a name with neither MAP nor LMK file
+    is an error, exit 2, as in every command — table rows without a maplet become no-maplet rows).
+    With neither, lithos-select (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options,
+    occlusion by the shape as ``lithos-select`` checks it) on the
     LMRKLIST.TXT / LMKFILES/ candidates gives the selected maplets with their predicted pixels
     (source ``"selection"``).
     """
     rows = table_pixels(table_path) if table_path else []
+    for n in names:  # a landmark named on the command line must exist (exit 2, as in every command)
+        if not (Path(n).is_file() or ctx.wd.map_path(n).exists() or ctx.wd.lmk_path(n).exists()):
+            raise SpcFormatError(
+                ctx.wd.map_path(n), None, f"expected the MAP (or LMK) file of landmark {n} (file not found)"
+            )
     rows += [(n, None) for n in names]
     if rows:
         return rows, "given"
@@ -263,8 +271,15 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
     cand = load_candidates(ctx, (), None)
     if not len(cand):
         return [], "selection"
-    res = cand.select(picture.camera, picture.pic.sz, SelectOptions.from_settings(picture.settings))
-    ctx.info(f"lithos-select: {res.n_selected} of {len(res)} candidate maplets (occlusion not checked)")
+    shape = load_shape(ctx)  # occlusion checked as lithos-select checks it (when there is a shape)
+    if shape is None:
+        ctx.note_once("no shape model (SHAPEFILES/SHAPE.TXT): occlusion check skipped")
+    sel_opts = SelectOptions.from_settings(picture.settings)
+    res = cand.select(picture.camera, picture.pic.sz, sel_opts, shape=shape)
+    ctx.info(
+        f"lithos-select: {res.n_selected} of {len(res)} candidate maplets "
+        f"(occlusion {'checked' if res.occlusion_checked else 'skipped'})"
+    )
     selected = zip(res.names, res.sample, res.line, res.selected)
     return [(n, (float(s), float(ln))) for n, s, ln, sel in selected if sel], "selection"
 

@@ -19,7 +19,7 @@ import click
 
 from spctool import __version__
 from spctool.cli.common import Context
-from spctool.errors import SpcEnvironmentError, SpcError, SpcUsageError
+from spctool.errors import EXIT_CODES, SpcEnvironmentError, SpcError, SpcUsageError
 
 #: every command and the module whose ``register(cli)`` adds it, in --help order (mission stages
 #: first); a test checks this table against what the modules register
@@ -126,7 +126,16 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-@click.group(cls=SpcGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+EPILOG = "Exit codes (every command):\n\n\b\n" + "\n".join(
+    f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()
+)
+
+
+@click.group(
+    cls=SpcGroup,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+    epilog=EPILOG,
+)
 @click.version_option(__version__, "-V", "--version", prog_name="spctool")
 @click.option(
     "-C",
