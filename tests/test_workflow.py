@@ -223,3 +223,15 @@ def test_register_without_landmarks_checks_occlusion_like_lithos_select(session)
     r = run("-v", "-C", demo, "register", PIC1, "--steps", "1")
     assert "12 of 12 candidate maplets (occlusion checked)" in r.stderr
     assert LandmarkTable.parse_text(r.stdout).names == LandmarkTable.parse_text(sel.stdout).names
+
+
+def test_every_replaced_file_keeps_a_backup(session, tmp_path):
+    run, root, demo, sel, reg = session
+    out = tmp_path / "sel.txt"
+    out.write_text("old table\n")
+    assert run("-C", demo, "lithos-select", PIC1, "-o", out).exit_code == 0
+    assert (tmp_path / "sel.txt.bak").read_text() == "old table\n" and out.read_text() == sel.stdout
+    dst = tmp_path / "s.SUM"
+    dst.write_text("old\n")
+    assert run("convert", demo / "SUMFILES" / f"{PIC1}.SUM", dst, "--force").exit_code == 0
+    assert (tmp_path / "s.SUM.bak").read_text() == "old\n"

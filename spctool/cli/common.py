@@ -59,12 +59,13 @@ pass_context = click.make_pass_decorator(Context, ensure=True)
 
 
 def emit(text: str, output: str | None = None, *, overwrite: bool = True) -> None:
-    """Write ``text`` to ``output`` atomically, or to stdout when ``output`` is None or '-'."""
+    """Write ``text`` to ``output`` atomically (an existing file is kept as ``.bak``), or to stdout when
+    ``output`` is None or '-'."""
     if output is None or output == "-":
         sys.stdout.write(text)
         sys.stdout.flush()
     else:
-        atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite)
+        atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite, backup=True)
 
 
 def emit_table(table, *, as_json: bool, output: str | None = None) -> None:

@@ -501,7 +501,7 @@ def _map_images(maplet, out: Path, kind: str, overwrite: bool, backup: bool) -> 
     help="ICQ output numbers: SPC's 3F12.5 or full precision.",
 )
 @click.option("--force", is_flag=True, help="Overwrite DST if it exists.")
-@click.option("--backup", is_flag=True, help="Keep DST.bak when overwriting.")
+@click.option("--backup", is_flag=True, help="Keep DST.bak when overwriting (always done; kept for scripts).")
 @pass_context
 def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_order, icq_style, force, backup):
     """Convert SPC files and photos.
@@ -528,7 +528,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     obj = read_any(src_p, kind, npx=npx, nln=nln, byte_order=byte_order, flip_rows=flip_rows)
     out_kind = _out_kind(dst_p) or kind
     written: list[Path] = [dst_p]
-    kw = dict(overwrite=True, backup=backup)
+    kw = dict(overwrite=True, backup=True)  # a replaced DST is always kept as DST.bak (--backup: the same)
     if kind in PHOTO_KINDS:
         if out_kind not in PHOTO_KINDS:
             raise SpcUsageError(f"{dst}: a photo converts to .DAT, .fits, .pgm or .png")
@@ -541,7 +541,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
 
             write_map(dst_p, obj, **kw)
         else:
-            written = _map_images(obj, dst_p, out_kind, True, backup)
+            written = _map_images(obj, dst_p, out_kind, True, True)
     elif kind in ("icq", "obj", "vtk"):
         if out_kind in ("", "icq", kind) and dst_p.suffix.lower() in (".txt", ".icq"):
             out_kind = "icq"  # SPC keeps shapes as SHAPEFILES/*.TXT

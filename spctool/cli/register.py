@@ -603,6 +603,7 @@ def register_cmd(ctx: Context, **kw):
             render_overlay(
                 inp.photo.data, inp.pic.thrsh, result.names, result.apriori, result.measured, result.ok
             ),
+            backup=True,
         )
         ctx.info(f"wrote {kw['overlay']}")
     if kw["require"] is not None and int(result.ok.sum()) < kw["require"]:

@@ -417,7 +417,7 @@ def select_cmd(
 
     if overlay:
         photo = load_photo(ctx, pic, photo_path)
-        atomic.write_bytes(overlay, render_overlay(photo.data, pic.thrsh, camera, cand, result))
+        atomic.write_bytes(overlay, render_overlay(photo.data, pic.thrsh, camera, cand, result), backup=True)
         ctx.info(f"wrote {overlay}")
 
     if require is not None and result.n_selected < require:

@@ -292,12 +292,12 @@ def make_maplets_cmd(
     rows = []
     for name in names:
         m, lm, old = results[name]
-        write_map(wd.map_path(name), m)
+        write_map(wd.map_path(name), m, backup=True)  # a replaced file is kept as .bak
         if old is not None:
             old.vlm, old.ux, old.uy, old.uz = lm.vlm, lm.ux, lm.uy, lm.uz
             old.scale, old.qsz = lm.scale, lm.qsz
             lm = old
-        write_lmk(wd.lmk_path(name), lm)
+        write_lmk(wd.lmk_path(name), lm, backup=True)
         v = np.asarray(lm.vlm)
         r = float(np.linalg.norm(v))
         hv = m.heights[m.valid]
@@ -453,7 +453,9 @@ def render_cmd(
         rng = np.random.default_rng(seed) if noise else None
         data, _ = expose(full, cov, det, rng)
     header = {"PICTURE": (pic.name, "SPC picture name"), "ORIGIN": ("spctool render", "synthetic")}
-    write_photo(out, Photo(data, name=pic.name), fmt=fmt, header=header if fmt == "fits" else None)
+    write_photo(
+        out, Photo(data, name=pic.name), fmt=fmt, header=header if fmt == "fits" else None, backup=True
+    )
     ctx.info(f"wrote {out}")
 
 
