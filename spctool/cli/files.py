@@ -307,11 +307,14 @@ def problems_of(kind: str, obj) -> list[str]:
 def info_cmd(ctx: Context, files, as_json, arrays, npx, nln, sum_path):
     """Describe SPC files and photos; the type is detected from the content.
 
+    --json writes {"command", "spctool_version", "files": [one object per FILE]}; with one FILE its
+    fields are also at the top level.
+
     Example:
 
     \b
-      spctool info SUMFILES/W48230079013.SUM LMKFILES/FA0115.LMK
-      spctool info --json MAPFILES/AB0001.MAP | jq .scale
+      spctool info demo/SUMFILES/P000000001A1.SUM demo/LMKFILES/B01980.LMK
+      spctool info --json demo/MAPFILES/B01980.MAP | jq .scale
     """
     npx, nln = _dat_size(sum_path, npx, nln)
     docs = []
@@ -329,6 +332,8 @@ def info_cmd(ctx: Context, files, as_json, arrays, npx, nln, sum_path):
                 click.echo("  " + line)
     if as_json:
         payload = {"command": "info", "spctool_version": __version__, "files": docs}
+        if len(docs) == 1:  # one FILE: its fields at the top level too (jq .scale)
+            payload = {**{k: v for k, v in docs[0].items() if k not in payload}, **payload}
         emit(json.dumps(payload, indent=2, allow_nan=False) + "\n")
 
 
@@ -350,7 +355,7 @@ def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
     Example:
 
     \b
-      spctool validate SUMFILES/*.SUM LMKFILES/*.LMK MAPFILES/*.MAP
+      spctool validate demo/SUMFILES/*.SUM demo/LMKFILES/*.LMK demo/MAPFILES/*.MAP
     """
     npx, nln = _dat_size(sum_path, npx, nln)
     report = []
@@ -513,10 +518,10 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     Example:
 
     \b
-      spctool convert SHAPEFILES/SHAPE.TXT shape.obj
-      spctool convert bennu.obj SHAPE.TXT
-      spctool convert --sum SUMFILES/P1.SUM IMAGEFILES/P1.DAT P1.fits
-      spctool convert --flip-rows upside_down.png P1.png
+      spctool convert demo/SHAPEFILES/SHAPE.TXT shape.obj
+      spctool convert shape.obj SHAPE.TXT
+      spctool convert --sum demo/SUMFILES/P000000001A1.SUM demo/IMAGEFILES/P000000001A1.DAT P1.fits
+      spctool convert --flip-rows P1.fits upside_down.png
     """
     src_p, dst_p = Path(src), Path(dst)
     if src_p.resolve() == dst_p.resolve() and not force:

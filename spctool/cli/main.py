@@ -161,12 +161,16 @@ EPILOG = "Exit codes (every command):\n\n\b\n" + "\n".join(
 def cli(ctx, workdir, settings, verbose, quiet, debug):
     """spctool — surface-feature optical navigation the SPC way.
 
-    Stages chain through landmark tables (text or --json):
+    Stages chain through landmark tables (text or --json); with -C DIR, relative paths are
+    relative to DIR (like git -C), so the tables below live in the demo's working directory:
+
+    Example:
 
     \b
-      spctool -C WORKDIR lithos-select P0001 > sel.txt
-      spctool -C WORKDIR register P0001 --landmarks sel.txt > reg.txt
-      spctool -C WORKDIR solve-pose P0001 --measurements reg.txt --output new.SUM
+      spctool demo --copy-to demo
+      spctool -C demo lithos-select P000000001A1 -o sel.txt
+      spctool -C demo register P000000001A1 --landmarks sel.txt -o reg.txt
+      spctool -C demo solve-pose P000000001A1 --measurements reg.txt --output new.SUM
 
     Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
     centres at integers, line 1 = first stored row.

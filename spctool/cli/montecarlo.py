@@ -53,10 +53,10 @@ whatever --jobs.
 Examples:
 
 \b
-  spctool montecarlo --preset s16-50m --scene s16.npz --figures figs
-  spctool montecarlo --preset s16-50m --scene s16.npz --space image --json > image.json
-  spctool montecarlo --preset s16-50m --samples 50 --only position,attitude --sigma-scale 2
-  spctool -C WORLD montecarlo P000000001A1 --samples 100
+  spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --figures figs
+  spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --space image --json > image.json
+  spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --only position,attitude --sigma-scale 2
+  spctool -C demo montecarlo P000000001A1 --samples 20
 """
 
 

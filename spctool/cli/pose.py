@@ -256,8 +256,8 @@ def solve_pose_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR solve-pose P0001 --measurements reg.txt --output new.SUM
-      spctool -C WORKDIR register P0001 | spctool -C WORKDIR solve-pose P0001 --measurements - --in-place
+      spctool -C demo solve-pose P000000001A1 --measurements reg.txt --output new.SUM
+      cd demo && spctool register P000000001A1 | spctool solve-pose P000000001A1 --measurements - --in-place
       spctool -C fixtures/real/rosetta-67p solve-pose W48230079013.SUM --lmk-dir . --no-prior --json
     """
     from spctool.stages.pose import solve_pose

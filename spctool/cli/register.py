@@ -316,8 +316,8 @@ def correlate_cmd(ctx: Context, **kw):
     Example:
 
     \b
-      spctool -C WORKDIR correlate P600127001 --landmarks sel.txt --spacing 2
-      spctool -C WORKDIR correlate P600127001 FC0098 --out-dir surf/ --image-format fits --json
+      spctool -C demo correlate P000000001A1 --landmarks sel.txt --spacing 2
+      spctool -C demo correlate P000000001A1 B01980 --out-dir surf/ --image-format fits --json
     """
     from spctool.formats.table import LandmarkTable
     from spctool.stages.register import Registrar
@@ -507,10 +507,10 @@ def register_cmd(ctx: Context, **kw):
     Example:
 
     \b
-      spctool -C WORKDIR lithos-select P600127001 > sel.txt
-      spctool -C WORKDIR register P600127001 --landmarks sel.txt > reg.txt
-      spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
-      spctool -C WORKDIR register P600127001 FC0098 --space image --json
+      spctool -C demo lithos-select P000000001A1 -o sel.txt
+      spctool -C demo register P000000001A1 --landmarks sel.txt --require 12 -o reg.txt
+      spctool -C demo register P000000001A1 --schedule autoregister --write-sum --overlay reg.png
+      spctool -C demo register P000000001A1 B01980 --space image --json
     """
     from spctool.stages.register import RegisterOptions
     from spctool.stages.register import register as run_register

@@ -228,9 +228,9 @@ def make_maplets_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR make-maplets --tile 0.02 --scale 0.0005 --qsz 24
-      spctool -C WORKDIR make-maplets --at AA0001 0.21 0.05 0.10 --scale 0.001 --qsz 49
-      spctool -C WORKDIR make-maplets SM0001 SM0002 --keep-frame --overwrite
+      spctool -C demo make-maplets --tile 0.1 --scale 0.0005 --qsz 24
+      spctool -C demo make-maplets --at AA0001 0.21 0.05 0.10 --scale 0.001 --qsz 49
+      spctool -C demo make-maplets B01980 B02176 --keep-frame --overwrite
     """
     from spctool.formats.landmark import read_lmk, write_lmk
     from spctool.formats.lists import LandmarkList, read_lmrklist, write_lmrklist
@@ -407,8 +407,8 @@ def render_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR render P000000001A1 -o render.fits
-      spctool -C WORKDIR render P000000001A1 SM0001 --no-shape --float -o sm0001.fits
+      spctool -C demo render P000000001A1 -o render.fits
+      spctool -C demo render P000000001A1 B01980 --no-shape --float -o b01980.fits
     """
     from spctool.formats.photo import Photo, write_photo
     from spctool.sim.simulate import Detector, expose
