@@ -505,16 +505,8 @@ def test_worker_death_names_the_culprit_and_completes_the_rest(tmp_path):
 
     opts = BatchOptions()
     batch._run_processes(
-        2,
-        tmp_path,
-        tmp_path / "out",
-        names,
-        list(range(len(names))),
-        opts,
-        opts.fingerprint(),
-        "t",
-        record,
-        task=_crash_on_p3,
+        2, tmp_path, tmp_path / "out", names, list(range(len(names))), opts, opts.fingerprint(), "t",
+        record, task=_crash_on_p3,
     )
     assert sorted(got) == list(range(len(names)))
     for i, s in got.items():
