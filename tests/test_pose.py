@@ -671,7 +671,7 @@ def test_covariance_scaled_by_cost_per_dof_only_above_one():
 
 
 def test_measurements_of_another_picture_are_implausible():
-    """Pixels assigned to the wrong landmarks (as from another picture's table): flagged, with the reason."""
+    """Pixels assigned to the wrong landmarks (as in another picture's table): flagged, with why."""
     rng = np.random.default_rng(23)
     truth = make_camera(rng)
     pts = make_landmarks(rng, truth, 12)

@@ -459,8 +459,8 @@ def correlate_cmd(ctx: Context, **kw):
     "no_spacing_cap",
     is_flag=True,
     help="Run every step as given even where the maplet is too small for it (default: spacings with "
-    "K x L > Q, the maplet's half-width, are replaced by one step at the largest L that fits; a note "
-    "says so).",
+    "K x L > Q + 1, Q the maplet's half-width, are replaced by one step at the largest L that fits; a "
+    "note says so).",
 )
 @click.option(
     "--write-sum",
@@ -489,10 +489,11 @@ def register_cmd(ctx: Context, **kw):
     first pass, then all landmarks at spacing 2, a pose solve, spacing 1, a pose solve, landmarks with
     rho < 0.5 dropped, spacing 1 and a last pose solve; each pass re-predicts and re-extracts with the
     updated pose.  A schedule is fitted to each maplet: a step at spacing L searches +-K*L cells and
-    works only while K*L <= Q, the maplet's half-width (a 49x49 maplet: L <= 4), so coarser steps are
-    replaced by one step at the largest L that fits, with a note on stderr (--no-spacing-cap runs
-    them as given).  --space image correlates the maplet rendered into the photo (with cast shadows)
-    against the photo itself, so the search is not limited by the maplet's extent (S16 Retina).
+    works only while K*L <= Q + 1, Q the maplet's half-width (S16: L = 10 for 99x99 maplets; a 49x49
+    maplet: L <= 5), so coarser steps are replaced by one step at the largest L that fits, with a note
+    on stderr (--no-spacing-cap runs them as given).  --space image correlates the maplet rendered
+    into the photo (with cast shadows) against the photo itself, so the search is not limited by the
+    maplet's extent (S16 Retina).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last

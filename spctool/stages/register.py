@@ -49,13 +49,13 @@ Every constant is a field of :class:`RegisterOptions`; a schedule is a list of s
 or ``("drop", ρ_min)`` (:func:`schedule_steps`).
 
 The schedule fits the maplet (``cap_spacing``, default on; :func:`spacing_cap`): in maplet space a step at
-spacing L searches ±K·L cells, and only while K·L ≤ Q (the maplet's half-width) does every offset of the
-grid keep at least half of the maplet overlapping; beyond, the binned images overlap in a few bins, the
-peak's neighbours are undefined and the step ends ``not-found`` (a 49×49 maplet binned by 10 has 5 bins
-for an 11×11 grid).  Steps above the cap are replaced by one step at the cap and the result says so
-(:attr:`RegisterResult.warnings`).  For S16's 99×99 maplets the cap is L = 9 (S16's L = 10 searches 50
-cells, one past Q = 49).  In image space the search runs over the photo, so the cap only keeps the
-binned template at least 2·√min_valid bins across (10 by default).
+spacing L searches ±K·L cells, and only while K·L ≤ Q + 1 (Q the maplet's half-width) does every offset of
+the grid keep about half of the maplet (Q of its 2Q + 1 cells per axis) overlapping; beyond, the binned
+images overlap in a few bins, the peak's neighbours are undefined and the step ends ``not-found`` (a
+49×49 maplet binned by 10 has 5 bins for an 11×11 grid).  S16's own case is the limit: L = 10 with
+N = 99 searches 50 = Q + 1 cells.  Steps above the cap are replaced by one step at the cap and the
+result says so (:attr:`RegisterResult.warnings`).  In image space the search runs over the photo, so
+the cap only keeps the binned template at least 2·√min_valid bins across (10 by default).
 
 Status words (cli-contract.md): ``ok``; ``not-found`` (no clearly defined peak), ``edge-peak`` (peak on
 the border of the search grid), ``low-correlation`` (peak below ``corr_min``, or dropped by the
@@ -236,21 +236,21 @@ def schedule_steps(options: RegisterOptions) -> list[tuple[str, float]]:
 def spacing_cap(maplet, options: RegisterOptions, camera=None) -> int:
     """The largest spacing L a correlation step of ``maplet`` can work at (module docstring).
 
-    Maplet space: K·L ≤ Q (K = ``grid_half``, Q the maplet's half-width in cells).  Image space (needs
+    Maplet space: K·L ≤ Q + 1 (K = ``grid_half``, Q the maplet's half-width in cells).  Image space (needs
     ``camera``): the template footprint W (px, the smaller extent of the maplet's projected square)
     binned by L keeps at least 2·√min_valid bins across.  At least 1.
     """
     n = int(np.asarray(maplet.heights).shape[0])
     q = (n - 1) // 2
     if options.space == "maplet" or camera is None:
-        return max(1, q // int(options.grid_half))
+        return max(1, (q + 1) // int(options.grid_half))
     d = q * float(maplet.scale)
     ux, uy = np.asarray(maplet.ux, float), np.asarray(maplet.uy, float)
     v = np.asarray(maplet.v, dtype=np.float64)
     corners = np.stack([v + d * (a * ux + b * uy) for a, b in ((-1, -1), (-1, 1), (1, -1), (1, 1))])
     s, ln, front = camera.project_with_mask(corners)
     if not np.all(front) or not np.all(np.isfinite(s)) or not np.all(np.isfinite(ln)):
-        return max(1, q // int(options.grid_half))
+        return max(1, (q + 1) // int(options.grid_half))
     width = min(float(np.ptp(s)), float(np.ptp(ln)))
     return max(1, int(width // (2.0 * math.sqrt(options.min_valid))))
 
@@ -282,7 +282,7 @@ def _cap_warnings(reg, caps, steps, result):
     for c, idx in sorted(by_cap.items()):
         n = int(np.asarray(reg.landmarks[idx[0]].maplet.heights).shape[0])
         where = (
-            f"{n}x{n}-cell maplet: the search +-K*L cells must stay within its half-width {(n - 1) // 2}"
+            f"{n}x{n}-cell maplet: the search +-K*L cells must stay within its half-width + 1, {(n + 1) // 2}"
             if reg.options.space == "maplet"
             else "template too small in the photo for coarser bins"
         )
