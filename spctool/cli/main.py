@@ -1,8 +1,10 @@
 """The ``spctool`` command group: global options, error handling, subcommand registry.
 
 Errors a user can cause (bad files, bad usage) end as ONE stderr line
-``spctool: error: …`` with exit code 2 (1 when a requested check failed);
-``--debug`` shows the traceback instead.  Commands register themselves from
+``spctool: error: …`` with exit code 2 (1 when a requested check failed, 3 when
+the machine refused, 130 on Ctrl-C: :data:`spctool.errors.EXIT_CODES`, listed in
+the --help epilog); ``--debug`` shows the traceback instead.  ``-C DIR`` changes
+directory like ``git -C`` (restored when :meth:`SpcGroup.main` returns).  Commands register themselves from
 their own modules (``spctool/cli/*.py``, :data:`COMMANDS`), which are imported only
 when one of their commands runs: ``spctool info`` does not pay for numba, nor
 ``spctool --version`` for anything.
