@@ -375,6 +375,11 @@ class PictureSummary:
     converged: bool = False
     delta_position: list = field(default_factory=lambda: [math.nan] * 3)
     delta_attitude: list = field(default_factory=lambda: [math.nan] * 3)
+    # fit quality and full covariance of the solved pose (6x6: km then rad; scaled by cost/dof > 1)
+    reduced_chi2: float = math.nan
+    covariance_scale: float = 1.0
+    plausible: bool = True
+    covariance: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     resumed: bool = False
 
@@ -401,7 +406,7 @@ class PictureSummary:
     def from_dict(cls, d: dict) -> PictureSummary:
         known = {f.name for f in dataclasses.fields(cls)}
         values = {k: v for k, v in d.items() if k in known}
-        for k in ("rms_before_px", "rms_after_px", "dposition_km", "dattitude_rad"):
+        for k in ("rms_before_px", "rms_after_px", "dposition_km", "dattitude_rad", "reduced_chi2"):
             if values.get(k) is None:
                 values[k] = math.nan
         for k in ("delta_position", "delta_attitude"):
@@ -654,8 +659,14 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         summary.delta_attitude = [float(x) for x in pose.delta_attitude]
         summary.dposition_km = float(np.linalg.norm(pose.delta_position))
         summary.dattitude_rad = float(np.linalg.norm(pose.delta_attitude))
+        summary.reduced_chi2 = float(pose.reduced_chi2)
+        summary.covariance_scale = float(pose.covariance_scale)
+        summary.plausible = pose.plausible
+        summary.covariance = np.asarray(pose.covariance, dtype=float).tolist()
         out.pose_table = _pose_table(pic.name, pose, options.pose)
-        if pose.converged:
+        if pose.converged and not pose.plausible:
+            summary.status = f"no-pose: implausible fit: {pose.implausible}"
+        elif pose.converged:
             new_pic = with_pose(new_pic, pose.scobj, pose.rotation, pose.sigma_position, pose.sigma_attitude)
             summary.status = "ok"
         else:
@@ -689,6 +700,7 @@ def _pose_table(picture: str, pose, popts: PoseOptions):
         f"solved with {pose.n_used} landmarks, {pose.iterations} iterations, "
         f"{'converged' if pose.converged else 'NOT converged'}; residuals measured - predicted (px)"
     )
+    table.comments.extend(pose.header_lines())
     return table
 
 

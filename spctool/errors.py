@@ -78,6 +78,11 @@ EXIT_CODES = {
 }
 
 
+def exit_codes_text() -> str:
+    """The exit codes as ``CODE  meaning`` lines (top-level --help epilog, man EXIT STATUS, README)."""
+    return "\n".join(f"{code:>3}  {text}" for code, text in EXIT_CODES.items())
+
+
 class SpcResultError(SpcError):
     """The command ran but its result failed a requested check (exit code 1)."""
 

@@ -482,7 +482,9 @@ def test_options_fingerprint_and_summary_round_trip():
     assert BatchOptions(occlusion=False).fingerprint() != a.fingerprint()
     with pytest.raises(Exception, match="unknown selection option"):
         BatchOptions(select={"no_such": 1})
-    s = PictureSummary("P1", "ok", 3, 3, 2, 2, 1.5, 0.1, 2e-3, 1e-4, True, [1.0, 2.0, 3.0], [0.1, 0.2, 0.3])
+    s = PictureSummary(
+        "P1", "ok", 3, 3, 2, 2, 1.5, 0.1, 2e-3, 1e-4, True, [1.0, 2.0, 3.0], [0.1, 0.2, 0.3], reduced_chi2=1.2
+    )
     doc = json.loads(json.dumps(batch._jsonable(s.as_dict())))
     assert PictureSummary.from_dict(doc) == s
     nan = PictureSummary("P2", "failed: x")

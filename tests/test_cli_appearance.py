@@ -159,7 +159,11 @@ def test_missing_photo_and_maplet(workdir, tmp_path):
             (bare / f / p.name).write_bytes(p.read_bytes())
     res = invoke(bare, "extract", PIC, LMK)
     assert res.exit_code == 2 and "no photo" in res.stderr
-    res = invoke(bare, "predict", PIC, LMK, "NOPE01")
+    res = invoke(bare, "predict", PIC, LMK, "NOPE01")  # a named unknown landmark: exit 2 (every command)
+    assert res.exit_code == 2 and "landmark NOPE01 (file not found)" in res.stderr
+    table = tmp_path / "two.txt"  # a table row without a maplet: a no-maplet row
+    table.write_text(f"name sample line\n{LMK} nan nan\nNOPE01 nan nan\n")
+    res = invoke(bare, "predict", PIC, "--landmarks", str(table))
     assert res.exit_code == 0
     t = LandmarkTable.parse_text(res.stdout)
     assert t["lambda"][0] == 1.0 and t["status"] == ["ok", "no-maplet"]

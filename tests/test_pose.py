@@ -12,6 +12,7 @@ Independent checks used here:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -309,8 +310,13 @@ def test_prior_pulls_towards_apriori_and_weak_prior_equals_no_prior():
     weak = solve_pose(
         start, pts, y, PoseOptions(), prior_sigma_position=[1e3] * 3, prior_sigma_attitude=[10.0] * 3
     )
-    tight = solve_pose(
-        start, pts, y, PoseOptions(), prior_sigma_position=[1e-8] * 3, prior_sigma_attitude=[1e-11] * 3
+    tight = solve_pose(  # the formal covariance (a prior this tight makes cost/dof >> 1)
+        start,
+        pts,
+        y,
+        PoseOptions(scale_covariance=False),
+        prior_sigma_position=[1e-8] * 3,
+        prior_sigma_attitude=[1e-11] * 3,
     )
     np.testing.assert_allclose(weak.position, free.position, atol=1e-9)
     assert np.linalg.norm(tight.delta_position) < 1e-7 and np.linalg.norm(tight.delta_attitude) < 1e-9
@@ -360,6 +366,11 @@ def test_estimate_and_consider_modes_are_consistent_fixed_is_not():
         )
         for mode in ("fixed", "estimate", "consider"):
             res = solve_pose(start, pts_cat, y, PoseOptions(landmark_mode=mode, reject_outliers=False), **kw)
+            if mode == "fixed":  # the formal covariance; scaled by cost/dof it is far less overconfident
+                formal = dataclasses.replace(res, covariance=res.covariance_formal)
+                out["fixed"].append(nees(truth, formal))
+                out.setdefault("fixed_scaled", []).append(nees(truth, res))
+                continue
             out[mode].append(nees(truth, res))
             if mode == "estimate":
                 err = pts_true - (pts_cat + res.landmark_corrections)
@@ -371,6 +382,7 @@ def test_estimate_and_consider_modes_are_consistent_fixed_is_not():
     mean = {k: float(np.mean(v)) for k, v in out.items()}
     # standard errors of the means here: ≈ 0.4 (pose, 60 draws) and ≈ 0.07 (1200 landmark draws)
     assert mean["fixed"] > 20.0, mean  # clearly inconsistent (≈ 170)
+    assert mean["fixed_scaled"] < 0.1 * mean["fixed"], mean  # cost/dof scaling absorbs most of it
     assert abs(mean["estimate"] - 6.0) < 1.5, mean
     assert abs(mean["consider"] - 6.0) < 1.5, mean
     assert abs(mean["lmk"] - 3.0) < 0.3, mean
@@ -614,7 +626,11 @@ def test_rosetta_with_sum_prior_and_landmark_sigmas():
     # the change stays within 3σ of the SUM's a-priori sigmas, and the sigmas shrink
     assert np.all(np.abs(res.delta_position) < 3 * pic.sigma_vso)
     assert np.all(np.abs(res.delta_attitude) < 3 * pic.sigma_ptg)
-    assert np.all(res.sigma_position <= pic.sigma_vso) and np.all(res.sigma_attitude <= pic.sigma_ptg)
+    # (formal sigmas: 0.75 px residuals against sigma_px 0.1 scale the reported ones by sqrt(cost/dof))
+    formal = np.sqrt(np.diag(res.covariance_formal))
+    assert np.all(formal[:3] <= pic.sigma_vso) and np.all(formal[3:] <= pic.sigma_ptg)
+    assert res.covariance_scale == pytest.approx(res.reduced_chi2) and res.plausible
+    np.testing.assert_allclose(res.covariance, res.covariance_formal * res.reduced_chi2)
     est = solve_pose(
         cam,
         pts,
@@ -627,3 +643,43 @@ def test_rosetta_with_sum_prior_and_landmark_sigmas():
     )
     assert est.converged and est.rms_after < res.rms_after
     assert np.all(np.abs(est.landmark_corrections) < 3 * sig_l)
+
+
+# ------------------------------------------------------------------------------------------------
+# fit quality: covariance scaled by cost/dof, implausible fits flagged (issue 16 gap 2)
+# ------------------------------------------------------------------------------------------------
+
+
+def test_covariance_scaled_by_cost_per_dof_only_above_one():
+    rng = np.random.default_rng(21)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 15)
+    noisy = observe(truth, pts, rng, 0.3)  # 3x the assumed 0.1 px: cost/dof ~ 9
+    res = solve_pose(truth, pts, noisy, PoseOptions(use_prior=False))
+    assert 4.0 < res.reduced_chi2 < 20.0 and res.plausible
+    assert res.covariance_scale == pytest.approx(res.cost / res.dof)
+    np.testing.assert_allclose(res.covariance, res.covariance_formal * res.covariance_scale, rtol=1e-12)
+    np.testing.assert_allclose(res.sigmas, np.sqrt(np.diag(res.covariance)))
+    # the correlation does not change with a scalar factor
+    d = np.sqrt(np.diag(res.covariance_formal))
+    np.testing.assert_allclose(res.correlation, res.covariance_formal / np.outer(d, d), atol=1e-12)
+    quiet = observe(truth, pts, np.random.default_rng(22), 0.05)  # cost/dof ~ 0.25: left alone
+    res2 = solve_pose(truth, pts, quiet, PoseOptions(use_prior=False))
+    assert res2.reduced_chi2 < 1.0 and res2.covariance_scale == 1.0 and res2.covariance_formal is None
+    off = solve_pose(truth, pts, noisy, PoseOptions(use_prior=False, scale_covariance=False))
+    np.testing.assert_allclose(off.covariance, res.covariance_formal)
+
+
+def test_measurements_of_another_picture_are_implausible():
+    """Pixels assigned to the wrong landmarks (as in another picture's table): flagged, with why."""
+    rng = np.random.default_rng(23)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 12)
+    y = observe(truth, pts, rng, 0.1)
+    wrong = y[rng.permutation(len(y))]
+    res = solve_pose(truth, pts, wrong, PoseOptions(use_prior=False, reject_outliers=False))
+    assert not res.plausible and "cost/dof" in res.implausible and "sigma_px" in res.implausible
+    assert res.pose_dict()["plausible"] is False
+    ok = solve_pose(truth, pts, y, PoseOptions(use_prior=False))
+    assert ok.plausible and ok.pose_dict()["implausible"] is None
+    assert 0.0 <= ok.position_attitude_correlation <= 1.0

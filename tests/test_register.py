@@ -6,6 +6,7 @@ maplets are the same terrain, so the true landmark pixel is the projection of V 
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -92,7 +93,7 @@ def test_unperturbed_error_maplet_space(scene, schedule):
     assert r.status == ["ok"]
     assert np.all(_err(r, scene.truth_pixel) <= 0.02)
     assert r.correlation[0] > 0.9
-    assert r.iterations[0] == (10 if schedule == "retina_s16" else 3)
+    assert r.iterations[0] == (10 if schedule == "retina_s16" else 3)  # S16's L = 10 fits 99x99
     assert r.spacing[0] == 1
 
 
@@ -360,3 +361,45 @@ def test_image_space_templates_equal_the_general_renderer(scene, monkeypatch):
     assert tf.radiance.shape == tr.radiance.shape and np.count_nonzero(tr.coverage) > 1000
     np.testing.assert_allclose(tf.radiance, tr.radiance, rtol=1e-12, atol=1e-15)
     np.testing.assert_array_equal(tf.coverage, tr.coverage)
+
+
+# --------------------------------------------------------------------------------------------------
+# the schedule fits the maplet (spacing_cap): issue 16 gap 1
+
+
+def test_spacing_cap_by_maplet_size():
+    from spctool.stages.register import spacing_cap
+
+    def m(q):
+        return SimpleNamespace(heights=np.zeros((2 * q + 1, 2 * q + 1)))
+
+    opts = RegisterOptions()
+    # K*L <= Q + 1: 49x49 -> 5, 99x99 -> 10 (S16's L = 10 searches 50 = Q + 1 cells), tiny -> 1
+    assert [spacing_cap(m(q), opts) for q in (24, 49, 4, 2)] == [5, 10, 1, 1]
+    assert spacing_cap(m(24), RegisterOptions(grid_half=3)) == 8
+
+
+def test_capped_steps_hand_cases():
+    from spctool.stages.register import capped_steps
+
+    s16 = [("align", n) for n in range(10, 0, -1)]
+    assert capped_steps(s16, 4) == [("align", 4), ("align", 3), ("align", 2), ("align", 1)]
+    assert capped_steps(s16, 5) == [("align", n) for n in (5, 4, 3, 2, 1)]
+    assert capped_steps(s16, 10) == s16
+    ar = [("align", 2), ("align", 1), ("drop", 0.5), ("align", 1)]
+    assert capped_steps(ar, 1) == [("align", 1), ("drop", 0.5), ("align", 1)]
+    assert capped_steps([("align", 8)], 3) == [("align", 3)]
+
+
+def test_small_maplet_registers_with_default_schedule(scene):
+    """A 49x49 maplet: S16's L = 10 bins it to 5 bins for an 11x11 grid (the peak's neighbours are
+    undefined, not-found); the capped schedule (5, 4, 3, 2, 1) registers it and says so."""
+    small = rs.offset_maplet(scene, 0, 0, q=24, name="SMALL")
+    r = register(scene.photo, scene.camera, scene.sun, [small], scene.thresholds, RegisterOptions())
+    assert r.status == ["ok"] and r.iterations[0] == 5
+    assert np.all(_err(r, np.array(scene.camera.project(small.v), dtype=float)) <= 0.05)
+    assert any("above L = 5 skipped" in w and "49x49" in w for w in r.warnings)
+    raw = register(
+        scene.photo, scene.camera, scene.sun, [small], scene.thresholds, RegisterOptions(cap_spacing=False)
+    )
+    assert raw.status == ["not-found"] and raw.spacing[0] == 10 and not raw.warnings

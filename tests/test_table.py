@@ -89,3 +89,41 @@ def test_tiny_negative_values_print_without_sign():
     t = LandmarkTable.from_rows([{"name": "AB0001", "residual_sample_after": -1e-9, "x": -1e-30}])
     row = t.to_text().splitlines()[-1].split()
     assert row[1] == "0.0000" and row[2] == "-1e-30"
+
+
+# ------------------------------------------------------------------------------------------------
+# CSV tables and missing columns (issue 16 gap 6)
+
+
+def test_csv_table_is_read_like_the_aligned_text():
+    text = (
+        "# picture: P1\nName, Sample, Line, status\n"
+        'B01980, 449.43, 435.58, ok\n"B02176",343.5,475.5,not-found\n'
+    )
+    t = LandmarkTable.parse_text(text, "t.csv")
+    assert (
+        t.picture == "P1"
+        and t.names == ["B01980", "B02176"]
+        and list(t.columns)
+        == [
+            "name",
+            "sample",
+            "line",
+            "status",
+        ]
+    )
+    np.testing.assert_array_equal(t["sample"], [449.43, 343.5])
+    assert t["status"] == ["ok", "not-found"]
+    same = LandmarkTable.parse_text(
+        "name sample line status\nB01980 449.43 435.58 ok\nB02176 343.5 475.5 not-found\n"
+    )
+    assert same.rows() == t.rows()
+
+
+def test_csv_empty_field_and_sample_without_line_name_the_problem():
+    with pytest.raises(SpcFormatError, match=r"t.csv:2: expected a value in every comma-separated field"):
+        LandmarkTable.parse_text("name,sample,line\nB1,,3\n", "t.csv")
+    t = LandmarkTable.parse_text("name sample\nB1 3.5\n", "s.txt")
+    with pytest.raises(SpcFormatError, match=r"s.txt: expected a 'line' column beside 'sample'"):
+        t.pixel_columns("s.txt")
+    assert LandmarkTable.parse_text("name\nB1\n").pixel_columns() is None

@@ -387,8 +387,8 @@ def predict_cmd(ctx: Context, **kw):
     Example:
 
     \b
-      spctool -C WORKDIR predict P600127001 --landmarks sel.txt --out-dir pred/
-      spctool -C WORKDIR predict P600127001 FC0098 --shadows cast --image-format fits --out-dir pred/
+      spctool -C demo predict P000000001A1 --landmarks sel.txt --out-dir pred/
+      spctool -C demo predict P000000001A1 B01980 --shadows cast --image-format fits --out-dir pred/
     """
     _run(ctx, "predicted", kw)
 
@@ -413,9 +413,9 @@ def extract_cmd(ctx: Context, **kw):
     Example:
 
     \b
-      spctool -C WORKDIR extract P600127001 --landmarks sel.txt --out-dir ext/ --image-format fits
-      spctool -C WORKDIR extract P600127001 --criteria autoregister --json
-      spctool extract PIC --sum PIC.SUM --photo PIC.fits FC0098 --criteria 0,50,.25,0,5
+      spctool -C demo extract P000000001A1 --landmarks sel.txt --out-dir ext/ --image-format fits
+      spctool -C demo extract P000000001A1 --criteria autoregister --json
+      spctool -C demo extract P000000003A1 --photo IMAGEFILES/P000000003A1.FITS B01980 --criteria 0,50,.25,0,5
     """
     _run(ctx, "extracted", kw)
 

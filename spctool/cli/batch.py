@@ -131,9 +131,9 @@ def batch_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR batch --jobs 2
-      spctool -C WORKDIR batch PICTLIST.TXT --out-dir run1 --json > run1.json
-      spctool -C WORKDIR batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
+      spctool -C demo batch --jobs 2
+      spctool -C demo batch PICTLIST.TXT --out-dir run1 --json > run1.json
+      spctool -C demo batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
     """
     from spctool.batch import BatchOptions, batch_pictures, run_batch
     from spctool.stages.navigate import NavigateOptions

@@ -28,6 +28,7 @@ class Context:
     settings_path: str | None = None
     verbosity: int = 0
     debug: bool = False
+    explicit_workdir: bool = False  # -C DIR given (the process runs in DIR, like git -C)
     _said: set = field(default_factory=set)
 
     @property
@@ -42,6 +43,11 @@ class Context:
         if self.verbosity >= level:
             click.echo(f"spctool: {message}", err=True)
 
+    def warn(self, message: str) -> None:
+        """A warning on stderr (``spctool: warning: …``): a result that must not pass unnoticed."""
+        if self.verbosity >= 0:
+            click.echo(f"spctool: warning: {message}", err=True)
+
     def note_once(self, message: str) -> None:
         """A one-time note on stderr (e.g. 'no shape: occlusion skipped'), silenced by -q."""
         if self.verbosity >= 0 and message not in self._said:
@@ -53,12 +59,13 @@ pass_context = click.make_pass_decorator(Context, ensure=True)
 
 
 def emit(text: str, output: str | None = None, *, overwrite: bool = True) -> None:
-    """Write ``text`` to ``output`` atomically, or to stdout when ``output`` is None or '-'."""
+    """Write ``text`` to ``output`` atomically (an existing file is kept as ``.bak``), or to stdout when
+    ``output`` is None or '-'."""
     if output is None or output == "-":
         sys.stdout.write(text)
         sys.stdout.flush()
     else:
-        atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite)
+        atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite, backup=True)
 
 
 def emit_table(table, *, as_json: bool, output: str | None = None) -> None:
@@ -150,18 +157,42 @@ def sum_path_of(ctx: Context, picture: str, sum_path=None) -> Path:
     return ctx.wd.sum_path(picture)
 
 
+def adopt_sum_workdir(ctx: Context, sum_path: Path) -> None:
+    """The one rule for a picture named by its SUM path: without -C, a SUM in a folder named SUMFILES
+    makes that folder's parent the working directory (INIT_LITHOS.TXT, SHAPEFILES/, IMAGEFILES/,
+    LMKFILES/, MAPFILES/ are found there, as with ``-C``)."""
+    if ctx.explicit_workdir:
+        return
+    parent = Path(sum_path).parent
+    if parent.name.upper() == "SUMFILES":
+        root = parent.parent
+        if root.resolve() != Path(ctx.workdir).resolve():
+            ctx.workdir = str(root) if str(root) else "."
+            ctx.info(f"working directory {ctx.workdir} (the SUM file's SUMFILES/ parent)")
+
+
 def load_picture(ctx: Context, picture: str, sum_path=None) -> LoadedPicture:
-    """Read PICTURE's SUM (:func:`sum_path_of`) and the settings, and build its camera (SUM pose and
-    K-matrix with the INIT_LITHOS DISTORT= model)."""
+    """Read PICTURE's SUM (:func:`sum_path_of`, :func:`adopt_sum_workdir`) and the settings, and build
+    its camera (SUM pose and K-matrix with the INIT_LITHOS DISTORT= model; a note on stderr when the
+    picture has no distortion model)."""
     from spctool.formats.sumfile import read_sum
     from spctool.geometry.camera import Camera
 
     path = sum_path_of(ctx, picture, sum_path)
     if not path.exists():
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
+    adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
     settings = ctx.settings()
-    return LoadedPicture(path, pic, settings, Camera.from_picture(pic, settings))
+    camera = Camera.from_picture(pic, settings)
+    if camera.model.upper() == "NONE":
+        where = (
+            f"no INIT_LITHOS.TXT in {ctx.wd.root}"
+            if settings is None and not ctx.settings_path
+            else "no DISTORT= model for it in the INIT_LITHOS settings"
+        )
+        ctx.note_once(f"{pic.name}: projected without a distortion model ({where})")
+    return LoadedPicture(path, pic, settings, camera)
 
 
 def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, required: bool = True):
@@ -206,11 +237,12 @@ def table_pixels(path) -> list[tuple[str, tuple[float, float] | None]]:
     from spctool.formats.table import read_table
 
     table = read_table(path)
-    smp, lin = table.get("sample"), table.get("line")
+    cols = table.pixel_columns("<stdin>" if str(path) == "-" else path)
+    smp, lin = cols if cols is not None else (None, None)
     rows = []
     for i, name in enumerate(table.names):
         pix = None
-        if smp is not None and lin is not None:
+        if cols is not None:
             try:
                 pix = (float(smp[i]), float(lin[i]))
             except (TypeError, ValueError):
@@ -223,12 +255,19 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
     """The landmarks a per-picture stage works on, as ([(name, pixel or None)], source).
 
     Given landmarks (source ``"given"``): the rows of ``--landmarks TABLE`` with their table pixels
-    (:func:`table_pixels`), then the named ``names`` (no pixel).  With neither, lithos-select
-    (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options, no occlusion test) on the
+    (:func:`table_pixels`), then the named ``names`` (no pixel; a name with neither MAP nor LMK file
+    is an error, exit 2, as in every command — table rows without a maplet become no-maplet rows).
+    With neither, lithos-select (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options,
+    occlusion by the shape as ``lithos-select`` checks it) on the
     LMRKLIST.TXT / LMKFILES/ candidates gives the selected maplets with their predicted pixels
     (source ``"selection"``).
     """
     rows = table_pixels(table_path) if table_path else []
+    for n in names:  # a landmark named on the command line must exist (exit 2, as in every command)
+        if not (Path(n).is_file() or ctx.wd.map_path(n).exists() or ctx.wd.lmk_path(n).exists()):
+            raise SpcFormatError(
+                ctx.wd.map_path(n), None, f"expected the MAP (or LMK) file of landmark {n} (file not found)"
+            )
     rows += [(n, None) for n in names]
     if rows:
         return rows, "given"
@@ -238,8 +277,15 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
     cand = load_candidates(ctx, (), None)
     if not len(cand):
         return [], "selection"
-    res = cand.select(picture.camera, picture.pic.sz, SelectOptions.from_settings(picture.settings))
-    ctx.info(f"lithos-select: {res.n_selected} of {len(res)} candidate maplets (occlusion not checked)")
+    shape = load_shape(ctx)  # occlusion checked as lithos-select checks it (when there is a shape)
+    if shape is None:
+        ctx.note_once("no shape model (SHAPEFILES/SHAPE.TXT): occlusion check skipped")
+    sel_opts = SelectOptions.from_settings(picture.settings)
+    res = cand.select(picture.camera, picture.pic.sz, sel_opts, shape=shape)
+    ctx.info(
+        f"lithos-select: {res.n_selected} of {len(res)} candidate maplets "
+        f"(occlusion {'checked' if res.occlusion_checked else 'skipped'})"
+    )
     selected = zip(res.names, res.sample, res.line, res.selected)
     return [(n, (float(s), float(ln))) for n, s, ln, sel in selected if sel], "selection"
 

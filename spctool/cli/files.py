@@ -307,11 +307,14 @@ def problems_of(kind: str, obj) -> list[str]:
 def info_cmd(ctx: Context, files, as_json, arrays, npx, nln, sum_path):
     """Describe SPC files and photos; the type is detected from the content.
 
+    --json writes {"command", "spctool_version", "files": [one object per FILE]}; with one FILE its
+    fields are also at the top level.
+
     Example:
 
     \b
-      spctool info SUMFILES/W48230079013.SUM LMKFILES/FA0115.LMK
-      spctool info --json MAPFILES/AB0001.MAP | jq .scale
+      spctool info demo/SUMFILES/P000000001A1.SUM demo/LMKFILES/B01980.LMK
+      spctool info --json demo/MAPFILES/B01980.MAP | jq .scale
     """
     npx, nln = _dat_size(sum_path, npx, nln)
     docs = []
@@ -329,6 +332,8 @@ def info_cmd(ctx: Context, files, as_json, arrays, npx, nln, sum_path):
                 click.echo("  " + line)
     if as_json:
         payload = {"command": "info", "spctool_version": __version__, "files": docs}
+        if len(docs) == 1:  # one FILE: its fields at the top level too (jq .scale)
+            payload = {**{k: v for k, v in docs[0].items() if k not in payload}, **payload}
         emit(json.dumps(payload, indent=2, allow_nan=False) + "\n")
 
 
@@ -350,7 +355,7 @@ def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
     Example:
 
     \b
-      spctool validate SUMFILES/*.SUM LMKFILES/*.LMK MAPFILES/*.MAP
+      spctool validate demo/SUMFILES/*.SUM demo/LMKFILES/*.LMK demo/MAPFILES/*.MAP
     """
     npx, nln = _dat_size(sum_path, npx, nln)
     report = []
@@ -501,7 +506,7 @@ def _map_images(maplet, out: Path, kind: str, overwrite: bool, backup: bool) -> 
     help="ICQ output numbers: SPC's 3F12.5 or full precision.",
 )
 @click.option("--force", is_flag=True, help="Overwrite DST if it exists.")
-@click.option("--backup", is_flag=True, help="Keep DST.bak when overwriting.")
+@click.option("--backup", is_flag=True, help="Keep DST.bak when overwriting (always done; kept for scripts).")
 @pass_context
 def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_order, icq_style, force, backup):
     """Convert SPC files and photos.
@@ -513,10 +518,10 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     Example:
 
     \b
-      spctool convert SHAPEFILES/SHAPE.TXT shape.obj
-      spctool convert bennu.obj SHAPE.TXT
-      spctool convert --sum SUMFILES/P1.SUM IMAGEFILES/P1.DAT P1.fits
-      spctool convert --flip-rows upside_down.png P1.png
+      spctool convert demo/SHAPEFILES/SHAPE.TXT shape.obj
+      spctool convert shape.obj SHAPE.TXT
+      spctool convert --sum demo/SUMFILES/P000000001A1.SUM demo/IMAGEFILES/P000000001A1.DAT P1.fits
+      spctool convert --flip-rows P1.fits upside_down.png
     """
     src_p, dst_p = Path(src), Path(dst)
     if src_p.resolve() == dst_p.resolve() and not force:
@@ -528,7 +533,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     obj = read_any(src_p, kind, npx=npx, nln=nln, byte_order=byte_order, flip_rows=flip_rows)
     out_kind = _out_kind(dst_p) or kind
     written: list[Path] = [dst_p]
-    kw = dict(overwrite=True, backup=backup)
+    kw = dict(overwrite=True, backup=True)  # a replaced DST is always kept as DST.bak (--backup: the same)
     if kind in PHOTO_KINDS:
         if out_kind not in PHOTO_KINDS:
             raise SpcUsageError(f"{dst}: a photo converts to .DAT, .fits, .pgm or .png")
@@ -541,7 +546,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
 
             write_map(dst_p, obj, **kw)
         else:
-            written = _map_images(obj, dst_p, out_kind, True, backup)
+            written = _map_images(obj, dst_p, out_kind, True, True)
     elif kind in ("icq", "obj", "vtk"):
         if out_kind in ("", "icq", kind) and dst_p.suffix.lower() in (".txt", ".icq"):
             out_kind = "icq"  # SPC keeps shapes as SHAPEFILES/*.TXT

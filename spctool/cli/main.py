@@ -1,8 +1,10 @@
 """The ``spctool`` command group: global options, error handling, subcommand registry.
 
 Errors a user can cause (bad files, bad usage) end as ONE stderr line
-``spctool: error: …`` with exit code 2 (1 when a requested check failed);
-``--debug`` shows the traceback instead.  Commands register themselves from
+``spctool: error: …`` with exit code 2 (1 when a requested check failed, 3 when
+the machine refused, 130 on Ctrl-C: :data:`spctool.errors.EXIT_CODES`, listed in
+the --help epilog); ``--debug`` shows the traceback instead.  ``-C DIR`` changes
+directory like ``git -C`` (restored when :meth:`SpcGroup.main` returns).  Commands register themselves from
 their own modules (``spctool/cli/*.py``, :data:`COMMANDS`), which are imported only
 when one of their commands runs: ``spctool info`` does not pay for numba, nor
 ``spctool --version`` for anything.
@@ -11,6 +13,7 @@ when one of their commands runs: ``spctool info`` does not pay for numba, nor
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 import traceback
 
@@ -18,7 +21,7 @@ import click
 
 from spctool import __version__
 from spctool.cli.common import Context
-from spctool.errors import SpcEnvironmentError, SpcError
+from spctool.errors import EXIT_CODES, SpcEnvironmentError, SpcError, SpcUsageError
 
 #: every command and the module whose ``register(cli)`` adds it, in --help order (mission stages
 #: first); a test checks this table against what the modules register
@@ -62,6 +65,16 @@ class SpcGroup(click.Group):
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         args = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in args[: _first_command_index(self, args)]
+        cwd = os.getcwd()  # -C changes directory (like git -C); restored for callers in this process
+        try:
+            return self._main(args, prog_name, complete_var, standalone_mode, debug, extra)
+        finally:
+            try:
+                os.chdir(cwd)
+            except OSError:
+                pass
+
+    def _main(self, args, prog_name, complete_var, standalone_mode, debug, extra):
         try:
             rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
         except click.exceptions.Exit as exc:
@@ -118,15 +131,26 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-@click.group(cls=SpcGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+EPILOG = "Exit codes (every command):\n\n\b\n" + "\n".join(
+    f"  {code:>3}  {text}" for code, text in EXIT_CODES.items()
+)
+
+
+@click.group(
+    cls=SpcGroup,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+    epilog=EPILOG,
+)
 @click.version_option(__version__, "-V", "--version", prog_name="spctool")
 @click.option(
     "-C",
     "workdir",
-    default=".",
+    default=None,
     metavar="DIR",
     type=click.Path(file_okay=False),
-    help="SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...). Default: current directory.",
+    help="Run as if started in DIR, the SPC working directory (SUMFILES/, MAPFILES/, LMKFILES/, ...), "
+    "like git -C: relative paths on the command line are relative to DIR. Default: the current "
+    "directory, or the working directory of a PICTURE given as DIR/SUMFILES/NAME.SUM.",
 )
 @click.option(
     "--settings",
@@ -142,12 +166,16 @@ def _one_line(text: str) -> str:
 def cli(ctx, workdir, settings, verbose, quiet, debug):
     """spctool — surface-feature optical navigation the SPC way.
 
-    Stages chain through landmark tables (text or --json):
+    Stages chain through landmark tables (text or --json); with -C DIR, relative paths are
+    relative to DIR (like git -C), so the tables below live in the demo's working directory:
+
+    Example:
 
     \b
-      spctool -C WORKDIR lithos-select P0001 > sel.txt
-      spctool -C WORKDIR register P0001 --landmarks sel.txt > reg.txt
-      spctool -C WORKDIR solve-pose P0001 --measurements reg.txt --output new.SUM
+      spctool demo --copy-to demo
+      spctool -C demo lithos-select P000000001A1 -o sel.txt
+      spctool -C demo register P000000001A1 --landmarks sel.txt -o reg.txt
+      spctool -C demo solve-pose P000000001A1 --measurements reg.txt --output new.SUM
 
     Pixels are SPC pixels everywhere: sample (column) and line (row), 1-based, pixel
     centres at integers, line 1 = first stored row.
@@ -156,8 +184,19 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
     working directory too): eval "$(_SPCTOOL_COMPLETE=bash_source spctool)" in ~/.bashrc
     (zsh: zsh_source, fish: fish_source).
     """
+    if workdir is not None:
+        try:
+            os.chdir(workdir)
+        except FileNotFoundError:
+            raise SpcUsageError(f"-C {workdir}: no such working directory") from None
+        except OSError as exc:
+            raise SpcUsageError(f"-C {workdir}: {(exc.strerror or 'cannot change to it').lower()}") from None
     ctx.obj = Context(
-        workdir=workdir, settings_path=settings, verbosity=-1 if quiet else verbose, debug=debug
+        workdir=".",
+        settings_path=settings,
+        verbosity=-1 if quiet else verbose,
+        debug=debug,
+        explicit_workdir=workdir is not None,
     )
     if not ctx.resilient_parsing:  # not while completing
         from spctool.cli.jit import first_run_note

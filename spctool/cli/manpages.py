@@ -82,9 +82,59 @@ def render(command: click.Command, path: list[str]) -> str:
             parts.append(f".B {sub}")
             parts.append(_escape(c.get_short_help_str(limit=120)))
             parts.append(f"See \\fB{name}-{sub}\\fR(1).")
+    parts += _common_sections()
     parts.append(".SH SEE ALSO")
     parts.append("\\fBspctool\\fR(1)" if len(path) > 1 else "spctool-COMMAND(1) for each command")
     return "\n".join(parts) + "\n"
+
+
+#: files every command finds in the working directory (cli-contract.md "Invocation")
+FILES = (
+    (
+        "SUMFILES/PIC.SUM",
+        "picture: pose, camera, LANDMARKS (a PICTURE given as DIR/SUMFILES/PIC.SUM makes "
+        "DIR the working directory)",
+    ),
+    ("NOMINALS/PIC.NOM", "nominal pose"),
+    ("IMAGEFILES[1-9]/PIC.DAT", "photo (also .FITS, .PGM, .PNG with the same stem)"),
+    ("MAPFILES/LMK.MAP", "maplet (then EXTFILES/)"),
+    ("LMKFILES/LMK.LMK", "landmark position and sigmas"),
+    ("SHAPEFILES/SHAPE.TXT", "global shape (ICQ; OBJ/VTK with --shape)"),
+    (
+        "INIT_LITHOS.TXT",
+        "settings, camera DISTORT= model (without one a picture is projected without "
+        "distortion, with a note)",
+    ),
+    ("PICTLIST.TXT, LMRKLIST.TXT", "pictures and landmarks in use (PICTLISTX.TXT preferred)"),
+    ("FILE.bak", "the previous content of every file spctool replaces (outputs and inputs alike)"),
+)
+
+#: environment variables spctool reads
+ENVIRONMENT = (
+    ("SPCTOOL_START_METHOD", "batch: force the local worker start method (fork, spawn, forkserver)"),
+    ("NUMBA_NUM_THREADS", "threads of the compiled kernels (one per batch worker)"),
+    ("NUMBA_CACHE_DIR", "where numba caches its compiled kernels"),
+)
+
+
+def _common_sections() -> list[str]:
+    """EXIT STATUS, FILES and ENVIRONMENT: the same for every page."""
+    from spctool.errors import EXIT_CODES
+
+    parts = [".SH EXIT STATUS"]
+    for code, text in EXIT_CODES.items():
+        parts += [".TP", f".B {code}", _escape(text)]
+    parts.append(".SH FILES")
+    parts.append(
+        "Paths are relative to the working directory, \\fB-C\\fR DIR (like git \\fB-C\\fR: relative paths "
+        "on the command line are relative to DIR too), else the current directory."
+    )
+    for name, text in FILES:
+        parts += [".TP", f".I {_escape(name)}", _escape(text)]
+    parts.append(".SH ENVIRONMENT")
+    for name, text in ENVIRONMENT:
+        parts += [".TP", f".B {name}", _escape(text)]
+    return parts
 
 
 def all_pages() -> dict[str, str]:

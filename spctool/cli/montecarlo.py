@@ -55,10 +55,10 @@ whatever --jobs.
 Examples:
 
 \b
-  spctool montecarlo --preset s16-50m --scene s16.npz --figures figs
-  spctool montecarlo --preset s16-50m --scene s16.npz --space image --json > image.json
-  spctool montecarlo --preset s16-50m --samples 50 --only position,attitude --sigma-scale 2
-  spctool -C WORLD montecarlo P000000001A1 --samples 100
+  spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --figures figs
+  spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --space image --json > image.json
+  spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --only position,attitude --sigma-scale 2
+  spctool -C demo montecarlo P000000001A1 --samples 20
 """
 
 
@@ -299,7 +299,7 @@ def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
                 f"{ctx.workdir}: no TRUTH.json; give --preset s16-50m, --scene FILE, or -C a world made by "
                 "'spctool simulate'"
             )
-        scene = mc.scene_from_workdir(ctx.workdir, picture)
+        scene = mc.scene_from_workdir(str(Path(ctx.workdir).resolve()), picture)  # -C: cwd is DIR
     if scene_path:
         mc.save_scene(scene, scene_path)
         ctx.info(f"saved scene {scene_path}")

@@ -34,10 +34,17 @@ class Measurements:
     status: list[str]  # "ok" = to be used; anything else is passed through to the output
 
 
-def measurements_from_table(path) -> Measurements:
+def measurements_from_table(path, picture: str | None = None, any_picture: bool = False) -> Measurements:
+    """The rows of a landmark table; a table whose ``# picture:`` header names another picture than
+    ``picture`` is refused (SpcUsageError) unless ``any_picture``."""
     from spctool.formats.table import read_table
 
     table = read_table(path)
+    if picture and table.picture and table.picture.strip() != picture.strip() and not any_picture:
+        raise SpcUsageError(
+            f"{'<stdin>' if str(path) == '-' else path}: the table is for picture {table.picture.strip()}, "
+            f"not {picture.strip()} (--any-picture uses it anyway)"
+        )
     missing = [c for c in ("name", "sample", "line") if c not in table]
     if missing:
         raise SpcFormatError(
@@ -172,6 +179,19 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     "--in-place", is_flag=True, help="Rewrite the picture's SUM file itself, keeping the old one as FILE.bak."
 )
 @click.option(
+    "--any-picture",
+    "any_picture",
+    is_flag=True,
+    help="Use a --measurements table whose '# picture:' header names another picture (default: refused).",
+)
+@click.option(
+    "--force",
+    "force",
+    is_flag=True,
+    help="Write the SUM and exit 0 even when the fit is implausible (cost/dof > 100: residuals ~10x "
+    "--sigma-px).",
+)
+@click.option(
     "-o",
     "--table-output",
     "table_output",
@@ -209,6 +229,8 @@ def solve_pose_cmd(
     min_landmarks,
     sum_output,
     in_place,
+    any_picture,
+    force,
     table_output,
     plot,
     photo_path,
@@ -233,17 +255,25 @@ def solve_pose_cmd(
 
     --json adds a top-level "pose" object: position, scobj, rotation, delta_position,
     delta_attitude, covariance (6x6, km then rad), sigma_position, sigma_attitude, correlation,
-    condition_number, iterations, converged, rejected, chi2, dof, rms before/after.  A summary goes
-    to stderr (with --json only with -v).  Too few landmarks, degenerate geometry or no
-    convergence: exit 1 (no SUM is written).  --output writes SIGMA_VSO/SIGMA_PTG as the solved
-    1-sigma values.
+    condition_number, iterations, converged, rejected, chi2, dof, rms before/after,
+    covariance_scale, covariance_formal, position_attitude_correlation, plausible.  The text table's
+    header block gives the solved position, its 1-sigma, chi2/dof and the largest
+    position-attitude correlation; a summary goes to stderr (with --json only with -v).
+
+    Checks: a --measurements table whose '# picture:' header names another picture is refused
+    (exit 2; --any-picture).  When the residuals exceed --sigma-px (cost/dof > 1) the covariance
+    is scaled by cost/dof (both reported).  A fit with cost/dof > 100 (residuals ~10x --sigma-px:
+    wrong measurements or another picture's table) is implausible: the table is written, no SUM,
+    exit 1 (--force writes it).  Too few landmarks, degenerate geometry or no convergence: exit 1
+    (no SUM is written).  --output writes SIGMA_VSO/SIGMA_PTG as the solved 1-sigma values and keeps
+    an existing FILE as FILE.bak (also when FILE is the input SUM).
 
     Example:
 
     \b
-      spctool -C WORKDIR solve-pose P0001 --measurements reg.txt --output new.SUM
-      spctool -C WORKDIR register P0001 | spctool -C WORKDIR solve-pose P0001 --measurements - --in-place
-      spctool solve-pose fixtures/W48230079013.SUM --lmk-dir fixtures --no-prior --json
+      spctool -C demo solve-pose P000000001A1 --measurements reg.txt --output new.SUM
+      cd demo && spctool register P000000001A1 | spctool solve-pose P000000001A1 --measurements - --in-place
+      spctool -C fixtures/real/rosetta-67p solve-pose W48230079013.SUM --lmk-dir . --no-prior --json
     """
     from spctool.stages.pose import solve_pose
 
@@ -265,7 +295,11 @@ def solve_pose_cmd(
     )
 
     src_path, pic, _, camera = load_picture(ctx, picture, sum_path)
-    meas = measurements_from_table(measurements) if measurements else measurements_from_sum(pic)
+    meas = (
+        measurements_from_table(measurements, pic.name, any_picture)
+        if measurements
+        else measurements_from_sum(pic)
+    )
     pos, lsig, found = load_landmarks(ctx, meas.names, lmk_dir)
     use = np.array([s == "ok" for s in meas.status], dtype=bool) & found
     missing = [n for n, s, f in zip(meas.names, meas.status, found) if s == "ok" and not f]
@@ -327,11 +361,11 @@ def solve_pose_cmd(
 
     wrote = None
     write_target = src_path if in_place else Path(sum_output) if sum_output else None
-    if write_target is not None and result.converged:
+    if write_target is not None and result.converged and (result.plausible or force):
         from spctool.formats.sumfile import with_pose, write_sum
 
         new_pic = with_pose(pic, result.scobj, result.rotation, result.sigma_position, result.sigma_attitude)
-        backup = write_sum(write_target, new_pic, overwrite=True, backup=in_place)
+        backup = write_sum(write_target, new_pic, overwrite=True, backup=True)  # an existing file: .bak
         wrote = str(write_target)
         ctx.info(f"wrote {write_target}" + (f" (old file kept as {backup})" if backup else ""))
 
@@ -345,6 +379,7 @@ def solve_pose_cmd(
         f"solved with {result.n_used} landmarks, {result.iterations} iterations, "
         f"{'converged' if result.converged else 'NOT converged'}; residuals measured - predicted (px)"
     )
+    table.comments.extend(result.header_lines())
     emit_table(table, as_json=as_json, output=table_output)
     if plot:
         _plot(ctx, plot, pic, photo_path, flip_rows, meas, res0, res1, status, result)
@@ -357,6 +392,13 @@ def solve_pose_cmd(
             f"{pic.name}: pose did not converge in {pose_options.max_iter} iterations"
             + ("; no SUM written" if write_target is not None else "")
         )
+    if not result.plausible:
+        if not force:
+            raise SpcResultError(
+                f"{pic.name}: implausible fit: {result.implausible}"
+                + ("; no SUM written (--force writes it)" if write_target is not None else "")
+            )
+        ctx.warn(f"{pic.name}: implausible fit (written because of --force): {result.implausible}")
 
 
 def _plot(ctx, path, pic, photo_path, flip_rows, meas, res0, res1, status, result):

@@ -73,9 +73,9 @@ def project_cmd(ctx: Context, picture, landmarks, landmarks_table, inverse, shap
     Example:
 
     \b
-      spctool -C WORKDIR project W48230079013
-      spctool project SUMFILES/W48230079013.SUM LMKFILES/FA0115.LMK --json
-      spctool -C WORKDIR project P0001 --inverse 512.5 512.5
+      spctool -C demo project P000000001A1
+      spctool project demo/SUMFILES/P000000001A1.SUM demo/LMKFILES/B01980.LMK --json
+      spctool -C demo project P000000001A1 --inverse 384.5 384.5
     """
     _, pic, _, camera = load_picture(ctx, picture)
     command = "project " + picture

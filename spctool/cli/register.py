@@ -410,8 +410,8 @@ def correlate_cmd(ctx: Context, **kw):
     Example:
 
     \b
-      spctool -C WORKDIR correlate P600127001 --landmarks sel.txt --spacing 2
-      spctool -C WORKDIR correlate P600127001 FC0098 --out-dir surf/ --image-format fits --json
+      spctool -C demo correlate P000000001A1 --landmarks sel.txt --spacing 2
+      spctool -C demo correlate P000000001A1 B01980 --out-dir surf/ --image-format fits --json
     """
     from spctool.formats.table import LandmarkTable
     from spctool.stages.register import Registrar
@@ -566,6 +566,14 @@ def correlate_cmd(ctx: Context, **kw):
     "--halve-shift", is_flag=True, help="Apply half of every measured shift (Align landmarks option 1)."
 )
 @click.option(
+    "--no-spacing-cap",
+    "no_spacing_cap",
+    is_flag=True,
+    help="Run every step as given even where the maplet is too small for it (default: spacings with "
+    "K x L > Q + 1, Q the maplet's half-width, are replaced by one step at the largest L that fits; a "
+    "note says so).",
+)
+@click.option(
     "--write-sum",
     "write_sum_flag",
     is_flag=True,
@@ -597,7 +605,10 @@ def correlate_cmd(ctx: Context, **kw):
     help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
     "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
 )
-@options.require_option("Exit 1 when fewer than N landmarks are registered.")
+@options.require_option(
+    "Exit 1 when fewer than N landmarks are registered (the table is still written). Without it a run "
+    "that registers nothing exits 0 with a warning on stderr."
+)
 def register_cmd(ctx: Context, **kw):
     """Measure the landmarks of a picture: iterated predict, extract and correlate.
 
@@ -607,9 +618,13 @@ def register_cmd(ctx: Context, **kw):
     et al. 2016 Eq. 19) after each step; the pose is not changed.  Schedule autoregister (SPC's
     AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the first pass, then all landmarks at spacing
     2, a pose solve, spacing 1, a pose solve, landmarks with rho < 0.5 dropped, spacing 1 and a last
-    pose solve; each pass re-predicts and re-extracts with the updated pose.  --space image correlates
-    the maplet rendered into the photo (with cast shadows) against the photo itself, so the search is
-    not limited by the maplet's extent (as in the Retina system, Wright et al. 2016).
+    pose solve; each pass re-predicts and re-extracts with the updated pose.  A schedule is fitted to
+    each maplet: a step at spacing L searches +-K*L cells and works only while K*L <= Q + 1, Q the
+    maplet's half-width (Shoemaker et al. 2016: L = 10 for 99x99 maplets; a 49x49 maplet: L <= 5), so
+    coarser steps are replaced by one step at the largest L that fits, with a note on stderr
+    (--no-spacing-cap runs them as given).  --space image correlates the maplet rendered into the
+    photo (with cast shadows) against the photo itself, so the search is not limited by the maplet's
+    extent (as in the Retina system, Wright et al. 2016).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
@@ -618,13 +633,16 @@ def register_cmd(ctx: Context, **kw):
     (only ok rows are used).  With --write-sum the ok landmarks are written to the SUM's LANDMARKS
     section (rows of other landmarks are kept unless --drop-failed).
 
+    A run that registers no landmark prints a warning naming the most common failure on stderr;
+    --require N turns fewer than N registered into exit code 1.
+
     Example:
 
     \b
-      spctool -C WORKDIR lithos-select P600127001 > sel.txt
-      spctool -C WORKDIR register P600127001 --landmarks sel.txt > reg.txt
-      spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
-      spctool -C WORKDIR register P600127001 FC0098 --space image --json
+      spctool -C demo lithos-select P000000001A1 -o sel.txt
+      spctool -C demo register P000000001A1 --landmarks sel.txt --require 12 -o reg.txt
+      spctool -C demo register P000000001A1 --schedule autoregister --write-sum --overlay reg.png
+      spctool -C demo register P000000001A1 B01980 --space image --json
     """
     from spctool.stages.register import RegisterOptions, schedule_steps
     from spctool.stages.register import register as run_register
@@ -635,6 +653,7 @@ def register_cmd(ctx: Context, **kw):
         "fail_fast": not kw["no_fail_fast"],
         "pose_update": not kw["no_pose_update"],
         "halve_shift": kw["halve_shift"],
+        "cap_spacing": not kw["no_spacing_cap"],
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])
@@ -703,6 +722,9 @@ def register_cmd(ctx: Context, **kw):
         f"({'s16' if schedule == 'retina_s16' else schedule}, {opts.space} space)"
     )
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
+    n_all = len(result) + len(inp.missing)
+    if n_all and not int(result.ok.sum()):
+        ctx.warn(f"{inp.pic.name}: registered 0 of {n_all} landmarks: {_why(result, inp)}")
 
     if kw["write_sum_flag"]:
         path = _write_sum(kw, inp, result)
@@ -724,6 +746,7 @@ def register_cmd(ctx: Context, **kw):
                 subtitle=f"({'s16' if schedule == 'retina_s16' else schedule}, {opts.space} space)",
                 magnify=kw["magnify"],
             ),
+            backup=True,
         )
         ctx.info(f"wrote {kw['overlay']}")
     if kw["panels"]:
@@ -734,6 +757,19 @@ def register_cmd(ctx: Context, **kw):
             f"{inp.pic.name}: {int(result.ok.sum())} landmarks registered, fewer than "
             f"--require {kw['require']}"
         )
+
+
+def _why(result, inp) -> str:
+    """The reason a run registered nothing: its status counts, most common first, with the spacing."""
+    counts = dict(result.status_counts())
+    if inp.missing:
+        counts["no-maplet"] = counts.get("no-maplet", 0) + len(inp.missing)
+    parts = [f"{n} {word}" for word, n in sorted(counts.items(), key=lambda kv: -kv[1])]
+    top = max(counts, key=counts.get)
+    at = [int(s) for s, st in zip(result.spacing, result.status) if st == top and s > 0]
+    if at:
+        parts[0] += f" at spacing {max(set(at), key=at.count)}"
+    return ", ".join(parts)
 
 
 def _write_sum(kw, inp, result):

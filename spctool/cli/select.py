@@ -365,10 +365,10 @@ def select_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR lithos-select P600127001 > sel.txt
-      spctool -C WORKDIR lithos-select P600127001 --all --json
-      spctool lithos-select W48230079013 --sum W48230079013.SUM --maplets FA0115.LMK --maplets FC0098.LMK
-      spctool -C WORKDIR lithos-select P600127001 --numlm 50 --overlay sel.png
+      spctool -C demo lithos-select P000000001A1 -o sel.txt
+      spctool -C demo lithos-select P000000001A1 --all --json
+      spctool lithos-select demo/SUMFILES/P000000001A1.SUM --maplets B01980 --maplets B02176
+      spctool -C demo lithos-select P000000001A1 --numlm 5 --overlay sel.png
     """
     from spctool.stages.select import SelectOptions
 
@@ -428,7 +428,7 @@ def select_cmd(
             f"outlines: selected maplets at the SUM pose; occlusion {meta['occlusion']}"
             + (f"; rejected: {others}" if others else ""),
         )
-        atomic.write_bytes(overlay, fig.png())
+        atomic.write_bytes(overlay, fig.png(), backup=True)
         ctx.info(f"wrote {overlay}")
 
     if require is not None and result.n_selected < require:

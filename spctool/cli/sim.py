@@ -243,9 +243,9 @@ def make_maplets_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR make-maplets --tile 0.02 --scale 0.0005 --qsz 24
-      spctool -C WORKDIR make-maplets --at AA0001 0.21 0.05 0.10 --scale 0.001 --qsz 49
-      spctool -C WORKDIR make-maplets SM0001 SM0002 --keep-frame --overwrite
+      spctool -C demo make-maplets --tile 0.1 --scale 0.0005 --qsz 24
+      spctool -C demo make-maplets --at AA0001 0.21 0.05 0.10 --scale 0.001 --qsz 49
+      spctool -C demo make-maplets B01980 B02176 --keep-frame --overwrite
     """
     from spctool.formats.landmark import read_lmk, write_lmk
     from spctool.formats.lists import LandmarkList, read_lmrklist, write_lmrklist
@@ -312,12 +312,12 @@ def make_maplets_cmd(
     rows = []
     for name in names:
         m, lm, old = results[name]
-        write_map(wd.map_path(name), m)
+        write_map(wd.map_path(name), m, backup=True)  # a replaced file is kept as .bak
         if old is not None:
             old.vlm, old.ux, old.uy, old.uz = lm.vlm, lm.ux, lm.uy, lm.uz
             old.scale, old.qsz = lm.scale, lm.qsz
             lm = old
-        write_lmk(wd.lmk_path(name), lm)
+        write_lmk(wd.lmk_path(name), lm, backup=True)
         v = np.asarray(lm.vlm)
         r = float(np.linalg.norm(v))
         hv = m.heights[m.valid]
@@ -427,8 +427,8 @@ def render_cmd(
     Example:
 
     \b
-      spctool -C WORKDIR render P000000001A1 -o render.fits
-      spctool -C WORKDIR render P000000001A1 SM0001 --no-shape --float -o sm0001.fits
+      spctool -C demo render P000000001A1 -o render.fits
+      spctool -C demo render P000000001A1 B01980 --no-shape --float -o b01980.fits
     """
     from spctool.formats.photo import Photo, write_photo
     from spctool.sim.simulate import Detector, expose
@@ -475,7 +475,9 @@ def render_cmd(
         rng = np.random.default_rng(seed) if noise else None
         data, _ = expose(full, cov, det, rng)
     header = {"PICTURE": (pic.name, "SPC picture name"), "ORIGIN": ("spctool render", "synthetic")}
-    write_photo(out, Photo(data, name=pic.name), fmt=fmt, header=header if fmt == "fits" else None)
+    write_photo(
+        out, Photo(data, name=pic.name), fmt=fmt, header=header if fmt == "fits" else None, backup=True
+    )
     ctx.info(f"wrote {out}")
 
 

@@ -200,11 +200,25 @@ class LandmarkTable:
             out.write(fmt(r) + "\n")
         return out.getvalue()
 
+    def pixel_columns(self, path=None):
+        """(sample, line) columns, or None when the table has neither; one without the other is a
+        SpcFormatError naming the missing column."""
+        smp, lin = self.get("sample"), self.get("line")
+        if (smp is None) != (lin is None):
+            have, miss = ("sample", "line") if lin is None else ("line", "sample")
+            raise SpcFormatError(
+                path, None, f"expected a '{miss}' column beside '{have}' (columns: {', '.join(self.columns)})"
+            )
+        return None if smp is None else (smp, lin)
+
     @classmethod
     def parse_text(cls, text: str, path=None) -> LandmarkTable:
+        """The text form: whitespace-aligned columns, or comma-separated (CSV) when the header line
+        has commas; ``#`` lines are comments (``# picture:``, ``# command:``)."""
         picture = command = None
         comments: list[str] = []
         header: list[str] | None = None
+        delimited = False
         rows: list[list[str]] = []
         for lineno, raw in enumerate(text.splitlines(), start=1):
             line = raw.strip()
@@ -219,9 +233,11 @@ class LandmarkTable:
                 elif not body.startswith("spctool "):
                     comments.append(body)
                 continue
-            parts = line.split()
             if header is None:
-                header = parts
+                delimited = "," in line  # a CSV table (e.g. from a spreadsheet): comma-separated
+            parts = _split_csv(line, path, lineno) if delimited else line.split()
+            if header is None:
+                header = [p.lower() if p.lower() in _KNOWN_LOWER else p for p in parts]
                 if "name" not in header:
                     raise SpcFormatError(
                         path, lineno, "expected a header line of column names including 'name'"
@@ -267,6 +283,20 @@ class LandmarkTable:
             k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")
         }
         return cls.from_rows(rows, picture=doc.get("picture"), command=doc.get("command"), meta=meta)
+
+
+#: column names read case-insensitively (a spreadsheet's "Name, Sample, Line")
+_KNOWN_LOWER = {"name", "sample", "line", "status"}
+
+
+def _split_csv(line: str, path, lineno: int) -> list[str]:
+    """One comma-separated line (quotes allowed), fields stripped; a field may not be empty."""
+    import csv
+
+    fields = [f.strip() for f in next(csv.reader([line], skipinitialspace=True))]
+    if any(f == "" for f in fields):
+        raise SpcFormatError(path, lineno, "expected a value in every comma-separated field (use nan)")
+    return fields
 
 
 def _jsonify(v):

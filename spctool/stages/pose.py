@@ -113,6 +113,14 @@ class PoseOptions:
     * ``max_condition`` — Jacobi-scaled normal-matrix condition number above which the geometry is
       degenerate (:class:`PoseError`).
     * ``max_halvings`` — step halvings allowed by the backtracking safeguard.
+    * ``scale_covariance`` — multiply the covariance by cost/dof when it exceeds 1 (the residuals say
+      the pixel noise is larger than ``sigma_px``; the formal covariance stays in
+      :attr:`PoseResult.covariance_formal`) (True; not in "consider" mode, whose covariance already
+      holds the landmark errors that raise cost/dof).
+    * ``max_reduced_chi2`` — cost/dof above which the fit is implausible (100: residuals ~10×
+      ``sigma_px``; wrong measurements, another picture's table; real SPC data at 0.75 px against the
+      0.1 px default gives ~30, which only scales the covariance): :attr:`PoseResult.implausible`
+      names the reason.
     """
 
     max_iter: int = 10
@@ -129,6 +137,8 @@ class PoseOptions:
     min_landmarks: int = 3
     max_condition: float = 1e12
     max_halvings: int = 30
+    scale_covariance: bool = True
+    max_reduced_chi2: float = 100.0
 
     def __post_init__(self):
         if self.estimate_landmarks:
@@ -157,6 +167,8 @@ class PoseOptions:
             raise SpcUsageError(f"min_landmarks must be >= 0, got {self.min_landmarks}")
         if not (self.max_condition > 1):
             raise SpcUsageError(f"max_condition must be > 1, got {self.max_condition}")
+        if not (self.max_reduced_chi2 > 0):
+            raise SpcUsageError(f"max_reduced_chi2 must be > 0, got {self.max_reduced_chi2}")
         self.max_iter = int(self.max_iter)
         self.min_landmarks = int(self.min_landmarks)
         self.max_halvings = int(self.max_halvings)
@@ -218,6 +230,9 @@ class PoseResult:
     landmark_covariances: np.ndarray | None = None  # (N, 3, 3) a-posteriori ("estimate" mode)
     cost_history: list[float] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    covariance_formal: np.ndarray | None = None  # (6, 6) before scaling by cost/dof (None: not scaled)
+    covariance_scale: float = 1.0  # factor applied to the covariance: cost/dof when it exceeds 1
+    implausible: str = ""  # why the fit is implausible (cost/dof > max_reduced_chi2), "" when plausible
 
     # ---- convenience ------------------------------------------------------------------------------
     @property
@@ -235,6 +250,16 @@ class PoseResult:
     @property
     def reduced_chi2(self) -> float:
         return self.cost / self.dof if self.dof > 0 else math.nan
+
+    @property
+    def plausible(self) -> bool:
+        return not self.implausible
+
+    @property
+    def position_attitude_correlation(self) -> float:
+        """The largest |correlation| between a position and an attitude component."""
+        block = np.abs(np.asarray(self.correlation)[:3, 3:])
+        return float(np.nanmax(block)) if np.isfinite(block).any() else math.nan
 
     @property
     def landmark_sigmas(self) -> np.ndarray | None:
@@ -270,12 +295,35 @@ class PoseResult:
             "prior_used": self.prior_used,
             "rejected": [r.as_dict() for r in self.rejected],
             "warnings": list(self.warnings),
+            "covariance_scale": self.covariance_scale,
+            "covariance_formal": self.covariance
+            if self.covariance_formal is None
+            else self.covariance_formal,
+            "position_attitude_correlation": self.position_attitude_correlation,
+            "plausible": self.plausible,
+            "implausible": self.implausible or None,
         }
         if self.landmark_corrections is not None:
             out["landmark_corrections"] = {
                 n: c for n, c, u in zip(self.names, self.landmark_corrections.tolist(), self.used) if u
             }
         return out
+
+    def header_lines(self) -> list[str]:
+        """The header block of a solve-pose text table: solved pose, 1σ, χ²/dof, correlation, verdict."""
+        p, sp, sa = self.position, self.sigma_position, self.sigma_attitude
+        return [
+            f"position_km {p[0]:.9f} {p[1]:.9f} {p[2]:.9f}  sigma_km {sp[0]:.3e} {sp[1]:.3e} {sp[2]:.3e}",
+            "attitude_change_rad {:+.4e} {:+.4e} {:+.4e}  sigma_rad {:.3e} {:.3e} {:.3e}".format(
+                *self.delta_attitude, *sa
+            ),
+            f"chi2 {self.chi2:.4g} cost {self.cost:.4g} dof {self.dof} cost/dof {self.reduced_chi2:.3g}"
+            f"  rms_px before {self.rms_before:.4f} after {self.rms_after:.4f}",
+            f"covariance_scale {self.covariance_scale:.4g}"
+            + (" (cost/dof > 1: sigmas x sqrt)" if self.covariance_scale != 1.0 else "")
+            + f"  max |position-attitude correlation| {self.position_attitude_correlation:.3f}",
+            "fit: plausible" if self.plausible else f"fit: IMPLAUSIBLE ({self.implausible})",
+        ]
 
     def summary_lines(self) -> list[str]:
         """Human summary (pose change, 1σ, rms before/after) for stderr."""
@@ -297,6 +345,13 @@ class PoseResult:
             f" chi2 {self.chi2:.4g} + prior {self.cost - self.chi2:.4g}, dof {self.dof},"
             f" cost/dof {self.reduced_chi2:.3g}, condition {self.condition_number:.3g}",
         ]
+        if self.covariance_scale != 1.0:
+            lines.append(
+                f"covariance scaled by cost/dof = {self.covariance_scale:.3g} (sigmas x "
+                f"{math.sqrt(self.covariance_scale):.3g})"
+            )
+        if self.implausible:
+            lines.append(f"warning: implausible fit: {self.implausible}")
         for r in self.rejected:
             lines.append(f"rejected {r.name}: {r.reason} ({r.detail})")
         lines.extend(f"warning: {w}" for w in self.warnings)
@@ -734,6 +789,24 @@ def solve_pose(
         cov_plain = cov
         cov = cov + cov @ c @ cov
         cov = 0.5 * (cov + cov.T)
+    # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
+    dof = 2 * m + prior.n_equations - 6
+    # residuals larger than sigma_px say so: the covariance is scaled by cost/dof when it exceeds 1
+    red = cost / dof if dof > 0 else math.nan
+    cov_formal, scale = None, 1.0
+    # ("consider" mode: the landmark errors that raise cost/dof are already in the covariance)
+    if opts.scale_covariance and mode != "consider" and red > 1.0:
+        cov_formal, scale = cov, float(red)
+        cov = cov * scale
+        if lmk_cov is not None:
+            lmk_cov = lmk_cov * scale
+    implausible = ""
+    if red > opts.max_reduced_chi2:
+        implausible = (
+            f"cost/dof {red:.3g} > {opts.max_reduced_chi2:g}: the residuals are ~{math.sqrt(red):.3g}x "
+            f"sigma_px {opts.sigma_px:g} px (wrong measurements, another picture's table, or sigma_px "
+            "too small)"
+        )
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sig, sig)
@@ -741,8 +814,6 @@ def solve_pose(
     pred1 = np.stack([smp1, lin1], axis=-1)
     pred1[~(pts_finite & front1)] = np.nan
     resid1 = meas_all - pred1
-    # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
-    dof = 2 * m + prior.n_equations - 6
     if not converged:
         warnings.append(f"did not converge in {opts.max_iter} iterations")
 
@@ -784,4 +855,7 @@ def solve_pose(
         landmark_covariances=lmk_cov,
         cost_history=history,
         warnings=warnings,
+        covariance_formal=cov_formal,
+        covariance_scale=scale,
+        implausible=implausible,
     )

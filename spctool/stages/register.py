@@ -48,6 +48,15 @@ Drivers (:func:`register`; spc-algorithms.md §9.3)
 Every constant is a field of :class:`RegisterOptions`; a schedule is a list of steps ``("align", n)``
 or ``("drop", ρ_min)`` (:func:`schedule_steps`).
 
+The schedule fits the maplet (``cap_spacing``, default on; :func:`spacing_cap`): in maplet space a step at
+spacing L searches ±K·L cells, and only while K·L ≤ Q + 1 (Q the maplet's half-width) does every offset of
+the grid keep about half of the maplet (Q of its 2Q + 1 cells per axis) overlapping; beyond, the binned
+images overlap in a few bins, the peak's neighbours are undefined and the step ends ``not-found`` (a
+49×49 maplet binned by 10 has 5 bins for an 11×11 grid).  S16's own case is the limit: L = 10 with
+N = 99 searches 50 = Q + 1 cells.  Steps above the cap are replaced by one step at the cap and the
+result says so (:attr:`RegisterResult.warnings`).  In image space the search runs over the photo, so
+the cap only keeps the binned template at least 2·√min_valid bins across (10 by default).
+
 Status words (cli-contract.md): ``ok``; ``not-found`` (no clearly defined peak), ``edge-peak`` (peak on
 the border of the search grid), ``low-correlation`` (peak below ``corr_min``, or dropped by the
 AUTOREGISTER cut); ``outside`` (V behind the camera or projecting off the photo);
@@ -87,6 +96,7 @@ __all__ = [
     "correlate_landmark",
     "register",
     "schedule_steps",
+    "spacing_cap",
 ]
 
 SCHEDULES = ("retina_s16", "autoregister")
@@ -119,6 +129,7 @@ class RegisterOptions:
       added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
       this fraction of its n² pixels on the maplet, 0.5: border bins that average only a sliver of
       template are not compared with full photo bins).
+    * ``cap_spacing`` — fit the schedule to each maplet (:func:`spacing_cap`, True).
     * ``keep_images`` — keep each landmark's last Extraction / template Rendering in
       :attr:`RegisterResult.last_steps` (False: only the correlation, to bound memory).
     * ``predict``, ``extract``, ``pose`` — options of the stages called (their own defaults).
@@ -144,6 +155,7 @@ class RegisterOptions:
     template_margin: int = 1
     image_bin_fraction: float = 0.5
     keep_images: bool = False
+    cap_spacing: bool = True
     predict: PredictOptions = field(default_factory=PredictOptions)
     extract: ExtractOptions | None = None
     pose: PoseOptions = field(default_factory=PoseOptions)
@@ -219,6 +231,64 @@ def schedule_steps(options: RegisterOptions) -> list[tuple[str, float]]:
     if not any(k == "align" for k, _ in steps):
         raise SpcUsageError("a registration schedule needs at least one align step")
     return steps
+
+
+def spacing_cap(maplet, options: RegisterOptions, camera=None) -> int:
+    """The largest spacing L a correlation step of ``maplet`` can work at (module docstring).
+
+    Maplet space: K·L ≤ Q + 1 (K = ``grid_half``, Q the maplet's half-width in cells).  Image space (needs
+    ``camera``): the template footprint W (px, the smaller extent of the maplet's projected square)
+    binned by L keeps at least 2·√min_valid bins across.  At least 1.
+    """
+    n = int(np.asarray(maplet.heights).shape[0])
+    q = (n - 1) // 2
+    if options.space == "maplet" or camera is None:
+        return max(1, (q + 1) // int(options.grid_half))
+    d = q * float(maplet.scale)
+    ux, uy = np.asarray(maplet.ux, float), np.asarray(maplet.uy, float)
+    v = np.asarray(maplet.v, dtype=np.float64)
+    corners = np.stack([v + d * (a * ux + b * uy) for a, b in ((-1, -1), (-1, 1), (1, -1), (1, 1))])
+    s, ln, front = camera.project_with_mask(corners)
+    if not np.all(front) or not np.all(np.isfinite(s)) or not np.all(np.isfinite(ln)):
+        return max(1, (q + 1) // int(options.grid_half))
+    width = min(float(np.ptp(s)), float(np.ptp(ln)))
+    return max(1, int(width // (2.0 * math.sqrt(options.min_valid))))
+
+
+def capped_steps(steps, cap: int) -> list:
+    """``steps`` with every align spacing above ``cap`` replaced by one align step at ``cap`` (the first
+    step at the cap that follows it is then not repeated)."""
+    out, state = [], 0  # 0: nothing capped yet; 1: the cap step emitted; 2: its own cap step skipped
+    for kind, value in steps:
+        if kind == "align" and int(value) > cap:
+            if state == 0:
+                out.append(("align", cap))
+                state = 1
+            continue
+        if kind == "align" and state == 1 and int(value) == cap:
+            state = 2  # the schedule's own step at the cap: already done
+            continue
+        out.append((kind, value))
+    return out
+
+
+def _cap_warnings(reg, caps, steps, result):
+    """One note per cap value that shortened the schedule."""
+    top = max((int(v) for k, v in steps if k == "align"), default=1)
+    by_cap = {}
+    for i, c in enumerate(caps):
+        if c < top and result.status[i] == "ok":
+            by_cap.setdefault(int(c), []).append(i)
+    for c, idx in sorted(by_cap.items()):
+        n = int(np.asarray(reg.landmarks[idx[0]].maplet.heights).shape[0])
+        where = (
+            f"{n}x{n}-cell maplet: the search +-K*L cells must stay within its half-width + 1, {(n + 1) // 2}"
+            if reg.options.space == "maplet"
+            else "template too small in the photo for coarser bins"
+        )
+        result.warnings.append(
+            f"{len(idx)} landmark(s): spacings above L = {c} skipped ({where}; K = {reg.options.grid_half})"
+        )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -708,8 +778,14 @@ def register(
     result = RegisterResult(
         [lm.name for lm in reg.landmarks], apri, measured, corr, iters, spac, status, camera, options=opts
     )
+    top = max(int(v) for k, v in steps if k == "align")
+    caps = np.array(
+        [spacing_cap(lm.maplet, opts, camera) if opts.cap_spacing else top for lm in reg.landmarks],
+        dtype=np.int64,
+    )
+    _cap_warnings(reg, caps, steps, result)
     if opts.schedule == "retina_s16":
-        _drive_s16(reg, camera, steps, start, result, last, tick)
+        _drive_s16(reg, camera, steps, start, result, last, tick, caps)
     else:
         pos = (
             (np.stack([lm.v for lm in reg.landmarks]) if n else np.zeros((0, 3)))
@@ -717,7 +793,17 @@ def register(
             else np.asarray(positions, dtype=np.float64).reshape(n, 3)
         )
         _drive_autoregister(
-            reg, camera, steps, start, result, last, pos, prior_sigma_position, prior_sigma_attitude, tick
+            reg,
+            camera,
+            steps,
+            start,
+            result,
+            last,
+            pos,
+            prior_sigma_position,
+            prior_sigma_attitude,
+            tick,
+            caps,
         )
     result.last_steps = last
     return result
@@ -730,7 +816,7 @@ def _record(result, last, i, st: LandmarkStep, keep_images: bool):
     result.correlation[i] = st.correlation.peak
 
 
-def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick):
+def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
     opts = reg.options
     factor = 0.5 if opts.halve_shift else 1.0
     for i in range(len(reg)):
@@ -740,7 +826,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick):
         c = start[i].copy()
         state = None
         first = True
-        for kind, value in steps:
+        for kind, value in capped_steps(steps, int(caps[i])):
             if kind == "drop":
                 if state == "ok" and not result.correlation[i] >= value:
                     state = "low-correlation"
@@ -767,7 +853,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick):
 
 
 def _drive_autoregister(
-    reg: Registrar, camera, steps, start, result, last, positions, sig_pos, sig_att, tick
+    reg: Registrar, camera, steps, start, result, last, positions, sig_pos, sig_att, tick, caps
 ):
     opts = reg.options
     factor = 0.5 if opts.halve_shift else 1.0
@@ -787,7 +873,7 @@ def _drive_autoregister(
         spacing = int(value)
         ok_pass = np.zeros(n, bool)
         for i in np.flatnonzero(active):
-            st = reg.step(i, cam, centre[i], spacing, apply_criteria=first)
+            st = reg.step(i, cam, centre[i], min(spacing, int(caps[i])), apply_criteria=first)
             _record(result, last, i, st, opts.keep_images)
             result.status[i] = st.status
             if st.status.startswith("removed-") or st.status == "outside":
