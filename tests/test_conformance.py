@@ -1,0 +1,111 @@
+"""Legacy fidelity (issue #14): files read exactly as SPC's Fortran reads them.
+
+Each case names the Fortran statement it follows (program, statement).  Where numbers are needed they were
+taken from SPC's public Fortran (StereoPhotoClinometry/archivingTools, compiled with gfortran 12 as an
+oracle) and are kept here as data; no Fortran is copied into spctool.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from spctool.formats.lithos import parse_lithos
+
+# the INIT_LITHOS of issue #14: seven OWEN coefficients on one record of 125 columns
+ISSUE_LITHOS = (
+    "DISTORT= 'HOLD########' 'OWEN' 6\n"
+    "0.0000000000D+00 0.5000000000D-05 0.8000000000D-04 -0.1000000000D-06 -0.5000000000D-06 "
+    "0.1000000000D-04 -0.1000000000D-04\n"
+    "END\n"
+)
+ISSUE_P = [0.0, 0.5e-5, 0.8e-4, -0.1e-6, -0.5e-6, 0.1e-4, -0.1e-4]
+
+
+def test_issue_lithos_loads_with_coefficients_past_column_80():
+    # getmm (xCommon.f): READ(25,*) (PD(I,KD), I=0,J) -- list-directed from the unit, no column limit
+    assert len(ISSUE_LITHOS.split("\n")[1]) == 121  # 125 columns with the issue's 4-blank code indent
+    s = parse_lithos(ISSUE_LITHOS)
+    (d,) = s.distortions
+    assert d.template == "HOLD########" and d.model == "OWEN" and d.order == 6
+    assert d.coefficients.tolist() == ISSUE_P
+    assert any("past column 80" in w for _, w in s.warnings)
+
+
+def _dvals(line: str, n: int) -> list[float]:
+    return [float(t.replace("D", "E")) for t in line.split()[:n]]
+
+
+def _owen_pixel(sum_text: str, vlm, p):
+    """Independent SPC projection (spc-formats.md §2.5 + §6.4 OWEN), from the file text, not spctool."""
+    lines = sum_text.split("\n")
+    mmfl, c1, c2 = _dvals(lines[3], 3)
+    scobj = np.array(_dvals(lines[4], 3))
+    rot = np.array([_dvals(lines[k], 3) for k in (5, 6, 7)])
+    k = np.array([float(t) for t in lines[9].split()[:6]]).reshape(2, 3)
+    u = scobj + np.asarray(vlm)
+    z1, z2, z3 = rot @ u
+    x = (1 + p[0]) * mmfl * z1 / z3
+    y = (1 + p[0]) * mmfl * z2 / z3
+    r = np.hypot(x, y)
+    xd = x - p[1] * y * r + p[2] * x * r**2 - p[3] * y * r**3 + p[4] * x * r**4 + p[5] * x * y + p[6] * x * x
+    yd = y + p[1] * x * r + p[2] * y * r**2 + p[3] * x * r**3 + p[4] * y * r**4 + p[5] * y * y + p[6] * x * y
+    # legacy DISTORTION line of this SUM is all zero: MMPX leaves (x, y) unchanged
+    return (
+        c1 + k[0, 0] * xd + k[0, 1] * yd + k[0, 2] * xd * yd,
+        c2 + k[1, 0] * xd + k[1, 1] * yd + k[1, 2] * xd * yd,
+    )
+
+
+@pytest.fixture
+def owen_workdir(real, tmp_path):
+    (tmp_path / "SUMFILES").mkdir()
+    (tmp_path / "LMKFILES").mkdir()
+    shutil.copy(real / "rosetta-67p/W48230079013.SUM", tmp_path / "SUMFILES")
+    for name in ("FA0115", "FC0098", "GD0036"):
+        shutil.copy(real / f"rosetta-67p/{name}.LMK", tmp_path / "LMKFILES")
+    return tmp_path
+
+
+def _project(run_cli, workdir):
+    r = run_cli("-C", workdir, "project", "W48230079013", "--json")
+    assert r.exit_code == 0, r.stderr
+    return {row["name"]: (row["sample"], row["line"]) for row in json.loads(r.stdout)["landmarks"]}
+
+
+@pytest.mark.parametrize("template", ["HOLD########", "W###########"])
+def test_issue_lithos_project_matches_independent_owen(run_cli, owen_workdir, real, template):
+    # getmm: last matching template; TYPE 'OWEN' -> the OWEN model; 'HOLD####' matches nothing -> pinhole
+    (owen_workdir / "INIT_LITHOS.TXT").write_text(ISSUE_LITHOS.replace("HOLD########", template))
+    got = _project(run_cli, owen_workdir)
+    sum_text = (real / "rosetta-67p/W48230079013.SUM").read_text()
+    p = ISSUE_P if template.startswith("W") else [0.0] * 7
+    for name, (s, ln) in got.items():
+        vlm = _dvals((real / f"rosetta-67p/{name}.LMK").read_text().split("\n")[4], 3)
+        es, el = _owen_pixel(sum_text, vlm, p)
+        assert abs(s - es) < 1e-9 and abs(ln - el) < 1e-9, (name, s - es, ln - el)
+    if template.startswith("W"):  # the model is not negligible: it moves the pixels
+        base = _owen_pixel(
+            sum_text, _dvals((real / "rosetta-67p/FA0115.LMK").read_text().split("\n")[4], 3), [0] * 7
+        )
+        assert abs(got["FA0115"][0] - base[0]) + abs(got["FA0115"][1] - base[1]) > 1e-3
+
+
+@pytest.mark.parametrize("model", ["owen", " OWEN", "PINHOLE", "OPENCV"])
+def test_unknown_or_miscased_model_is_the_plain_pinhole(run_cli, owen_workdir, real, model):
+    # getmm: IF(TYPE(JD).EQ.'OWEN') is an exact compare; no branch taken -> z = MMFL*(z1/z3, z2/z3), no P0
+    text = ISSUE_LITHOS.replace("HOLD########", "W###########").replace("'OWEN'", f"'{model}'")
+    text = text.replace("0.0000000000D+00 0.5", "0.1000000000D+00 0.5")  # a P0 SPC must not apply either
+    (owen_workdir / "INIT_LITHOS.TXT").write_text(text)
+    got = _project(run_cli, owen_workdir)
+    sum_text = (real / "rosetta-67p/W48230079013.SUM").read_text()
+    for name, (s, ln) in got.items():
+        vlm = _dvals((real / f"rosetta-67p/{name}.LMK").read_text().split("\n")[4], 3)
+        es, el = _owen_pixel(sum_text, vlm, [0.0] * 7)
+        assert abs(s - es) < 1e-9 and abs(ln - el) < 1e-9
+    r = run_cli("validate", owen_workdir / "INIT_LITHOS.TXT")
+    assert r.exit_code == 0
+    assert "plain pinhole" in r.stderr and "INIT_LITHOS.TXT:1:" in r.stderr
