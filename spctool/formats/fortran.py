@@ -74,30 +74,31 @@ class FortranEOF(Exception):
     """End of file inside a READ (SPC aborts with an end-of-file error)."""
 
 
-def _lex(record: str) -> list[tuple[str, str]]:
-    """Elements of one record: ``(',', '')``, ``('/', '')``, ``('q', text)`` (quoted), ``('v', text)``."""
-    out: list[tuple[str, str]] = []
+def _lex(record: str) -> list[tuple[str, str, int]]:
+    """Elements of one record: ``(',', '')``, ``('/', '')``, ``('q', text)`` (quoted), ``('v', text)``,
+    each with the offset just after it."""
+    out: list[tuple[str, str, int]] = []
     pos, n = 0, len(record)
     while pos < n:
         m = _LEX.match(record, pos)
         if m is None:  # only blanks left, or an unterminated quote: the rest is one bare token
             rest = record[pos:].strip(" \t")
             if rest:
-                out.append(("v", rest))
+                out.append(("v", rest, n))
             break
         if m.end() == pos:
             break
         pos = m.end()
         if m.group(1) is not None:
-            out.append((",", ""))
+            out.append((",", "", pos))
         elif m.group(2) is not None:
-            out.append(("/", ""))
+            out.append(("/", "", pos))
         elif m.group(3) is not None:
-            out.append(("q", m.group(3).replace("''", "'")))
+            out.append(("q", m.group(3).replace("''", "'"), pos))
         elif m.group(4) is not None:
-            out.append(("q", m.group(4).replace('""', '"')))
+            out.append(("q", m.group(4).replace('""', '"'), pos))
         else:
-            out.append(("v", m.group(5)))
+            out.append(("v", m.group(5), pos))
     return out
 
 
@@ -182,7 +183,7 @@ def list_read(
             raise SpcFormatError(path, where, f"expected {n} {what}, {found} before the end of the {unit}")
         record = records[j]
         elems = _lex(record)
-        for idx, (typ, text) in enumerate(elems):
+        for idx, (typ, text, _end) in enumerate(elems):
             if typ == ",":
                 if after_comma or first_elem:
                     k += 1
@@ -190,7 +191,7 @@ def list_read(
                 after_comma = True
                 first_elem = False
             elif typ == "/":
-                return ListRead(values, lines, start, j, True, nulls, _rest(elems, idx + 1))
+                return ListRead(values, lines, start, j, True, nulls, _rest_of(record, elems, idx + 1))
             else:
                 count, body, quoted = 1, text, typ == "q"
                 m = None if quoted else _REPEAT_TOKEN.match(text)
@@ -205,7 +206,8 @@ def list_read(
                         nulls += count
                         after_comma = first_elem = False
                         if k >= n:
-                            return ListRead(values, lines, start, j, False, nulls, _rest(elems, idx + 1))
+                            rest = _rest_of(record, elems, idx + 1)
+                            return ListRead(values, lines, start, j, False, nulls, rest)
                         continue
                 for _ in range(count):
                     if k >= n:
@@ -226,15 +228,16 @@ def list_read(
                 after_comma = False
                 first_elem = False
             if k >= n:
-                return ListRead(values, lines, start, j, False, nulls, _rest(elems, idx + 1))
+                return ListRead(values, lines, start, j, False, nulls, _rest_of(record, elems, idx + 1))
         if internal:
             j = nrec  # an internal READ has one record
             continue
         j += 1
 
 
-def _rest(elems, idx: int) -> str:
-    return " ".join(t if typ == "v" else (f"'{t}'" if typ == "q" else typ) for typ, t in elems[idx:])
+def _rest_of(record: str, elems, idx: int) -> str:
+    """The raw text of ``record`` after element ``idx - 1`` (what the READ left unread)."""
+    return record[elems[idx - 1][2] :] if idx > 0 else record
 
 
 class Records:
