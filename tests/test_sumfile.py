@@ -657,7 +657,7 @@ def test_nom_errors():
     bad[5] = "    0.0000000000D+00    0.0000000000D+00   CY"
     with pytest.raises(SpcFormatError) as info:
         parse_nom("\n".join(bad), "N.NOM")
-    assert str(info.value).startswith("N.NOM:6: expected 3 numbers (CY), found 2")
+    assert str(info.value).startswith("N.NOM:6: expected 3 numbers (CY): value 3 'CY'")
     with pytest.raises(SpcFormatError) as info:
         parse_nom("\n".join(lines[:4]), "N.NOM")
     assert str(info.value) == "N.NOM:4: expected CX on line 5, found end of file"

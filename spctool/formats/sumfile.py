@@ -1005,18 +1005,28 @@ def parse_nom(text: str, path=None) -> Nominal:
     values: dict[str, list[float]] = {}
     frame_tag = ""
     whats = {"frame": "frame vector", **_NOM_TAGS}
-    for i, key in enumerate(_NOM_ORDER[1:], start=1):
-        if i >= n:
-            raise SpcFormatError(path, n, f"expected {whats[key]} on line {i + 1}, found end of file")
-        ln = lines[i]
-        v, t = _scan_numbers(ln, 3, path=path, lineno=i + 1, what=f"numbers ({whats[key]})")
+    # lines 2-8 by position, each a list-directed READ (spc-formats.md §3); tags checked against places
+    rec = Records(lines, path, 1)
+    for key in _NOM_ORDER[1:]:
+        if rec.at_end:
+            raise SpcFormatError(path, n, f"expected {whats[key]} on line {rec.pos + 1}, found end of file")
+        first = rec.pos
+        res = rec.read_list("rrr", what=f"numbers ({whats[key]})")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, first + 1, f"expected 3 numbers ({whats[key]}), found a null item or '/'"
+            )
+        v = [float(x) for x in res.values]
+        t = res.rest.strip()
+        ln = "\n".join(lines[first : res.last + 1])
         values[key] = v
         if key == "frame":
-            frame_tag = t.strip()
+            frame_tag = t
             header.append(_Slot(key, ln, tuple(v) + (frame_tag,), frame_tag))
         else:
-            header.append(_Slot(key, ln, tuple(v), t.strip()))
-    i = len(_NOM_ORDER)
+            _check_tag(t, key, _NOM_TAGS, path, res.last + 1)
+            header.append(_Slot(key, ln, tuple(v), t))
+    i = rec.pos
     extra: list[str] = []
     while i < n and not lines[i].startswith("END FILE"):
         extra.append(lines[i])
