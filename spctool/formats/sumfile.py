@@ -72,6 +72,14 @@ def _is_real(token: str) -> bool:
     return True
 
 
+def _d_like(line: str) -> bool:
+    """The record after K-MATRIX that is a DISTORTION line: the tag at 64-73, or 4 untagged numbers."""
+    if line[63:73] == "DISTORTION":
+        return True
+    toks = _TOKEN.findall(line)
+    return len(toks) == 4 and all(_is_real(t) for t in toks)
+
+
 def _refuse_bom(line: str, path, what: str) -> None:
     """A UTF-8 byte-order mark is read by SPC as three characters of the record: refuse it."""
     if line.startswith(("\ufeff", "\xef\xbb\xbf")):
@@ -622,7 +630,7 @@ def parse_sum(text: str, path=None) -> Picture:
     for role in ("vso", "ptg"):
         if role not in kinds:
             for j, kd in enumerate(kinds):
-                if kd is None and not (rest[j][0] == d_line and rest[j][1][63:73] == "DISTORTION"):
+                if kd is None and not (rest[j][0] == d_line and _d_like(rest[j][1])):
                     kinds[j] = role
                     break
     distortion = None
@@ -649,6 +657,14 @@ def parse_sum(text: str, path=None) -> Picture:
             )
             header.append(_Slot("extra", ln))
             continue
+        if kind is None and idx == d_line and _d_like(ln):
+            warnings.append(
+                (
+                    idx + 1,
+                    "untagged 4-number line after K-MATRIX: SPC tests LINE(64:73) for 'DISTORTION' "
+                    "and takes D = 0",
+                )
+            )
         if kind in seen:
             kind = None  # a repeated role: keep verbatim
         if kind is None or kind == "other":
