@@ -703,6 +703,14 @@ def parse_sum(text: str, path=None) -> Picture:
         if kind == "end":
             section_text["end"] = ln
             end_index = i
+            if "limbs" not in section_text:
+                warnings.append(
+                    (
+                        i + 1,
+                        "END FILE before a LIMB FITS line: SPC's LMCOUNT reads (A80) records until LIMB FITS "
+                        "and would run past it",
+                    )
+                )
             break
         if state == "linescan" and kind not in ("landmarks", "limbs"):
             linescan[1].append(ln)  # type: ignore[index]
@@ -719,10 +727,23 @@ def parse_sum(text: str, path=None) -> Picture:
             section_text[kind] = ln
             state = kind
         elif state == "landmarks":
+            if not any(c.isdigit() for c in ln[6:]) and ln.strip():
+                raise SpcFormatError(
+                    path,
+                    i + 1,
+                    f"expected a landmark row or LIMB FITS in columns 1-9 (LMCOUNT), "
+                    f"found {ln.strip()[:20]!r}",
+                )
             lm = _parse_sum_landmark(ln, path, i + 1)
             landmarks.append(lm)
             landmark_rows.append((lm._key(), ln))
         elif state == "limbs":
+            if not any(c.isdigit() for c in ln[6:]) and ln.strip():
+                raise SpcFormatError(
+                    path,
+                    i + 1,
+                    f"expected a limb row or END FILE in columns 1-8 (LMCOUNT), found {ln.strip()[:20]!r}",
+                )
             lf = _parse_limb(ln, path, i + 1, name_width=6)
             limbs.append(lf)
             limb_rows.append((lf._key(), ln))
