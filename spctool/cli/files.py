@@ -292,6 +292,8 @@ def spc_warnings(obj) -> list[tuple[int | None, str]]:
     """
     found = getattr(obj, "warnings", None)
     if found is None:
+        found = getattr(obj, "__dict__", {}).get("_spc_warnings")
+    if found is None:
         src = getattr(obj, "_source", None)
         found = getattr(src, "warnings", None)
     return list(found or [])
