@@ -109,3 +109,29 @@ def test_unknown_or_miscased_model_is_the_plain_pinhole(run_cli, owen_workdir, r
     r = run_cli("validate", owen_workdir / "INIT_LITHOS.TXT")
     assert r.exit_code == 0
     assert "plain pinhole" in r.stderr and "INIT_LITHOS.TXT:1:" in r.stderr
+
+
+# ---------------------------------------------------------------------------------------------------------
+# photo search: FIND_PICFILE.f INQUIREs ./IMAGEFILES/<PIC>.DAT, then IMAGEFILES1..9; LITHOS adds ALTDIR=
+
+
+def test_photo_search_follows_find_picfile(tmp_path):
+    from spctool.formats.workdir import WorkDir
+
+    for d in ("IMAGEFILES", "IMAGEFILES1", "IMAGEFILES3", "ALT"):
+        (tmp_path / d).mkdir()
+    wd = WorkDir(tmp_path)
+    (tmp_path / "IMAGEFILES/P1.pgm").write_bytes(b"P5\n1 1\n255\n\0")
+    (tmp_path / "IMAGEFILES3/P1.DAT").write_bytes(b"\0")
+    # a stray PGM in IMAGEFILES/ must not win over the DAT SPC finds in IMAGEFILES3/
+    assert wd.photo_path("P1") == tmp_path / "IMAGEFILES3/P1.DAT"
+    (tmp_path / "IMAGEFILES1/P1.DAT").write_bytes(b"\0")
+    assert wd.photo_path("P1") == tmp_path / "IMAGEFILES1/P1.DAT"
+    # no DAT anywhere: spctool's extension takes the other formats, in the same folder order
+    assert wd.photo_path("P2") is None
+    (tmp_path / "IMAGEFILES3/P2.fits").write_bytes(b"")
+    assert WorkDir(tmp_path).photo_path("P2") == tmp_path / "IMAGEFILES3/P2.fits"
+    # ALTDIR= (LITHOS) is searched after IMAGEFILES9/ for a DAT
+    (tmp_path / "ALT/P2.DAT").write_bytes(b"\0")
+    (tmp_path / "INIT_LITHOS.TXT").write_text("ALTDIR= 'ALT'\nEND\n")
+    assert WorkDir(tmp_path).photo_path("P2") == tmp_path / "ALT/P2.DAT"
