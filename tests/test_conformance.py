@@ -304,3 +304,27 @@ def test_spctool_writers_produce_files_spc_reads(tmp_path):
     llist = read_lmrklist(CORPUS / "lists/LMRKLIST.TXT")
     (tmp_path / "L.TXT").write_text(format_lmrklist(llist))
     assert read_lmrklist(tmp_path / "L.TXT").names == llist.names
+
+
+def test_validate_warns_where_spc_reads_differently_and_exits_0(run_cli, tmp_path):
+    # DISTORTION tag at column 63: globalStat's LINE(64:73) test fails, D = 0 -- SPC accepts the file
+    path = CORPUS / "sum/DISTORTION_COL63.SUM"
+    r = run_cli("validate", path)
+    assert r.exit_code == 0, r.stderr
+    assert f"{path}:11: warning:" in r.stderr and "D = 0" in r.stderr
+    r = run_cli("validate", CORPUS / "lithos/ISSUE14.TXT")
+    assert r.exit_code == 0 and "ISSUE14.TXT:2: warning:" in r.stderr and "past column 80" in r.stderr
+    r = run_cli("validate", CORPUS / "icq/CUBE_TRAILING.TXT")
+    assert r.exit_code == 0 and "CUBE_TRAILING.TXT:26: warning:" in r.stderr
+    r = run_cli("validate", CORPUS / "map/LONGER.MAP")
+    assert r.exit_code == 0 and "LONGER.MAP:byte 216: warning:" in r.stderr
+    # untagged files (read by position) are recognised
+    r = run_cli("info", CORPUS / "sum/UNTAGGED.SUM", CORPUS / "lmk/UNTAGGED.LMK")
+    assert r.exit_code == 0 and "UNTAGGED.SUM: sum" in r.stdout and "UNTAGGED.LMK: lmk" in r.stdout
+    # a swapped header line is an error naming the line
+    lines = (CORPUS / "sum/CANONICAL.SUM").read_text().split("\n")
+    lines[5], lines[6] = lines[6], lines[5]
+    bad = tmp_path / "SWAPPED.SUM"
+    bad.write_text("\n".join(lines))
+    r = run_cli("validate", bad)
+    assert r.exit_code == 2 and "SWAPPED.SUM:6: expected the CX line" in r.stderr

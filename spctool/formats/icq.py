@@ -756,6 +756,7 @@ def read_icq(path) -> IcqShape:
 
 
 def _parse_bytes(data: bytes, path) -> IcqShape:
+    # mirrors GET_MODEL.f: READ(49,*) Q; READ(49,FMT='(A100)') LINE; READ(LINE,*) (VEC(K,I,J,F),K=1,3)[,A0]
     where = os.fspath(path) if path is not None else None
     nl = data.find(b"\n")
     first = data[: nl if nl >= 0 else len(data)].decode("latin-1")

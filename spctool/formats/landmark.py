@@ -236,6 +236,8 @@ def _section_of(line: str) -> str | None:
 
 def parse_lmk(text: str, path=None) -> Landmark:
     """Parse the text of an LMK file (spc-formats.md §4).  Bad input raises :class:`SpcFormatError`."""
+    # mirrors: lines 2-9 READ(unit,*) by position (LITHOS); sections READ(27,FMT='(A80)') LINE with
+    # LINE(1:8)='PICTURES', (1:12)='MAP OVERLAPS', (1:9)='LIMB FITS', (1:8)='END FILE' (KOUNT)
     path = _src_path(path)
     lines, final = _split_lines(text)
     n = len(lines)

@@ -328,6 +328,7 @@ class LandmarkListX:
 
 def parse_lmrklistx(text: str, path=None) -> LandmarkListX:
     """Parse LMRKLISTX text up to the required ``END`` line."""
+    # mirrors bigmap (LMKLX=): (A6) name then a list-directed READ of the rest; NAME(1:3)='END' ends
     path = _src_path(path)
     lines, final = _split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []

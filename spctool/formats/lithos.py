@@ -383,6 +383,7 @@ def _group_of(key: str) -> str | None:
 
 
 def parse_lithos(text: str, path=None) -> Settings:
+    # mirrors getmm (xCommon.f): READ(25,FMT='(A80)') LINE until LINE(1:3)='END'; keys LINE(1:n)='KEY='
     """Parse ``INIT_LITHOS.TXT`` text (spc-formats.md §6); a missing ``END`` line is an error."""
     path = _src_path(path)
     lines, final = _split_lines(text)

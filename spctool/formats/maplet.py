@@ -459,6 +459,8 @@ def _check_header(floats, scale: float, path) -> None:
 def parse_map(data: bytes, path=None, *, name: str | None = None) -> Maplet:
     """Decode the bytes of a MAP file (§1).  ``path`` names the file in errors and gives ``name``.
 
+    Mirrors xCommon.f READ_MAP: ``READ(20,REC=1) BLINE`` (header), ``READ(20,REC=NREC) BLINE`` for the cells.
+
     Heights, albedo and valid are decoded from the kept bytes on first access.
     """
     if not isinstance(data, bytes):
