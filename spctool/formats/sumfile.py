@@ -37,6 +37,7 @@ from spctool.formats.fortran import (
 )
 
 __all__ = [
+    "LineScan",
     "SumLandmark",
     "LimbFit",
     "Picture",
@@ -362,6 +363,7 @@ class _SumSource:
     pad_body: bool
     name_line: str
     warnings: list = field(default_factory=list)
+    linescan_data: LineScan | None = None
 
 
 _SUM_TAGS = {
@@ -473,6 +475,64 @@ class Picture:
         """Column 14 of line 1 is ``L`` (spc-formats.md §2.4)."""
         line = self._source.name_line if self._source is not None else ""
         return len(line) >= 14 and line[13] == "L"
+
+    @property
+    def linescan(self) -> LineScan | None:
+        """The parsed ``LINE SCAN DATA`` block of a line-scan picture, else None."""
+        return self._source.linescan_data if self._source is not None else None
+
+
+@dataclass(frozen=True, eq=False)
+class LineScan:
+    """The ``LINE SCAN DATA`` block of a line-scan SUM (spc-formats.md §2.4), as xV2IMGPL.f reads it.
+
+    U0, R0, POL_AXIS, POL, TRJ_AXIS, TRJ and KMAX rows of CAX, each read with its own ``READ(32,*)``.
+    (XV2IMGPL then replaces U0 and R0(1) by the direction and length of SCOBJ.)
+    """
+
+    u0: np.ndarray
+    r0: np.ndarray
+    pol_axis: np.ndarray
+    pol: float
+    trj_axis: np.ndarray
+    trj: np.ndarray
+    cax: np.ndarray  # (KMAX, 3)
+
+
+def _parse_linescan(lines: list[str], path) -> LineScan:
+    """xV2IMGPL.f: READ(32,FMT='(A80)') LINE until LINE(1:14)='LINE SCAN DATA', then READ(32,*) U0; R0;
+    POL_AXIS; POL; TRJ_AXIS; TRJ; KMAX; KMAX x CAX(K,1:3)."""
+    start = next((k for k in range(1, len(lines)) if lines[k][:14] == "LINE SCAN DATA"), None)
+    if start is None:
+        raise SpcFormatError(
+            path,
+            1,
+            "expected a LINE SCAN DATA line: column 14 of line 1 is 'L' (a line-scan picture), and xV2IMGPL "
+            "reads the file up to that line",
+        )
+    rec = Records(lines, path, start + 1)
+
+    def vec(kinds: str, what: str):
+        if rec.at_end:
+            raise SpcFormatError(
+                path, len(lines), f"expected {what} in the LINE SCAN DATA block, found end of file"
+            )
+        res = rec.read_list(kinds, what=f"numbers ({what}, LINE SCAN DATA)")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, res.first + 1, f"expected {len(kinds)} numbers ({what}), found a null item"
+            )
+        return res.values
+
+    u0, r0, pol_axis = vec("rrr", "U0"), vec("rrr", "R0"), vec("rrr", "POL_AXIS")
+    pol = vec("r", "POL")[0]
+    trj_axis, trj = vec("rrr", "TRJ_AXIS"), vec("rrr", "TRJ")
+    kmax = vec("i", "KMAX")[0]
+    if not 0 <= kmax <= 20:
+        raise SpcFormatError(path, rec.pos, f"expected 0 <= KMAX <= 20 (CAX(20,3)), found {kmax}")
+    cax = np.array([vec("rrr", f"CAX row {k + 1}") for k in range(kmax)], dtype=float).reshape(kmax, 3)
+    arr = lambda v: np.array(v, dtype=float)  # noqa: E731
+    return LineScan(arr(u0), arr(r0), arr(pol_axis), float(pol), arr(trj_axis), arr(trj), cax)
 
 
 _UTC = re.compile(r"^\d{4}\s+[A-Za-z]{3}\s+\d{1,2}\s+\d{1,2}:\d{2}:\d{2}(\.\d*)?")
@@ -753,7 +813,9 @@ def parse_sum(text: str, path=None) -> Picture:
     if end_index is None:
         raise SpcFormatError(path, n, "expected END FILE line, found end of file")
 
+    linescan_data = _parse_linescan(lines, path) if len(lines[0]) >= 14 and lines[0][13] == "L" else None
     source = _SumSource(
+        linescan_data=linescan_data,
         warnings=warnings,
         header=header,
         section_text=section_text,

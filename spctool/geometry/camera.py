@@ -511,8 +511,9 @@ class Camera:
         model, coef = "NONE", np.zeros(0)
         if getattr(picture, "is_linescan", False):
             raise SpcUsageError(
-                f"picture {getattr(picture, 'name', '')}: line-scan (pushbroom) SUM files "
-                "(column 14 'L', LINE SCAN DATA) are not supported; refusing to project it as a frame camera"
+                f"picture {getattr(picture, 'name', '')} is a line-scan (pushbroom) picture (column 14 'L', "
+                "LINE SCAN DATA): this command needs a frame camera and refuses it "
+                "(its projection is spctool.geometry.linescan.project_linescan)"
             )
         if settings is not None:
             dm = settings.distortion_for(picture.name)
