@@ -345,10 +345,13 @@ def test_linescan_trailer_preserved():
     lines = rosetta_lines()
     lines[0] = "W48230079013 L"
     end = lines.index("END FILE")
-    block = ["LINE SCAN DATA", " 1.0 2.0 3.0", " 0.1 0.2 0.3", " 2", " 1 2 3", " 4 5 6"]
+    # a complete block as xV2IMGPL reads it: U0; R0; POL_AXIS; POL; TRJ_AXIS; TRJ; KMAX; KMAX rows of CAX
+    block = ["LINE SCAN DATA", " 1.0 2.0 3.0", " 0.1 0.2 0.3", " 0 0 1", " 1D-6", " 0 1 0", " 1D-5 0 0", " 2"]
+    block += [" 1D-7 2D-7 3D-7", " 4D-9 5D-9 6D-9"]
     text = "\n".join(lines[:end] + block + lines[end:])
     pic = parse_sum(text)
     assert pic.is_linescan and pic.name == "W48230079013"
+    assert pic.linescan.cax.tolist() == [[1e-7, 2e-7, 3e-7], [4e-9, 5e-9, 6e-9]]
     assert format_sum(pic) == text
     pic.name = "W48230079099"
     assert format_sum(pic).split("\n")[0] == "W48230079099 L"
