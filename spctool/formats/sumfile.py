@@ -731,8 +731,13 @@ def parse_sum(text: str, path=None) -> Picture:
             header.append(_Slot("extra", ln))
             continue
         seen.add(kind)
-        v, t = _scan_numbers(ln, 3, path=path, lineno=idx + 1, what=f"numbers ({_SUM_TAGS[kind]})")
-        header.append(_Slot(kind, ln, tuple(v), t.strip()))
+        res = read_internal(ln, "rrr", path=path, line=idx + 1, what=f"numbers ({_SUM_TAGS[kind]})")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, idx + 1, f"expected 3 numbers ({_SUM_TAGS[kind]}), found a null item or '/'"
+            )
+        v = [float(x) for x in res.values]
+        header.append(_Slot(kind, ln, tuple(v), res.rest.strip()))
         if kind == "vso":
             sigma_vso = np.array(v)
         else:
