@@ -444,3 +444,23 @@ def test_sum_writer_nan_reads_back():
     back = parse_sum(format_sum(pic))
     _same(back.sigma_vso, [None, 1.0, 2.0])
     _same(back.scobj, [None, 0.0, 1.0])
+
+
+@pytest.mark.parametrize("kind", ["sum", "lithos", "pictlist"])
+def test_utf8_bom_is_refused_naming_line_1(kind):
+    # SPC reads the three BOM bytes as text: a SUM name 'ï»¿X123...', an INIT_LITHOS key it never
+    # recognises, a PICTLIST flag 'ï' (in use) with a garbled name -- refused with one clear line
+    from spctool.errors import SpcFormatError
+    from spctool.formats.lists import parse_pictlist
+    from spctool.formats.sumfile import parse_sum
+
+    bom = "\xef\xbb\xbf"  # as decoded (Latin-1) by spctool's text reader
+    cases = {
+        "sum": (parse_sum, bom + (CORPUS / "sum/CANONICAL.SUM").read_text()),
+        "lithos": (parse_lithos, bom + ISSUE_LITHOS),
+        "pictlist": (parse_pictlist, bom + " X123456789A1\nEND\n"),
+    }
+    parse, text = cases[kind]
+    with pytest.raises(SpcFormatError, match="byte-order mark") as e:
+        parse(text, "F.TXT")
+    assert str(e.value).startswith("F.TXT:1:")
