@@ -348,3 +348,10 @@ def test_edit_property(pcks, n_distort, new_keys):
         key = ln.split("=")[0]
         if key not in new_keys:
             assert ln in out_lines
+
+
+def test_get_floats_expands_repeat_counts():
+    # list-directed input: r*c is r copies of c (Fortran 2008 §10.10.3)
+    s = parse_lithos("LMKWTS= 3*1, 0   WB, WO, WL, WR\nTPARS= 1.D0 1.5 .05 1 2 6 4*0\nEND\n")
+    assert s.get_floats("LMKWTS") == [1, 1, 1, 0]
+    assert s.get_floats("TPARS") == [1, 1.5, 0.05, 1, 2, 6, 0, 0, 0, 0]

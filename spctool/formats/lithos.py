@@ -319,8 +319,10 @@ class Settings:
         for text, quoted in items:
             if quoted:
                 break
+            m = _REPEAT.match(text)  # list-directed r*c: r copies of c
+            count, text = (int(m.group(1)), m.group(2)) if m else (1, text)
             try:
-                out.append(parse_number(text))
+                out.extend([parse_number(text)] * count)
             except ValueError:
                 break
         if not out:
