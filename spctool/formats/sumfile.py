@@ -57,6 +57,7 @@ __all__ = [
 # shared text helpers (also used by landmark.py and lithos.py / lists.py)
 
 _TOKEN = re.compile(r"[^\s,]+")
+_DIGIT = re.compile(r"\d")
 _FIXED = re.compile(r"^[+-]?\d*\.\d*$")
 _EXP_LETTER = re.compile(r"\d([EeDdQq])[+-]?\d")
 
@@ -792,7 +793,7 @@ def parse_sum(text: str, path=None) -> Picture:
             section_text[kind] = ln
             state = kind
         elif state == "landmarks":
-            if not any(c.isdigit() for c in ln[6:]) and ln.strip():
+            if _DIGIT.search(ln, 6) is None and ln.strip():
                 raise SpcFormatError(
                     path,
                     i + 1,
@@ -803,7 +804,7 @@ def parse_sum(text: str, path=None) -> Picture:
             landmarks.append(lm)
             landmark_rows.append((lm._key(), ln))
         elif state == "limbs":
-            if not any(c.isdigit() for c in ln[6:]) and ln.strip():
+            if _DIGIT.search(ln, 6) is None and ln.strip():
                 raise SpcFormatError(
                     path,
                     i + 1,
