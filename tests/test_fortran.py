@@ -199,3 +199,40 @@ def test_list_read_round_trip(case):
     lines = text.replace("\r\n", "\n").split("\n")
     r = list_read(lines, 0, "r" * len(values))
     assert r.values == values
+
+
+@st.composite
+def _encoded(draw):
+    """Items as runs: ('v', x, r) -> r values x (written r*x or x), ('n', r) -> r nulls (r* or commas)."""
+    runs = draw(
+        st.lists(
+            st.one_of(
+                st.tuples(st.just("v"), st.floats(-1e6, 1e6, allow_nan=False), st.integers(1, 4)),
+                st.tuples(st.just("n"), st.just(0.0), st.integers(1, 3)),
+            ),
+            min_size=1,
+            max_size=8,
+        )
+    )
+    expected, parts = [], []
+    for kind, x, r in runs:
+        if kind == "v":
+            expected += [x] * r
+            parts.append(f"{r}*{x!r}" if r > 1 or draw(st.booleans()) else repr(x))
+        else:
+            expected += [None] * r
+            parts.append(f"{r}*")
+    return runs, expected, parts
+
+
+@settings(max_examples=200, deadline=None)
+@given(_encoded(), st.integers(0, 3))
+def test_list_read_repeats_and_nulls_model(case, tail_nulls):
+    # Fortran 2008 §10.10.3.2: r*c is r copies of c, r* is r null values; a null leaves the item unchanged
+    runs, expected, parts = case
+    n = len(expected) + tail_nulls  # items after the list are left by a '/'
+    defaults = [-7.0] * n
+    text = ", ".join(parts) + " /"
+    got = list_read([text], 0, "r" * n, defaults).values
+    want = [-7.0 if e is None else e for e in expected] + [-7.0] * tail_nulls
+    assert got == want
