@@ -119,6 +119,7 @@ class _LmkSource:
     final_newline: bool
     pad_header: bool
     pad_body: bool
+    warnings: list = field(default_factory=list)
 
 
 _LMK_TAGS = {
@@ -363,6 +364,17 @@ def parse_lmk(text: str, path=None) -> Landmark:
         pad_header=_majority_padded(lines[1:9], True),
         pad_body=_majority_padded([lines[0]] + lines[9 : i + 1], False),
     )
+    missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
+    if missing:
+        # globalCoverage.f KOUNT: READ (A80) until PICTURES, then until MAP OVERLAPS, then LIMB FITS
+        source.warnings.append(
+            (
+                i + 1,
+                f"no {' / '.join(missing)} line before END FILE: globalCoverage.f KOUNT would read on "
+                "past it "
+                "(spctool accepts the trimmed file)",
+            )
+        )
     return Landmark(
         name=name,
         hflag=hflag,
