@@ -355,3 +355,10 @@ def test_get_floats_expands_repeat_counts():
     s = parse_lithos("LMKWTS= 3*1, 0   WB, WO, WL, WR\nTPARS= 1.D0 1.5 .05 1 2 6 4*0\nEND\n")
     assert s.get_floats("LMKWTS") == [1, 1, 1, 0]
     assert s.get_floats("TPARS") == [1, 1.5, 0.05, 1, 2, 6, 0, 0, 0, 0]
+
+
+def test_scalar_keys_null_slash_and_repeat():
+    # READ(LINE(n:80),*) VALUE: a leading comma (null) or '/' leaves the program's default; r*c gives c
+    s = parse_lithos("CHI0= , 2.0\nNUMLM= 2*150\nRESLM= 3*\nSIZLM= / 9\nSEED= 1.5\nEND\n")
+    assert s.get_float("CHI0", 1.0) == 1.0 and s.numlm == 150 and s.reslm == 4.0 and s.sizlm == 1.5
+    assert s.get_float("SEED") == 1.5

@@ -266,8 +266,19 @@ class Settings:
             items = _items(raw)
         except ValueError:
             raise self._error(line, f"expected a value for {key.rstrip('=')}=, found {raw!r}") from None
+        lead = raw.lstrip(" \t")
+        if lead.startswith((",", "/")):
+            # READ(LINE(n:80),*) VALUE: a leading comma is a null item and '/' ends the READ -- the
+            # variable keeps the program's default
+            return None, line
         if not items:
             raise self._error(line, f"expected a value for {key.rstrip('=')}=, found nothing")
+        text, quoted = items[0]
+        m = None if quoted else _REPEAT.match(text)
+        if m is not None:  # r*c: the first of r copies of c
+            return (m.group(2), False), line
+        if not quoted and re.fullmatch(r"\d+\*", text):  # r*: null values
+            return None, line
         return items[0], line
 
     def get_str(self, key: str, default: str | None = None) -> str | None:
