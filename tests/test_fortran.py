@@ -90,3 +90,149 @@ def test_d_format_round_trips_to_ten_digits(x):
         assert math.isclose(back, x, rel_tol=5.1e-10)
         # a second write is identical (the text is a fixed point)
         assert format_d(back) == text
+
+
+# ---------------------------------------------------------------------------------------------------------
+# list-directed READ over records (Fortran 2008 §10.10.3).  Expected values are gfortran 12's, from
+# ``double precision a(4); a = -7; read(10,*) a`` on each record (oracle run, numbers kept here as data).
+
+from spctool.formats.fortran import Records, list_read, parse_real, read_internal  # noqa: E402
+
+NAN = float("nan")
+GFORTRAN_LIST_READ = [
+    ("1,,3,4", [1, -7, 3, 4]),  # null item leaves the value unchanged
+    ("2*5 2*", [5, 5, -7, -7]),  # r*c repeat, r* null repeat
+    ("1 2 / 9", [1, 2, -7, -7]),  # slash ends the READ
+    ("1.5-06 NaN inf 4", [1.5e-6, NAN, float("inf"), 4]),
+    ("1e-400 2 3 4", [0, 2, 3, 4]),  # underflow reads as 0
+    ("\t1\t2,\t3 , 4  ", [1, 2, 3, 4]),  # tabs, commas with blanks, trailing blanks
+    (",2,3,4", [-7, 2, 3, 4]),  # a leading comma is a null item
+    ("1 2 3 4 :garbage", [1, 2, 3, 4]),  # text after the list is never read
+    ("1 2 3 4*", [1, 2, 3, -7]),
+    ("3*1.0 .5E1", [1, 1, 1, 5]),
+    ("+.5 -.5e-1 1. -0", [0.5, -0.05, 1, -0.0]),
+    ("1.5q2 2d0 3D+00 4e0", [150, 2, 3, 4]),
+]
+
+
+@pytest.mark.parametrize("record, expected", GFORTRAN_LIST_READ)
+def test_list_read_matches_gfortran(record, expected):
+    got = list_read([record], 0, "rrrr", [-7.0] * 4).values
+    assert len(got) == 4
+    for g, e in zip(got, expected):
+        if math.isnan(e):
+            assert math.isnan(g)
+        else:
+            assert g == e and math.copysign(1, g) == math.copysign(1, e)
+
+
+@pytest.mark.parametrize(
+    "record, item",
+    [("1 2 3 4abc", 4), ("1.5q2 1d 3 4", 2), ("-0.9150303,:Ba758D+00 1 1 1", 2), ("1D+400 2 3 4", 1)],
+)
+def test_list_read_rejects_bad_items(record, item):
+    # gfortran: "Bad real number in item N of list input"; 1D+400 gfortran reads as Infinity, spctool refuses
+    with pytest.raises(SpcFormatError, match=f"value {item} "):
+        list_read([record], 0, "rrrr", path="X.SUM")
+
+
+def test_list_read_continues_across_records_and_skips_blank_ones():
+    recs = ["", "1", "   ", "2 3", "4 5 6", "7"]
+    r = list_read(recs, 0, "rrrr")
+    assert r.values == [1, 2, 3, 4] and r.first == 0 and r.last == 4 and r.lines == [2, 4, 4, 5]
+    # the next READ starts on the next record: the 5 6 after the list are discarded
+    rr = Records(recs)
+    rr.read_list("rrrr")
+    assert rr.read_list("r").values == [7]
+
+
+def test_list_read_end_of_file_names_the_file():
+    with pytest.raises(SpcFormatError, match=r"F\.TXT:2: expected 3 numbers, found 2"):
+        list_read(["1", "2"], 0, "rrr", path="F.TXT", what="numbers")
+
+
+def test_list_read_kinds():
+    r = list_read(["'HOLD########' 'OWEN' 6 .true. f"], 0, "aailL".lower())
+    assert r.values == ["HOLD########", "OWEN", 6, True, False]
+    with pytest.raises(SpcFormatError, match="not a Fortran integer"):
+        list_read(["1.5"], 0, "i")
+    assert read_internal(" 'it''s' 3", "ai").values == ["it's", 3]
+    with pytest.raises(SpcFormatError, match="end of the record"):
+        read_internal("1 2", "rrr")
+
+
+def test_parse_real_specials_and_overflow():
+    assert math.isnan(parse_real("NaN")) and parse_real("-Infinity") == float("-inf")
+    with pytest.raises(ValueError):
+        parse_real("1D+400")
+    with pytest.raises(ValueError):
+        parse_number("0.1+401")
+
+
+_fmt = st.sampled_from(["D", "E", "d", "e", "", "Q"])
+
+
+@st.composite
+def _written(draw):
+    values = draw(
+        st.lists(st.floats(allow_nan=False, allow_infinity=False, width=64), min_size=1, max_size=12)
+    )
+    toks = []
+    for v in values:
+        letter = draw(_fmt)
+        if letter == "":  # letterless exponent: mantissa then a signed exponent
+            m, e = f"{v:.17e}".split("e")
+            toks.append(f"{m}{int(e):+03d}")
+        else:
+            toks.append(f"{v:.17e}".replace("e", letter))
+    seps = [draw(st.sampled_from([" ", "  ", ",", " , ", "\t", "\n", "\n\n", ", \n"])) for _ in toks]
+    text = "".join(t + s for t, s in zip(toks, seps))
+    if draw(st.booleans()):
+        text = text.replace("\n", "\r\n")
+    return values, text
+
+
+@settings(max_examples=200, deadline=None)
+@given(_written())
+def test_list_read_round_trip(case):
+    values, text = case
+    lines = text.replace("\r\n", "\n").split("\n")
+    r = list_read(lines, 0, "r" * len(values))
+    assert r.values == values
+
+
+@st.composite
+def _encoded(draw):
+    """Items as runs: ('v', x, r) -> r values x (written r*x or x), ('n', r) -> r nulls (r* or commas)."""
+    runs = draw(
+        st.lists(
+            st.one_of(
+                st.tuples(st.just("v"), st.floats(-1e6, 1e6, allow_nan=False), st.integers(1, 4)),
+                st.tuples(st.just("n"), st.just(0.0), st.integers(1, 3)),
+            ),
+            min_size=1,
+            max_size=8,
+        )
+    )
+    expected, parts = [], []
+    for kind, x, r in runs:
+        if kind == "v":
+            expected += [x] * r
+            parts.append(f"{r}*{x!r}" if r > 1 or draw(st.booleans()) else repr(x))
+        else:
+            expected += [None] * r
+            parts.append(f"{r}*")
+    return runs, expected, parts
+
+
+@settings(max_examples=200, deadline=None)
+@given(_encoded(), st.integers(0, 3))
+def test_list_read_repeats_and_nulls_model(case, tail_nulls):
+    # Fortran 2008 §10.10.3.2: r*c is r copies of c, r* is r null values; a null leaves the item unchanged
+    runs, expected, parts = case
+    n = len(expected) + tail_nulls  # items after the list are left by a '/'
+    defaults = [-7.0] * n
+    text = ", ".join(parts) + " /"
+    got = list_read([text], 0, "r" * n, defaults).values
+    want = [-7.0 if e is None else e for e in expected] + [-7.0] * tail_nulls
+    assert got == want

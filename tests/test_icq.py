@@ -420,14 +420,27 @@ def fortran_token(draw):
 )
 def test_readers_agree_with_fortran_parse_number(path_kind, drawn, sep):
     toks = (drawn * 24)[:72]  # a full Q = 1 file
-    expected = np.array([fortran.parse_number(t) for t in toks])
+    def value(t):
+        try:
+            return fortran.parse_number(t)
+        except ValueError:  # overflowing exponent: refused (gfortran would store Infinity)
+            return np.inf
+
+    expected = np.array([value(t) for t in toks])
     if not np.all(np.isfinite(expected)):
         with pytest.raises(SpcFormatError):
-            icq.parse_icq("1\n" + "".join(sep.join(toks[3 * k : 3 * k + 3]) + "\n" for k in range(24)))
+            icq.parse_icq("1\n" + "".join(" ".join(toks[3 * k : 3 * k + 3]) + "\n" for k in range(24)))
         return
     # trailing text is ignored (list-directed), except on the first vertex line, where a 4th token
     # within 100 columns would announce an albedo column (GET_MODEL)
     lines = [" " + sep.join(toks[3 * k : 3 * k + 3]) + (" trailing text" if k else "") for k in range(24)]
+    # GET_MODEL counts blank-ended tokens on the first vertex line (commas do not separate there): write
+    # it blank-separated, as it must be for SPC to read any vertex
+    lines[0] = " " + " ".join(toks[0:3])
+    if len(lines[0]) > 99:  # GET_MODEL counts tokens ending in columns 1-99 only: it would read no vertex
+        with pytest.raises(SpcFormatError, match="GET_MODEL counts"):
+            icq.parse_icq("1\n" + "\n".join(lines) + "\n")
+        return
     text = "1\n" + "\n".join(lines) + "\n"
     got = icq.parse_icq(text).flat_vertices().ravel()
     assert np.array_equal(bits(got), bits(expected))
@@ -474,8 +487,15 @@ def test_errors_name_the_line(path_kind):
     e = _err("\n".join(lines[:-3]) + "\n")
     assert e.where == 24 and "24 vertex lines" in str(e) and str(e).startswith("SHAPE.TXT:24: expected")
     # too many
-    e = _err(EXAMPLE_53 + "  1.0 2.0 3.0\n")
-    assert e.where == 26 and "end of the file" in str(e)
+    # GET_MODEL reads 6(Q+1)² vertex records and closes the file: an extra line is a warning, not an error
+    extra = icq.parse_icq(EXAMPLE_53 + "  1.0 2.0 3.0\n")
+    assert extra.__dict__["_spc_warnings"][0][0] == 26
+    assert np.array_equal(extra.vertices, icq.parse_icq(EXAMPLE_53).vertices)
+    # one extra token on the first vertex line: GET_MODEL counts N = 5 and reads no vertex -> refused
+    first_lines = EXAMPLE_53.split("\n")
+    first_lines[1] += " 9.0 9.0"
+    e = _err("\n".join(first_lines))
+    assert e.where == 2 and "GET_MODEL counts 5" in str(e)
     # garbage number on line 7
     bad = list(lines)
     bad[6] = "     0.50000    -0.5OOOO     0.50000"

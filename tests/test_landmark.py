@@ -227,16 +227,21 @@ def test_errors_name_file_and_line():
     assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:1: expected HFLAG T or F")
     bad = list(lines)
     bad[4] = bad[4].replace("0.1000000000D+00", "0.10000x0000D+00")
-    assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:5: expected 3 numbers (VLM), found 1 then")
+    # header lines are list-directed READs: the bad item is named (gfortran "Bad real number in item 2")
+    assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:5: expected 3 numbers (VLM): value 2 ")
     bad = list(lines)
     bad[5] = "    0.3580574370D+00    0.7161148740D-01   UX"
-    assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:6: expected 3 numbers (UX), found 2")
+    assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:6: expected 3 numbers (UX): value 3 'UX'")
     bad = list(lines)
     bad[1] = "      49.5   0.0005000     SIZE, SCALE(KM)"
-    assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:2: expected an integer QSZ")
+    assert err("\n".join(bad)).startswith(
+        "LMKFILES/AB0001.LMK:2: expected 2 numbers (QSZ, SCALE): value 1 '49.5'"
+    )
     bad = list(lines)
     bad[2] = "        -1        -1        -1       HORIZON"
-    assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:3: expected 4 numbers (HORIZON), found 3")
+    assert err("\n".join(bad)).startswith(
+        "LMKFILES/AB0001.LMK:3: expected 4 numbers (HORIZON): value 4 'HORIZON'"
+    )
     bad = list(lines)
     bad[10] = "X123456789A1    565.13    4O7.24"
     assert err("\n".join(bad)).startswith("LMKFILES/AB0001.LMK:11: expected 2 numbers (picture sample, line)")

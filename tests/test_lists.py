@@ -101,8 +101,16 @@ def test_pictlist_errors():
         err(parse_pictlist, " X123456789A1\n X123456799A1\n")
         == "LIST.TXT:2: expected END line, found end of file"
     )
-    msg = err(parse_pictlist, " X123456789A1\nX123456799A1\nEND\n")
-    assert msg.startswith("LIST.TXT:2: expected a blank, '!' or '#' in column 1")
+    # globalStat reads (a13): a column-1 flag other than blank/!/# means "in use", name = columns 2-13
+    # (the leading blank was lost: SPC reads '123456799A1'); a warning names the line
+    text = " X123456789A1\nX123456799A1\nEND\n"
+    plist = parse_pictlist(text)
+    assert plist.active_names == ["X123456789A1", "123456799A1"]
+    assert plist._source.warnings[0][0] == 2
+    assert format_pictlist(plist) == text
+    # the end test is columns 1-3 = END: 'END OF LIST' and 'ENDX' end a list too
+    assert parse_pictlist(" A\nEND OF LIST\n B\n").names == ["A"]
+    assert parse_lmrklist("AB0001\nENDX\nCD0002\n").names == ["AB0001"]
     assert err(parse_pictlist, "!\nEND\n") == "LIST.TXT:1: expected a picture name in columns 2-13"
     assert err(parse_pictlist, "") == "LIST.TXT:1: expected END line, found an empty file"
     with pytest.raises(ValueError):

@@ -102,7 +102,8 @@ def test_wiki_sample_rules():
     assert s.get_float("SEED") == 1.3827453
     owen, radial, cubic = s.distortions
     np.testing.assert_array_equal(owen.coefficients, [0, 0, 2.5e-6, 0, 0, 1.0e-5, -4.0e-7])
-    assert radial.model == "RADIAL" and radial.template == "P#########F2"
+    # getmm compares TYPE exactly (IF(TYPE(JD).EQ.'RADIAL')): 'radial' is kept as written, and is no model
+    assert radial.model == "radial" and radial.template == "P#########F2"
     np.testing.assert_array_equal(radial.coefficients, [1.5e-3, 7.5e-6, -2.0e-9])
     assert cubic.order == 20 and np.array_equal(cubic.coefficients, np.zeros(21))
     assert s.entries[0] == (2, "USR", "'0'")
@@ -163,19 +164,24 @@ def test_missing_end_line():
 def test_distort_errors():
     with pytest.raises(SpcFormatError) as info:
         parse_lithos("DISTORT= 'P###' 'OWEN'  6\n0.0 0.0 0.0\n0.0\nEND\n", "L.TXT")
-    assert str(info.value) == "L.TXT:4: expected 7 DISTORT= coefficients, found 4"
+    # getmm READ(25,*) (PD(I,KD), I=0,J) reads on into the END record (gfortran: bad real in item 5)
+    assert str(info.value) == "L.TXT:4: expected 7 DISTORT= coefficients: value 5 'END' is not a Fortran real"
     with pytest.raises(SpcFormatError) as info:
         parse_lithos("DISTORT= 'P###' 'OWEN'  six\n0.0\nEND\n", "L.TXT")
-    assert str(info.value).startswith("L.TXT:1: expected the integer J")
+    assert str(info.value).startswith(
+        "L.TXT:1: expected 3 values (DISTORT= 'TEMPLATE' 'MODEL' J): value 3 'six'"
+    )
     with pytest.raises(SpcFormatError) as info:
         parse_lithos("DISTORT= 'P###' 'OWEN'  2\n0.0 0.0x 0.0\nEND\n", "L.TXT")
-    assert str(info.value) == "L.TXT:2: expected 3 DISTORT= coefficients, found '0.0x' at value 2"
+    assert (
+        str(info.value) == "L.TXT:2: expected 3 DISTORT= coefficients: value 2 '0.0x' is not a Fortran real"
+    )
     with pytest.raises(SpcFormatError) as info:
         parse_lithos("DISTORT= 'P###' 'OWEN'\nEND\n", "L.TXT")
-    assert str(info.value).startswith("L.TXT:1: expected DISTORT= 'TEMPLATE' 'MODEL' J")
+    assert str(info.value).startswith("L.TXT:1: expected 3 values (DISTORT= 'TEMPLATE' 'MODEL' J), found 2")
     with pytest.raises(SpcFormatError) as info:
         parse_lithos("DISTORT= 'P###' 'OWEN' 1\n0.0\n", "L.TXT")
-    assert str(info.value) == "L.TXT:2: expected 2 DISTORT= coefficients, found 1"
+    assert str(info.value) == "L.TXT:2: expected 2 DISTORT= coefficients, found 1 before the end of the file"
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -200,7 +206,7 @@ def test_template_matching():
 
 def test_last_matching_template_wins():
     s = parse_lithos(WIKI)
-    assert s.distortion_for("P601296494F2").model == "RADIAL"  # matches OWEN and RADIAL: RADIAL is later
+    assert s.distortion_for("P601296494F2").model == "radial"  # matches OWEN and radial: radial is later
     assert s.distortion_for("P601296494J3").model == "CUBIC"
     assert s.distortion_for("P601296494J1").model == "OWEN"
     assert s.distortion_for("X601296494J1") is None
@@ -245,7 +251,7 @@ def test_delete_and_add_keys_and_lists():
     s.set("REFLECT", "LOMMEL-SEELIGER")
     s.pcks.append("DATA/x.tpc")
     s.blemishes.append("X###########")
-    s.distortions.append(DistortModel("X#########AB", "radial", 2, [0.0, 1.25e-5, -3.5e-9]))
+    s.distortions.append(DistortModel("X#########AB", "RADIAL", 2, [0.0, 1.25e-5, -3.5e-9]))
     out = format_lithos(s)
     lines = out.split("\n")
     assert "UNIT='METER'" not in lines
@@ -342,3 +348,17 @@ def test_edit_property(pcks, n_distort, new_keys):
         key = ln.split("=")[0]
         if key not in new_keys:
             assert ln in out_lines
+
+
+def test_get_floats_expands_repeat_counts():
+    # list-directed input: r*c is r copies of c (Fortran 2008 §10.10.3)
+    s = parse_lithos("LMKWTS= 3*1, 0   WB, WO, WL, WR\nTPARS= 1.D0 1.5 .05 1 2 6 4*0\nEND\n")
+    assert s.get_floats("LMKWTS") == [1, 1, 1, 0]
+    assert s.get_floats("TPARS") == [1, 1.5, 0.05, 1, 2, 6, 0, 0, 0, 0]
+
+
+def test_scalar_keys_null_slash_and_repeat():
+    # READ(LINE(n:80),*) VALUE: a leading comma (null) or '/' leaves the program's default; r*c gives c
+    s = parse_lithos("CHI0= , 2.0\nNUMLM= 2*150\nRESLM= 3*\nSIZLM= / 9\nSEED= 1.5\nEND\n")
+    assert s.get_float("CHI0", 1.0) == 1.0 and s.numlm == 150 and s.reslm == 4.0 and s.sizlm == 1.5
+    assert s.get_float("SEED") == 1.5

@@ -386,11 +386,18 @@ def test_truncated_file(tmp_path):
     assert str(p) in s and f"byte {len(data) - 72}" in s and str(len(data)) in s and "truncated" in s
 
 
-def test_bad_record_length():
-    data = _good() + b"\0" * 10
-    with pytest.raises(SpcFormatError) as e:
-        parse_map(data, "X.MAP")
-    assert "X.MAP:byte" in str(e.value) and "72" in str(e.value)
+def test_longer_file_and_short_last_record_are_read():
+    # READ_MAP (xCommon.f) reads records 1..N with READ(20,REC=NREC): bytes after record N are never read,
+    # and gfortran reads a short last record zero-padded (oracle: ios 0) -- both load, with a warning
+    good = _good()
+    longer = parse_map(good + b"\0" * 10, "X.MAP")
+    assert longer == parse_map(good, "X.MAP")
+    assert "not read by READ_MAP" in longer.__dict__["_spc_warnings"][0][1]
+    n = 2 * parse_map(good).qsz + 1
+    short = parse_map(good[: 72 + 3 * n * n], "S.MAP")
+    assert short == parse_map(good, "S.MAP") and "not padded" in short.__dict__["_spc_warnings"][0][1]
+    with pytest.raises(SpcFormatError, match="S.MAP:byte"):
+        parse_map(good[: 72 + 3 * n * n - 1], "S.MAP")  # a cell missing: READ_MAP would hit end of file
 
 
 def test_qsz_inconsistent_with_size():
@@ -400,10 +407,9 @@ def test_qsz_inconsistent_with_size():
     with pytest.raises(SpcFormatError) as e:
         parse_map(bytes(data), "Q.MAP")
     assert "Q.MAP:byte" in str(e.value) and "QSZ=9" in str(e.value)
-    data2[10] = 1  # q = 1 needs 144 bytes but the file is longer
-    with pytest.raises(SpcFormatError) as e:
-        parse_map(bytes(data2), "Q.MAP")
-    assert "Q.MAP:byte 10" in str(e.value) and "QSZ=1" in str(e.value)
+    data2[10] = 1  # q = 1: READ_MAP reads records 1-2 only, as a 3x3 maplet; the rest is warned about
+    m = parse_map(bytes(data2), "Q.MAP")
+    assert m.qsz == 1 and m.__dict__["_spc_warnings"]
 
 
 def test_short_header_double_and_bad_floats():
@@ -447,7 +453,7 @@ def test_read_maps_equals_read_map(tmp_path):
         assert a == b
         assert format_map(a) == p.read_bytes()
     bad = tmp_path / "BAD.MAP"
-    bad.write_bytes(p.read_bytes()[:-1])
+    bad.write_bytes(p.read_bytes()[:72])  # header only: no cells
     with pytest.raises(SpcFormatError, match="BAD.MAP"):
         read_maps(paths + [bad])
 

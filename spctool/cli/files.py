@@ -282,12 +282,21 @@ def problems_of(kind: str, obj) -> list[str]:
     elif kind in ("obj", "vtk"):
         if len(obj.faces) and (obj.faces.min() < 0 or obj.faces.max() >= len(obj.vertices)):
             out.append("a face refers to a vertex that does not exist")
-    elif kind == "lithos":
-        known = {"OWEN": 6, "RADIAL": 2, "CUBIC": 20, "LINESCAN": 3, "APOLLO": 6, "HIRISE": 2}
-        for d in obj.distortions:
-            if d.model not in known:
-                out.append(f"DISTORT '{d.template}': unknown model {d.model!r}")
     return out
+
+
+def spc_warnings(obj) -> list[tuple[int | None, str]]:
+    """(line, text) where SPC's Fortran reads the file differently from a careless reader (issue #14).
+
+    Not errors: SPC accepts the file.  An unknown DISTORT= model is one (SPC uses the plain pinhole).
+    """
+    found = getattr(obj, "warnings", None)
+    if found is None:
+        found = getattr(obj, "__dict__", {}).get("_spc_warnings")
+    if found is None:
+        src = getattr(obj, "_source", None)
+        found = getattr(src, "warnings", None)
+    return list(found or [])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -350,7 +359,10 @@ def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
     """Check SPC files and photos: exit 0 when all are valid, 2 when any is not.
 
     Every problem is listed, one line each (FILE:LINE: problem); the parse is followed by
-    semantic checks (orthonormal frames, thresholds, ICQ seams, ...).
+    semantic checks (orthonormal frames, thresholds, ICQ seams, ...).  Lines that SPC's Fortran
+    reads differently from a careless reader (text past column 80 of a formatted record, an
+    unknown DISTORT= model, a DISTORTION tag off columns 64-73 ...) are reported as
+    "FILE:LINE: warning: ..." and do not change the exit code.
 
     Example:
 
@@ -367,6 +379,10 @@ def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
             entry["kind"] = kind
             obj = read_any(f, kind, npx=npx, nln=nln)
             entry["problems"] = [f"{f}: {p}" for p in problems_of(kind, obj)]
+            entry["warnings"] = [
+                f"{f}:{line}: warning: {text}" if line else f"{f}: warning: {text}"
+                for line, text in spc_warnings(obj)
+            ]
         except SpcFormatError as exc:
             entry["problems"] = [str(exc)]
         except SpcUsageError as exc:
@@ -377,7 +393,7 @@ def validate_cmd(ctx: Context, files, as_json, npx, nln, sum_path):
         if not as_json:
             if entry["valid"]:
                 click.echo(f"{f}: valid {entry['kind']}")
-            for p in entry["problems"]:
+            for p in entry.get("warnings", []) + entry["problems"]:
                 click.echo(p, err=True)
     if as_json:
         emit(

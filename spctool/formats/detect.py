@@ -26,6 +26,38 @@ def _map_size_ok(size: int, head: bytes) -> bool:
     return False
 
 
+_NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[EDQedq]?[+-]?\d+)?"
+
+
+def _numeric_line(line: str, count: int) -> bool:
+    toks = line.replace(",", " ").split()
+    return len(toks) >= count and all(re.fullmatch(_NUM, t) or t.lower() == "nan" for t in toks[:count])
+
+
+def _untagged_kind(lines: list[str]) -> str | None:
+    """SUM / NOM / LMK files without tags: SPC reads them by position, so recognise them by shape."""
+    heads = {ln[:9] for ln in lines}
+    if len(lines) > 10 and ("LANDMARKS" in heads or "LIMB FITS" in heads):
+        if _numeric_line(lines[2], 4) and all(_numeric_line(lines[k], 3) for k in range(3, 9)):
+            if _numeric_line(lines[9], 6):
+                return "sum"
+    if (
+        len(lines) > 9
+        and re.match(r"^.{1,6}\s+[TF]\b", lines[0])
+        and any(ln[:8] == "PICTURES" for ln in lines)
+    ):
+        if (
+            _numeric_line(lines[1], 2)
+            and _numeric_line(lines[2], 4)
+            and all(_numeric_line(lines[k], 3) for k in range(4, 9))
+        ):
+            return "lmk"
+    if 8 < len(lines) < 200 and any(ln[:8] == "END FILE" for ln in lines) and "LANDMARKS" not in heads:
+        if all(_numeric_line(lines[k], 3) for k in range(1, 8)) and lines[0][:12].strip():
+            return "nom"
+    return None
+
+
 def detect_kind(path) -> str:
     """The kind of file at ``path`` (see module docstring); SpcFormatError if unknown."""
     p = Path(path)
@@ -71,6 +103,9 @@ def detect_kind(path) -> str:
         return "sum"
     if len(lines) > 3 and "SCOBJ" in lines[2] and any("SIGMA_VSO" in ln for ln in lines[:6]):
         return "nom"
+    untagged = _untagged_kind(lines)
+    if untagged is not None:
+        return untagged
     if re.fullmatch(r"[+-]?\d+", first):
         return "icq"
     if any(ln.startswith(("v ", "f ")) for ln in lines[:2000]) and any(ln.startswith("v ") for ln in lines):

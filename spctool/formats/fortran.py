@@ -1,10 +1,19 @@
-"""Fortran numbers as SPC reads and writes them (spc-formats.md §0.3).
+"""Fortran numbers and records as SPC reads and writes them (spc-formats.md §0.3).
 
-Reading follows gfortran's list-directed input: ``D``/``E``/``Q`` exponents in
-either case, letterless exponents (``0.123-06``, ``0.1000000000+101``), commas
-as separators and trailing text after the values.  Writing reproduces gfortran's
-``Dw.d``/``Ew.d`` (``0.ddddD±ee``), ``Fw.d`` (asterisks on overflow) and ``Iw``
-edit descriptors byte for byte.
+Reading follows gfortran's list-directed input (Fortran 2008 §10.10.3), checked against gfortran 12 as an
+oracle: ``D``/``E``/``Q`` exponents in either case, letterless exponents (``0.123-06``,
+``0.1000000000+101``), ``NaN``/``Inf``, blanks, tabs and commas as separators, ``r*c`` repeats and ``r*``
+null repeats, null items (``1,,3``; a leading comma) that leave the variable unchanged, a ``/`` that ends
+the READ (later items unchanged), values that continue over as many records as the READ needs (blank
+records are skipped) and trailing text after the values.  :class:`Records` consumes a file the way a
+sequence of ``READ(unit,*)`` and ``READ(unit,'(A80)')`` statements does: every READ starts on a new
+record and discards the rest of the record it ends on.
+
+One documented departure: a number whose exponent overflows double precision (``1D+400``) is refused,
+where gfortran stores Infinity and SPC would carry it silently into the solution.
+
+Writing reproduces gfortran's ``Dw.d``/``Ew.d`` (``0.ddddD±ee``), ``Fw.d`` (asterisks on overflow) and
+``Iw`` edit descriptors byte for byte.
 """
 
 from __future__ import annotations
@@ -15,6 +24,7 @@ import re
 from spctool.errors import SpcFormatError
 
 _NUMBER = re.compile(r"^([+-]?(?:\d+\.?\d*|\.\d+))(?:[EDQedq]([+-]?\d+)|([+-]\d+))?$")
+_SPECIAL = re.compile(r"^([+-]?)(inf|infinity|nan(?:\([0-9a-z_]*\))?)$", re.IGNORECASE)
 _SPLIT = re.compile(r"[\s,]+")
 
 
@@ -28,13 +38,252 @@ def parse_number(token: str) -> float:
         raise ValueError(f"not a Fortran number: {token!r}")
     mant, exp1, exp2 = m.groups()
     exp = exp1 if exp1 is not None else exp2
-    if exp is None:
-        return float(mant)
-    return float(f"{mant}e{exp}")
+    value = float(mant) if exp is None else float(f"{mant}e{exp}")
+    if math.isinf(value):
+        raise ValueError(f"Fortran number out of double-precision range: {token!r}")
+    return value
+
+
+def parse_real(token: str) -> float:
+    """A list-directed real item: :func:`parse_number` forms plus ``NaN``, ``Inf``, ``Infinity`` (gfortran).
+
+    Raises ``ValueError`` on anything else, and on a finite-looking number that overflows (``1D+400``).
+    """
+    m = _SPECIAL.match(token.strip())
+    if m is not None:
+        sign = -1.0 if m.group(1) == "-" else 1.0
+        return sign * (math.nan if m.group(2).lower().startswith("nan") else math.inf)
+    return parse_number(token)
 
 
 def is_number(token: str) -> bool:
     return _NUMBER.match(token.strip()) is not None
+
+
+# ---------------------------------------------------------------------------------------------
+# list-directed READ over a record stream
+
+#: one lexical element of a list-directed record: a comma, a slash, a quoted string or a bare token
+_LEX = re.compile(r"""[ \t]*(?:(,)|(/)|'((?:[^']|'')*)'|"((?:[^"]|"")*)"|([^ \t,/'"]+))""")
+_REPEAT_TOKEN = re.compile(r"^(\d+)\*(.*)$", re.S)
+_LOGICAL = re.compile(r"^\.?([TtFf])")
+_INTEGER = re.compile(r"^[+-]?\d+$")
+
+
+class FortranEOF(Exception):
+    """End of file inside a READ (SPC aborts with an end-of-file error)."""
+
+
+def _lex(record: str) -> list[tuple[str, str, int]]:
+    """Elements of one record: ``(',', '')``, ``('/', '')``, ``('q', text)`` (quoted), ``('v', text)``,
+    each with the offset just after it."""
+    out: list[tuple[str, str, int]] = []
+    pos, n = 0, len(record)
+    while pos < n:
+        m = _LEX.match(record, pos)
+        if m is None:  # only blanks left, or an unterminated quote: the rest is one bare token
+            rest = record[pos:].strip(" \t")
+            if rest:
+                out.append(("v", rest, n))
+            break
+        if m.end() == pos:
+            break
+        pos = m.end()
+        if m.group(1) is not None:
+            out.append((",", "", pos))
+        elif m.group(2) is not None:
+            out.append(("/", "", pos))
+        elif m.group(3) is not None:
+            out.append(("q", m.group(3).replace("''", "'"), pos))
+        elif m.group(4) is not None:
+            out.append(("q", m.group(4).replace('""', '"'), pos))
+        else:
+            out.append(("v", m.group(5), pos))
+    return out
+
+
+_KIND_NAMES = {"r": "real", "i": "integer", "a": "character", "l": "logical"}
+
+
+def _convert(kind: str, text: str, quoted: bool):
+    """One list-directed item of type ``kind`` ('r', 'i', 'a', 'l'); ValueError when it is not one."""
+    if kind == "a":
+        return text
+    if quoted:
+        raise ValueError(text)
+    if kind == "r":
+        return parse_real(text)
+    if kind == "i":
+        if not _INTEGER.match(text):
+            raise ValueError(text)
+        return int(text)
+    m = _LOGICAL.match(text)
+    if m is None:
+        raise ValueError(text)
+    return m.group(1).upper() == "T"
+
+
+class ListRead:
+    """The outcome of one list-directed READ: the values, and where they came from.
+
+    ``values[k]`` is the item's new value, or its ``defaults[k]`` when a null item or a ``/`` left it
+    unchanged; ``lines[k]`` is the 1-based line it was read from (None when unchanged); ``first`` and
+    ``last`` are the 0-based indices of the records the READ consumed; ``slash`` says a ``/`` ended it;
+    ``rest`` is the unread text of the last record.
+    """
+
+    __slots__ = ("values", "lines", "first", "last", "slash", "nulls", "rest")
+
+    def __init__(self, values, lines, first, last, slash, nulls, rest):
+        self.values = values
+        self.lines = lines
+        self.first = first
+        self.last = last
+        self.slash = slash
+        self.nulls = nulls
+        self.rest = rest
+
+
+def list_read(
+    records,
+    start: int,
+    kinds: str,
+    defaults=None,
+    *,
+    path=None,
+    what: str = "values",
+    base: int = 1,
+    internal: bool = False,
+) -> ListRead:
+    """``READ(unit,*) v1, …, vn`` starting at record ``records[start]`` (list-directed, Fortran §10.10.3).
+
+    ``kinds`` has one letter per item: ``r`` real, ``i`` integer, ``a`` character, ``l`` logical.
+    Records are consumed until every item has a value, a ``/`` is met, or (``internal=True``: an internal
+    READ of one character variable, ``READ(LINE,*)``) the single record ends.  Errors name
+    ``path`` and the 1-based line (``base`` = line number of ``records[0]``):
+    :class:`SpcFormatError` for a bad item, and for end of file before the list is satisfied.
+    """
+    n = len(kinds)
+    values = list(defaults) if defaults is not None else [None] * n
+    lines: list[int | None] = [None] * n
+    k = 0
+    first_elem = True
+    after_comma = False
+    nulls = 0
+    j = start
+    nrec = len(records)
+    while True:
+        if j >= nrec:
+            if internal:
+                where = base + start
+            else:
+                where = base + max(nrec - 1, 0) if nrec else base
+            found = f"found {k}" if k else "found none"
+            unit = "record" if internal else "file"
+            raise SpcFormatError(path, where, f"expected {n} {what}, {found} before the end of the {unit}")
+        record = records[j]
+        elems = _lex(record)
+        for idx, (typ, text, _end) in enumerate(elems):
+            if typ == ",":
+                if after_comma or first_elem:
+                    k += 1
+                    nulls += 1
+                after_comma = True
+                first_elem = False
+            elif typ == "/":
+                return ListRead(values, lines, start, j, True, nulls, _rest_of(record, elems, idx + 1))
+            else:
+                count, body, quoted = 1, text, typ == "q"
+                m = None if quoted else _REPEAT_TOKEN.match(text)
+                if m is not None:
+                    count, body = int(m.group(1)), m.group(2)
+                    if count == 0:
+                        raise SpcFormatError(
+                            path, base + j, f"expected {n} {what}: zero repeat count {text!r}"
+                        )
+                    if body == "":  # r* : r null values, the items keep their values
+                        k += count
+                        nulls += count
+                        after_comma = first_elem = False
+                        if k >= n:
+                            rest = _rest_of(record, elems, idx + 1)
+                            return ListRead(values, lines, start, j, False, nulls, rest)
+                        continue
+                for _ in range(count):
+                    if k >= n:
+                        break
+                    try:
+                        values[k] = _convert(kinds[k], body, quoted)
+                    except ValueError:
+                        detail = (
+                            "out of range"
+                            if kinds[k] == "r" and _NUMBER.match(body)
+                            else f"not a Fortran {_KIND_NAMES[kinds[k]]}"
+                        )
+                        raise SpcFormatError(
+                            path, base + j, f"expected {n} {what}: value {k + 1} {text!r} is {detail}"
+                        ) from None
+                    lines[k] = base + j
+                    k += 1
+                after_comma = False
+                first_elem = False
+            if k >= n:
+                return ListRead(values, lines, start, j, False, nulls, _rest_of(record, elems, idx + 1))
+        if internal:
+            j = nrec  # an internal READ has one record
+            continue
+        j += 1
+
+
+def _rest_of(record: str, elems, idx: int) -> str:
+    """The raw text of ``record`` after element ``idx - 1`` (what the READ left unread)."""
+    return record[elems[idx - 1][2] :] if idx > 0 else record
+
+
+class Records:
+    """A text file as a stream of records, consumed as a sequence of SPC READ statements.
+
+    ``lines`` are the records without terminators (CR already stripped); ``pos`` is the 0-based index of
+    the next record.  :meth:`read_list` is ``READ(unit,*)``; :meth:`read_a` is ``READ(unit,'(A80)')``;
+    :meth:`skip` is ``READ(unit,*)`` with an empty list (one record, whatever it holds).
+    """
+
+    def __init__(self, lines: list[str], path=None, pos: int = 0):
+        self.lines = lines
+        self.path = path
+        self.pos = pos
+
+    @property
+    def at_end(self) -> bool:
+        return self.pos >= len(self.lines)
+
+    def read_list(self, kinds: str, defaults=None, *, what: str = "values") -> ListRead:
+        result = list_read(self.lines, self.pos, kinds, defaults, path=self.path, what=what)
+        self.pos = result.last + 1
+        return result
+
+    def read_a(self, width: int = 80, *, what: str = "a record") -> str:
+        """The next record cut to ``width`` columns and blank-padded to it (``PAD='YES'``)."""
+        if self.pos >= len(self.lines):
+            raise SpcFormatError(self.path, max(len(self.lines), 1), f"expected {what}, found end of file")
+        text = self.lines[self.pos][:width].ljust(width)
+        self.pos += 1
+        return text
+
+    def skip(self, *, what: str = "a record") -> str:
+        """``READ(unit,*)`` with no items: consumes one record; returns its text."""
+        if self.pos >= len(self.lines):
+            raise SpcFormatError(self.path, max(len(self.lines), 1), f"expected {what}, found end of file")
+        text = self.lines[self.pos]
+        self.pos += 1
+        return text
+
+
+def read_internal(
+    text: str, kinds: str, defaults=None, *, path=None, line=None, what: str = "values"
+) -> ListRead:
+    """``READ(LINE,*) …``: a list-directed READ of one character variable (one record)."""
+    return list_read([text], 0, kinds, defaults, path=path, what=what, base=line or 1, internal=True)
 
 
 def tokens(text: str) -> list[str]:

@@ -756,6 +756,7 @@ def read_icq(path) -> IcqShape:
 
 
 def _parse_bytes(data: bytes, path) -> IcqShape:
+    # mirrors GET_MODEL.f: READ(49,*) Q; READ(49,FMT='(A100)') LINE; READ(LINE,*) (VEC(K,I,J,F),K=1,3)[,A0]
     where = os.fspath(path) if path is not None else None
     nl = data.find(b"\n")
     first = data[: nl if nl >= 0 else len(data)].decode("latin-1")
@@ -779,26 +780,42 @@ def _parse_bytes(data: bytes, path) -> IcqShape:
         )
     second_end = data.find(b"\n", nl + 1)
     second = data[nl + 1 : second_end if second_end >= 0 else len(data)].decode("latin-1")
-    ncols = 4 if len(fortran.tokens(second[:100])) == 4 else 3  # GET_MODEL's rule (§5.1)
+    # GET_MODEL.f: READ(49,FMT='(A100)') LINE; N counts columns K=2..100 where LINE(K-1) is not blank and
+    # LINE(K) is; the vertices are read only when N is 3 (x y z) or 4 (x y z albedo)
+    line100 = second[:100].ljust(100)
+    n_tok = sum(1 for k in range(1, 100) if line100[k - 1] != " " and line100[k] == " ")
+    if n_tok not in (3, 4):
+        raise SpcFormatError(
+            where,
+            2,
+            "expected 3 or 4 blank-separated values in columns 1-99 of the first vertex line "
+            f"(GET_MODEL counts {n_tok}, and then reads no vertex at all)",
+        )
+    ncols = n_tok
     what = "x y z albedo" if ncols == 4 else "x y z"
     if nvert * ncols < _KERNEL_MIN_VALUES:
         out, end = _parse_rows_python(data, nl + 1, nvert, ncols, where, what)
     else:
         out, end = _parse_rows_kernel(data, nl + 1, nvert, ncols, where, what, q)
     rest = data[end:]
+    warnings: list[tuple[int, str]] = []
     if rest.strip():
+        # GET_MODEL reads 6(Q+1)² vertex records and closes the file: what follows is never read
         extra_line = nvert + 2 + rest[: len(rest) - len(rest.lstrip())].count(b"\n")
-        raise SpcFormatError(
-            where,
-            extra_line,
-            f"expected the end of the file after 6(Q+1)² = {nvert} vertex lines for Q = {q}, found more text",
+        warnings.append(
+            (
+                extra_line,
+                f"text after the 6(Q+1)² = {nvert} vertex lines for Q = {q} is not read by GET_MODEL",
+            )
         )
     table = out.reshape(nvert, ncols)
     n = q + 1
     vertices = np.ascontiguousarray(table[:, :3]).reshape(6, n, n, 3)
     albedo = np.ascontiguousarray(table[:, 3]).reshape(6, n, n) if ncols == 4 else None
     source = _IcqSource(data, vertices.copy(), None if albedo is None else albedo.copy())
-    return IcqShape(q, vertices, albedo, where, source)
+    shape = IcqShape(q, vertices, albedo, where, source)
+    shape.__dict__["_spc_warnings"] = warnings
+    return shape
 
 
 def _parse_rows_python(data: bytes, pos: int, nvert: int, ncols: int, where, what: str):
@@ -841,7 +858,10 @@ def _parse_rows_kernel(data: bytes, pos: int, nvert: int, ncols: int, where, wha
         )
     for s, e, idx in slow[:nslow].tolist():
         tok = data[s:e].decode("latin-1")
-        value = fortran.parse_number(tok)
+        try:
+            value = fortran.parse_number(tok)
+        except ValueError:  # an exponent beyond double precision (gfortran would store Infinity)
+            value = math.inf
         if not math.isfinite(value):
             raise SpcFormatError(where, idx // ncols + 2, f"expected a finite number ({what}), found {tok!r}")
         out[idx] = value

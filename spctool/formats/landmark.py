@@ -20,21 +20,21 @@ import numpy as np
 
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
+from spctool.formats.fortran import Records
 from spctool.formats.sumfile import (
+    _check_tag,
     _dvec,
     _emit_rows,
     _fields_equal,
     _fixed,
     _floats,
     _int_field,
-    _is_integral,
     _join_lines,
     _letter_of,
     _majority_padded,
     _pad,
     _parse_limb,
     _row_text,
-    _scan_numbers,
     _scan_row,
     _Slot,
     _split_lines,
@@ -119,6 +119,7 @@ class _LmkSource:
     final_newline: bool
     pad_header: bool
     pad_body: bool
+    warnings: list = field(default_factory=list)
 
 
 _LMK_TAGS = {
@@ -236,6 +237,8 @@ def _section_of(line: str) -> str | None:
 
 def parse_lmk(text: str, path=None) -> Landmark:
     """Parse the text of an LMK file (spc-formats.md §4).  Bad input raises :class:`SpcFormatError`."""
+    # mirrors: lines 2-9 READ(unit,*) by position (LITHOS); sections READ(27,FMT='(A80)') LINE with
+    # LINE(1:8)='PICTURES', (1:12)='MAP OVERLAPS', (1:9)='LIMB FITS', (1:8)='END FILE' (KOUNT)
     path = _src_path(path)
     lines, final = _split_lines(text)
     n = len(lines)
@@ -275,21 +278,29 @@ def parse_lmk(text: str, path=None) -> Landmark:
         bigmap_extra = (vals[0], vals[1])
     header.append(_Slot("name", line, (name, hflag, bigmap_extra)))
 
+    # lines 2-9 by position, each a list-directed READ(unit,*) (LITHOS/bigmap write them with the LMK
+    # formats of spc-formats.md §4.1); a tag that names another header line is a swapped/duplicated line
     values: dict[str, list[float]] = {}
-    counts = {"size": 2, "horizon": 4, "sig": 2}
-    for i, key in enumerate(_LMK_ORDER[1:], start=1):
-        ln = need(i, whats[key])
-        v, t = _scan_numbers(ln, counts.get(key, 3), path=path, lineno=i + 1, what=f"numbers ({whats[key]})")
-        if key == "size" and (not _is_integral(v[0]) or v[0] < 0):
-            raise SpcFormatError(path, i + 1, f"expected an integer QSZ, found {v[0]!r}")
-        if key == "horizon" and not all(_is_integral(x) for x in v):
-            raise SpcFormatError(path, i + 1, f"expected 4 integers (HORIZON), found {v!r}")
-        if key == "size":
-            v = [int(v[0]), v[1]]
-        elif key == "horizon":
-            v = [int(x) for x in v]
+    kinds = {"size": "ir", "horizon": "iiii", "sig": "rr"}
+    rec = Records(lines, path, 1)
+    for key in _LMK_ORDER[1:]:
+        if rec.at_end:
+            raise SpcFormatError(
+                path, max(n, 1), f"expected {whats[key]} on line {rec.pos + 1}, found end of file"
+            )
+        first = rec.pos
+        res = rec.read_list(kinds.get(key, "rrr"), what=f"numbers ({whats[key]})")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, first + 1, f"expected numbers ({whats[key]}), found a null item or '/'"
+            )
+        v = list(res.values)
+        if key == "size" and v[0] < 0:
+            raise SpcFormatError(path, first + 1, f"expected an integer QSZ >= 0, found {v[0]!r}")
+        tag = res.rest.strip()
+        _check_tag(tag, key, _LMK_TAGS, path, res.last + 1)
         values[key] = v
-        header.append(_Slot(key, ln, tuple(v), t.strip()))
+        header.append(_Slot(key, "\n".join(lines[first : res.last + 1]), tuple(v), tag))
 
     section_order: list[str] = []
     section_text: dict[str, str] = {}
@@ -298,7 +309,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
     overlaps: list[MapOverlap] = []
     limbs: list[LandmarkLimb] = []
     state = None
-    i = len(_LMK_ORDER)
+    i = rec.pos
     while i < n:
         ln = lines[i]
         kind = _section_of(ln)
@@ -353,6 +364,17 @@ def parse_lmk(text: str, path=None) -> Landmark:
         pad_header=_majority_padded(lines[1:9], True),
         pad_body=_majority_padded([lines[0]] + lines[9 : i + 1], False),
     )
+    missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
+    if missing:
+        # globalCoverage.f KOUNT: READ (A80) until PICTURES, then until MAP OVERLAPS, then LIMB FITS
+        source.warnings.append(
+            (
+                i + 1,
+                f"no {' / '.join(missing)} line before END FILE: globalCoverage.f KOUNT would read on "
+                "past it "
+                "(spctool accepts the trimmed file)",
+            )
+        )
     return Landmark(
         name=name,
         hflag=hflag,

@@ -62,6 +62,7 @@ class _ListSource:
     end_line: str
     after_end: list[str]
     final_newline: bool
+    warnings: list = field(default_factory=list)
 
 
 def _emit(layout_src: _ListSource | None, keys: list[tuple], make_text) -> str:
@@ -150,20 +151,34 @@ def parse_pictlist(text: str, path=None) -> PictureList:
     lines, final = _split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     entries: list[PictureListEntry] = []
+    warnings: list[tuple[int, str]] = []
+    # globalStat: read(20,fmt='(a13)') xname; '!' or '#' in column 1 skips; IF(xname(1:3).ne.'END') the
+    # picture xname(2:13) is in use -- whatever else column 1 holds
     for i, line in enumerate(lines):
-        if line[:3] == "END":
+        if line.startswith(("\ufeff", "\xef\xbb\xbf")):
+            raise SpcFormatError(
+                path,
+                i + 1,
+                "expected a flag in column 1, found a UTF-8 byte-order mark (SPC reads it as text)",
+            )
+        if line[:1] not in ("!", "#") and line[:3] == "END":
             src = _ListSource(layout, line, lines[i + 1 :], final)
+            src.warnings = warnings
             return PictureList(entries, src)
         if not line.strip():
+            warnings.append((i + 1, "blank line: SPC reads it as a picture with a blank name"))
             layout.append(("other", None, line))
             continue
         flag = line[0].strip()
         if flag not in _PICT_FLAGS:
-            raise SpcFormatError(
-                path,
-                i + 1,
-                f"expected a blank, '!' or '#' in column 1 and the name in columns 2-13, found {line[:13]!r}",
+            warnings.append(
+                (
+                    i + 1,
+                    f"column 1 holds {flag!r}: SPC treats the picture as in use, named by columns 2-13 "
+                    f"({line[1:13].strip()!r})",
+                )
             )
+            flag = ""
         name = line[1:13].strip()
         if not name:
             raise SpcFormatError(path, i + 1, "expected a picture name in columns 2-13")
@@ -228,9 +243,10 @@ def parse_lmrklist(text: str, path=None) -> LandmarkList:
     lines, final = _split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     names: list[str] = []
+    # globalCoverage: read(15,fmt='(A6)') NAME; '#' in column 1 skips; NAME(1:3).ne.'END' is a landmark
     for i, line in enumerate(lines):
         name = line[:6].strip()
-        if name == "END":
+        if line[:1] != "#" and line[:3] == "END":
             return LandmarkList(names, _ListSource(layout, line, lines[i + 1 :], final))
         if line.startswith("#") or not line.strip():
             layout.append(("other", None, line))
@@ -312,13 +328,14 @@ class LandmarkListX:
 
 def parse_lmrklistx(text: str, path=None) -> LandmarkListX:
     """Parse LMRKLISTX text up to the required ``END`` line."""
+    # mirrors bigmap (LMKLX=): (A6) name then a list-directed READ of the rest; NAME(1:3)='END' ends
     path = _src_path(path)
     lines, final = _split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     entries: list[LandmarkListXEntry] = []
     for i, line in enumerate(lines):
         name = line[:6].strip()
-        if name == "END":
+        if line[:1] != "#" and line[:3] == "END":  # the list end test of every SPC list: columns 1-3
             return LandmarkListX(entries, _ListSource(layout, line, lines[i + 1 :], final))
         if line.startswith("#") or not line.strip():
             layout.append(("other", None, line))

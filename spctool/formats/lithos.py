@@ -25,7 +25,7 @@ import numpy as np
 
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
-from spctool.formats.fortran import parse_number
+from spctool.formats.fortran import list_read, parse_number, read_internal
 from spctool.formats.sumfile import _join_lines, _split_lines, _src_path
 
 __all__ = [
@@ -128,7 +128,9 @@ class DistortModel:
 
     def __post_init__(self):
         self.template = str(self.template)[:12].ljust(12)
-        self.model = str(self.model).strip().upper()
+        # getmm: TYPE(KD) is CHARACTER*72 and is compared exactly (IF(TYPE(JD).EQ.'OWEN')): trailing blanks
+        # do not count, case and leading blanks do ('owen' and ' OWEN' are no model to SPC)
+        self.model = str(self.model)[:72].rstrip()
         self.order = int(self.order)
         self.coefficients = np.array(self.coefficients, dtype=float).ravel()
         if self.order < 0:
@@ -191,6 +193,7 @@ class _LithosSource:
     distortions: list[DistortModel]
     final_newline: bool
     path: str | None
+    warnings: list = field(default_factory=list)  # (1-based line, text): where SPC reads differently
 
 
 @dataclass(eq=False)
@@ -263,8 +266,19 @@ class Settings:
             items = _items(raw)
         except ValueError:
             raise self._error(line, f"expected a value for {key.rstrip('=')}=, found {raw!r}") from None
+        lead = raw.lstrip(" \t")
+        if lead.startswith((",", "/")):
+            # READ(LINE(n:80),*) VALUE: a leading comma is a null item and '/' ends the READ -- the
+            # variable keeps the program's default
+            return None, line
         if not items:
             raise self._error(line, f"expected a value for {key.rstrip('=')}=, found nothing")
+        text, quoted = items[0]
+        m = None if quoted else _REPEAT.match(text)
+        if m is not None:  # r*c: the first of r copies of c
+            return (m.group(2), False), line
+        if not quoted and re.fullmatch(r"\d+\*", text):  # r*: null values
+            return None, line
         return items[0], line
 
     def get_str(self, key: str, default: str | None = None) -> str | None:
@@ -316,8 +330,10 @@ class Settings:
         for text, quoted in items:
             if quoted:
                 break
+            m = _REPEAT.match(text)  # list-directed r*c: r copies of c
+            count, text = (int(m.group(1)), m.group(2)) if m else (1, text)
             try:
-                out.append(parse_number(text))
+                out.extend([parse_number(text)] * count)
             except ValueError:
                 break
         if not out:
@@ -355,6 +371,11 @@ class Settings:
     def mapvers(self) -> int:
         return self.get_int("MAPVERS", 0)
 
+    @property
+    def warnings(self) -> list[tuple[int, str]]:
+        """(1-based line, text) where SPC reads this file differently from a careless reader."""
+        return list(self._source.warnings) if self._source is not None else []
+
     def distortion_for(self, picture_name: str) -> DistortModel | None:
         """The distortion model for a picture: the LAST ``DISTORT=`` entry whose template matches."""
         found = None
@@ -375,6 +396,7 @@ def _group_of(key: str) -> str | None:
 
 
 def parse_lithos(text: str, path=None) -> Settings:
+    # mirrors getmm (xCommon.f): READ(25,FMT='(A80)') LINE until LINE(1:3)='END'; keys LINE(1:n)='KEY='
     """Parse ``INIT_LITHOS.TXT`` text (spc-formats.md §6); a missing ``END`` line is an error."""
     path = _src_path(path)
     lines, final = _split_lines(text)
@@ -385,9 +407,24 @@ def parse_lithos(text: str, path=None) -> Settings:
     lists: dict[str, list] = {g: [] for g in _GROUPS}
     i = 0
     end = None
+    warnings: list = []
+    if lines and lines[0].startswith(("\ufeff", "\xef\xbb\xbf")):
+        bom = lines[0].lstrip("\ufeff\xef\xbb\xbf")
+        m0 = _KEY.match(bom)
+        if m0 is not None:
+            raise SpcFormatError(
+                path,
+                1,
+                f"expected the key {m0.group(1)}= in column 1, found a UTF-8 byte-order mark before it "
+                "(SPC would not recognise the key; remove the mark)",
+            )
     while i < n:
         line = lines[i]
         rec = line[:80]
+        if len(line) > 80 and line[80:].strip() and _KEY.match(rec) and not rec.startswith("DISTORT="):
+            warnings.append(
+                (i + 1, f"text past column 80 is not read by SPC ((A80) record): {line[80:].strip()[:30]!r}")
+            )
         if rec[:3] == "END":
             end = i
             break
@@ -400,7 +437,7 @@ def parse_lithos(text: str, path=None) -> Settings:
         value = rec[m.end() :]
         group = _group_of(key)
         if group == "distortions":
-            model, used = _parse_distort(lines, i, value, path)
+            model, used = _parse_distort(lines, i, value, path, warnings)
             lists[group].append(model)
             items.append(_Item(group, lines[i : i + used], i, key))
             i += used
@@ -441,6 +478,7 @@ def parse_lithos(text: str, path=None) -> Settings:
         ],
         final_newline=final,
         path=path,
+        warnings=warnings,
     )
     return Settings(
         keys=keys,
@@ -451,57 +489,55 @@ def parse_lithos(text: str, path=None) -> Settings:
     )
 
 
-def _parse_distort(lines: list[str], i: int, value: str, path) -> tuple[DistortModel, int]:
-    """``DISTORT= 'TEMPLATE' 'MODEL' J`` then J+1 coefficients on the following record(s)."""
-    try:
-        vals = _items(value)
-    except ValueError:
-        raise SpcFormatError(
-            path, i + 1, "expected DISTORT= 'TEMPLATE' 'MODEL' J (unterminated string)"
-        ) from None
-    if len(vals) < 3:
-        raise SpcFormatError(path, i + 1, f"expected DISTORT= 'TEMPLATE' 'MODEL' J, found {len(vals)} values")
-    template, model, order_text = vals[0][0], vals[1][0], vals[2][0]
-    if not _INT.match(order_text):
-        raise SpcFormatError(
-            path, i + 1, f"expected the integer J after the DISTORT= model, found {order_text!r}"
-        )
-    order = int(order_text)
+def _parse_distort(lines: list[str], i: int, value: str, path, warnings: list) -> tuple[DistortModel, int]:
+    """``DISTORT= 'TEMPLATE' 'MODEL' J`` then P0..PJ, as getmm reads them (xCommon.f getmm).
+
+    getmm: ``READ(LINE(9:80),*) TMPL(KD), TYPE(KD), J`` on the ``(A80)`` key record, then
+    ``READ(25,*) (PD(I,KD), I=0,J)`` straight from the file: list-directed, no column limit, over as many
+    records as it needs; a ``/`` ends it and null items leave coefficients at their initial 0.
+    """
+    head = read_internal(
+        value, "aai", ["", "", None], path=path, line=i + 1, what="values (DISTORT= 'TEMPLATE' 'MODEL' J)"
+    )
+    template, model, order = head.values
+    if order is None:
+        raise SpcFormatError(path, i + 1, "expected DISTORT= 'TEMPLATE' 'MODEL' J, found no J")
     if not 0 <= order <= 100:
         raise SpcFormatError(path, i + 1, f"expected 0 <= J <= 100 for DISTORT=, found {order}")
     need = order + 1
-    coefs: list[float] = []
-    j = i + 1
-    while len(coefs) < need:
-        if j >= len(lines):
-            raise SpcFormatError(
-                path, len(lines), f"expected {need} DISTORT= coefficients, found {len(coefs)}"
-            )
-        rec = lines[j][:80]
-        if rec[:3] == "END":
-            raise SpcFormatError(path, j + 1, f"expected {need} DISTORT= coefficients, found {len(coefs)}")
-        try:
-            record = _items(rec)
-        except ValueError:
-            record = [(rec.strip(), True)]
-        for tok, quoted in record:
-            if len(coefs) == need:
-                break
-            m = _REPEAT.match(tok)
-            count, tok = (int(m.group(1)), m.group(2)) if m and not quoted else (1, tok)
-            try:
-                if quoted:
-                    raise ValueError(tok)
-                number = parse_number(tok)
-            except ValueError:
-                raise SpcFormatError(
-                    path,
+    if i + 1 >= len(lines):
+        raise SpcFormatError(path, len(lines), f"expected {need} DISTORT= coefficients, found end of file")
+    res = list_read(lines, i + 1, "r" * need, [0.0] * need, path=path, what="DISTORT= coefficients")
+    for j in range(i + 1, res.last + 1):
+        if len(lines[j]) > 80 and lines[j][80:].strip():
+            warnings.append(
+                (
                     j + 1,
-                    f"expected {need} DISTORT= coefficients, found {tok!r} at value {len(coefs) + 1}",
-                ) from None
-            coefs.extend([number] * min(count, need - len(coefs)))
-        j += 1
-    return DistortModel(template, model, order, np.array(coefs)), j - i
+                    "DISTORT= coefficients continue past column 80 "
+                    "(SPC reads them: list-directed, no column limit)",
+                )
+            )
+    if res.slash or res.nulls:
+        how = "a '/' ends the list" if res.slash else "null items"
+        kept = [k for k, ln in enumerate(res.lines) if ln is None]
+        warnings.append(
+            (i + 2, f"DISTORT= {how}: P{', P'.join(map(str, kept))} keep the value 0 (SPC getmm READ(25,*))")
+        )
+    dm = DistortModel(template, model, order, np.array(res.values, dtype=float))
+    if dm.model not in _SPC_MODELS:
+        known = ", ".join(_SPC_MODELS)
+        warnings.append(
+            (
+                i + 1,
+                f"DISTORT= model {dm.model!r} is not one SPC's getmm knows (exact, upper case: {known}); "
+                "SPC projects these pictures with the plain pinhole",
+            )
+        )
+    return dm, res.last + 1 - i
+
+
+#: model names getmm compares TYPE against (xCommon.f getmm), exactly
+_SPC_MODELS = ("CUBIC", "RADIAL", "OWEN", "LINESCAN", "APOLLO", "HIRISE")
 
 
 def format_lithos(settings: Settings) -> str:

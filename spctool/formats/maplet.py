@@ -68,8 +68,19 @@ QSZ_MAX = 65535
 HEADER_DTYPE = np.dtype(
     {
         "names": ["unused", "scale", "qsz", "sigdir", "v", "ux", "uy", "uz", "hscale", "sigma", "mapvers"],
-        "formats": ["V6", ">f4", "<u2", ("u1", (3,)), (">f4", (3,)), (">f4", (3,)), (">f4", (3,)),
-                    (">f4", (3,)), ">f4", ">f4", "u1"],
+        "formats": [
+            "V6",
+            ">f4",
+            "<u2",
+            ("u1", (3,)),
+            (">f4", (3,)),
+            (">f4", (3,)),
+            (">f4", (3,)),
+            (">f4", (3,)),
+            ">f4",
+            ">f4",
+            "u1",
+        ],
         "offsets": [0, 6, 10, 12, 15, 27, 39, 51, 63, 67, 71],
         "itemsize": RECORD,
     }
@@ -394,7 +405,8 @@ def _qsz_from(data, path) -> int:
         raise _err(path, size, f"a 72-byte MAP header record (file has only {size} bytes)")
     if data[0:6] == b"DOUBLE":
         raise _err(
-            path, 0,
+            path,
+            0,
             "an SPC single-precision MAP: bytes 1-6 'DOUBLE' mark GIANT's double-precision "
             "maplet variant, which is not SPC and not supported",
         )
@@ -405,20 +417,27 @@ def _qsz_from(data, path) -> int:
     q_be = 256 * data[10] + data[11]
     if map_file_size(q_be) == size:
         return q_be
+    if size >= RECORD + 3 * (2 * q_le + 1) ** 2:
+        # READ_MAP (xCommon.f) reads records 1..N only: a longer file (an older WRITE_MAP rewrote it in
+        # place without truncating) or an unpadded last record is read -- see parse_map
+        return q_le
     if size < need:
         raise _err(
-            path, size,
+            path,
+            size,
             f"{need} bytes for QSZ={q_le} (72*(1+ceil((2Q+1)^2/24))): file truncated at {size} bytes "
             f"(or QSZ in bytes 11-12 is wrong)",
         )
     if size % RECORD:
         raise _err(
-            path, size - size % RECORD,
+            path,
+            size - size % RECORD,
             f"whole 72-byte records (file size {size} is not a multiple of 72; "
             f"QSZ={q_le} needs {need} bytes)",
         )
     raise _err(
-        path, 10,
+        path,
+        10,
         f"QSZ (bytes 11-12, little-endian) consistent with the file size: QSZ={q_le} needs {need} bytes, "
         f"file has {size} bytes ({size // RECORD} records)",
     )
@@ -432,10 +451,15 @@ def _check_header(floats, scale: float, path) -> None:
     for k, off, what in ((0, _OFF_V, "V"), (3, _OFF_UX, "UX"), (6, _OFF_UY, "UY"), (9, _OFF_UZ, "UZ")):
         if not (isfinite(floats[k]) and isfinite(floats[k + 1]) and isfinite(floats[k + 2])):
             raise _err(path, off, f"finite {what} components (3 float32 big-endian)")
+    if not isfinite(floats[12]):
+        # READ_MAP: HT = HSCALE*IX2 -- a NaN/Inf HSCALE would make every height NaN/Inf
+        raise _err(path, _OFF_HSCALE, f"a finite HSCALE (float32 big-endian), got {floats[12]!r}")
 
 
 def parse_map(data: bytes, path=None, *, name: str | None = None) -> Maplet:
     """Decode the bytes of a MAP file (§1).  ``path`` names the file in errors and gives ``name``.
+
+    Mirrors xCommon.f READ_MAP: ``READ(20,REC=1) BLINE`` (header), ``READ(20,REC=NREC) BLINE`` for the cells.
 
     Heights, albedo and valid are decoded from the kept bytes on first access.
     """
@@ -444,13 +468,30 @@ def parse_map(data: bytes, path=None, *, name: str | None = None) -> Maplet:
             raise TypeError("parse_map expects bytes")
         data = bytes(data)
     q = _qsz_from(data, path)
+    warnings: list[tuple[str, str]] = []
+    need = map_file_size(q)
+    if len(data) != need and map_file_size(256 * data[10] + data[11]) != len(data):
+        # READ_MAP reads records 1..N: bytes past them are never read, a short last record is zero-padded
+        if len(data) > need:
+            warnings.append(
+                (
+                    f"byte {need}",
+                    f"{len(data) - need} bytes after record {need // RECORD} are not read by READ_MAP",
+                )
+            )
+            data = data[:need]
+        else:
+            warnings.append(
+                (f"byte {len(data)}", "the last record is not padded to 72 bytes (READ_MAP reads it)")
+            )
+            data = data + bytes(need - len(data))
     fl = _HEADER_FLOATS.unpack_from(data, _OFF_V)
     scale = _SCALE.unpack_from(data, _OFF_SCALE)[0]
     _check_header(fl, scale, path)
     vec = np.array(fl[:12], dtype=np.float64)
     if name is None:
         name = "" if path is None else Path(os.fspath(path)).stem
-    return Maplet(
+    m = Maplet(
         scale=scale,
         qsz=q,
         v=vec[0:3],
@@ -464,6 +505,8 @@ def parse_map(data: bytes, path=None, *, name: str | None = None) -> Maplet:
         name=name,
         _raw=data,
     )
+    m.__dict__["_spc_warnings"] = warnings
+    return m
 
 
 def _decode_cells(raw_h: np.ndarray, raw_a: np.ndarray, hscale: float):

@@ -245,7 +245,24 @@ def dat_byte_plane_energies(planes: np.ndarray) -> tuple[int, int]:
     return z[0], z[1]
 
 
-def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str) -> np.ndarray:
+def dat_layout(size: int, npx: int, nln: int) -> int:
+    """Bytes per pixel SPC uses for a ``.DAT`` of ``size`` bytes (xPicInpt.f), or 0 if it cannot read it.
+
+    xPicInpt opens the file with ``RECL=2*NPX`` and tries ``READ(10,REC=NLN,ERR=20)``: gfortran reads a
+    record that has at least one byte in the file (a short last record comes zero-padded) and takes the
+    ERR branch only when record NLN starts past the end (oracle-checked).  So 2 bytes per pixel whenever
+    size > 2·NPX·(NLN−1), else 1 byte, which the 8-bit loop can read when size > NPX·(NLN−1).
+    """
+    if size == npx * nln and nln == 1:
+        return 1  # one-line image: SPC's test would say 16-bit; the exact 8-bit size is taken (a warning)
+    if size > 2 * npx * (nln - 1):
+        return 2
+    if size > npx * (nln - 1):
+        return 1
+    return 0
+
+
+def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str, warnings: list | None = None) -> np.ndarray:
     if npx is None or nln is None:
         raise SpcUsageError(f"{path}: a .DAT photo needs NPX and NLN (from the picture's SUM)")
     npx, nln = int(npx), int(nln)
@@ -253,26 +270,76 @@ def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str) -> np.ndarray:
         raise SpcUsageError(f"NPX and NLN must be positive, got {npx} {nln}")
     order = _normalise_order(byte_order)
     size = len(data)
-    if size == 2 * npx * nln:
+    warnings = [] if warnings is None else warnings
+    nbytes = dat_layout(size, npx, nln)
+    if nbytes == 0:
+        raise SpcFormatError(
+            path,
+            f"byte {size}",
+            f"{npx * nln} bytes (8-bit) or {2 * npx * nln} bytes (16-bit) for NPX={npx} NLN={nln} "
+            f"(spc-formats §7.4); the file has {size} bytes",
+        )
+    need = nbytes * npx * nln
+    if nln == 1 and nbytes == 1:
+        warnings.append((None, "a one-line 8-bit .DAT: SPC's record test (xPicInpt) would read it as 16-bit"))
+    if size > need:
+        warnings.append(
+            (f"byte {need}", f"{size - need} bytes after the {nln} lines are not read by SPC (xPicInpt)")
+        )
+    elif size < need:
+        warnings.append((f"byte {size}", "the last line is short: SPC reads it zero-padded (DN 0 = no data)"))
+    data = bytes(data[:need]) + bytes(max(0, need - size))
+    if nbytes == 2:
         if order == "auto":
-            order = detect_dat_byte_order(data, npx, nln)
+            buf = np.frombuffer(data, dtype=np.uint8).reshape(nln, npx, 2)
+            z1, z2 = dat_byte_plane_energies(buf)
+            order = "little" if z1 > z2 else "big"
+            if z1 == z2:
+                warnings.append(
+                    (
+                        None,
+                        "SPC's byte-order test ties (equal Laplacian energy in both byte planes): "
+                        "xPicInpt then sets no DN (all zero); spctool reads MSB first",
+                    )
+                )
         dt = ">u2" if order == "big" else "<u2"
         return np.frombuffer(data, dtype=dt).reshape(nln, npx).astype(np.uint16)
-    if size == npx * nln:
-        return np.frombuffer(data, dtype=np.uint8).reshape(nln, npx).copy()
-    raise SpcFormatError(
-        path,
-        f"byte {size}",
-        f"{npx * nln} bytes (8-bit) or {2 * npx * nln} bytes (16-bit) for NPX={npx} NLN={nln} "
-        f"(spc-formats §7.4); the file has {size} bytes",
-    )
+    return np.frombuffer(data, dtype=np.uint8).reshape(nln, npx).copy()
 
 
 def read_dat(path, npx: int, nln: int, byte_order: str = "auto") -> Photo:
-    """Read an SPC raw image ``IMAGEFILES/<PICNM>.DAT`` (§7.4); line 1 = first record."""
+    """Read an SPC raw image ``IMAGEFILES/<PICNM>.DAT`` (§7.4); line 1 = first record.
+
+    Mirrors xPicInpt.f: ``READ(10,REC=NLN,ERR=20)`` picks 16 or 8 bits, the Laplacian test the order.
+    """
     path = Path(path)
     data = _read_bytes(path)
-    return Photo(_dat_from_bytes(data, path, npx, nln, byte_order), name=path.stem)
+    warnings: list = []
+    photo = Photo(_dat_from_bytes(data, path, npx, nln, byte_order, warnings), name=path.stem)
+    photo.__dict__["_spc_warnings"] = warnings
+    return photo
+
+
+class SpcDatWarning(UserWarning):
+    """A ``.DAT`` written so that SPC's byte-order test (xPicInpt) would misread it."""
+
+
+def dat_write_check(data: np.ndarray) -> str | None:
+    """Why SPC would misread ``data`` written as a 16-bit MSB-first ``.DAT`` (None when it reads it right).
+
+    xPicInpt takes the byte plane with more Laplacian energy as the low byte: when the high bytes are
+    busier (e.g. 8-bit data scaled ×256) SPC reads the file byte-swapped, and on a tie (×257) it sets no DN.
+    """
+    arr = np.asarray(data)
+    if arr.dtype != np.uint16 or arr.ndim != 2:
+        return None
+    planes = np.ascontiguousarray(arr.astype(">u2")).view(np.uint8).reshape(arr.shape[0], arr.shape[1], 2)
+    z1, z2 = dat_byte_plane_energies(planes)
+    if z1 > z2:
+        return "its high bytes vary more than its low bytes: SPC's byte-order test would read it byte-swapped"
+    if z1 == z2 and arr.any() and min(arr.shape) >= 3:
+        return "its two byte planes tie in SPC's byte-order test: SPC would read no DN at all"
+    return None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -556,6 +623,14 @@ def format_photo(photo: Photo | np.ndarray, fmt: str, *, flip_rows: bool = False
         if data.dtype == np.uint8:
             return np.ascontiguousarray(data).tobytes()
         if data.dtype == np.uint16:
+            if data.size and int(data.max()) <= 255:
+                # fits in 8 bits: write 8-bit, which SPC's record test reads without a byte-order guess
+                return np.ascontiguousarray(data.astype(np.uint8)).tobytes()
+            problem = dat_write_check(data)
+            if problem is not None:
+                import warnings
+
+                warnings.warn(SpcDatWarning(f"16-bit .DAT: {problem} (xPicInpt)"), stacklevel=2)
             return data.astype(">u2").tobytes()  # MSB first, SPC's normal order
         raise SpcUsageError(f".DAT holds 8- or 16-bit integers, not {data.dtype}; use FITS for floats")
     raise SpcUsageError(f"unknown photo format {fmt!r} (fits, pgm, png or dat)")
@@ -592,6 +667,9 @@ def write_photo(
 __all__ = [
     "Photo",
     "dat_byte_plane_energies",
+    "dat_layout",
+    "dat_write_check",
+    "SpcDatWarning",
     "detect_dat_byte_order",
     "detect_format",
     "format_photo",

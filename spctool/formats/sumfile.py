@@ -25,9 +25,19 @@ import numpy as np
 
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
-from spctool.formats.fortran import format_d, format_f, format_i, is_number, parse_number
+from spctool.formats.fortran import (
+    Records,
+    format_d,
+    format_f,
+    format_i,
+    is_number,
+    parse_number,
+    parse_real,
+    read_internal,
+)
 
 __all__ = [
+    "LineScan",
     "SumLandmark",
     "LimbFit",
     "Picture",
@@ -47,8 +57,54 @@ __all__ = [
 # shared text helpers (also used by landmark.py and lithos.py / lists.py)
 
 _TOKEN = re.compile(r"[^\s,]+")
+_DIGIT = re.compile(r"\d")
 _FIXED = re.compile(r"^[+-]?\d*\.\d*$")
 _EXP_LETTER = re.compile(r"\d([EeDdQq])[+-]?\d")
+
+
+def _is_real(token: str) -> bool:
+    """A list-directed real or repeat item (``0.1D+01``, ``NaN``, ``3*0.0``)."""
+    token = token.split("*", 1)[1] if re.match(r"^\d+\*", token) else token
+    if token == "":
+        return True
+    try:
+        parse_real(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _d_like(line: str) -> bool:
+    """The record after K-MATRIX that is a DISTORTION line: the tag at 64-73, or 4 untagged numbers."""
+    if line[63:73] == "DISTORTION":
+        return True
+    toks = _TOKEN.findall(line)
+    return len(toks) == 4 and all(_is_real(t) for t in toks)
+
+
+def _refuse_bom(line: str, path, what: str) -> None:
+    """A UTF-8 byte-order mark is read by SPC as three characters of the record: refuse it."""
+    if line.startswith(("\ufeff", "\xef\xbb\xbf")):
+        raise SpcFormatError(
+            path,
+            1,
+            f"expected {what} in column 1, found a UTF-8 byte-order mark (SPC reads it as text; remove it)",
+        )
+
+
+def _check_tag(tag: str, key: str, tags: dict, path, lineno: int) -> None:
+    """A tag naming another header line: the line is swapped or duplicated (SPC reads by position)."""
+    if not tag:
+        return
+    t = " ".join(tag.upper().split())
+    for other, name in tags.items():
+        if other != key and t == name:
+            raise SpcFormatError(
+                path,
+                lineno,
+                f"expected the {tags[key]} line here (SPC reads this line by position as {tags[key]}), "
+                f"found the tag {name}: a swapped or duplicated line",
+            )
 
 
 def _split_lines(text: str) -> tuple[list[str], bool]:
@@ -307,6 +363,8 @@ class _SumSource:
     pad_header: bool
     pad_body: bool
     name_line: str
+    warnings: list = field(default_factory=list)
+    linescan_data: LineScan | None = None
 
 
 _SUM_TAGS = {
@@ -419,6 +477,64 @@ class Picture:
         line = self._source.name_line if self._source is not None else ""
         return len(line) >= 14 and line[13] == "L"
 
+    @property
+    def linescan(self) -> LineScan | None:
+        """The parsed ``LINE SCAN DATA`` block of a line-scan picture, else None."""
+        return self._source.linescan_data if self._source is not None else None
+
+
+@dataclass(frozen=True, eq=False)
+class LineScan:
+    """The ``LINE SCAN DATA`` block of a line-scan SUM (spc-formats.md §2.4), as xV2IMGPL.f reads it.
+
+    U0, R0, POL_AXIS, POL, TRJ_AXIS, TRJ and KMAX rows of CAX, each read with its own ``READ(32,*)``.
+    (XV2IMGPL then replaces U0 and R0(1) by the direction and length of SCOBJ.)
+    """
+
+    u0: np.ndarray
+    r0: np.ndarray
+    pol_axis: np.ndarray
+    pol: float
+    trj_axis: np.ndarray
+    trj: np.ndarray
+    cax: np.ndarray  # (KMAX, 3)
+
+
+def _parse_linescan(lines: list[str], path) -> LineScan:
+    """xV2IMGPL.f: READ(32,FMT='(A80)') LINE until LINE(1:14)='LINE SCAN DATA', then READ(32,*) U0; R0;
+    POL_AXIS; POL; TRJ_AXIS; TRJ; KMAX; KMAX x CAX(K,1:3)."""
+    start = next((k for k in range(1, len(lines)) if lines[k][:14] == "LINE SCAN DATA"), None)
+    if start is None:
+        raise SpcFormatError(
+            path,
+            1,
+            "expected a LINE SCAN DATA line: column 14 of line 1 is 'L' (a line-scan picture), and xV2IMGPL "
+            "reads the file up to that line",
+        )
+    rec = Records(lines, path, start + 1)
+
+    def vec(kinds: str, what: str):
+        if rec.at_end:
+            raise SpcFormatError(
+                path, len(lines), f"expected {what} in the LINE SCAN DATA block, found end of file"
+            )
+        res = rec.read_list(kinds, what=f"numbers ({what}, LINE SCAN DATA)")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, res.first + 1, f"expected {len(kinds)} numbers ({what}), found a null item"
+            )
+        return res.values
+
+    u0, r0, pol_axis = vec("rrr", "U0"), vec("rrr", "R0"), vec("rrr", "POL_AXIS")
+    pol = vec("r", "POL")[0]
+    trj_axis, trj = vec("rrr", "TRJ_AXIS"), vec("rrr", "TRJ")
+    kmax = vec("i", "KMAX")[0]
+    if not 0 <= kmax <= 20:
+        raise SpcFormatError(path, rec.pos, f"expected 0 <= KMAX <= 20 (CAX(20,3)), found {kmax}")
+    cax = np.array([vec("rrr", f"CAX row {k + 1}") for k in range(kmax)], dtype=float).reshape(kmax, 3)
+    arr = lambda v: np.array(v, dtype=float)  # noqa: E731
+    return LineScan(arr(u0), arr(r0), arr(pol_axis), float(pol), arr(trj_axis), arr(trj), cax)
+
 
 _UTC = re.compile(r"^\d{4}\s+[A-Za-z]{3}\s+\d{1,2}\s+\d{1,2}:\d{2}:\d{2}(\.\d*)?")
 
@@ -477,56 +593,92 @@ def parse_sum(text: str, path=None) -> Picture:
         return lines[i]
 
     header: list[_Slot] = []
+    warnings: list[tuple[int, str]] = []
+    rec = Records(lines, path)
 
-    # line 1: picture name (A12); column 14 'L' marks a line-scan picture
+    # line 1: globalStat READ(10,*) skips it; the name is columns 1-12, column 14 'L' marks a line-scan
+    # picture (xV2IMGPL READ(32,FMT='(A80)') LINE; IF(LINE(14:14).EQ.'L'))
     line = need(0, "the picture name")
+    _refuse_bom(line, path, "the picture name")
+    rec.skip()
     name = line[:12].strip()
-    if not name:
-        raise SpcFormatError(path, 1, "expected the picture name in columns 1-12")
+    if not name and path is not None:
+        name = os.path.splitext(os.path.basename(path))[0][:12]
+        warnings.append(
+            (1, f"blank picture-name line (SPC skips it: READ(10,*)); name {name!r} taken from the file name")
+        )
     header.append(_Slot("name", line, (name,)))
 
-    # line 2: UTC
+    # line 2: the UTC, skipped by READ(10,*) (globalStat): any text, even blank, is accepted
     line = need(1, "the UTC line")
+    rec.skip()
     utc = line.strip()
-    if not _UTC.match(utc):
-        raise SpcFormatError(path, 2, f"expected the UTC 'YYYY MON DD HH:MM:SS.sss', found {utc[:40]!r}")
     header.append(_Slot("utc", line, (utc,)))
 
-    # line 3: NPX NLN T_lo T_hi
-    line = need(2, "NPX, NLN, THRSH")
-    vals, tag = _scan_numbers(line, 4, path=path, lineno=3, what="numbers (NPX, NLN, THRSH)")
-    if not (_is_integral(vals[0]) and _is_integral(vals[1])) or vals[0] < 1 or vals[1] < 1:
+    def field(key: str, kinds: str, what: str):
+        """One header READ(10,*) (globalStat / map_coverage_p_low), its tag checked against its place."""
+        if rec.at_end:
+            raise SpcFormatError(path, n, f"expected {what} on line {rec.pos + 1}, found end of file")
+        first = rec.pos
+        res = rec.read_list(kinds, what=f"numbers ({what})")
+        if res.nulls or res.slash:
+            k = next(j for j, ln in enumerate(res.lines) if ln is None)
+            raise SpcFormatError(
+                path,
+                first + 1,
+                f"expected {len(kinds)} numbers ({what}), found a null item or '/' for value {k + 1} "
+                "(SPC would keep the previous picture's value)",
+            )
+        tag = res.rest.strip()
+        _check_tag(tag, key, _SUM_TAGS, path, res.last + 1)
+        more = tag.split(None, 1)[:1]
+        if more and _is_real(more[0].rstrip(",")):
+            warnings.append(
+                (res.last + 1, f"{what}: values after the {len(kinds)} SPC reads are ignored ({more[0]!r})")
+            )
+        if res.last > first or res.first != first:
+            warnings.append(
+                (
+                    first + 1,
+                    f"{what} continues over lines {first + 1}-{res.last + 1} (SPC reads on: list-directed)",
+                )
+            )
+        text = "\n".join(lines[first : res.last + 1])
+        return res.values, text, tag
+
+    # READ(10,*) NPX, NLN, T1, T2 (map_coverage_p_low; globalStat reads NPX, NLN only)
+    vals, text, tag = field("npx", "iirr", "NPX, NLN, THRSH")
+    if vals[0] < 1 or vals[1] < 1:
         raise SpcFormatError(path, 3, f"expected positive integers NPX, NLN, found {vals[0]!r}, {vals[1]!r}")
     npx, nln = int(vals[0]), int(vals[1])
-    thrsh = np.array(vals[2:4])
-    header.append(_Slot("npx", line, (npx, nln, vals[2], vals[3]), tag.strip()))
+    thrsh = np.array(vals[2:4], dtype=float)
+    header.append(_Slot("npx", text, (npx, nln, float(vals[2]), float(vals[3])), tag))
 
-    def vec_line(i: int, key: str, count: int, what: str) -> list[float]:
-        ln = need(i, what)
-        v, t = _scan_numbers(ln, count, path=path, lineno=i + 1, what=f"numbers ({what})")
-        header.append(_Slot(key, ln, tuple(v), t.strip()))
+    def vec_line(key: str, count: int, what: str) -> list[float]:
+        v, text, tag = field(key, "r" * count, what)
+        header.append(_Slot(key, text, tuple(float(x) for x in v), tag))
         return v
 
-    v = vec_line(3, "mmfl", 3, "MMFL, CTR")
+    v = vec_line("mmfl", 3, "MMFL, CTR")
     mmfl, ctr = v[0], np.array(v[1:3])
-    scobj = np.array(vec_line(4, "scobj", 3, "SCOBJ"))
-    cx = np.array(vec_line(5, "cx", 3, "CX"))
-    cy = np.array(vec_line(6, "cy", 3, "CY"))
-    cz = np.array(vec_line(7, "cz", 3, "CZ"))
-    sz = np.array(vec_line(8, "sz", 3, "SZ"))
-    line = need(9, "K-MATRIX")
-    v, t = _scan_row(line, 6, 10, path=path, lineno=10, what="numbers (K-MATRIX)")
-    header.append(_Slot("kmatrix", line, tuple(v), t.strip()))
-    kmatrix = np.array(v).reshape(2, 3)
+    scobj = np.array(vec_line("scobj", 3, "SCOBJ"))
+    cx = np.array(vec_line("cx", 3, "CX"))
+    cy = np.array(vec_line("cy", 3, "CY"))
+    cz = np.array(vec_line("cz", 3, "CZ"))
+    sz = np.array(vec_line("sz", 3, "SZ"))
+    kmatrix = np.array(vec_line("kmatrix", 6, "K-MATRIX")).reshape(2, 3)
 
-    # the rest of the header: DISTORTION (optional, by tag), SIGMA_VSO, SIGMA_PTG, other lines kept verbatim
-    i = 10
+    # the rest of the header.  DISTORTION: READ(10,FMT='(A80)') LINE; IF(LINE(64:73).EQ.'DISTORTION')
+    # READ(LINE,*) (D(I),I=1,4), else D = 0 (globalStat, map_coverage_p_low); SIGMA_VSO / SIGMA_PTG (LITHOS)
+    # by tag, untagged lines by position; other lines kept verbatim
+    i = rec.pos
+    d_line = i
     rest: list[tuple[int, str, str | None]] = []
     while i < n and _section_kind(lines[i]) is None:
         ln = lines[i]
         toks = _TOKEN.findall(ln)
         k = 0
-        while k < len(toks) and is_number(toks[k]):
+        while k < len(toks) and _is_real(toks[k]):
             k += 1
         tag_text = " ".join(toks[k:])
         # None = untagged (takes a SIGMA role by position below); "other" = an unknown tag such as SIGPXL
@@ -539,32 +691,67 @@ def parse_sum(text: str, path=None) -> Picture:
     for role in ("vso", "ptg"):
         if role not in kinds:
             for j, kd in enumerate(kinds):
-                if kd is None:
+                if kd is None and not (rest[j][0] == d_line and _d_like(rest[j][1])):
                     kinds[j] = role
                     break
     distortion = None
     sigma_vso = sigma_ptg = None
     seen: set[str] = set()
     for (idx, ln, _), kind in zip(rest, kinds):
+        if kind == "distortion" or (idx == d_line and ln[63:73] == "DISTORTION"):
+            if idx == d_line and ln[63:73] == "DISTORTION" and "distortion" not in seen:
+                res = read_internal(
+                    ln[:80], "rrrr", [0.0] * 4, path=path, line=idx + 1, what="numbers (DISTORTION)"
+                )
+                v = [float(x) for x in res.values]
+                header.append(_Slot("distortion", ln, tuple(v), ln[63:].strip()))
+                distortion = np.array(v)
+                seen.add("distortion")
+                if len(ln) > 80 and ln[80:].strip():
+                    warnings.append(
+                        (idx + 1, "text past column 80 of the DISTORTION record is not read by SPC")
+                    )
+                continue
+            where = "is not the line after K-MATRIX" if idx != d_line else "is not in columns 64-73"
+            warnings.append(
+                (idx + 1, f"the DISTORTION tag {where}: SPC takes D = 0 (IF(LINE(64:73).EQ.'DISTORTION'))")
+            )
+            header.append(_Slot("extra", ln))
+            continue
+        if kind is None and idx == d_line and _d_like(ln):
+            warnings.append(
+                (
+                    idx + 1,
+                    "untagged 4-number line after K-MATRIX: SPC tests LINE(64:73) for 'DISTORTION' "
+                    "and takes D = 0",
+                )
+            )
         if kind in seen:
             kind = None  # a repeated role: keep verbatim
         if kind is None or kind == "other":
             header.append(_Slot("extra", ln))
             continue
         seen.add(kind)
-        count = 4 if kind == "distortion" else 3
-        v, t = _scan_numbers(ln, count, path=path, lineno=idx + 1, what=f"numbers ({_SUM_TAGS[kind]})")
-        header.append(_Slot(kind, ln, tuple(v), t.strip()))
-        if kind == "distortion":
-            distortion = np.array(v)
-        elif kind == "vso":
+        res = read_internal(ln, "rrr", path=path, line=idx + 1, what=f"numbers ({_SUM_TAGS[kind]})")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, idx + 1, f"expected 3 numbers ({_SUM_TAGS[kind]}), found a null item or '/'"
+            )
+        v = [float(x) for x in res.values]
+        header.append(_Slot(kind, ln, tuple(v), res.rest.strip()))
+        if kind == "vso":
             sigma_vso = np.array(v)
         else:
             sigma_ptg = np.array(v)
-    if sigma_vso is None:
-        raise SpcFormatError(path, i + 1, "expected a SIGMA_VSO line before this section header")
-    if sigma_ptg is None:
-        raise SpcFormatError(path, i + 1, "expected a SIGMA_PTG line before this section header")
+    if sigma_vso is None or sigma_ptg is None:
+        missing = " and ".join(
+            t for t, v in (("SIGMA_VSO", sigma_vso), ("SIGMA_PTG", sigma_ptg)) if v is None
+        )
+        warnings.append(
+            (i + 1, f"the header ends without {missing} (SPC's readers stop after K-MATRIX); read as 0")
+        )
+        sigma_vso = np.zeros(3) if sigma_vso is None else sigma_vso
+        sigma_ptg = np.zeros(3) if sigma_ptg is None else sigma_ptg
     header_end = i
 
     # sections
@@ -582,6 +769,14 @@ def parse_sum(text: str, path=None) -> Picture:
         if kind == "end":
             section_text["end"] = ln
             end_index = i
+            if "limbs" not in section_text:
+                warnings.append(
+                    (
+                        i + 1,
+                        "END FILE before a LIMB FITS line: SPC's LMCOUNT reads (A80) records until LIMB FITS "
+                        "and would run past it",
+                    )
+                )
             break
         if state == "linescan" and kind not in ("landmarks", "limbs"):
             linescan[1].append(ln)  # type: ignore[index]
@@ -598,10 +793,23 @@ def parse_sum(text: str, path=None) -> Picture:
             section_text[kind] = ln
             state = kind
         elif state == "landmarks":
+            if _DIGIT.search(ln, 6) is None and ln.strip():
+                raise SpcFormatError(
+                    path,
+                    i + 1,
+                    f"expected a landmark row or LIMB FITS in columns 1-9 (LMCOUNT), "
+                    f"found {ln.strip()[:20]!r}",
+                )
             lm = _parse_sum_landmark(ln, path, i + 1)
             landmarks.append(lm)
             landmark_rows.append((lm._key(), ln))
         elif state == "limbs":
+            if _DIGIT.search(ln, 6) is None and ln.strip():
+                raise SpcFormatError(
+                    path,
+                    i + 1,
+                    f"expected a limb row or END FILE in columns 1-8 (LMCOUNT), found {ln.strip()[:20]!r}",
+                )
             lf = _parse_limb(ln, path, i + 1, name_width=6)
             limbs.append(lf)
             limb_rows.append((lf._key(), ln))
@@ -611,7 +819,10 @@ def parse_sum(text: str, path=None) -> Picture:
     if end_index is None:
         raise SpcFormatError(path, n, "expected END FILE line, found end of file")
 
+    linescan_data = _parse_linescan(lines, path) if len(lines[0]) >= 14 and lines[0][13] == "L" else None
     source = _SumSource(
+        linescan_data=linescan_data,
+        warnings=warnings,
         header=header,
         section_text=section_text,
         landmark_rows=landmark_rows,
@@ -899,18 +1110,28 @@ def parse_nom(text: str, path=None) -> Nominal:
     values: dict[str, list[float]] = {}
     frame_tag = ""
     whats = {"frame": "frame vector", **_NOM_TAGS}
-    for i, key in enumerate(_NOM_ORDER[1:], start=1):
-        if i >= n:
-            raise SpcFormatError(path, n, f"expected {whats[key]} on line {i + 1}, found end of file")
-        ln = lines[i]
-        v, t = _scan_numbers(ln, 3, path=path, lineno=i + 1, what=f"numbers ({whats[key]})")
+    # lines 2-8 by position, each a list-directed READ (spc-formats.md §3); tags checked against places
+    rec = Records(lines, path, 1)
+    for key in _NOM_ORDER[1:]:
+        if rec.at_end:
+            raise SpcFormatError(path, n, f"expected {whats[key]} on line {rec.pos + 1}, found end of file")
+        first = rec.pos
+        res = rec.read_list("rrr", what=f"numbers ({whats[key]})")
+        if res.nulls or res.slash:
+            raise SpcFormatError(
+                path, first + 1, f"expected 3 numbers ({whats[key]}), found a null item or '/'"
+            )
+        v = [float(x) for x in res.values]
+        t = res.rest.strip()
+        ln = "\n".join(lines[first : res.last + 1])
         values[key] = v
         if key == "frame":
-            frame_tag = t.strip()
+            frame_tag = t
             header.append(_Slot(key, ln, tuple(v) + (frame_tag,), frame_tag))
         else:
-            header.append(_Slot(key, ln, tuple(v), t.strip()))
-    i = len(_NOM_ORDER)
+            _check_tag(t, key, _NOM_TAGS, path, res.last + 1)
+            header.append(_Slot(key, ln, tuple(v), t))
+    i = rec.pos
     extra: list[str] = []
     while i < n and not lines[i].startswith("END FILE"):
         extra.append(lines[i])

@@ -1,8 +1,10 @@
 """An SPC working directory: picture and landmark names -> files, by SPC's conventions.
 
 spc-formats.md §0.1 and §7; cli-contract.md "Invocation".  ``SUMFILES/<PIC>.SUM``,
-``NOMINALS/<PIC>.NOM``, ``IMAGEFILES[1-9]/<PIC>.DAT`` (searched in that order;
-FITS/PGM/PNG photos with the same stem are accepted too), ``MAPFILES/<LMK>.MAP``
+``NOMINALS/<PIC>.NOM``, photos as SPC finds them -- ``IMAGEFILES/<PIC>.DAT`` then
+``IMAGEFILES1/`` … ``IMAGEFILES9/`` (FIND_PICFILE.f), then the INIT_LITHOS ``ALTDIR=`` folder
+(LITHOS) -- and only AFTER that search fails, as a spctool extension, FITS/PGM/PNG (or a
+lower-case ``.dat``) with the same stem in the same folders, ``MAPFILES/<LMK>.MAP``
 (then ``EXTFILES/``), ``LMKFILES/<LMK>.LMK``, ``SHAPEFILES/SHAPE.TXT``,
 ``PICTLIST.TXT`` (``PICTLISTX.TXT`` preferred when present), ``LMRKLIST.TXT``,
 ``INIT_LITHOS.TXT``.  Explicit paths given by the user override every rule.
@@ -10,12 +12,14 @@ FITS/PGM/PNG photos with the same stem are accepted too), ``MAPFILES/<LMK>.MAP``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from spctool.errors import SpcFormatError
 
 PHOTO_SUFFIXES = (".DAT", ".dat", ".FITS", ".fits", ".FIT", ".fit", ".PGM", ".pgm", ".PNG", ".png")
+#: spctool's extension, searched only after SPC's own search for ``<PIC>.DAT`` has failed
+EXTRA_PHOTO_SUFFIXES = PHOTO_SUFFIXES[1:]
 IMAGE_DIRS = ("IMAGEFILES",) + tuple(f"IMAGEFILES{k}" for k in range(1, 10))
 
 
@@ -28,6 +32,7 @@ class WorkDir:
     """Resolve SPC names to paths below ``root`` (the ``-C DIR`` of the command line)."""
 
     root: Path = Path(".")
+    _altdir: str | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         self.root = Path(self.root)
@@ -50,12 +55,36 @@ class WorkDir:
     def lmk_path(self, landmark: str) -> Path:
         return self.root / "LMKFILES" / f"{landmark.strip()}.LMK"
 
+    def photo_folders(self) -> list[Path]:
+        """IMAGEFILES/, IMAGEFILES1/ … IMAGEFILES9/ (FIND_PICFILE.f), then ``ALTDIR=`` (LITHOS)."""
+        folders = [self.root / folder for folder in IMAGE_DIRS]
+        if self._altdir is None:  # INIT_LITHOS is read once per WorkDir
+            try:
+                settings = self.read_settings()
+                self._altdir = (settings.get_str("ALTDIR") or "") if settings is not None else ""
+            except SpcFormatError:
+                self._altdir = ""  # a broken INIT_LITHOS is reported by the command that needs it
+        alt = self._altdir
+        if alt.strip():
+            folders.append(self.root / alt.strip())
+        return folders
+
     def photo_path(self, picture: str) -> Path | None:
-        """The photo of ``picture``: IMAGEFILES/, IMAGEFILES1/ … IMAGEFILES9/, first match wins."""
+        """The photo of ``picture``, found as SPC finds it, else by spctool's extension (module docstring).
+
+        SPC's search first: FIND_PICFILE.f INQUIREs ``./IMAGEFILES/<PIC>.DAT``, then ``IMAGEFILES1..9``,
+        and LITHOS adds ``ALTDIR=`` -- so a stray PGM in IMAGEFILES/ never wins over the DAT in
+        IMAGEFILES1/.  Only when no ``.DAT`` exists anywhere are other formats looked for, same order.
+        """
         name = picture.strip()
-        for folder in IMAGE_DIRS:
-            for suffix in PHOTO_SUFFIXES:
-                p = self.root / folder / f"{name}{suffix}"
+        folders = self.photo_folders()
+        for folder in folders:
+            p = folder / f"{name}.DAT"
+            if p.exists():
+                return p
+        for folder in folders:
+            for suffix in EXTRA_PHOTO_SUFFIXES:
+                p = folder / f"{name}{suffix}"
                 if p.exists():
                     return p
         return None

@@ -509,9 +509,18 @@ class Camera:
         are applied as well (spc-formats.md §2.5 step 4).
         """
         model, coef = "NONE", np.zeros(0)
+        if getattr(picture, "is_linescan", False):
+            raise SpcUsageError(
+                f"picture {getattr(picture, 'name', '')} is a line-scan (pushbroom) picture (column 14 'L', "
+                "LINE SCAN DATA): this command needs a frame camera and refuses it "
+                "(its projection is spctool.geometry.linescan.project_linescan)"
+            )
         if settings is not None:
             dm = settings.distortion_for(picture.name)
-            if dm is not None:
+            # getmm (xCommon.f): the last matching template wins, and its TYPE is compared exactly
+            # (IF(TYPE(JD).EQ.'OWEN') ...); a name it does not know ('owen', ' OWEN', PINHOLE, OPENCV) falls
+            # through to the plain pinhole z = MMFL*(z1/z3, z2/z3), without P0
+            if dm is not None and dm.model in MODELS and dm.model != "NONE":
                 model, coef = dm.model, np.asarray(dm.coefficients, dtype=np.float64)
         d = getattr(picture, "distortion", None)
         return cls(
