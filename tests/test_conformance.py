@@ -464,3 +464,25 @@ def test_utf8_bom_is_refused_naming_line_1(kind):
     with pytest.raises(SpcFormatError, match="byte-order mark") as e:
         parse(text, "F.TXT")
     assert str(e.value).startswith("F.TXT:1:")
+
+
+def test_project_command_uses_the_pushbroom_model(run_cli, real, tmp_path):
+    """`spctool project` on a line-scan picture: SPC's per-line pose (xV2IMGPL), not a frame camera."""
+    import json
+
+    (tmp_path / "SUMFILES").mkdir()
+    (tmp_path / "LMKFILES").mkdir()
+    (tmp_path / "SUMFILES" / "X123456789A1.SUM").write_text(LINESCAN_SUM)
+    point = np.array([0.3, -0.8, -0.25])
+    lines = (real / "rosetta-67p/FA0115.LMK").read_text().split("\n")
+    tag = lines[4][lines[4].rstrip().rfind(" ") :] if "VLM" in lines[4] else ""
+    lines[4] = "".join(f"{v:20.10E}".replace("E", "D") for v in point) + tag
+    (tmp_path / "LMKFILES" / "FA0115.LMK").write_text("\n".join(lines))
+    r = run_cli("-C", tmp_path, "project", "X123456789A1", "FA0115", "--json")
+    assert r.exit_code == 0, r.stderr
+    row = json.loads(r.stdout)["landmarks"][0]
+    es, el, _ = _independent_linescan(LINESCAN_SUM, point)
+    assert abs(row["sample"] - es) < 1e-6 and abs(row["line"] - el) < 1e-6
+    assert row["status"] == "ok"
+    r = run_cli("-C", tmp_path, "project", "X123456789A1", "--inverse", "500", "900")
+    assert r.exit_code == 2 and "line-scan" in r.stderr

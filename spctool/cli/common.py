@@ -171,10 +171,12 @@ def adopt_sum_workdir(ctx: Context, sum_path: Path) -> None:
             ctx.info(f"working directory {ctx.workdir} (the SUM file's SUMFILES/ parent)")
 
 
-def load_picture(ctx: Context, picture: str, sum_path=None) -> LoadedPicture:
+def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: bool = False) -> LoadedPicture:
     """Read PICTURE's SUM (:func:`sum_path_of`, :func:`adopt_sum_workdir`) and the settings, and build
     its camera (SUM pose and K-matrix with the INIT_LITHOS DISTORT= model; a note on stderr when the
-    picture has no distortion model)."""
+    picture has no distortion model).  A line-scan (pushbroom) picture has no frame camera: with
+    ``allow_linescan`` its camera is ``None`` (the caller projects with
+    :func:`spctool.geometry.linescan.project_linescan`), else it is refused with one line."""
     from spctool.formats.sumfile import read_sum
     from spctool.geometry.camera import Camera
 
@@ -184,6 +186,8 @@ def load_picture(ctx: Context, picture: str, sum_path=None) -> LoadedPicture:
     adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
     settings = ctx.settings()
+    if allow_linescan and getattr(pic, "is_linescan", False):
+        return LoadedPicture(path, pic, settings, None)
     camera = Camera.from_picture(pic, settings)
     if camera.model.upper() == "NONE":
         where = (

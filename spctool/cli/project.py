@@ -42,6 +42,26 @@ def project_table(camera: Camera, landmarks, picture_name: str) -> LandmarkTable
     )
 
 
+def linescan_table(pic, settings, landmarks) -> LandmarkTable:
+    """Predicted pixels of landmarks in a line-scan picture (SPC's pushbroom projection, xV2IMGPL)."""
+    from spctool.geometry.linescan import linescan_position, project_linescan
+
+    names = [lm.name for lm in landmarks]
+    if not landmarks:
+        return LandmarkTable.from_rows([], picture=pic.name)
+    vlm = np.array([lm.vlm for lm in landmarks], dtype=np.float64)
+    sample, line, inside = project_linescan(pic, vlm, settings)
+    finite = np.isfinite(sample) & np.isfinite(line)
+    # the spacecraft position at each landmark's own line (SCOBJ points spacecraft -> body centre)
+    at = np.where(finite, line, pic.ctr[1])
+    rng = np.linalg.norm(vlm + linescan_position(pic, at), axis=1)
+    status = np.where(~finite, "behind", np.where(inside, "ok", "outside"))
+    return LandmarkTable(
+        {"name": names, "sample": sample, "line": line, "range_km": rng, "status": list(status)},
+        picture=pic.name,
+    )
+
+
 @click.command("project")
 @options.picture_argument
 @click.argument("landmarks", nargs=-1, shell_complete=options.complete_landmark)
@@ -62,7 +82,8 @@ def project_cmd(ctx: Context, picture, landmarks, landmarks_table, inverse, shap
 
     LANDMARKS are names (LMKFILES/NAME.LMK), LMK files or landmark tables; default: every
     landmark of LMRKLIST.TXT (else LMKFILES/). The camera is the SUM's pose and K-matrix with the
-    INIT_LITHOS DISTORT= model matching the picture.
+    INIT_LITHOS DISTORT= model matching the picture; a line-scan (pushbroom) picture is projected
+    with its per-line pose (the SUM's LINE SCAN DATA), as SPC does.
 
     Columns: name, sample and line (the predicted SPC pixel, 1-based), range_km (spacecraft to
     landmark), status (ok, outside the photo, behind the camera).  --inverse prints the line of
@@ -77,8 +98,19 @@ def project_cmd(ctx: Context, picture, landmarks, landmarks_table, inverse, shap
       spctool project demo/SUMFILES/P000000001A1.SUM demo/LMKFILES/B01980.LMK --json
       spctool -C demo project P000000001A1 --inverse 384.5 384.5
     """
-    _, pic, _, camera = load_picture(ctx, picture)
+    _, pic, settings, camera = load_picture(ctx, picture, allow_linescan=True)
     command = "project " + picture
+    if camera is None:  # a line-scan (pushbroom) picture: each line has its own pose
+        if inverse:
+            raise SpcUsageError(
+                f"picture {pic.name} is a line-scan picture: --inverse needs a frame camera "
+                "(landmark -> pixel works)"
+            )
+        lms = resolve_landmarks(ctx, landmarks, landmarks_table)
+        t = linescan_table(pic, settings, lms)
+        t.command = command
+        emit_table(t, as_json=as_json, output=output)
+        return
     if inverse:
         if landmarks or landmarks_table:
             raise SpcUsageError("--inverse takes a pixel, not landmarks")
