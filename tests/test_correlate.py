@@ -416,13 +416,18 @@ def test_quadric_rejects_saddles_and_far_vertices():
     dr, dc, h, ok = quadric_vertex(far)
     assert not ok and math.isnan(dr) and np.all(np.isfinite(h))
     assert quadric_vertex(far, max_move=3.0)[0] == pytest.approx(2.5)
-    # a grid maximum (all 8 neighbours lower) on a diagonal ridge: the quadric is a saddle, so there is
-    # no clearly defined peak ("not-found"); SPC's parabolas still answer
+    # a grid maximum (all 8 neighbours lower) on a diagonal ridge: the quadric is a saddle, so the peak
+    # (which passed SPC's checks) takes the parabolas' estimate and their curvature
     ridge = np.array([[0.97, 0.9, 0.9], [0.9, 1.0, 0.9], [0.9, 0.9, 0.999]])
     s = np.zeros((11, 11))
     s[4:7, 4:7] = ridge
-    assert find_peak(s)[0] == "not-found"
-    assert find_peak(s, peak="parabola")[0] == "ok"
+    assert find_peak(s) == find_peak(s, peak="parabola")
+    from spctool.stages.correlate import _find_peak
+
+    st_, _, _, sub, h, fit = _find_peak(s, 0.3, False, "quadric")
+    assert st_ == "ok" and fit == "parabola-fallback" and sub == find_peak(s, peak="parabola")[3]
+    np.testing.assert_allclose(h, np.diag([-0.2, -0.2]))
+    assert _find_peak(s, 0.3, False, "parabola")[5] == "parabola"
     with pytest.raises(SpcUsageError):
         find_peak(s, peak="spline")
     with pytest.raises(SpcUsageError):
@@ -496,7 +501,7 @@ def test_quadric_recovers_shifts_in_the_ncc_of_a_tilted_texture():
         d = rng.uniform(-0.5, 0.5, 2) + rng.integers(-3, 4, 2)
         e = tilted_field(*cells(n, d))
         rq, rp = correlate(e, p), correlate(e, p, options=par)
-        assert rq.ok and rp.ok
+        assert rq.ok and rp.ok and rq.peak_fit == "quadric" and rp.peak_fit == "parabola"
         eq.append(rq.offset - d)
         ep.append(rp.offset - d)
     h = rq.hessian

@@ -38,8 +38,10 @@ E (image space, :func:`correlate` with anchors).  With spacing n:
 5. **Sub-pixel** (``peak``): by default (``"quadric"``) a least-squares quadric
    z = a + b·u + c·v + d·u² + e·u·v + f·v² fitted to the 3×3 neighbourhood of the peak (nine values,
    six unknowns; :func:`quadric_fit`), whose vertex is (δ_r, δ_c) = −H⁻¹·(b, c) with the Hessian
-   H = [[2d, e], [e, 2f]].  The fit is rejected (``not-found``: no clearly defined peak) when H is not
-   negative definite (not a maximum) or the vertex lies more than one cell from the grid peak.  The
+   H = [[2d, e], [e, 2f]].  The fit is rejected when H is not negative definite (not a maximum) or
+   the vertex lies more than one cell from the grid peak; the peak, which passed the checks of item 4,
+   then takes SPC's separable estimate below (``peak_fit = "parabola-fallback"``: it happens on peaks
+   narrower than a bin, e.g. at coarse spacings, where the 3×3 quadric is a poor model).  The
    ``e·u·v`` term matters: correlation peaks of sun-shaded terrain are tilted ellipses (normalised
    cross term e/(2√(df)) ≈ 0.3–0.5), and a separable fit along the row and the column through the
    peak finds the *ridge* of the other axis, not the vertex: each axis estimate is pulled by −e/(2d)
@@ -174,6 +176,8 @@ class Correlation:
     hessian: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
     #: (2, 2) covariance of ``offset`` in full-resolution cells² (array axes; NaN if none)
     covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
+    #: sub-pixel estimate used: "quadric", "parabola" or "parabola-fallback" (quadric rejected); "" if none
+    peak_fit: str = ""
 
     @property
     def ok(self) -> bool:
@@ -579,19 +583,21 @@ def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0) -
 
 
 def _find_peak(s, corr_min, strict_8, peak):
-    """find_peak plus the quadric Hessian at the grid peak (NaN when there is no 3×3 neighbourhood)."""
+    """find_peak plus the Hessian at the grid peak (NaN when there is no 3×3 neighbourhood) and the
+    estimate used ("quadric", "parabola", "parabola-fallback" or "").  The Hessian is the quadric's,
+    or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas."""
     nan_h = np.full((2, 2), np.nan)
     finite = np.isfinite(s)
     if not finite.any():
-        return "not-found", math.nan, None, (math.nan, math.nan), nan_h
+        return "not-found", math.nan, None, (math.nan, math.nan), nan_h, ""
     flat = np.where(finite, s, -np.inf)
     r0, c0 = divmod(int(np.argmax(flat)), s.shape[1])
     pk = float(s[r0, c0])
     if np.count_nonzero(flat == pk) > 1:  # a flat surface or a tied maximum: no clearly defined peak
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
     g0, g1 = s.shape
     if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
-        return "edge-peak", pk, (r0, c0), (0.0, 0.0), nan_h
+        return "edge-peak", pk, (r0, c0), (0.0, 0.0), nan_h, ""
     up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
     left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
     neighbours = [up, down, left, right]
@@ -604,24 +610,24 @@ def _find_peak(s, corr_min, strict_8, peak):
         ]
     # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
     if not all(v < pk for v in neighbours):
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
     qr, qc, h, q_ok = quadric_vertex(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2])
-    if peak == "parabola":
-        dr = _vertex(up, pk, down)
-        dc = _vertex(left, pk, right)
-    elif not q_ok:  # the quadric is no maximum or leaves the neighbourhood: no clearly defined peak
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), h
-    else:
-        dr, dc = qr, qc
     status = "ok" if pk >= corr_min else "low-correlation"
-    return status, pk, (r0, c0), (dr, dc), h
+    if peak == "quadric" and q_ok:
+        return status, pk, (r0, c0), (qr, qc), h, "quadric"
+    # SPC's two parabolas (|δ| ≤ ½ for the strict maximum checked above)
+    dr = _vertex(up, pk, down)
+    dc = _vertex(left, pk, right)
+    if not q_ok:  # the quadric is no maximum: the curvature of the two parabolas
+        h = np.diag([up + down - 2.0 * pk, left + right - 2.0 * pk])
+    return status, pk, (r0, c0), (dr, dc), h, "parabola" if peak == "parabola" else "parabola-fallback"
 
 
 def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False, peak: str = "quadric"):
     """Stage G on one surface: ``(status, peak, (r₀, c₀) or None, (δ_r, δ_c))`` (spc-algorithms.md §8.3).
 
-    ``peak``: ``"quadric"`` (default; :func:`quadric_vertex`, a rejected fit is ``not-found``) or
-    ``"parabola"`` (SPC's two 1-D parabolas, :func:`parabola_vertex`).
+    ``peak``: ``"quadric"`` (default; :func:`quadric_vertex`; where that fit is rejected, the parabolas)
+    or ``"parabola"`` (SPC's two 1-D parabolas, :func:`parabola_vertex`).
     """
     if peak not in PEAK_METHODS:
         raise SpcUsageError(f"peak must be one of {', '.join(PEAK_METHODS)}, got {peak!r}")
@@ -685,7 +691,7 @@ def correlate(
     pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
     origin = (eab[0] - pab[0], eab[1] - pab[1])
     surf, cnts = ncc_surface(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
-    status, peak, idx, (dr, dc), hess = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
+    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     k = opts.grid_half
     cov = np.full((2, 2), np.nan)
     if idx is None or status == "not-found":
@@ -694,4 +700,4 @@ def correlate(
         off = n * np.array([(idx[0] - k) + dr, (idx[1] - k) + dc], dtype=np.float64)
         if status != "edge-peak":
             cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
-    return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, cov)
+    return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, cov, fit)
