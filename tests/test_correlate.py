@@ -400,8 +400,10 @@ def test_quadric_fit_closed_form_equals_lstsq_and_handles_missing_diagonals():
     c = quadric_fit(nodiag)
     assert c[4] == 0.0
     dr, dc, _, ok = quadric_vertex(nodiag)
-    assert ok and dr == pytest.approx(parabola_vertex(*zq[:, 1])) and dc == pytest.approx(
-        parabola_vertex(*zq[1, :])
+    assert (
+        ok
+        and dr == pytest.approx(parabola_vertex(*zq[:, 1]))
+        and dc == pytest.approx(parabola_vertex(*zq[1, :]))
     )
     axis = zq.copy()
     axis[1, 2] = np.nan
