@@ -570,9 +570,10 @@ def _covariance_weights(covs, n, floor, fallback):
     w = np.array(fallback, dtype=np.float64, copy=True)
     cg = c[good]
     dg = det[good][:, None, None]
-    w[good] = np.stack(
-        [np.stack([cg[:, 1, 1], -cg[:, 0, 1]], -1), np.stack([-cg[:, 1, 0], cg[:, 0, 0]], -1)], 1
-    ) / dg
+    w[good] = (
+        np.stack([np.stack([cg[:, 1, 1], -cg[:, 0, 1]], -1), np.stack([-cg[:, 1, 0], cg[:, 0, 0]], -1)], 1)
+        / dg
+    )
     return w, ~good
 
 
