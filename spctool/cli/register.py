@@ -73,6 +73,14 @@ _shared_options = options.option_group(
         is_flag=True,
         help="A peak needs all 8 neighbours lower (default: the 4 along the axes).",
     ),
+    click.option(
+        "--peak",
+        type=click.Choice(["quadric", "parabola"]),
+        default="quadric",
+        show_default=True,
+        help="Sub-pixel peak: least-squares 2-D quadric on the 3x3 neighbourhood (with the cross term) "
+        "or SPC's two 1-D parabolas (legacy runs; biased on tilted peaks).",
+    ),
     options.photometry_option,
     options.shadows_option,
     options.linearized_option,
@@ -147,6 +155,7 @@ def _register_options(kw, schedule, **extra):
         grid_half=kw["grid_half"],
         min_valid=kw["min_valid"],
         strict_8=kw["strict_8"],
+        peak=kw["peak"],
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
         predict=popts,
@@ -303,15 +312,19 @@ def correlate_cmd(ctx: Context, **kw):
     at its a-priori pixel.  Both images are binned by --spacing N (same phase, anchored at the centre
     node); the normalised cross-correlation (Pearson, with the square root L15 Eq. 3.58 lacks) is taken
     over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both images.  The peak is
-    refined by one parabola per axis (the corrected L15 Eq. 3.65) and checked: edge-peak (on the grid
-    border), not-found (a neighbour not lower, or no defined value), low-correlation (below
-    --corr-min).  Image space: the maplet rendered into the photo (cast shadows) is correlated with the
-    photo itself, offsets in pixels.
+    checked -- edge-peak (on the grid border), not-found (a neighbour not lower, or no defined value),
+    low-correlation (below --corr-min) -- and refined by a least-squares 2-D quadric on its 3x3
+    neighbourhood (--peak quadric; where that fit is no maximum, and with --peak parabola, by one
+    parabola per axis, the corrected L15 Eq. 3.65, which is biased on tilted peaks).  Image space: the
+    maplet rendered into the photo (cast shadows) is correlated with the photo itself, offsets in
+    pixels.
 
     Columns: name, sample and line (the a-priori pixel used), offset_x and offset_y (maplet cells along
     UX and UY; image space: pixels along line and sample), dsample and dline (the implied pixel shift,
     J_xy times the offset in maplet space), measured_sample, measured_line, correlation (peak), spacing,
-    status (ok, not-found, edge-peak, low-correlation, outside, removed-<criterion>, no-maplet).
+    sigma_sample, sigma_line and rho_sl (the measurement covariance in px from the peak's curvature and
+    (1 - rho^2) noise, ok rows only), status (ok, not-found, edge-peak, low-correlation, outside,
+    removed-<criterion>, no-maplet).
 
     Example:
 
@@ -343,6 +356,9 @@ def correlate_cmd(ctx: Context, **kw):
         "measured_line",
         "correlation",
         "spacing",
+        "sigma_sample",
+        "sigma_line",
+        "rho_sl",
         "status",
     ]
     rows, written = [], 0
@@ -364,6 +380,9 @@ def correlate_cmd(ctx: Context, **kw):
                         "measured_sample": math.nan,
                         "measured_line": math.nan,
                         "correlation": math.nan,
+                        "sigma_sample": math.nan,
+                        "sigma_line": math.nan,
+                        "rho_sl": math.nan,
                         "status": "outside",
                     }
                 )
@@ -373,6 +392,8 @@ def correlate_cmd(ctx: Context, **kw):
             st = reg.step(i, inp.camera, start[i], int(kw["spacing"]), apply_criteria=True)
             reg.release(i)
             shift = st.shift if st.status in ("ok", "low-correlation", "edge-peak") else np.full(2, np.nan)
+            cov = st.covariance if st.ok else np.full((2, 2), np.nan)
+            sig = np.sqrt(np.diag(cov))
             row.update(
                 {
                     "offset_x": float(st.correlation.offset[0]),
@@ -382,6 +403,9 @@ def correlate_cmd(ctx: Context, **kw):
                     "measured_sample": float(st.center[0] + shift[0]),
                     "measured_line": float(st.center[1] + shift[1]),
                     "correlation": float(st.correlation.peak),
+                    "sigma_sample": float(sig[0]),
+                    "sigma_line": float(sig[1]),
+                    "rho_sl": float(cov[0, 1] / (sig[0] * sig[1])) if st.ok and sig.prod() > 0 else math.nan,
                     "status": st.status,
                 }
             )
@@ -440,6 +464,23 @@ def correlate_cmd(ctx: Context, **kw):
     help="AUTOREGISTER's removal cut between the passes.  [default: 0.5]",
 )
 @click.option(
+    "--converge-tol",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.005,
+    show_default=True,
+    metavar="PX",
+    help="Final stage: repeat the last spacing-1 step until the estimate moves by less than PX.",
+)
+@click.option(
+    "--converge-max",
+    type=click.IntRange(min=0),
+    default=10,
+    show_default=True,
+    metavar="N",
+    help="At most N extra spacing-1 steps (0 = the schedule exactly, as S16/SPC run it); a landmark "
+    "that has not settled is 'not-converged'.",
+)
+@click.option(
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
@@ -477,14 +518,20 @@ def register_cmd(ctx: Context, **kw):
     changed.  Schedule autoregister (SPC's AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the
     first pass, then all landmarks at spacing 2, a pose solve, spacing 1, a pose solve, landmarks with
     rho < 0.5 dropped, spacing 1 and a last pose solve; each pass re-predicts and re-extracts with the
-    updated pose.  --space image correlates the maplet rendered into the photo (with cast shadows)
-    against the photo itself, so the search is not limited by the maplet's extent (S16 Retina).
+    updated pose.  Both end with a converged full-resolution stage: the last spacing-1 step is repeated
+    until the estimate moves by less than --converge-tol (at most --converge-max times; else the
+    status is not-converged), then AUTOREGISTER solves the pose once more.  --space image correlates
+    the maplet rendered into the photo (with cast shadows) against the photo itself, so the search is
+    not limited by the maplet's extent (S16 Retina).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
-    peak), iterations (correlations run), spacing (of the last one), status (ok, not-found, edge-peak,
-    low-correlation, outside, removed-<criterion>, no-maplet).  The table feeds solve-pose directly
-    (only ok rows are used).  With --write-sum the ok landmarks are written to the SUM's LANDMARKS
+    peak), iterations (correlations run), spacing (of the last one), sigma_sample, sigma_line and
+    rho_sl (measurement covariance, px: 1-sigma per axis and their correlation, from the last peak's
+    curvature and (1 - rho^2) noise; an upper bound where model error rather than noise lowers rho),
+    status (ok, not-found, edge-peak, low-correlation, not-converged, outside, removed-<criterion>,
+    no-maplet).  The table feeds solve-pose directly (only ok rows are used; --weights surface uses
+    the covariance).  With --write-sum the ok landmarks are written to the SUM's LANDMARKS
     section (rows of other landmarks are kept unless --drop-failed).
 
     Example:
@@ -494,6 +541,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C WORKDIR register P600127001 --landmarks sel.txt > reg.txt
       spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
       spctool -C WORKDIR register P600127001 FC0098 --space image --json
+      spctool -C WORKDIR register P600127001 --peak parabola --converge-max 0   # S16 exactly
     """
     from spctool.stages.register import RegisterOptions
     from spctool.stages.register import register as run_register
@@ -504,6 +552,8 @@ def register_cmd(ctx: Context, **kw):
         "fail_fast": not kw["no_fail_fast"],
         "pose_update": not kw["no_pose_update"],
         "halve_shift": kw["halve_shift"],
+        "converge_tol": kw["converge_tol"],
+        "converge_max": kw["converge_max"],
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])
