@@ -253,15 +253,20 @@ def test_outside_landmarks_are_skipped(scene):
 def test_fail_fast_and_continue(scene):
     cam = rs.pointing_error(scene.camera, 6.0, 0.0)
     steps = (("align", 1), ("align", 3), ("align", 1))  # a 6-px (≈ 8.6 cell) error is out of reach at n = 1
-    r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(steps=steps))
+    s16 = RegisterOptions(steps=steps, edge_retries=0)  # S16: an edge peak ends the landmark
+    r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, s16)
     assert r.status[0] in ("edge-peak", "not-found") and r.iterations[0] == 1
+    # the default moves to the border maximum and repeats the step: the 6-px error is then in reach
+    r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(steps=steps))
+    assert r.status == ["ok"] and np.all(_err(r, scene.truth_pixel) <= 0.05)
+    assert r.iterations[0] >= 4 and r.last_steps[0].correlation.spacing == 1
     r = register(
         scene.photo,
         cam,
         scene.sun,
         [scene.maplet],
         scene.thresholds,
-        RegisterOptions(steps=steps, fail_fast=False, converge_max=0),
+        RegisterOptions(steps=steps, fail_fast=False, converge_max=0, edge_retries=0),
     )
     assert r.status == ["ok"] and r.iterations[0] == 3  # the schedule exactly
     assert np.all(_err(r, scene.truth_pixel) <= 0.05)
@@ -400,6 +405,8 @@ def test_converged_stage_settles_and_is_capped(scene):
         RegisterOptions(converge_tol=0.0)
     with pytest.raises(SpcUsageError):
         RegisterOptions(converge_max=-1)
+    with pytest.raises(SpcUsageError):
+        RegisterOptions(edge_retries=-1)
     # a schedule that does not end at spacing 1 runs exactly
     short = register(
         scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(steps=(4, 2))

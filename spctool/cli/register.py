@@ -481,6 +481,15 @@ def correlate_cmd(ctx: Context, **kw):
     "that has not settled is 'not-converged'.",
 )
 @click.option(
+    "--edge-retries",
+    type=click.IntRange(min=0),
+    default=2,
+    show_default=True,
+    metavar="N",
+    help="S16 schedule: a peak on the border of the search grid moves there and repeats the step, "
+    "at most N times (0 = S16, which gives up).",
+)
+@click.option(
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
@@ -541,7 +550,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C WORKDIR register P600127001 --landmarks sel.txt > reg.txt
       spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
       spctool -C WORKDIR register P600127001 FC0098 --space image --json
-      spctool -C WORKDIR register P600127001 --peak parabola --converge-max 0   # S16 exactly
+      spctool -C WORKDIR register P600127001 --peak parabola --converge-max 0 --edge-retries 0  # S16
     """
     from spctool.stages.register import RegisterOptions
     from spctool.stages.register import register as run_register
@@ -553,6 +562,7 @@ def register_cmd(ctx: Context, **kw):
         "pose_update": not kw["no_pose_update"],
         "halve_shift": kw["halve_shift"],
         "converge_tol": kw["converge_tol"],
+        "edge_retries": kw["edge_retries"],
         "converge_max": kw["converge_max"],
     }
     if kw["steps"]:
