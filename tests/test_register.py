@@ -442,3 +442,30 @@ def test_measurement_covariance_matches_noise_trials(scene):
     assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), (ratio, np.sqrt(np.diag(emp)))
     emp, pred, k = _noise_trials(scene, 0.05, 15, 3)
     assert np.all(np.sqrt(np.diag(pred)) >= np.sqrt(np.diag(emp)))
+
+
+def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
+    """A step that sends the estimate back and forth between two places (0.02 px apart: a template
+    re-rendered on either side of a half-pixel placement) converges to the midpoint; a 0.3-px cycle
+    is not-converged."""
+    from types import SimpleNamespace
+
+    from spctool.stages import register as reg_mod
+    from spctool.stages.correlate import Correlation
+
+    def fake(amplitude):
+        a, b = np.array([10.0, 20.0]), np.array([10.0 + amplitude, 20.0])
+
+        def step(i, camera, c, spacing):
+            target = b if np.hypot(*(c - a)) < np.hypot(*(c - b)) else a
+            corr = Correlation(np.zeros((3, 3)), np.zeros((3, 3), np.int64), 1, "ok", 0.9, (1, 1), (0.0, 0.0))
+            return reg_mod.LandmarkStep(np.array(c, float), target - c, corr, None, "ok")
+
+        return SimpleNamespace(options=RegisterOptions(), step=step)
+
+    result = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
+    status, c, _ = reg_mod._converge(fake(0.02), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0)
+    assert status == "ok" and c == pytest.approx([10.01, 20.0])
+    result.iterations[:] = 0
+    status, c, _ = reg_mod._converge(fake(0.3), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0)
+    assert status == "not-converged" and result.iterations[0] == RegisterOptions().converge_max

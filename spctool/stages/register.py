@@ -54,7 +54,9 @@ spacing 1: that step is repeated (re-extracting or re-placing at the current est
 estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`` extra steps (10;
 0 = the schedule exactly).  The coarse steps leave 0.3–1 px on tilted peaks and a single L = 1 step
 only removes part of that; at convergence the last correlation peak sits at a near-zero offset, where
-any sub-pixel estimator is least biased.  A landmark that does not settle within the cap gets the
+any sub-pixel estimator is least biased.  A small 2-cycle (the estimate jumping between two places
+< 10·``converge_tol`` apart, e.g. an image-space template re-rendered on either side of a half-pixel
+placement) converges to its midpoint.  A landmark that does not settle within the cap gets the
 status ``not-converged`` (its last estimate is kept in :attr:`RegisterResult.measured`, but it is not
 ``ok``).  AUTOREGISTER converges every landmark from its last measurement with the final pose, then
 solves the pose once more from the converged pixels (``pose_update``).
@@ -817,15 +819,27 @@ def _converges(steps, opts) -> bool:
     return opts.converge_max > 0 and int(last_align) == 1
 
 
+#: a 2-cycle of the final stage (the estimate returns to where it was two steps before) whose
+#: amplitude is below this many converge_tol is resolved to its midpoint
+_CYCLE_FACTOR = 10.0
+
+
 def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
     """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
     than ``converge_tol`` (``moved``: the move of the step that produced ``c``).  Returns
     ``(status, c, step)``: ``"ok"``; a failed step's status; or ``"not-converged"`` after
-    ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step."""
+    ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
+
+    A 2-cycle — the estimate jumps back and forth between two places, as a template re-rendered at
+    either side of a half-pixel placement can make it — is detected when a step returns within
+    ``converge_tol`` of the estimate two steps before; if the two places are less than
+    ``_CYCLE_FACTOR``·``converge_tol`` apart the midpoint is the converged estimate (``ok``)."""
     opts = reg.options
+    tol = opts.converge_tol
     st_ok = None
+    before = None
     k = 0
-    while not moved < opts.converge_tol:
+    while not moved < tol:
         if k >= opts.converge_max:
             return "not-converged", c, st_ok
         st = reg.step(i, camera, c, 1)
@@ -835,8 +849,10 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
             return st.status, c, st_ok
         new = st.center + factor * st.shift
         moved = float(np.hypot(*(new - c)))
-        c = new
         st_ok = st
+        if before is not None and np.hypot(*(new - before)) < tol and moved < _CYCLE_FACTOR * tol:
+            return "ok", 0.5 * (new + c), st_ok
+        before, c = c, new
     return "ok", c, st_ok
 
 
