@@ -453,8 +453,8 @@ def test_measurement_covariance_matches_noise_trials(scene):
 
 def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
     """A step that sends the estimate back and forth between two places (0.02 px apart: a template
-    re-rendered on either side of a half-pixel placement) converges to the midpoint; a 0.3-px cycle
-    is not-converged."""
+    re-rendered at each sub-pixel placement) converges to the midpoint, a small 3-cycle to its
+    centre; a 0.3-px cycle is not-converged."""
     from types import SimpleNamespace
 
     from spctool.stages import register as reg_mod
@@ -473,6 +473,17 @@ def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
     result = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
     status, c, _ = reg_mod._converge(fake(0.02), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0)
     assert status == "ok" and c == pytest.approx([10.01, 20.0])
+    # a 3-cycle (an equilateral triangle of side 0.02 px) converges to its centre
+    tri = np.array([[10.0, 20.0], [10.02, 20.0], [10.01, 20.0 + 0.01 * math.sqrt(3.0)]])
+
+    def step3(i, camera, c, spacing):
+        k = int(np.argmin(np.hypot(*(tri - c).T)))
+        corr = Correlation(np.zeros((3, 3)), np.zeros((3, 3), np.int64), 1, "ok", 0.9, (1, 1), (0.0, 0.0))
+        return reg_mod.LandmarkStep(np.array(c, float), tri[(k + 1) % 3] - c, corr, None, "ok")
+
+    three = SimpleNamespace(options=RegisterOptions(), step=step3)
+    status, c, _ = reg_mod._converge(three, 0, None, tri[0].copy(), 1.0, result, [None], 1.0)
+    assert status == "ok" and c == pytest.approx(tri.mean(axis=0))
     result.iterations[:] = 0
     status, c, _ = reg_mod._converge(fake(0.3), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0)
     assert status == "not-converged" and result.iterations[0] == RegisterOptions().converge_max
