@@ -490,12 +490,10 @@ def correlate_cmd(ctx: Context, **kw):
     "at most N times (0 = S16, which gives up).",
 )
 @click.option(
-    "--fail-fast/--no-fail-fast",
-    "fail_fast",
-    default=False,
-    show_default=True,
-    help="S16 schedule: stop a landmark at its first failed step, or go on from the same pixel at the "
-    "next spacing (the last step decides).",
+    "--no-fail-fast",
+    "no_fail_fast",
+    is_flag=True,
+    help="S16 schedule: keep going after a failed step (default: stop the landmark).",
 )
 @click.option(
     "--no-pose-update",
@@ -552,7 +550,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C WORKDIR register P600127001 --landmarks sel.txt > reg.txt
       spctool -C WORKDIR register P600127001 --schedule autoregister --write-sum --overlay reg.png
       spctool -C WORKDIR register P600127001 FC0098 --space image --json
-      spctool -C WORKDIR register P600127001 --peak parabola --converge-max 0 --edge-retries 0 --fail-fast
+      spctool -C WORKDIR register P600127001 --peak parabola --converge-max 0 --edge-retries 0  # S16
     """
     from spctool.stages.register import RegisterOptions
     from spctool.stages.register import register as run_register
@@ -560,7 +558,7 @@ def register_cmd(ctx: Context, **kw):
     kw["_command"] = "register"
     schedule = options.register_schedule(kw["schedule"])
     extra = {
-        "fail_fast": kw["fail_fast"],
+        "fail_fast": not kw["no_fail_fast"],
         "pose_update": not kw["no_pose_update"],
         "halve_shift": kw["halve_shift"],
         "converge_tol": kw["converge_tol"],

@@ -39,10 +39,8 @@ Drivers (:func:`register`; spc-algorithms.md §9.3)
   moves c to that border maximum and repeats the step, at most ``edge_retries`` (2) times, which
   triples the first step's reach (S16's maplet-space failures are mostly a-priori errors beyond ±5L;
   in the s16-50m Monte Carlo this takes success from 97 % to 99.3 %); 0 is S16's behaviour.  A
-  failed peak check either ends the landmark with its status (``fail_fast``; S16 does not say) or,
-  by default, keeps c and goes on to the next spacing (the last step must still be ok, pass the
-  converged stage and ρ ≥ 0.3): in the s16-50m Monte Carlo that, with ``edge_retries``, takes
-  success to 99.6 % with no accepted sample off by more than 0.15 px.
+  failed peak check ends the landmark with its status (``fail_fast``, the default; S16 does not
+  say) or, with ``fail_fast=False``, keeps c and goes on.  Acceptance needs ρ ≥ 0.3.
 * ``schedule="autoregister"`` — SPC's AUTOREGISTER seed (``make_scriptA.seed``): removal criteria
   ``0,50,.25,0,5`` on the first pass; align at spacing 2, then 1, drop landmarks with ρ < 0.5, align at
   spacing 1.  Every align pass correlates all landmarks at the current pose, then (``pose_update``,
@@ -136,8 +134,7 @@ class RegisterOptions:
     * ``converge_tol`` (px, 0.005) / ``converge_max`` (10) — the final full-resolution stage (module
       docstring): repeat the last spacing-1 step until the estimate moves by less than the tolerance,
       at most this many extra steps (0: the schedule exactly, as S16/SPC run it).
-    * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (False: go on from the
-      same pixel at the next spacing; the last step decides).
+    * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (True).
     * ``edge_retries`` — S16 driver: a step whose peak is on the border of the grid (``edge-peak``)
       moves to that border maximum and is repeated, at most this many times per step (0: S16, which
       gives up; 2 extends the first step's reach from ±5L to ±15L cells).
@@ -169,7 +166,7 @@ class RegisterOptions:
     peak: str = "quadric"
     converge_tol: float = 0.005
     converge_max: int = 10
-    fail_fast: bool = False
+    fail_fast: bool = True
     edge_retries: int = 2
     pose_update: bool = True
     halve_shift: bool = False
