@@ -270,6 +270,14 @@ def test_fail_fast_and_continue(scene):
     )
     assert r.status == ["ok"] and r.iterations[0] == 3  # the schedule exactly
     assert np.all(_err(r, scene.truth_pixel) <= 0.05)
+    # S16's schedule reaches ±5L = 50 cells ≈ 35 px at L = 10; the edge retries reach 60 px on this
+    # 200×200 photo and report 80 px as a failure (never ok at a wrong place)
+    for err, ok, ok_s16 in ((40.0, True, False), (60.0, True, False), (80.0, False, False)):
+        cam = rs.pointing_error(scene.camera, err, 0.0)
+        r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds)
+        assert r.ok[0] == ok and (not ok or np.all(_err(r, scene.truth_pixel) <= 0.02))
+        r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(edge_retries=0))
+        assert r.ok[0] == ok_s16
 
 
 def test_halve_shift(scene):
