@@ -55,7 +55,7 @@ estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`
 0 = the schedule exactly).  The coarse steps leave 0.3–1 px on tilted peaks and a single L = 1 step
 only removes part of that; at convergence the last correlation peak sits at a near-zero offset, where
 any sub-pixel estimator is least biased.  A small cycle (the estimate going round places
-< 10·``converge_tol`` apart, e.g. an image-space template re-rendered at each sub-pixel placement)
+< 20·``converge_tol`` apart, e.g. an image-space template re-rendered at each sub-pixel placement)
 converges to the mean of those places.  A landmark that does not settle within the cap gets the
 status ``not-converged`` (its last estimate is kept in :attr:`RegisterResult.measured`, but it is not
 ``ok``).  AUTOREGISTER converges every landmark from its last measurement with the final pose, then
@@ -820,8 +820,9 @@ def _converges(steps, opts) -> bool:
 
 
 #: a cycle of the final stage (the estimate returns to where it was some steps before) whose
-#: diameter is below this many converge_tol is resolved to the mean of its places
-_CYCLE_FACTOR = 10.0
+#: diameter is below this many converge_tol (0.1 px at the default 0.005 px: about the 1σ of an image-space
+#: measurement) is resolved to the mean of its places
+_CYCLE_FACTOR = 20.0
 
 
 def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
@@ -831,7 +832,7 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
     ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
 
     A cycle — the estimate goes round two, three or four places, as an image-space template
-    re-rendered at each sub-pixel placement can make it (0.01–0.03 px in the s16-50m Monte Carlo) —
+    re-rendered at each sub-pixel placement can make it (0.01–0.09 px in the s16-50m Monte Carlo) —
     is detected when a step returns within ``converge_tol`` of an estimate two or more steps before;
     if the places of the cycle are less than ``_CYCLE_FACTOR``·``converge_tol`` apart, their mean is
     the converged estimate (``ok``)."""
