@@ -155,7 +155,7 @@ def _register_options(kw, schedule, **extra):
         grid_half=kw["grid_half"],
         min_valid=kw["min_valid"],
         strict_8=kw["strict_8"],
-        peak=kw["peak"],
+        peak=kw.get("peak", "quadric"),  # commands that reuse these options without --peak
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
         predict=popts,
