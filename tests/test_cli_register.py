@@ -99,9 +99,14 @@ def test_register_recovers_the_landmark(world):
         "correlation",
         "iterations",
         "spacing",
+        "sigma_sample",
+        "sigma_line",
+        "rho_sl",
         "status",
     ]
-    assert t["status"] == ["ok"] and t["iterations"][0] == 10 and t["spacing"][0] == 1
+    # S16's ten steps, then the converged full-resolution stage (at most --converge-max more)
+    assert t["status"] == ["ok"] and 10 <= t["iterations"][0] <= 20 and t["spacing"][0] == 1
+    assert 0.0 < t["sigma_sample"][0] < 0.2 and 0.0 < t["sigma_line"][0] < 0.2 and abs(t["rho_sl"][0]) < 1
     # the MAP file quantises heights and albedo (bytes/100): a few hundredths of a pixel
     assert abs(t["sample"][0] - sc.truth_pixel[0]) < 0.05 and abs(t["line"][0] - sc.truth_pixel[1]) < 0.05
     assert t["apriori_sample"][0] == pytest.approx(apriori[0], abs=1e-4)
@@ -116,7 +121,8 @@ def test_register_json_missing_maplet_and_require(world):
     doc = json.loads(res.stdout)
     assert doc["command"] == "register" and doc["schedule"] == "s16" and doc["space"] == "maplet"
     rows = {r["name"]: r for r in doc["landmarks"]}
-    assert rows[LMK]["status"] == "ok" and rows[LMK]["iterations"] == 3
+    assert rows[LMK]["status"] == "ok" and 3 <= rows[LMK]["iterations"] <= 13
+    assert rows[LMK]["sigma_sample"] > 0 and rows["NOMAP1"]["sigma_sample"] is None
     assert rows["NOMAP1"]["status"] == "no-maplet" and rows["NOMAP1"]["sample"] is None
     assert doc["registered"] == 1 and doc["options"]["steps"] == [["align", 4], ["align", 2], ["align", 1]]
     assert "no maplet" in res.stderr
@@ -147,7 +153,8 @@ def test_register_image_space_and_autoregister(world):
     row = doc["landmarks"][0]
     assert row["status"] == "ok" and doc["space"] == "image" and doc["schedule"] == "autoregister"
     assert abs(row["sample"] - sc.truth_pixel[0]) < 0.05 and abs(row["line"] - sc.truth_pixel[1]) < 0.05
-    assert [p["spacing"] for p in doc["passes"]] == [2, 1, 1]
+    assert [p["spacing"] for p in doc["passes"]] == [2, 1, 1, 1]  # SPC's three, then the converged stage
+    assert doc["passes"][-1]["converge"] and doc["passes"][-1]["ok"] == 1
     assert "pose not updated" in res.stderr  # one landmark cannot move the pose
 
 
@@ -275,3 +282,40 @@ def test_usage_errors(world):
     assert res.exit_code == 2 and "T1,T2" in res.stderr
     res = invoke(root, "register", "NOPIC", LMK)
     assert res.exit_code == 2
+
+
+def test_register_peak_and_convergence_options(world):
+    root, sc, _ = world
+    exact = invoke(root, "register", PIC, LMK, "--peak", "parabola", "--converge-max", "0", "--json")
+    assert exact.exit_code == 0, exact.output
+    doc = json.loads(exact.stdout)
+    assert doc["options"]["peak"] == "parabola" and doc["options"]["converge_max"] == 0
+    assert doc["landmarks"][0]["iterations"] == 10  # S16's schedule exactly
+    capped = invoke(root, "register", PIC, LMK, "--converge-tol", "1e-9", "--converge-max", "1", "--json")
+    row = json.loads(capped.stdout)["landmarks"][0]
+    assert row["status"] == "not-converged" and row["iterations"] == 11
+    assert invoke(root, "register", PIC, LMK, "--converge-tol", "0").exit_code == 2
+    assert invoke(root, "register", PIC, LMK, "--peak", "spline").exit_code == 2
+
+
+def test_register_then_solve_pose_with_surface_weights(world, tmp_path):
+    """register's sigma columns feed solve-pose --weights surface; a table without them is refused
+    with one line (exit 2)."""
+    root, sc, _ = world
+    reg = invoke(root, "register", PIC, LMK)
+    assert reg.exit_code == 0, reg.output
+    table = tmp_path / "reg.txt"
+    table.write_text(reg.stdout)
+    from spctool.cli.pose import measurements_from_table
+
+    m = measurements_from_table(table)
+    t = LandmarkTable.parse_text(reg.stdout)
+    assert m.covariance[0, 0, 0] == pytest.approx(t["sigma_sample"][0] ** 2, rel=1e-3)
+    assert m.covariance[0, 0, 1] == pytest.approx(
+        t["rho_sl"][0] * t["sigma_sample"][0] * t["sigma_line"][0], rel=2e-3, abs=1e-9
+    )
+    bare = tmp_path / "bare.txt"
+    bare.write_text(f"name sample line\n{LMK} 10.0 20.0\n")
+    res = invoke(root, "solve-pose", PIC, "--measurements", bare, "--weights", "surface")
+    assert res.exit_code == 2 and "--weights surface needs" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1

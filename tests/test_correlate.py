@@ -22,6 +22,10 @@ from spctool.stages.correlate import (
     find_peak,
     ncc_surface,
     parabola_vertex,
+    peak_covariance,
+    quadric_fit,
+    quadric_vertex,
+    resampled_noise_footprint,
 )
 
 # --------------------------------------------------------------------------------------------------
@@ -78,6 +82,17 @@ def blob_image(n, shift=(0.0, 0.0), sigma=4.0, centre=(0.0, 0.0), background=1.0
     whose correlation peak is smooth and untilted (the case L15's separable 1-D fits assume)."""
     x, y = cells(n, shift)
     return background + np.exp(-((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (2.0 * sigma**2))
+
+
+def tilted_field(x, y, seed=5, n=14, lam=(12.0, 40.0), theta_deg=35.0, spread_deg=50.0):
+    """Plane waves whose directions cluster around ``theta``: an anisotropic texture whose correlation
+    peak is a tilted ellipse (normalised cross term ≈ −0.57 at spacing 1, like sun-shaded terrain)."""
+    rng = np.random.default_rng(seed)
+    wl = rng.uniform(lam[0], lam[1], n)
+    th = math.radians(theta_deg) + rng.uniform(-1.0, 1.0, n) * math.radians(spread_deg)
+    ph = rng.uniform(0, 2 * np.pi, n)
+    kx, ky = np.cos(th) * 2 * np.pi / wl, np.sin(th) * 2 * np.pi / wl
+    return 10.0 + np.sin(x[..., None] * kx + y[..., None] * ky + ph).sum(-1)
 
 
 def cells(n, shift=(0.0, 0.0)):
@@ -324,11 +339,246 @@ def test_separable_fit_on_a_tilted_peak_is_biased_but_iteration_removes_it():
     n = 45
     p = smooth_field(*cells(n), seed=4)
     big = smooth_field(*cells(n, (1.45, -2.35)), seed=4)
-    res = correlate(big, p)
+    par = CorrelateOptions(peak="parabola")
+    res = correlate(big, p, options=par)
     assert res.status == "ok" and np.max(np.abs(res.offset - (1.45, -2.35))) < 0.5
+    assert np.max(np.abs(correlate(big, p).offset - (1.45, -2.35))) < 0.02  # quadric (default)
     small = smooth_field(*cells(n, (0.05, -0.03)), seed=4)
-    res = correlate(small, p)
+    res = correlate(small, p, options=par)
     assert np.max(np.abs(res.offset - (0.05, -0.03))) < 0.02
+
+
+# --------------------------------------------------------------------------------------------------
+# the 2-D quadric peak and the measurement covariance
+
+
+def _ellipse(s1, s2, rho=None, angle_deg=None):
+    """2×2 covariance: axis sigmas with a correlation ρ, or principal sigmas rotated by an angle."""
+    if rho is not None:
+        return np.array([[s1 * s1, rho * s1 * s2], [rho * s1 * s2, s2 * s2]])
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    r = np.array([[c, -s], [s, c]])
+    return r @ np.diag([s1 * s1, s2 * s2]) @ r.T
+
+
+def _grid_offsets(g=11):
+    k = (g - 1) // 2
+    i, j = np.mgrid[0:g, 0:g].astype(float)
+    return np.stack([i - k, j - k], axis=-1)
+
+
+def _quadratic_peak(d, cov, g=11):
+    """1 − ½(x − d)ᵀΣ⁻¹(x − d) on the grid: a quadric, which the least-squares fit must recover exactly."""
+    x = _grid_offsets(g) - np.asarray(d)
+    return 1.0 - 0.5 * np.einsum("...i,ij,...j->...", x, np.linalg.inv(cov), x)
+
+
+def _gaussian_peak(d, cov, g=11, amp=0.9):
+    x = _grid_offsets(g) - np.asarray(d)
+    return amp * np.exp(-0.5 * np.einsum("...i,ij,...j->...", x, np.linalg.inv(cov), x))
+
+
+def _estimate(surface, peak):
+    status, _, idx, sub = find_peak(surface, peak=peak)
+    assert status == "ok"
+    return np.array(idx, float) - 5 + np.array(sub)
+
+
+def test_quadric_fit_closed_form_equals_lstsq_and_handles_missing_diagonals():
+    rng = np.random.default_rng(7)
+    u, v = np.meshgrid((-1, 0, 1), (-1, 0, 1), indexing="ij")
+    a = np.stack([np.ones(9), u.ravel(), v.ravel(), u.ravel() ** 2, (u * v).ravel(), v.ravel() ** 2], 1)
+    z = rng.normal(size=(3, 3))
+    np.testing.assert_allclose(quadric_fit(z), np.linalg.lstsq(a, z.ravel(), rcond=None)[0], atol=1e-12)
+    coef = np.array([0.7, 0.1, -0.2, -0.5, 0.3, -0.4])
+    zq = (a @ coef).reshape(3, 3)
+    miss = zq.copy()
+    miss[0, 0] = miss[2, 2] = np.nan  # two undefined diagonals: still exact
+    np.testing.assert_allclose(quadric_fit(miss), coef, atol=1e-12)
+    nodiag = zq.copy()
+    nodiag[[0, 0, 2, 2], [0, 2, 0, 2]] = np.nan  # no diagonal: no cross term, SPC's two parabolas
+    c = quadric_fit(nodiag)
+    assert c[4] == 0.0
+    dr, dc, _, ok = quadric_vertex(nodiag)
+    assert (
+        ok
+        and dr == pytest.approx(parabola_vertex(*zq[:, 1]))
+        and dc == pytest.approx(parabola_vertex(*zq[1, :]))
+    )
+    axis = zq.copy()
+    axis[1, 2] = np.nan
+    assert np.all(np.isnan(quadric_fit(axis)))
+
+
+def test_quadric_rejects_saddles_and_far_vertices():
+    u, v = np.meshgrid((-1.0, 0.0, 1.0), (-1.0, 0.0, 1.0), indexing="ij")
+    saddle = 1.0 - 0.2 * u * u + 0.05 * v * v
+    assert not quadric_vertex(saddle)[3]
+    far = 1.0 - 0.01 * u * u - 0.2 * v * v + 0.05 * u  # vertex at u = 2.5: outside the neighbourhood
+    dr, dc, h, ok = quadric_vertex(far)
+    assert not ok and math.isnan(dr) and np.all(np.isfinite(h))
+    assert quadric_vertex(far, max_move=3.0)[0] == pytest.approx(2.5)
+    # a grid maximum (all 8 neighbours lower) on a diagonal ridge: the quadric is a saddle, so the peak
+    # (which passed SPC's checks) takes the parabolas' estimate and their curvature
+    ridge = np.array([[0.97, 0.9, 0.9], [0.9, 1.0, 0.9], [0.9, 0.9, 0.999]])
+    s = np.zeros((11, 11))
+    s[4:7, 4:7] = ridge
+    assert find_peak(s) == find_peak(s, peak="parabola")
+    from spctool.stages.correlate import _find_peak
+
+    st_, _, _, sub, h, fit = _find_peak(s, 0.3, False, "quadric")
+    assert st_ == "ok" and fit == "parabola-fallback" and sub == find_peak(s, peak="parabola")[3]
+    np.testing.assert_allclose(h, np.diag([-0.2, -0.2]))
+    assert _find_peak(s, 0.3, False, "parabola")[5] == "parabola"
+    with pytest.raises(SpcUsageError):
+        find_peak(s, peak="spline")
+    with pytest.raises(SpcUsageError):
+        CorrelateOptions(peak="spline")
+
+
+@pytest.mark.parametrize(
+    "cov",
+    [_ellipse(2.0, 1.5, rho=0.5), _ellipse(3.0, 1.2, angle_deg=30), _ellipse(2.5, 1.0, angle_deg=-70)],
+    ids=["rho0.5", "rot30", "rot-70"],
+)
+def test_quadric_is_exact_on_tilted_quadratic_peaks_and_the_parabola_is_not(cov):
+    """The coupling bias of SPC's separable parabolas: on a tilted quadratic peak each axis estimate
+    is off by −(e/2d)·(other axis's offset) — for ρ = 0.5 about half of it — while the 2-D quadric is
+    exact."""
+    rng = np.random.default_rng(11)
+    worst_q = worst_p = 0.0
+    for _ in range(40):
+        d = rng.uniform(-0.5, 0.5, 2)
+        s = _quadratic_peak(d, cov)
+        if find_peak(s)[2] != (5, 5):
+            continue
+        worst_q = max(worst_q, np.max(np.abs(_estimate(s, "quadric") - d)))
+        worst_p = max(worst_p, np.max(np.abs(_estimate(s, "parabola") - d)))
+    assert worst_q <= 1e-9
+    assert worst_p > 0.05
+    # the documented coupling, exactly: parabola along u at v-offset δ_c misses by (e/2d)·δ_c
+    d = np.array([0.1, 0.3])
+    s = _quadratic_peak(d, cov)
+    assert find_peak(s)[2] == (5, 5)
+    hinv = np.linalg.inv(cov)  # the surface's Hessian is −Σ⁻¹: d = −Σ⁻¹[0,0]/2, e = −Σ⁻¹[0,1]
+    err = _estimate(s, "parabola") - d
+    assert err[0] == pytest.approx(hinv[0, 1] / hinv[0, 0] * d[1], abs=1e-12)
+    assert err[1] == pytest.approx(hinv[0, 1] / hinv[1, 1] * d[0], abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    "cov",
+    [_ellipse(6.0, 4.8, rho=0.5), _ellipse(7.0, 4.0, angle_deg=30), _ellipse(7.0, 4.0, angle_deg=120)],
+    ids=["rho0.5", "rot30", "rot120"],
+)
+def test_quadric_recovers_shifts_of_tilted_gaussian_peaks(cov):
+    """Sampled anisotropic Gaussians (not quadrics): the quadric's only error is pixel locking, which
+    is ≤ 0.01 cell for peaks this wide at any sub-cell shift and shrinks with the shift; the parabola's
+    coupling bias stays above 0.05 cell."""
+    rng = np.random.default_rng(3)
+    eq, ep = [], []
+    for _ in range(60):
+        d = rng.uniform(-0.5, 0.5, 2)
+        s = _gaussian_peak(d, cov)
+        eq.append(_estimate(s, "quadric") - d)
+        ep.append(_estimate(s, "parabola") - d)
+    assert np.max(np.abs(eq)) <= 0.012
+    assert np.max(np.abs(ep)) > 0.05
+    # narrower peaks (w ≈ 3 cells) at the small shifts the register loop converges to
+    narrow = _ellipse(3.0, 2.4, rho=0.5)
+    for _ in range(40):
+        d = rng.uniform(-0.1, 0.1, 2)
+        assert np.max(np.abs(_estimate(_gaussian_peak(d, narrow), "quadric") - d)) <= 0.01
+
+
+def test_quadric_recovers_shifts_in_the_ncc_of_a_tilted_texture():
+    """End to end: E is a texture shifted by a known (integer + fractional) amount, P the texture; the
+    NCC peak is a tilted ellipse (cross term ≈ −0.57).  Quadric ≤ 0.01 cell; parabola > 0.05."""
+    n = 45
+    p = tilted_field(*cells(n))
+    rng = np.random.default_rng(0)
+    par = CorrelateOptions(peak="parabola")
+    eq, ep = [], []
+    for _ in range(20):
+        d = rng.uniform(-0.5, 0.5, 2) + rng.integers(-3, 4, 2)
+        e = tilted_field(*cells(n, d))
+        rq, rp = correlate(e, p), correlate(e, p, options=par)
+        assert rq.ok and rp.ok and rq.peak_fit == "quadric" and rp.peak_fit == "parabola"
+        eq.append(rq.offset - d)
+        ep.append(rp.offset - d)
+    h = rq.hessian
+    assert h[0, 1] / math.sqrt(h[0, 0] * h[1, 1]) < -0.4  # tilted
+    assert np.max(np.abs(eq)) <= 0.01
+    assert np.max(np.abs(ep)) > 0.05
+
+
+def test_peak_covariance_formula_and_degenerate_cases():
+    h = np.array([[-0.02, 0.01], [0.01, -0.03]])
+    cov = peak_covariance(h, 0.8, 400.0, 2.0)
+    np.testing.assert_allclose(cov, (1 - 0.64) / (0.8 * 200.0) * np.linalg.inv(-h), rtol=1e-12)
+    assert np.all(np.isnan(peak_covariance(-h, 0.8, 400.0)))  # a minimum
+    assert np.all(np.isnan(peak_covariance(h, -0.2, 400.0)))
+    assert np.all(peak_covariance(h, 1.0, 400.0) == 0.0)  # a perfect match has no noise
+    assert resampled_noise_footprint(2.0) == 1.0 and resampled_noise_footprint(0.5) == pytest.approx(9.0)
+    assert math.isnan(resampled_noise_footprint(0.0))
+
+
+def _scatter_vs_predicted(make_e, p, footprint, trials, d):
+    offs, covs = [], []
+    for _ in range(trials):
+        r = correlate(make_e(), p, options=CorrelateOptions(min_value=None), noise_footprint=footprint)
+        if r.ok:
+            offs.append(r.offset)
+            covs.append(r.covariance)
+    offs = np.array(offs)
+    emp = np.cov(offs.T)
+    pred = np.mean(covs, axis=0)
+    return emp, pred, len(offs)
+
+
+@pytest.mark.parametrize("noise", [0.3, 1.0, 2.0])
+def test_covariance_matches_the_scatter_of_noise_trials(noise):
+    """Monte Carlo: the predicted 1σ per axis is within a factor 1.5 of the empirical scatter of the
+    offset over noise trials (and the predicted correlation of the axes is within 0.15)."""
+    n = 41
+    p = tilted_field(*cells(n))
+    d = np.array([0.3, -0.2])
+    base = tilted_field(*cells(n, d))
+    rng = np.random.default_rng(int(noise * 10))
+    emp, pred, k = _scatter_vs_predicted(lambda: base + rng.normal(0.0, noise, base.shape), p, 1.0, 200, d)
+    assert k >= 195
+    ratio = np.sqrt(np.diag(pred) / np.diag(emp))
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
+    rho_e = emp[0, 1] / math.sqrt(emp[0, 0] * emp[1, 1])
+    rho_p = pred[0, 1] / math.sqrt(pred[0, 0] * pred[1, 1])
+    assert abs(rho_e - rho_p) < 0.15
+
+
+@pytest.mark.parametrize("h", [0.5, 1.5])
+def test_covariance_of_a_bilinearly_resampled_photo(h):
+    """Maplet space resamples the photo bilinearly onto the cells (h px per cell): the noise of nearby
+    cells is then shared and the footprint (resampled_noise_footprint) keeps the prediction within a
+    factor 1.5 of the scatter (without it, at h = 0.5, it would be 3× too small)."""
+    from scipy.ndimage import map_coordinates
+
+    n = 41
+    p = tilted_field(*cells(n))
+    d = np.array([0.3, -0.2])
+    m = int(np.ceil(n * h)) + 6
+    axis = (np.arange(m) - m / 2) / h
+    xp, yp = np.meshgrid(axis, axis, indexing="ij")
+    photo = tilted_field(xp - d[0], yp - d[1])
+    xc, yc = cells(n)
+    where = np.stack([xc * h + m / 2, yc * h + m / 2])
+    rng = np.random.default_rng(5)
+
+    def make_e():
+        return map_coordinates(photo + rng.normal(0.0, 1.0, photo.shape), where, order=1)
+
+    emp, pred, k = _scatter_vs_predicted(make_e, p, resampled_noise_footprint(h), 200, d)
+    assert k >= 195
+    ratio = np.sqrt(np.diag(pred) / np.diag(emp))
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
 
 
 @pytest.mark.parametrize("spacing", [2, 3, 4])

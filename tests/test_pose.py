@@ -127,7 +127,8 @@ def _whitened(problem, state):
     """Stacked whitened residual vector ρ with cost = ρᵀρ (independent of _Problem.normal)."""
     pts = problem.pts(state)
     s, ln = state.camera.project(pts)
-    r = (problem.meas - np.stack([s, ln], axis=-1)) * np.sqrt(problem.wts)
+    r = problem.meas - np.stack([s, ln], axis=-1)
+    r = np.einsum("mji,mj->mi", np.linalg.cholesky(problem.wts), r)  # Lᵀr with W = LLᵀ: ρᵀρ = rᵀWr
     e = np.concatenate([state.dpos, state.theta]) * np.sqrt(problem.prior.info)
     parts = [r.reshape(-1), e]
     if state.dlmk is not None:
@@ -142,7 +143,9 @@ def test_normal_equations_match_finite_differences(mode):
     pts = make_landmarks(rng, cam, 6)
     y = observe(cam, pts, rng, 0.5)
     m = pts.shape[0]
-    wts = np.full((m, 2), 1.0 / 0.3**2)
+    # full 2×2 weights (correlated axes, as --weights surface gives) checked against finite differences
+    a = rng.normal(scale=0.2, size=(m, 2, 2))
+    wts = np.linalg.inv(a @ np.swapaxes(a, 1, 2) + 0.05 * np.eye(2))
     lmk_info = 1.0 / np.full((m, 3), 2e-3) ** 2 if mode == "estimate" else None
     prior = _Prior(np.concatenate([1 / SIG_P**2, 1 / SIG_A**2]))
     start = perturbed(cam, [0.01, -0.02, 0.015], [2e-3, -1e-3, 3e-3])
@@ -258,6 +261,72 @@ def test_nees_consistent_with_chi2_over_many_seeds(use_prior, seeds, mean_tol, m
     assert abs(values.mean() - 6.0) < mean_tol, values.mean()
     assert exceed <= max_exceed, exceed
     assert stats.kstest(values, "chi2", args=(6,)).pvalue > 1e-3
+
+
+def _random_covariances(rng, n):
+    """Per-landmark measurement covariances like register's: 1σ 0.02–0.3 px, axes correlated |ρ| ≤ 0.8."""
+    ss = np.exp(rng.uniform(np.log(0.02), np.log(0.3), n))
+    sl = np.exp(rng.uniform(np.log(0.02), np.log(0.3), n))
+    rho = rng.uniform(-0.8, 0.8, n)
+    c = np.empty((n, 2, 2))
+    c[:, 0, 0], c[:, 1, 1] = ss * ss, sl * sl
+    c[:, 0, 1] = c[:, 1, 0] = rho * ss * sl
+    return c
+
+
+def test_nees_with_surface_weights_consistent_with_chi2():
+    """--weights surface: measurements whose noise follows per-landmark full 2×2 covariances, weighted
+    by exactly those (plus the 0.001 px floor): the NEES of 250 seeds is χ²₆ (mean, 99 % quantile
+    exceedances, Kolmogorov–Smirnov).  The same data weighted uniformly (0.1 px) is not consistent."""
+    seeds = 250
+    values, uniform = [], []
+    for seed in range(seeds):
+        rng = np.random.default_rng(1000 + seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 20)
+        cov = _random_covariances(rng, 20)
+        y = observe(truth, pts) + np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(20, 2)))
+        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        res = solve_pose(start, pts, y, PoseOptions(use_prior=False), pixel_covariances=cov)
+        assert res.converged and res.n_used == 20 and not res.warnings
+        values.append(nees(truth, res))
+        if seed < 60:
+            uniform.append(nees(truth, solve_pose(start, pts, y, PoseOptions(use_prior=False, sigma_px=0.1))))
+    values = np.array(values)
+    # mean of 250 χ²₆ draws: 6 ± 0.22 (1σ); P(≥ 8 of 250 above the 99 % quantile) ≈ 0.4 %
+    assert 5.4 < values.mean() < 6.6, values.mean()
+    assert np.count_nonzero(values > CHI2_99_6) <= 7
+    assert stats.kstest(values, "chi2", args=(6,)).pvalue > 1e-3
+    assert np.quantile(values, 0.5) == pytest.approx(stats.chi2.ppf(0.5, 6), rel=0.15)
+    uniform = np.array(uniform)  # 0.1 px for all: too optimistic for half of them, too pessimistic for others
+    assert uniform.mean() > 7.5 and stats.kstest(uniform, "chi2", args=(6,)).pvalue < 0.01, uniform.mean()
+
+
+def test_surface_weights_bad_rows_fall_back_and_are_named():
+    rng = np.random.default_rng(4)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 8)
+    cov = _random_covariances(rng, 8)
+    cov[2] = np.nan
+    cov[5] = [[0.01, 0.02], [0.02, 0.01]]  # not positive definite
+    res = solve_pose(
+        truth,
+        pts,
+        observe(truth, pts),
+        PoseOptions(use_prior=False),
+        pixel_covariances=cov,
+        names=list("ABCDEFGH"),
+    )
+    assert res.converged and res.n_used == 8
+    assert any("C, F" in w for w in res.warnings)
+    with pytest.raises(SpcUsageError):
+        solve_pose(truth, pts, observe(truth, pts), pixel_covariances=cov[:3])
+    with pytest.raises(SpcUsageError):
+        PoseOptions(sigma_floor_px=-1.0)
+    # the floor: a zero covariance (a perfect correlation) is weighted by the floor, not infinitely
+    zero = np.zeros((8, 2, 2))
+    res = solve_pose(truth, pts, observe(truth, pts), PoseOptions(use_prior=False), pixel_covariances=zero)
+    assert res.converged and not res.warnings
 
 
 def test_truth_recovered_from_several_pixel_apriori_error():

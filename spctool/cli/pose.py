@@ -32,6 +32,7 @@ class Measurements:
     sample: np.ndarray
     line: np.ndarray
     status: list[str]  # "ok" = to be used; anything else is passed through to the output
+    covariance: np.ndarray | None = None  # (N, 2, 2) px² from sigma_sample, sigma_line, rho_sl
 
 
 def measurements_from_table(path, picture: str | None = None, any_picture: bool = False) -> Measurements:
@@ -61,7 +62,22 @@ def measurements_from_table(path, picture: str | None = None, any_picture: bool 
         status = ["ok" if str(s) == "ok" else str(s) for s in table["status"]]
     else:
         status = ["ok"] * len(table)
-    return Measurements(table.names, smp, lin, status)
+    cov = None
+    if all(c in table for c in _COVARIANCE_COLUMNS):
+        try:
+            ss, sl, rho = (np.asarray(table[c], dtype=np.float64) for c in _COVARIANCE_COLUMNS)
+        except (TypeError, ValueError):
+            raise SpcFormatError(
+                path, None, "expected numbers (or nan) in the sigma_sample, sigma_line and rho_sl columns"
+            ) from None
+        cov = np.empty((len(ss), 2, 2))
+        cov[:, 0, 0], cov[:, 1, 1] = ss * ss, sl * sl
+        cov[:, 0, 1] = cov[:, 1, 0] = rho * ss * sl
+    return Measurements(table.names, smp, lin, status, cov)
+
+
+#: the measurement covariance columns of register/correlate tables
+_COVARIANCE_COLUMNS = ("sigma_sample", "sigma_line", "rho_sl")
 
 
 def measurements_from_sum(pic) -> Measurements:
@@ -123,6 +139,15 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     "[default: DIR/LMKFILES]",
 )
 @options.sigma_px_option()
+@click.option(
+    "--weights",
+    type=click.Choice(["uniform", "surface"]),
+    default="uniform",
+    show_default=True,
+    help="uniform: every landmark 1/sigma_px^2 per axis; surface: each landmark by the inverse of its "
+    "measurement covariance (the table's sigma_sample, sigma_line, rho_sl from register/correlate; full "
+    "2x2), so a weak, smeared correlation peak counts less than a sharp one.",
+)
 @options.no_prior_option
 @click.option(
     "--estimate-landmarks",
@@ -218,6 +243,7 @@ def solve_pose_cmd(
     measurements,
     lmk_dir,
     sigma_px,
+    weights,
     no_prior,
     estimate_landmarks,
     consider_landmarks,
@@ -239,7 +265,8 @@ def solve_pose_cmd(
 ):
     """Solve the spacecraft position and camera attitude from measured landmark pixels.
 
-    Minimises the weighted pixel residuals (1/sigma_px^2) of the landmarks' LMK positions
+    Minimises the weighted pixel residuals (1/sigma_px^2, or with --weights surface each landmark's
+    inverse measurement covariance, floored at 0.001 px) of the landmarks' LMK positions
     projected with the picture's camera (SUM + INIT_LITHOS distortion), plus the a-priori term
     from the SUM's SIGMA_VSO (km, body axes) and SIGMA_PTG (rad, camera axes), by Gauss-Newton
     with step halving.  The attitude change is the rotation vector
@@ -274,6 +301,7 @@ def solve_pose_cmd(
       spctool -C demo solve-pose P000000001A1 --measurements reg.txt --output new.SUM
       cd demo && spctool register P000000001A1 | spctool solve-pose P000000001A1 --measurements - --in-place
       spctool -C fixtures/real/rosetta-67p solve-pose W48230079013.SUM --lmk-dir . --no-prior --json
+      spctool -C demo solve-pose P000000001A1 --measurements reg.txt --weights surface
     """
     from spctool.stages.pose import solve_pose
 
@@ -300,6 +328,11 @@ def solve_pose_cmd(
         if measurements
         else measurements_from_sum(pic)
     )
+    if weights == "surface" and meas.covariance is None:
+        raise SpcUsageError(
+            "--weights surface needs a landmark table with sigma_sample, sigma_line and rho_sl columns "
+            "(from register or correlate): give it with --measurements"
+        )
     pos, lsig, found = load_landmarks(ctx, meas.names, lmk_dir)
     use = np.array([s == "ok" for s in meas.status], dtype=bool) & found
     missing = [n for n, s, f in zip(meas.names, meas.status, found) if s == "ok" and not f]
@@ -319,6 +352,7 @@ def solve_pose_cmd(
         prior_sigma_attitude=pic.sigma_ptg,
         landmark_sigmas=lsig[idx] if mode != "fixed" else None,
         names=[meas.names[i] for i in idx],
+        pixel_covariances=meas.covariance[idx] if weights == "surface" else None,
     )
 
     # ---- residual table (every input row; unused rows keep their reason) ------------------------

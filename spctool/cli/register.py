@@ -75,6 +75,14 @@ _shared_options = options.option_group(
         is_flag=True,
         help="A peak needs all 8 neighbours lower (default: the 4 along the axes).",
     ),
+    click.option(
+        "--peak",
+        type=click.Choice(["quadric", "parabola"]),
+        default="quadric",
+        show_default=True,
+        help="Sub-pixel peak: least-squares 2-D quadric on the 3x3 neighbourhood (with the cross term) "
+        "or SPC's two 1-D parabolas (legacy runs; biased on tilted peaks).",
+    ),
     options.photometry_option,
     options.shadows_option,
     options.linearized_option,
@@ -150,6 +158,7 @@ def _register_options(kw, schedule, **extra):
         grid_half=kw["grid_half"],
         min_valid=kw["min_valid"],
         strict_8=kw["strict_8"],
+        peak=kw.get("peak", "quadric"),  # commands that reuse these options without --peak
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
         predict=popts,
@@ -396,16 +405,21 @@ def correlate_cmd(ctx: Context, **kw):
     incidence exceeds 90 deg) is correlated with the photo resampled onto the maplet with the landmark
     at its a-priori pixel.  Both images are binned by --spacing N (same phase, anchored at the centre
     node); the normalised cross-correlation (Pearson, with the square root that Liounis 2015 Eq. 3.58
-    lacks) is taken over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both
-    images.  The peak is refined by one parabola per axis (Liounis 2015 Eq. 3.65, corrected) and
-    checked: edge-peak (on the grid border), not-found (a neighbour not lower, or no defined value),
-    low-correlation (below --corr-min).  Image space: the maplet rendered into the photo (cast shadows)
-    is correlated with the photo itself, offsets in pixels.
+    lacks) is taken
+    over the (2K+1)^2 grid of whole-bin offsets, counting only cells valid in both images.  The peak is
+    checked -- edge-peak (on the grid border), not-found (a neighbour not lower, or no defined value),
+    low-correlation (below --corr-min) -- and refined by a least-squares 2-D quadric on its 3x3
+    neighbourhood (--peak quadric; where that fit is no maximum, and with --peak parabola, by one
+    parabola per axis, the corrected Liounis 2015 Eq. 3.65, which is biased on tilted peaks).  Image
+    space: the maplet rendered into the photo (cast shadows) is correlated with the photo itself,
+    offsets in pixels.
 
     Columns: name, sample and line (the a-priori pixel used), offset_x and offset_y (maplet cells along
     UX and UY; image space: pixels along line and sample), dsample and dline (the implied pixel shift,
     J_xy times the offset in maplet space), measured_sample, measured_line, correlation (peak), spacing,
-    status (ok, not-found, edge-peak, low-correlation, outside, removed-<criterion>, no-maplet).
+    sigma_sample, sigma_line and rho_sl (the measurement covariance in px from the peak's curvature and
+    (1 - rho^2) noise, ok rows only), status (ok, not-found, edge-peak, low-correlation, outside,
+    removed-<criterion>, no-maplet).
 
     Example:
 
@@ -437,6 +451,9 @@ def correlate_cmd(ctx: Context, **kw):
         "measured_line",
         "correlation",
         "spacing",
+        "sigma_sample",
+        "sigma_line",
+        "rho_sl",
         "status",
     ]
     rows, written, tiles = [], 0, []
@@ -458,6 +475,9 @@ def correlate_cmd(ctx: Context, **kw):
                         "measured_sample": math.nan,
                         "measured_line": math.nan,
                         "correlation": math.nan,
+                        "sigma_sample": math.nan,
+                        "sigma_line": math.nan,
+                        "rho_sl": math.nan,
                         "status": "outside",
                     }
                 )
@@ -467,6 +487,8 @@ def correlate_cmd(ctx: Context, **kw):
             st = reg.step(i, inp.camera, start[i], int(kw["spacing"]), apply_criteria=True)
             reg.release(i)
             shift = st.shift if st.status in ("ok", "low-correlation", "edge-peak") else np.full(2, np.nan)
+            cov = st.covariance if st.ok else np.full((2, 2), np.nan)
+            sig = np.sqrt(np.diag(cov))
             row.update(
                 {
                     "offset_x": float(st.correlation.offset[0]),
@@ -476,6 +498,9 @@ def correlate_cmd(ctx: Context, **kw):
                     "measured_sample": float(st.center[0] + shift[0]),
                     "measured_line": float(st.center[1] + shift[1]),
                     "correlation": float(st.correlation.peak),
+                    "sigma_sample": float(sig[0]),
+                    "sigma_line": float(sig[1]),
+                    "rho_sl": float(cov[0, 1] / (sig[0] * sig[1])) if st.ok and sig.prod() > 0 else math.nan,
                     "status": st.status,
                 }
             )
@@ -551,6 +576,32 @@ def correlate_cmd(ctx: Context, **kw):
     help="AUTOREGISTER's removal cut between the passes.  [default: 0.5]",
 )
 @click.option(
+    "--converge-tol",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.005,
+    show_default=True,
+    metavar="PX",
+    help="Final stage: repeat the last spacing-1 step until the estimate moves by less than PX.",
+)
+@click.option(
+    "--converge-max",
+    type=click.IntRange(min=0),
+    default=10,
+    show_default=True,
+    metavar="N",
+    help="At most N extra spacing-1 steps (0 = the schedule exactly, as S16/SPC run it); a landmark "
+    "that has not settled is 'not-converged'.",
+)
+@click.option(
+    "--edge-retries",
+    type=click.IntRange(min=0),
+    default=2,
+    show_default=True,
+    metavar="N",
+    help="S16 schedule: a peak on the border of the search grid moves there and repeats the step, "
+    "at most N times (0 = S16, which gives up).",
+)
+@click.option(
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
@@ -618,7 +669,10 @@ def register_cmd(ctx: Context, **kw):
     et al. 2016 Eq. 19) after each step; the pose is not changed.  Schedule autoregister (SPC's
     AUTOREGISTER seed): removal criteria 0,50,.25,0,5 on the first pass, then all landmarks at spacing
     2, a pose solve, spacing 1, a pose solve, landmarks with rho < 0.5 dropped, spacing 1 and a last
-    pose solve; each pass re-predicts and re-extracts with the updated pose.  A schedule is fitted to
+    pose solve; each pass re-predicts and re-extracts with the updated pose.  Both end with a
+    converged full-resolution stage: the last spacing-1 step is repeated until the estimate moves by
+    less than --converge-tol (at most --converge-max times; else the status is not-converged), then
+    AUTOREGISTER solves the pose once more.  A schedule is fitted to
     each maplet: a step at spacing L searches +-K*L cells and works only while K*L <= Q + 1, Q the
     maplet's half-width (Shoemaker et al. 2016: L = 10 for 99x99 maplets; a 49x49 maplet: L <= 5), so
     coarser steps are replaced by one step at the largest L that fits, with a note on stderr
@@ -628,9 +682,12 @@ def register_cmd(ctx: Context, **kw):
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
-    peak), iterations (correlations run), spacing (of the last one), status (ok, not-found, edge-peak,
-    low-correlation, outside, removed-<criterion>, no-maplet).  The table feeds solve-pose directly
-    (only ok rows are used).  With --write-sum the ok landmarks are written to the SUM's LANDMARKS
+    peak), iterations (correlations run), spacing (of the last one), sigma_sample, sigma_line and
+    rho_sl (measurement covariance, px: 1-sigma per axis and their correlation, from the last peak's
+    curvature and (1 - rho^2) noise; an upper bound where model error rather than noise lowers rho),
+    status (ok, not-found, edge-peak, low-correlation, not-converged, outside, removed-<criterion>,
+    no-maplet).  The table feeds solve-pose directly (only ok rows are used; --weights surface uses
+    the covariance).  With --write-sum the ok landmarks are written to the SUM's LANDMARKS
     section (rows of other landmarks are kept unless --drop-failed).
 
     A run that registers no landmark prints a warning naming the most common failure on stderr;
@@ -643,6 +700,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C demo register P000000001A1 --landmarks sel.txt --require 12 -o reg.txt
       spctool -C demo register P000000001A1 --schedule autoregister --write-sum --overlay reg.png
       spctool -C demo register P000000001A1 B01980 --space image --json
+      spctool -C demo register P000000001A1 --peak parabola --converge-max 0 --edge-retries 0  # S16
     """
     from spctool.stages.register import RegisterOptions, schedule_steps
     from spctool.stages.register import register as run_register
@@ -654,6 +712,9 @@ def register_cmd(ctx: Context, **kw):
         "pose_update": not kw["no_pose_update"],
         "halve_shift": kw["halve_shift"],
         "cap_spacing": not kw["no_spacing_cap"],
+        "converge_tol": kw["converge_tol"],
+        "edge_retries": kw["edge_retries"],
+        "converge_max": kw["converge_max"],
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])

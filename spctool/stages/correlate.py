@@ -35,14 +35,43 @@ E (image space, :func:`correlate` with anchors).  With spacing n:
    lies on the border of the grid; ``not-found`` if a 4-neighbour (``strict_8``: any of the 8) is ≥ the
    peak or undefined — L15 footnote 43's "values decreasing around the peak";
    ``low-correlation`` if the peak is below ``corr_min``.
-5. **Sub-pixel**: one parabola per axis through the peak and its two neighbours,
+5. **Sub-pixel** (``peak``): by default (``"quadric"``) a least-squares quadric
+   z = a + b·u + c·v + d·u² + e·u·v + f·v² fitted to the 3×3 neighbourhood of the peak (nine values,
+   six unknowns; :func:`quadric_fit`), whose vertex is (δ_r, δ_c) = −H⁻¹·(b, c) with the Hessian
+   H = [[2d, e], [e, 2f]].  The fit is rejected when H is not negative definite (not a maximum) or
+   the vertex lies more than one cell from the grid peak; the peak, which passed the checks of item 4,
+   then takes SPC's separable estimate below (``peak_fit = "parabola-fallback"``: it happens on peaks
+   narrower than a bin, e.g. at coarse spacings, where the 3×3 quadric is a poor model).  The
+   ``e·u·v`` term matters: correlation peaks of sun-shaded terrain are tilted ellipses (normalised
+   cross term e/(2√(df)) ≈ 0.3–0.5), and a separable fit along the row and the column through the
+   peak finds the *ridge* of the other axis, not the vertex: each axis estimate is pulled by −e/(2d)
+   times the other axis's offset (for ρ = 0.5, about half of it; :func:`quadric_vertex`).  A quadratic
+   surface is recovered exactly; a sampled Gaussian peak of width w keeps a "pixel-locking" bias that
+   vanishes at zero and half-cell offsets (≤ 0.01 cell for w ≳ 6 cells at any offset, and for
+   w ≳ 2 cells at offsets ≤ 0.1 cell, which the register loop reaches by re-extracting).
+   ``peak="parabola"`` is SPC's: one parabola per axis through the peak and its two neighbours,
 
        δ = (y₊ − y₋) / (2·(2y₀ − y₊ − y₋))
 
    (L15 Eq. 3.65 has +2y₀ in the curvature: erratum 29 — with it the correction has the wrong sign;
-   Eq. 3.64's d²x/dy² means (d²y/dx²)⁻¹, erratum 28).  For a strict local maximum |δ| ≤ ½.
+   Eq. 3.64's d²x/dy² means (d²y/dx²)⁻¹, erratum 28).  For a strict local maximum |δ| ≤ ½.  Keep it
+   for reproducing legacy runs.
 6. **Offset** in full-resolution cells: Δx (along UX) = n·((r₀ − k) + δ_r), Δy (along UY) =
    n·((c₀ − k) + δ_c).  The picture shift is δ = J_xy·Δ (Stage H, :mod:`spctool.stages.register`).
+
+7. **Measurement covariance** (:func:`peak_covariance`): if E = S + noise and P matches S, the noise
+   moves the surface gradient at the peak by ε with Cov(ε) = σ_n²·G/(N·σ_E·σ_S)² (G = Σ∇P∇Pᵀ) while
+   the curvature is H = −G/(N·σ_E·σ_S), so the vertex −H⁻¹·ε has
+
+       Cov(δ) = σ_n²·G⁻¹ = (1 − ρ²)/(ρ·N_eff) · (−H)⁻¹          (binned cells²; ρ = peak value)
+
+   using σ_S/σ_E = ρ for the matched signal (everything that decorrelates the pair counts as noise,
+   also model error).  N_eff = N / footprint: N binned pixels valid at the peak, footprint the number
+   of binned cells per independent noise sample (1 for a photo correlated in its own pixels;
+   :func:`resampled_noise_footprint` for a photo resampled bilinearly onto finer cells).  H is the
+   least-squares quadric's Hessian whichever ``peak`` estimator gave the offset.  In full-resolution
+   cells Cov(Δ) = n²·Cov(δ); Stage H maps it to pixels with J_xy.  Validated against the scatter of
+   noise trials in tests/test_correlate.py.
 
 Speed: the (2k+1)² masked Pearson sums run in one numba kernel (:func:`_k_ncc`): Σp·e is a dense
 correlation with register tiling, and the masked sums (N, Σe, Σe², Σp, Σp²) come from row prefix sums
@@ -71,10 +100,17 @@ __all__ = [
     "find_peak",
     "ncc_surface",
     "parabola_vertex",
+    "PEAK_METHODS",
+    "peak_covariance",
+    "quadric_fit",
+    "quadric_vertex",
+    "resampled_noise_footprint",
 ]
 
 #: status words of a correlation (cli-contract.md "Landmark tables")
 STATUSES = ("ok", "edge-peak", "not-found", "low-correlation")
+#: sub-pixel peak estimators: 2-D least-squares quadric (default) or SPC's separable parabolas
+PEAK_METHODS = ("quadric", "parabola")
 
 
 @dataclass
@@ -91,6 +127,8 @@ class CorrelateOptions:
     * ``bin_min_fraction`` — a bin is valid only if at least this fraction of its n² pixels is valid
       (0: any valid pixel, L15 Eq. 3.57; image space uses 1 so that a template's partial border bins,
       which average only the template's pixels, are not compared with full photo bins).
+    * ``peak`` — sub-pixel estimator: ``"quadric"`` (2-D least squares on the 3×3 neighbourhood, with
+      the cross term; default) or ``"parabola"`` (SPC/L15: one parabola per axis, for legacy runs).
     """
 
     grid_half: int = 5
@@ -99,6 +137,7 @@ class CorrelateOptions:
     corr_min: float = 0.3
     strict_8: bool = False
     bin_min_fraction: float = 0.0
+    peak: str = "quadric"
 
     def __post_init__(self):
         if int(self.grid_half) != self.grid_half or self.grid_half < 1:
@@ -111,6 +150,8 @@ class CorrelateOptions:
             raise SpcUsageError(f"corr_min must lie in [-1, 1], got {self.corr_min!r}")
         if not (0.0 <= float(self.bin_min_fraction) <= 1.0):
             raise SpcUsageError(f"bin_min_fraction must lie in [0, 1], got {self.bin_min_fraction!r}")
+        if self.peak not in PEAK_METHODS:
+            raise SpcUsageError(f"peak must be one of {', '.join(PEAK_METHODS)}, got {self.peak!r}")
 
 
 @dataclass
@@ -131,6 +172,12 @@ class Correlation:
     peak_index: tuple[int, int] | None  #: (r₀, c₀) on the grid
     subpixel: tuple[float, float]  #: (δ_r, δ_c) in binned cells
     offset: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    #: (2, 2) Hessian of the least-squares quadric at the grid peak, per binned cell² (NaN if none)
+    hessian: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
+    #: (2, 2) covariance of ``offset`` in full-resolution cells² (array axes; NaN if none)
+    covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
+    #: sub-pixel estimate used: "quadric", "parabola" or "parabola-fallback" (quadric rejected); "" if none
+    peak_fit: str = ""
 
     @property
     def ok(self) -> bool:
@@ -448,20 +495,109 @@ def _vertex(ym: float, y0: float, yp: float) -> float:
     return (yp - ym) / den if den != 0.0 else math.nan
 
 
-def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False):
-    """Stage G on one surface: ``(status, peak, (r₀, c₀) or None, (δ_r, δ_c))`` (spc-algorithms.md §8.3)."""
-    s = np.asarray(surface, dtype=np.float64)
+# the 3×3 neighbourhood: flat index 3·(u + 1) + (v + 1), u along axis 0, v along axis 1
+_QU, _QV = (a.ravel().astype(np.float64) for a in np.meshgrid((-1, 0, 1), (-1, 0, 1), indexing="ij"))
+#: design matrix of z = a + b·u + c·v + d·u² + e·u·v + f·v² on the nine nodes, and its pseudo-inverse
+_QA = np.stack([np.ones(9), _QU, _QV, _QU * _QU, _QU * _QV, _QV * _QV], axis=1)
+_QPINV = np.linalg.pinv(_QA)
+_CROSS = np.array([1, 3, 4, 5, 7])  # centre and its four axis neighbours
+
+
+def quadric_fit(z3) -> np.ndarray:
+    """Least-squares quadric (a, b, c, d, e, f) of z = a + b·u + c·v + d·u² + e·u·v + f·v² on a 3×3
+    neighbourhood (u = −1, 0, 1 along axis 0, v along axis 1).
+
+    All nine values: the closed form ``_QPINV @ z``.  Undefined (NaN) diagonal values are left out of
+    the fit; with no diagonal left the cross term is unknown and set to 0 (the fit is then SPC's two
+    parabolas).  NaN coefficients if the centre or an axis neighbour is undefined.
+    """
+    z = np.asarray(z3, dtype=np.float64).reshape(9)
+    ok = np.isfinite(z)
+    if ok.all():
+        return _QPINV @ z
+    if not ok[_CROSS].all():
+        return np.full(6, np.nan)
+    # rank 6 with ≥ 1 diagonal; with none the e column is zero and lstsq's minimum norm gives e = 0
+    coef, *_ = np.linalg.lstsq(_QA[ok], z[ok], rcond=None)
+    return coef
+
+
+def quadric_vertex(z3, max_move: float = 1.0):
+    """Vertex of the least-squares quadric on a 3×3 neighbourhood: ``(δ_r, δ_c, H, ok)``.
+
+    (δ_r, δ_c) = −H⁻¹·(b, c) with H = [[2d, e], [e, 2f]].  ``ok`` is False (and δ NaN) when H is not
+    negative definite (the fit is no maximum) or the vertex lies more than ``max_move`` cells from the
+    centre along either axis (outside the neighbourhood: an extrapolation).  H is returned in any case.
+
+    Why the cross term: along the row u = 0 the quadric peaks at v = −(c + e·u)/(2f) evaluated at
+    u = 0, i.e. at −c/(2f), while the vertex is at −c/(2f) − e·δ_r/(2f); a separable parabola is thus
+    off by (e/2f)·δ_r along v (and by (e/2d)·δ_c along u).  For a peak with correlation ρ between the
+    axes that is ρ·(σ_v/σ_u)·δ_r — half the other axis's offset at ρ = 0.5.
+    """
+    _, b, c, d, e, f = quadric_fit(z3)
+    h = np.array([[2.0 * d, e], [e, 2.0 * f]])
+    det = 4.0 * d * f - e * e
+    if not (d < 0.0 and det > 0.0):
+        return math.nan, math.nan, h, False
+    dr = -(2.0 * f * b - e * c) / det
+    dc = -(2.0 * d * c - e * b) / det
+    if not (abs(dr) <= max_move and abs(dc) <= max_move):
+        return math.nan, math.nan, h, False
+    return float(dr), float(dc), h, True
+
+
+def resampled_noise_footprint(pixels_per_cell: float) -> float:
+    """Cells per independent noise sample of a photo resampled bilinearly onto cells of
+    ``pixels_per_cell`` pixels (linear; √|det J_xy| times the spacing n for binned maplet cells).
+
+    Bilinear interpolation of white pixel noise, sampled every h pixels, has the autocorrelation sum
+    Σₖ r(k·h) = 1.5/h per axis for h ≤ 1 (∫Λ² = 2/3 of the pixel variance at a node, ∫(Λ∗Λ) = 1);
+    at h ≥ 1.5 neighbouring samples hardly share a pixel.  Returns max(1, 1.5/h)², the factor by which
+    the number of valid cells overstates the independent samples (1 for a photo correlated in its
+    own pixels: image space).
+    """
+    h = float(pixels_per_cell)
+    if not (h > 0.0 and math.isfinite(h)):
+        return math.nan
+    return max(1.0, 1.5 / h) ** 2
+
+
+def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0) -> np.ndarray:
+    """Covariance (2×2, binned cells²) of a correlation peak's vertex: (1 − ρ²)/(ρ·N_eff)·(−H)⁻¹.
+
+    ``hessian`` H of the surface at the peak (per binned cell²; :func:`quadric_vertex`), ``rho`` the
+    peak value, ``count`` N the binned pixels valid in both images there, ``footprint`` the binned
+    cells per independent noise sample (N_eff = N/footprint).  Derivation in the module docstring
+    (item 7).  NaN when H is not negative definite or ρ ∉ (0, 1].
+    """
+    h = np.asarray(hessian, dtype=np.float64)
+    nan = np.full((2, 2), np.nan)
+    if not (np.all(np.isfinite(h)) and 0.0 < rho <= 1.0 and count > 0 and footprint > 0):
+        return nan
+    det = h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]
+    if not (h[0, 0] < 0.0 and det > 0.0):
+        return nan
+    inv_neg = np.array([[-h[1, 1], h[0, 1]], [h[1, 0], -h[0, 0]]]) / det  # (−H)⁻¹
+    cov = (1.0 - rho * rho) / (rho * count / footprint) * inv_neg
+    return 0.5 * (cov + cov.T)
+
+
+def _find_peak(s, corr_min, strict_8, peak):
+    """find_peak plus the Hessian at the grid peak (NaN when there is no 3×3 neighbourhood) and the
+    estimate used ("quadric", "parabola", "parabola-fallback" or "").  The Hessian is the quadric's,
+    or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas."""
+    nan_h = np.full((2, 2), np.nan)
     finite = np.isfinite(s)
     if not finite.any():
-        return "not-found", math.nan, None, (math.nan, math.nan)
+        return "not-found", math.nan, None, (math.nan, math.nan), nan_h, ""
     flat = np.where(finite, s, -np.inf)
     r0, c0 = divmod(int(np.argmax(flat)), s.shape[1])
-    peak = float(s[r0, c0])
-    if np.count_nonzero(flat == peak) > 1:  # a flat surface or a tied maximum: no clearly defined peak
-        return "not-found", peak, (r0, c0), (math.nan, math.nan)
+    pk = float(s[r0, c0])
+    if np.count_nonzero(flat == pk) > 1:  # a flat surface or a tied maximum: no clearly defined peak
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
     g0, g1 = s.shape
     if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
-        return "edge-peak", peak, (r0, c0), (0.0, 0.0)
+        return "edge-peak", pk, (r0, c0), (0.0, 0.0), nan_h, ""
     up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
     left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
     neighbours = [up, down, left, right]
@@ -473,12 +609,29 @@ def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False):
             float(s[r0 + 1, c0 + 1]),
         ]
     # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
-    if not all(v < peak for v in neighbours):
-        return "not-found", peak, (r0, c0), (math.nan, math.nan)
-    dr = _vertex(up, peak, down)
-    dc = _vertex(left, peak, right)
-    status = "ok" if peak >= corr_min else "low-correlation"
-    return status, peak, (r0, c0), (dr, dc)
+    if not all(v < pk for v in neighbours):
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
+    qr, qc, h, q_ok = quadric_vertex(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2])
+    status = "ok" if pk >= corr_min else "low-correlation"
+    if peak == "quadric" and q_ok:
+        return status, pk, (r0, c0), (qr, qc), h, "quadric"
+    # SPC's two parabolas (|δ| ≤ ½ for the strict maximum checked above)
+    dr = _vertex(up, pk, down)
+    dc = _vertex(left, pk, right)
+    if not q_ok:  # the quadric is no maximum: the curvature of the two parabolas
+        h = np.diag([up + down - 2.0 * pk, left + right - 2.0 * pk])
+    return status, pk, (r0, c0), (dr, dc), h, "parabola" if peak == "parabola" else "parabola-fallback"
+
+
+def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False, peak: str = "quadric"):
+    """Stage G on one surface: ``(status, peak, (r₀, c₀) or None, (δ_r, δ_c))`` (spc-algorithms.md §8.3).
+
+    ``peak``: ``"quadric"`` (default; :func:`quadric_vertex`; where that fit is rejected, the parabolas)
+    or ``"parabola"`` (SPC's two 1-D parabolas, :func:`parabola_vertex`).
+    """
+    if peak not in PEAK_METHODS:
+        raise SpcUsageError(f"peak must be one of {', '.join(PEAK_METHODS)}, got {peak!r}")
+    return _find_peak(np.asarray(surface, dtype=np.float64), corr_min, strict_8, peak)[:4]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -509,6 +662,7 @@ def correlate(
     options: CorrelateOptions | None = None,
     extracted_anchor=None,
     predicted_anchor=None,
+    noise_footprint: float = 1.0,
 ) -> Correlation:
     """Correlate a prediction with an extracted (or search) image; spc-algorithms.md §7–§8.
 
@@ -518,6 +672,8 @@ def correlate(
     is the index in E where P's ``predicted_anchor`` sits at zero offset.  Both are binned by ``spacing``
     n with blocks anchored there (same phase), then C(u, v) = corr(E_b(m), P_b(m − (u, v))) on the
     (2k+1)² grid; the result's ``offset`` is in full-resolution cells: n·((r₀ − k) + δ_r, (c₀ − k) + δ_c).
+    ``noise_footprint``: binned cells per independent noise sample, for the ``covariance`` of the offset
+    (module docstring item 7; 1 for a photo correlated in its own pixels).
     """
     opts = options or CorrelateOptions()
     n = int(spacing)
@@ -535,10 +691,13 @@ def correlate(
     pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
     origin = (eab[0] - pab[0], eab[1] - pab[1])
     surf, cnts = ncc_surface(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
-    status, peak, idx, (dr, dc) = find_peak(surf, opts.corr_min, opts.strict_8)
+    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     k = opts.grid_half
+    cov = np.full((2, 2), np.nan)
     if idx is None or status == "not-found":
         off = np.full(2, np.nan)
     else:
         off = n * np.array([(idx[0] - k) + dr, (idx[1] - k) + dc], dtype=np.float64)
-    return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off)
+        if status != "edge-peak":
+            cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
+    return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, cov, fit)

@@ -12,8 +12,11 @@ body→camera rotation T (rows CX, CY, CZ) that minimise
 
 with h the full SPC camera model (:class:`spctool.geometry.camera.Camera`: distortion, legacy D terms,
 K matrix), Wᵢ = diag(1/σ_sample², 1/σ_line²) (default σ = ``sigma_px`` = 0.1 px, the S16 achieved
-accuracy, spc-algorithms.md §13; 1 px is the conservative choice) and the a-priori term built from the
-SUM's SIGMA_VSO (km) and SIGMA_PTG (rad) about the a-priori pose χ₀.
+accuracy, spc-algorithms.md §13; 1 px is the conservative choice) — or, with per-landmark measurement
+covariances Cᵢ (``pixel_covariances``: the correlation surface's, from ``register``), the full 2×2
+Wᵢ = (Cᵢ + σ_floor²·I)⁻¹, so a weak, smeared peak counts less than a sharp one and the axes'
+correlation is honoured — and the a-priori term built from the SUM's SIGMA_VSO (km) and SIGMA_PTG
+(rad) about the a-priori pose χ₀.
 
 State and conventions (everything downstream relies on these):
 
@@ -121,6 +124,8 @@ class PoseOptions:
       ``sigma_px``; wrong measurements, another picture's table; real SPC data at 0.75 px against the
       0.1 px default gives ~30, which only scales the covariance): :attr:`PoseResult.implausible`
       names the reason.
+    * ``sigma_floor_px`` — added in quadrature to per-landmark covariances (``pixel_covariances``) so
+      that a near-perfect correlation (ρ → 1, covariance → 0) cannot take all the weight (0.001 px).
     """
 
     max_iter: int = 10
@@ -139,6 +144,7 @@ class PoseOptions:
     max_halvings: int = 30
     scale_covariance: bool = True
     max_reduced_chi2: float = 100.0
+    sigma_floor_px: float = 0.001
 
     def __post_init__(self):
         if self.estimate_landmarks:
@@ -165,6 +171,8 @@ class PoseOptions:
             raise SpcUsageError(f"max_reject_fraction must be in [0, 1], got {self.max_reject_fraction}")
         if int(self.min_landmarks) < 0:
             raise SpcUsageError(f"min_landmarks must be >= 0, got {self.min_landmarks}")
+        if not (self.sigma_floor_px >= 0 and math.isfinite(self.sigma_floor_px)):
+            raise SpcUsageError(f"sigma_floor_px must be a number >= 0, got {self.sigma_floor_px}")
         if not (self.max_condition > 1):
             raise SpcUsageError(f"max_condition must be > 1, got {self.max_condition}")
         if not (self.max_reduced_chi2 > 0):
@@ -431,7 +439,10 @@ class _Problem:
         self.t0 = np.array(camera0.rotation)
         self.points = points  # (M, 3)
         self.meas = meas  # (M, 2)
-        self.wts = wts  # (M, 2)
+        w = np.asarray(wts, dtype=np.float64)
+        if w.ndim == 2:  # per-axis weights (M, 2): diagonal Wᵢ
+            w = w[:, :, None] * np.eye(2)
+        self.wts = w  # (M, 2, 2) weight matrices Wᵢ (symmetric)
         self.prior = prior
         self.mode = mode
         self.lmk_info = lmk_info  # (M, 3) inverse variances, "estimate" mode
@@ -471,7 +482,7 @@ class _Problem:
     def cost(self, s: _State) -> tuple[float, float]:
         smp, lin = s.camera.project(self.pts(s))
         r = self.meas - np.stack([smp, lin], axis=-1)
-        chi2 = float(np.sum(self.wts * r * r))
+        chi2 = float(np.einsum("mi,mij,mj->", r, self.wts, r))
         e = np.concatenate([s.dpos, s.theta])
         total = chi2 + float(np.sum(self.prior.info * e * e))
         if s.dlmk is not None:
@@ -485,7 +496,7 @@ class _Problem:
         pred = np.stack([j.sample, j.line], axis=-1)
         r = self.meas - pred
         hx = np.concatenate([j.position, j.attitude], axis=-1)  # (M, 2, 6)
-        hw = hx * self.wts[..., None]
+        hw = self.wts @ hx  # Wᵢ·Hᵢ (M, 2, 6)
         h2 = hx.reshape(-1, 6)
         hw2 = hw.reshape(-1, 6)
         n = hw2.T @ h2
@@ -500,10 +511,11 @@ class _Problem:
         extra = {"hx": hx, "pred": pred, "r": r, "hl": j.point, "g_full": g}
         if self.mode == "estimate":
             hl = j.point  # (M, 2, 3)
+            hlw = self.wts @ hl
             b = np.einsum("mki,mkj->mij", hw, hl)  # (M, 6, 3)
-            d = np.einsum("mki,mkj->mij", hl * self.wts[..., None], hl)
+            d = np.einsum("mki,mkj->mij", hlw, hl)
             d[:, [0, 1, 2], [0, 1, 2]] += self.lmk_info
-            gl = np.einsum("mki,mk->mi", hl * self.wts[..., None], r) - self.lmk_info * s.dlmk
+            gl = np.einsum("mki,mk->mi", hlw, r) - self.lmk_info * s.dlmk
             dinv = np.linalg.inv(d)
             bdinv = b @ dinv  # (M, 6, 3)
             n = n - np.einsum("mij,mkj->ik", bdinv, b)
@@ -602,6 +614,24 @@ def _per_landmark(a, n, what, allow_scalar=True, width=None) -> np.ndarray:
     return arr
 
 
+def _covariance_weights(covs, n, floor, fallback):
+    """(W (N, 2, 2), bad (N,)): Wᵢ = (Cᵢ + floor²·I)⁻¹ for finite positive-definite Cᵢ, else fallback."""
+    c = np.asarray(covs, dtype=np.float64)
+    if c.shape != (n, 2, 2):
+        raise SpcUsageError(f"pixel_covariances must have shape ({n}, 2, 2), got {c.shape}")
+    c = 0.5 * (c + np.swapaxes(c, 1, 2)) + (floor * floor) * np.eye(2)
+    det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+    good = np.all(np.isfinite(c), axis=(1, 2)) & (c[:, 0, 0] > 0) & (det > 0)
+    w = np.array(fallback, dtype=np.float64, copy=True)
+    cg = c[good]
+    dg = det[good][:, None, None]
+    w[good] = (
+        np.stack([np.stack([cg[:, 1, 1], -cg[:, 0, 1]], -1), np.stack([-cg[:, 1, 0], cg[:, 0, 0]], -1)], 1)
+        / dg
+    )
+    return w, ~good
+
+
 def solve_pose(
     camera,
     landmark_positions,
@@ -612,6 +642,7 @@ def solve_pose(
     landmark_sigmas=None,
     names=None,
     pixel_sigmas=None,
+    pixel_covariances=None,
 ) -> PoseResult:
     """Solve spacecraft position and attitude from N landmark measurements (module docstring).
 
@@ -622,6 +653,9 @@ def solve_pose(
       rad, camera frame (SUM SIGMA_PTG); used when ``options.use_prior``.  None = no prior on that part.
     * ``landmark_sigmas`` (N, 3) km (LMK SIGMA_LMK) — required for ``"estimate"`` / ``"consider"``.
     * ``pixel_sigmas`` — optional per-landmark 1σ in pixels, (N,) or (N, 2); default ``sigma_px``.
+    * ``pixel_covariances`` — optional (N, 2, 2) measurement covariances in px² (sample, line), e.g.
+      ``register``'s; weights Wᵢ = (Cᵢ + ``sigma_floor_px``²·I)⁻¹.  Rows that are not finite positive
+      definite fall back to ``pixel_sigmas``/``sigma_px`` (named in a warning).
 
     Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
     """
@@ -641,7 +675,19 @@ def solve_pose(
     )
     if np.any(~(sig_px > 0)):
         raise SpcUsageError("pixel sigmas must be positive")
-    wts_all = 1.0 / (sig_px * sig_px)
+    wts_all = np.zeros((n_all, 2, 2))
+    wts_all[:, 0, 0] = 1.0 / (sig_px[:, 0] * sig_px[:, 0])
+    wts_all[:, 1, 1] = 1.0 / (sig_px[:, 1] * sig_px[:, 1])
+    warnings: list[str] = []
+    if pixel_covariances is not None:
+        wts_all, bad = _covariance_weights(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
+        bad &= np.all(np.isfinite(meas_all), axis=1)
+        if bad.any():
+            fallback = "the given pixel sigmas" if pixel_sigmas is not None else f"{opts.sigma_px:g} px"
+            warnings.append(
+                f"no usable measurement covariance for {', '.join(names[i] for i in np.flatnonzero(bad))}:"
+                f" weighted with {fallback}"
+            )
     mode = opts.landmark_mode
     lmk_sig = None
     if mode != "fixed":
@@ -651,7 +697,6 @@ def solve_pose(
         if not np.all(np.isfinite(lmk_sig)):
             raise SpcUsageError("landmark sigmas must be finite")
 
-    warnings: list[str] = []
     if opts.use_prior:
         info = np.concatenate(
             [
@@ -728,7 +773,7 @@ def solve_pose(
             break
         smp, lin = state.camera.project(problem.pts(state))
         r = problem.meas - np.stack([smp, lin], axis=-1)
-        rho2 = np.sum(problem.wts * r * r, axis=1)
+        rho2 = np.einsum("mi,mij,mj->m", r, problem.wts, r)
         if state.dlmk is not None:  # "estimate": a landmark's cost also has its position-prior term
             rho2 = rho2 + np.sum(problem.lmk_info * state.dlmk * state.dlmk, axis=1)
         rho = np.sqrt(rho2)
@@ -783,7 +828,7 @@ def solve_pose(
     elif mode == "consider":
         hx = extra["hx"]
         hl = extra["hl"]
-        b = np.einsum("mki,mkj->mij", hx * problem.wts[..., None], hl)  # (M, 6, 3)
+        b = np.einsum("mki,mkj->mij", problem.wts @ hx, hl)  # (M, 6, 3)
         sl = lmk_sig[used] ** 2
         c = np.einsum("mij,mj,mkj->ik", b, sl, b)
         cov_plain = cov

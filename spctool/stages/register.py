@@ -35,8 +35,12 @@ Drivers (:func:`register`; spc-algorithms.md §9.3)
 --------------------------------------------------
 * ``schedule="retina_s16"`` — per landmark, no pose update: start at the a-priori pixel (S16 Eq. 9) and
   for L = 10, 9, …, 1 correlate at spacing L (search ±5L cells, S16) and move c by J_xy·Δ (S16
-  Eq. 19).  A failed peak check ends the landmark with its status (``fail_fast``, the default; S16 does
-  not say) or, with ``fail_fast=False``, keeps c and goes on.  Acceptance needs ρ ≥ 0.3.
+  Eq. 19).  A peak on the border of the grid (``edge-peak``: the true peak lies beyond the search)
+  moves c to that border maximum and repeats the step, at most ``edge_retries`` (2) times, which
+  triples the first step's reach (S16's maplet-space failures are mostly a-priori errors beyond ±5L;
+  in the s16-50m Monte Carlo this takes success from 97 % to 99.3 %); 0 is S16's behaviour.  A
+  failed peak check ends the landmark with its status (``fail_fast``, the default; S16 does not
+  say) or, with ``fail_fast=False``, keeps c and goes on.  Acceptance needs ρ ≥ 0.3.
 * ``schedule="autoregister"`` — SPC's AUTOREGISTER seed (``make_scriptA.seed``): removal criteria
   ``0,50,.25,0,5`` on the first pass; align at spacing 2, then 1, drop landmarks with ρ < 0.5, align at
   spacing 1.  Every align pass correlates all landmarks at the current pose, then (``pose_update``,
@@ -44,6 +48,23 @@ Drivers (:func:`register`; spc-algorithms.md §9.3)
   (:func:`spctool.stages.pose.solve_pose`, with the SUM sigmas as prior) and re-predicts and
   re-extracts with the new pose in the next pass; ``halve_shift`` applies half of each shift (the
   "option 1" of Align landmarks).
+
+Both drivers end with a **converged full-resolution stage** when their last align step is at
+spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
+estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`` extra steps (10;
+0 = the schedule exactly).  The coarse steps leave 0.3–1 px on tilted peaks and a single L = 1 step
+only removes part of that; at convergence the last correlation peak sits at a near-zero offset, where
+any sub-pixel estimator is least biased.  A small cycle (the estimate going round places
+< 20·``converge_tol`` apart, e.g. an image-space template re-rendered at each sub-pixel placement)
+converges to the mean of those places.  A landmark that does not settle within the cap gets the
+status ``not-converged`` (its last estimate is kept in :attr:`RegisterResult.measured`, but it is not
+``ok``).  AUTOREGISTER converges every landmark from its last measurement with the final pose, then
+solves the pose once more from the converged pixels (``pose_update``).
+
+Every measured landmark also carries a **measurement covariance** (:attr:`RegisterResult.covariance`,
+pixels², (sample, line)): the correlation peak's covariance (:mod:`spctool.stages.correlate` item 7)
+mapped to pixels, J_xy·Σ_cells·J_xyᵀ in maplet space (with the bilinear-resampling noise footprint of
+cells of √|det J_xy| px), the (line, sample) offsets swapped to (sample, line) in image space.
 
 Every constant is a field of :class:`RegisterOptions`; a schedule is a list of steps ``("align", n)``
 or ``("drop", ρ_min)`` (:func:`schedule_steps`).
@@ -60,7 +81,8 @@ the cap only keeps the binned template at least 2·√min_valid bins across (10 
 Status words (cli-contract.md): ``ok``; ``not-found`` (no clearly defined peak), ``edge-peak`` (peak on
 the border of the search grid), ``low-correlation`` (peak below ``corr_min``, or dropped by the
 AUTOREGISTER cut); ``outside`` (V behind the camera or projecting off the photo);
-``removed-<criterion>`` (Stage E removal on the first extraction).
+``removed-<criterion>`` (Stage E removal on the first extraction); ``not-converged`` (the final
+full-resolution stage did not settle within ``converge_max`` steps).
 """
 
 from __future__ import annotations
@@ -73,7 +95,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.stages.correlate import CorrelateOptions, Correlation, correlate
+from spctool.stages.correlate import CorrelateOptions, Correlation, correlate, resampled_noise_footprint
 from spctool.stages.extract import (
     ZENITH_EPS,
     ExtractOptions,
@@ -117,7 +139,15 @@ class RegisterOptions:
       ``("align", n)`` / ``("drop", ρ)`` (or ints meaning align at that spacing).
     * ``corr_min`` — peak acceptance (0.3, S16/GIANT); ``grid_half`` (5 → 11×11, search ±5n);
       ``min_valid`` (25 binned pixels); ``strict_8`` (all 8 neighbours below the peak).
+    * ``peak`` — sub-pixel peak estimator, ``"quadric"`` (2-D least squares with the cross term) or
+      ``"parabola"`` (SPC's separable fit, for legacy runs).
+    * ``converge_tol`` (px, 0.005) / ``converge_max`` (10) — the final full-resolution stage (module
+      docstring): repeat the last spacing-1 step until the estimate moves by less than the tolerance,
+      at most this many extra steps (0: the schedule exactly, as S16/SPC run it).
     * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (True).
+    * ``edge_retries`` — S16 driver: a step whose peak is on the border of the grid (``edge-peak``)
+      moves to that border maximum and is repeated, at most this many times per step (0: S16, which
+      gives up; 2 extends the first step's reach from ±5L to ±15L cells).
     * ``pose_update`` — AUTOREGISTER driver: pose solve after each align pass (True);
       ``halve_shift`` — apply ½ of every shift (False); ``min_pose_landmarks`` — accepted landmarks
       needed for a pose solve (3).
@@ -144,7 +174,11 @@ class RegisterOptions:
     grid_half: int = 5
     min_valid: int = 25
     strict_8: bool = False
+    peak: str = "quadric"
+    converge_tol: float = 0.005
+    converge_max: int = 10
     fail_fast: bool = True
+    edge_retries: int = 2
     pose_update: bool = True
     halve_shift: bool = False
     min_pose_landmarks: int = 3
@@ -173,6 +207,14 @@ class RegisterOptions:
             raise SpcUsageError(f"rerender_tol must be >= 0, got {self.rerender_tol}")
         if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
             raise SpcUsageError(f"image_bin_fraction must lie in [0, 1], got {self.image_bin_fraction}")
+        if int(self.edge_retries) != self.edge_retries or int(self.edge_retries) < 0:
+            raise SpcUsageError(f"edge_retries must be an integer >= 0, got {self.edge_retries}")
+        self.edge_retries = int(self.edge_retries)
+        if not float(self.converge_tol) > 0.0:
+            raise SpcUsageError(f"converge_tol must be > 0 px, got {self.converge_tol}")
+        if int(self.converge_max) != self.converge_max or int(self.converge_max) < 0:
+            raise SpcUsageError(f"converge_max must be an integer >= 0, got {self.converge_max}")
+        self.converge_max = int(self.converge_max)
         if int(self.template_margin) < 0:
             raise SpcUsageError(f"template_margin must be >= 0, got {self.template_margin}")
         self.s16_spacings = tuple(int(n) for n in self.s16_spacings)
@@ -187,7 +229,11 @@ class RegisterOptions:
     @property
     def correlate_options(self) -> CorrelateOptions:
         return CorrelateOptions(
-            grid_half=self.grid_half, min_valid=self.min_valid, corr_min=self.corr_min, strict_8=self.strict_8
+            grid_half=self.grid_half,
+            min_valid=self.min_valid,
+            corr_min=self.corr_min,
+            strict_8=self.strict_8,
+            peak=self.peak,
         )
 
     def as_dict(self) -> dict:
@@ -315,6 +361,15 @@ class LandmarkStep:
     def measured(self) -> np.ndarray:
         return self.center + self.shift
 
+    @property
+    def covariance(self) -> np.ndarray:
+        """(2, 2) covariance of :attr:`measured` in px² (sample, line): J_xy·Σ·J_xyᵀ of the correlation
+        offset's covariance Σ (maplet cells), or Σ with its (line, sample) axes swapped (image space)."""
+        c = np.asarray(self.correlation.covariance, dtype=np.float64)
+        if self.jxy is not None:
+            return self.jxy @ c @ self.jxy.T
+        return c[::-1, ::-1].copy()
+
 
 class _Landmark:
     """Per-landmark state reused across steps: slopes, prediction (per camera), template cache."""
@@ -413,6 +468,8 @@ class Registrar:
         lm = self.landmarks[i]
         ext = self.extraction(i, camera, center, apply_criteria)
         pred = self.prediction(i, camera)
+        # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
+        h_bin = spacing * math.sqrt(abs(float(np.linalg.det(ext.jxy)))) if ext.jxy is not None else 1.0
         corr = correlate(
             ext.image,
             pred.image,
@@ -420,6 +477,7 @@ class Registrar:
             predicted_valid=pred.lit,
             spacing=spacing,
             options=self._copts,
+            noise_footprint=resampled_noise_footprint(h_bin) if h_bin > 0 else 1.0,
         )
         status = corr.status if ext.status == "ok" else ext.status
         shift = ext.jxy @ corr.offset
@@ -691,9 +749,21 @@ class RegisterResult:
     last_steps: list = field(default_factory=list)  #: the last LandmarkStep of every landmark (or None)
     warnings: list = field(default_factory=list)
     options: RegisterOptions | None = None
+    #: (N, 2, 2) measurement covariance of ``measured`` in px² (sample, line); NaN unless ok
+    covariance: np.ndarray | None = None
 
     def __len__(self):
         return len(self.names)
+
+    def sigmas(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sigma_sample, sigma_line, rho_sl) of :attr:`covariance` (px, px, correlation; NaN if none)."""
+        n = len(self)
+        c = self.covariance if self.covariance is not None else np.full((n, 2, 2), np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ss = np.sqrt(c[:, 0, 0])
+            sl = np.sqrt(c[:, 1, 1])
+            rho = c[:, 0, 1] / (ss * sl)
+        return ss, sl, rho
 
     @property
     def ok(self) -> np.ndarray:
@@ -713,7 +783,8 @@ class RegisterResult:
     def to_table(self, picture=None, command="register", meta=None):
         """The landmark table (cli-contract.md): sample/line = measured pixel when ok, else the
         a-priori pixel; apriori_sample/line; dsample/dline = measured − a-priori; correlation;
-        iterations; spacing (last); status."""
+        iterations; spacing (last); sigma_sample, sigma_line, rho_sl (the measurement covariance:
+        1σ in px and the correlation of the two axes, NaN unless ok); status."""
         from spctool.formats.table import LandmarkTable
 
         ok = self.ok
@@ -730,8 +801,9 @@ class RegisterResult:
             "correlation": self.correlation.astype(np.float64),
             "iterations": self.iterations.astype(np.int64),
             "spacing": self.spacing.astype(np.int64),
-            "status": list(self.status),
         }
+        cols["sigma_sample"], cols["sigma_line"], cols["rho_sl"] = self.sigmas()
+        cols["status"] = list(self.status)
         return LandmarkTable(cols, picture=picture, command=command, meta=dict(meta or {}))
 
 
@@ -776,7 +848,16 @@ def register(
     last = [None] * n
     tick = progress or (lambda k=1: None)
     result = RegisterResult(
-        [lm.name for lm in reg.landmarks], apri, measured, corr, iters, spac, status, camera, options=opts
+        [lm.name for lm in reg.landmarks],
+        apri,
+        measured,
+        corr,
+        iters,
+        spac,
+        status,
+        camera,
+        options=opts,
+        covariance=np.full((n, 2, 2), np.nan),
     )
     top = max(int(v) for k, v in steps if k == "align")
     caps = np.array(
@@ -806,6 +887,8 @@ def register(
             caps,
         )
     result.last_steps = last
+    bad = ~result.ok
+    result.covariance[bad] = np.nan
     return result
 
 
@@ -816,9 +899,60 @@ def _record(result, last, i, st: LandmarkStep, keep_images: bool):
     result.correlation[i] = st.correlation.peak
 
 
+def _converges(steps, opts) -> bool:
+    """The final full-resolution stage runs when the last align step is at spacing 1."""
+    last_align = [v for k, v in steps if k == "align"][-1]
+    return opts.converge_max > 0 and int(last_align) == 1
+
+
+#: a cycle of the final stage (the estimate returns to where it was some steps before) whose
+#: diameter is below this many converge_tol (0.1 px at the default 0.005 px: about the 1σ of an image-space
+#: measurement) is resolved to the mean of its places
+_CYCLE_FACTOR = 20.0
+
+
+def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
+    """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
+    than ``converge_tol`` (``moved``: the move of the step that produced ``c``).  Returns
+    ``(status, c, step)``: ``"ok"``; a failed step's status; or ``"not-converged"`` after
+    ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
+
+    A cycle — the estimate goes round two, three or four places, as an image-space template
+    re-rendered at each sub-pixel placement can make it (0.01–0.09 px in the s16-50m Monte Carlo) —
+    is detected when a step returns within ``converge_tol`` of an estimate two or more steps before;
+    if the places of the cycle are less than ``_CYCLE_FACTOR``·``converge_tol`` apart, their mean is
+    the converged estimate (``ok``)."""
+    opts = reg.options
+    tol = opts.converge_tol
+    st_ok = None
+    hist = [np.asarray(c, dtype=np.float64)]
+    k = 0
+    while not moved < tol:
+        if k >= opts.converge_max:
+            return "not-converged", c, st_ok
+        st = reg.step(i, camera, c, 1)
+        _record(result, last, i, st, opts.keep_images)
+        k += 1
+        if not st.ok:
+            return st.status, c, st_ok
+        new = st.center + factor * st.shift
+        moved = float(np.hypot(*(new - c)))
+        st_ok = st
+        back = [j for j in range(len(hist) - 1) if np.hypot(*(new - hist[j])) < tol]
+        if back and moved >= tol:
+            cycle = np.array(hist[back[-1] :])
+            span = np.max(np.hypot(*(cycle[:, None, :] - cycle[None, :, :]).transpose(2, 0, 1)))
+            if span < _CYCLE_FACTOR * tol:
+                return "ok", cycle.mean(axis=0), st_ok
+        c = new
+        hist.append(c)
+    return "ok", c, st_ok
+
+
 def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
     opts = reg.options
     factor = 0.5 if opts.halve_shift else 1.0
+    converge = _converges(steps, opts)
     for i in range(len(reg)):
         if result.status[i] != "ok":
             tick()
@@ -826,6 +960,8 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
         c = start[i].copy()
         state = None
         first = True
+        moved = math.inf
+        st_ok = None
         for kind, value in capped_steps(steps, int(caps[i])):
             if kind == "drop":
                 if state == "ok" and not result.correlation[i] >= value:
@@ -835,19 +971,34 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
             st = reg.step(i, camera, c, int(value), apply_criteria=first)
             first = False
             _record(result, last, i, st, opts.keep_images)
+            retries = 0
+            while st.status == "edge-peak" and retries < opts.edge_retries and np.all(np.isfinite(st.shift)):
+                # the maximum on the border of the grid: the peak lies beyond the search; go there
+                c = st.center + st.shift
+                st = reg.step(i, camera, c, int(value))
+                _record(result, last, i, st, opts.keep_images)
+                retries += 1
             if st.status.startswith("removed-") or st.status == "outside":
                 state = st.status
                 break
             if st.ok:
-                c = st.center + factor * st.shift
+                new = st.center + factor * st.shift
+                moved = float(np.hypot(*(new - c)))
+                c = new
                 state = "ok"
+                st_ok = st
             else:
                 state = st.status
+                moved = math.inf
                 if opts.fail_fast:
                     break
+        if state == "ok" and converge and int(st_ok.correlation.spacing) == 1 and last[i] is not None:
+            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor)
+            st_ok = st_c or st_ok
         result.status[i] = state or "not-found"
-        if result.status[i] == "ok":
+        if result.status[i] in ("ok", "not-converged"):
             result.measured[i] = c
+            result.covariance[i] = st_ok.covariance
         reg.release(i)
         tick()
 
@@ -882,6 +1033,7 @@ def _drive_autoregister(
             elif st.ok:
                 ok_pass[i] = True
                 result.measured[i] = st.center + factor * st.shift
+                result.covariance[i] = st.covariance
             else:
                 result.measured[i] = np.nan
             if opts.pose_update:  # the next pass has a new camera: nothing cached is reused
@@ -916,4 +1068,53 @@ def _drive_autoregister(
             # without a pose update each landmark carries its own measurement into the next pass
             centre = np.where(ok_pass[:, None], result.measured, centre)
         result.passes.append(info)
+    if _converges(steps, opts):
+        cam = _autoregister_converge(reg, cam, result, last, positions, sig_pos, sig_att, factor)
     result.camera = cam
+
+
+def _autoregister_converge(reg: Registrar, cam, result, last, positions, sig_pos, sig_att, factor):
+    """AUTOREGISTER's final full-resolution stage: every ok landmark is converged from its last
+    measurement with the final pose (:func:`_converge`), then (``pose_update``) the pose is solved once
+    more from the converged pixels.  Recorded as a pass with ``"converge": True``."""
+    opts = reg.options
+    ok_idx = [i for i in range(len(reg)) if result.status[i] == "ok"]
+    steps_run = 0
+    not_conv = 0
+    for i in ok_idx:
+        moved = float(np.hypot(*(factor * last[i].shift))) if last[i] is not None else math.inf
+        before = int(result.iterations[i])
+        status, c, st = _converge(reg, i, cam, result.measured[i].copy(), moved, result, last, factor)
+        steps_run += int(result.iterations[i]) - before
+        result.status[i] = status
+        if status in ("ok", "not-converged"):
+            result.measured[i] = c
+            if st is not None:
+                result.covariance[i] = st.covariance
+            not_conv += status == "not-converged"
+        else:
+            result.measured[i] = np.nan
+        reg.release(i)
+    ok_now = np.array([s == "ok" for s in result.status], dtype=bool)
+    info = {
+        "spacing": 1,
+        "converge": True,
+        "ok": int(ok_now.sum()),
+        "attempted": len(ok_idx),
+        "steps": steps_run,
+        "not_converged": not_conv,
+        "pose_solved": False,
+    }
+    if opts.pose_update and steps_run and ok_now.sum() >= max(1, int(opts.min_pose_landmarks)):
+        meas = np.where(ok_now[:, None], result.measured, np.nan)
+        try:
+            pr = solve_pose(cam, positions, meas, opts.pose, sig_pos, sig_att, names=result.names)
+        except PoseError as exc:
+            result.warnings.append(f"converged pass: pose not updated ({exc})")
+        else:
+            cam = cam.with_pose(scobj=pr.scobj, rotation=pr.rotation)
+            result.pose = pr
+            info["pose_solved"] = True
+            info["rms_after_px"] = float(pr.rms_after)
+    result.passes.append(info)
+    return cam
