@@ -147,8 +147,10 @@ def test_two_pass_navigation_maplet_space(worlds, truth):
         rms1, rms2 = float(np.sqrt(np.mean(e1**2))), float(np.sqrt(np.mean(e2**2)))
         rows.append((p["name"], p["apriori_px"], rms1, e1.max(), rms2, e2.max()))
         assert rms2 <= 0.045 and e2.max() <= 0.1  # measured 0.022-0.030 / <= 0.060
-        assert rms1 <= 0.3  # measured 0.08-0.23 (one pass, no converged final step yet)
-        assert rms2 < rms1
+        # one pass now ends with the converged full-resolution stage: within the issue's 0.05 px
+        assert rms1 <= ISSUE_ONE_PASS_RMS
+        # the second pass (from the solved pose) is never worse than the first by more than noise
+        assert rms2 <= rms1 + 0.005
         assert res.pose is not None and res.pose.converged
     print(f"\n{truth} truth, maplet space (issue: two-pass <= {ISSUE_TWO_PASS_RMS}, one pass <= "
           f"{ISSUE_ONE_PASS_RMS}, max <= {ISSUE_MAX} px)")  # fmt: skip
@@ -205,7 +207,8 @@ def test_navigate_cli_on_the_independent_world(worlds, run_cli, tmp_path):
     assert res.exit_code == 0, res.stderr
     d = json.loads(res.stdout)
     assert [x["found"] for x in d["passes"]] == [9, 9]
-    assert d["passes"][1]["rms_after_px"] < d["passes"][0]["rms_after_px"]
+    # both passes end converged at full resolution: the second is no worse than the first beyond noise
+    assert d["passes"][1]["rms_after_px"] <= d["passes"][0]["rms_after_px"] + 0.005
     from spctool.formats.sumfile import read_sum
 
     new = read_sum(out)

@@ -420,7 +420,8 @@ def test_small_maplet_registers_with_default_schedule(scene):
     undefined, not-found); the capped schedule (5, 4, 3, 2, 1) registers it and says so."""
     small = rs.offset_maplet(scene, 0, 0, q=24, name="SMALL")
     r = register(scene.photo, scene.camera, scene.sun, [small], scene.thresholds, RegisterOptions())
-    assert r.status == ["ok"] and r.iterations[0] == 5
+    # five capped steps, then the converged full-resolution stage's repeats of L = 1
+    assert r.status == ["ok"] and 5 <= r.iterations[0] <= 5 + RegisterOptions().converge_max
     assert np.all(_err(r, np.array(scene.camera.project(small.v), dtype=float)) <= 0.05)
     assert any("above L = 5 skipped" in w and "49x49" in w for w in r.warnings)
     raw = register(

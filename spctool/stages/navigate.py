@@ -285,7 +285,11 @@ def navigate(
         else np.asarray(positions, dtype=np.float64).reshape(n, 3)
     )
     tick = progress or (lambda k=1: None)
-    base = dataclasses.replace(opts.register, schedule="retina_s16", steps=None, fail_fast=True)
+    # the steps below are fitted to each maplet here (pass1_steps: at least min_bins bins across, the
+    # coarse grid widened to reach_px), so register's generic K*L <= Q+1 cap must not shrink them again
+    base = dataclasses.replace(
+        opts.register, schedule="retina_s16", steps=None, fail_fast=True, cap_spacing=False
+    )
     if isinstance(opts.register.criteria, str) and opts.register.criteria == "default":
         # the schedule here is S16's: no removal criteria unless asked for (an AUTOREGISTER schedule's
         # derived default 0,50,.25,0,5 does not carry over)
