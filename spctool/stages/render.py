@@ -82,6 +82,7 @@ __all__ = [
     "sky",
     "SKY",
     "SHAPE",
+    "SHADINGS",
 ]
 
 #: surface id of a ray that hits nothing / the shape (patches are numbered 0, 1, …)
@@ -89,6 +90,9 @@ SKY = -2
 SHAPE = -1
 
 _BIG = 1e300
+
+#: shading normals of height patches (:class:`RenderOptions`)
+SHADINGS = ("smooth", "facet")
 
 #: parameter margin of the ICQ cells for shadow rays (see :attr:`ShapeSurface.shadow_shape`)
 SHADOW_PATCH_EPS = 1e-7
@@ -192,6 +196,21 @@ class HeightPatch:
         """((4, n, n) heights, hx, hy, albedo; valid) as the fused renderer reads them."""
         hx, hy, _ = self.slopes
         return np.stack([self.heights, hx, hy, self.albedo]), self.valid
+
+    def facet_slopes(self, x, y):
+        """(hx, hy): slopes of the flat triangle under maplet-frame (x, y) (two per cell, split along the
+        (i, j)–(i+1, j+1) diagonal), the shading of ``shading="facet"``."""
+        n = self.heights.shape[0]
+        q = self.qsz
+        u = np.clip(np.asarray(x, dtype=np.float64) + q, 0.0, n - 1.0)
+        w = np.clip(np.asarray(y, dtype=np.float64) + q, 0.0, n - 1.0)
+        i = np.minimum(np.floor(u).astype(np.intp), n - 2)
+        j = np.minimum(np.floor(w).astype(np.intp), n - 2)
+        h = self.heights
+        lower = (u - i) >= (w - j)
+        hx = np.where(lower, h[i + 1, j] - h[i, j], h[i + 1, j + 1] - h[i, j + 1])
+        hy = np.where(lower, h[i + 1, j + 1] - h[i + 1, j], h[i, j + 1] - h[i, j])
+        return hx, hy
 
     def to_local(self, points) -> np.ndarray:
         """Body points (N, 3) km → maplet-frame (x, y, z) in cells."""
@@ -418,10 +437,13 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
-    k, origin, dirs, ok, sun_lit, sun, shadows, offset, geo, boxes, maps, valids, tops, ns, surf, geom, sh
-):
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, surf,
+    geom, sh,
+):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
-    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does)."""
+    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
+    ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
+    split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes."""
     surf[k] = SKY
     sh[k] = False
     if not ok[k]:
@@ -472,8 +494,16 @@ def _patch_ray(
     w01 = (1 - fu) * fw
     w11 = fu * fw
     z = _bilinear_at(maps, p, 0, i, j, w00, w10, w01, w11)
-    hx = _bilinear_at(maps, p, 1, i, j, w00, w10, w01, w11)
-    hy = _bilinear_at(maps, p, 2, i, j, w00, w10, w01, w11)
+    if facet:  # the flat triangle's slopes (HeightPatch.facet_slopes)
+        if fu >= fw:  # corners (i, j), (i+1, j), (i+1, j+1)
+            hx = maps[p, 0, i + 1, j] - maps[p, 0, i, j]
+            hy = maps[p, 0, i + 1, j + 1] - maps[p, 0, i + 1, j]
+        else:  # corners (i, j), (i, j+1), (i+1, j+1)
+            hx = maps[p, 0, i + 1, j + 1] - maps[p, 0, i, j + 1]
+            hy = maps[p, 0, i, j + 1] - maps[p, 0, i, j]
+    else:
+        hx = _bilinear_at(maps, p, 1, i, j, w00, w10, w01, w11)
+        hy = _bilinear_at(maps, p, 2, i, j, w00, w10, w01, w11)
     alb = _bilinear_at(maps, p, 3, i, j, w00, w10, w01, w11)
     # unit shading normal (heightfield.normals_body) and the shading geometry (shade)
     a_ = -hx
@@ -528,8 +558,9 @@ def _patch_ray(
 
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
-    origin, dirs, ok, sun_lit, sun, shadows, offset, geo, boxes, maps, valids, tops, ns, surf, geom, sh
-):
+    origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, surf, geom,
+    sh,
+):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
     for k in range(dirs.shape[0]):
         _patch_ray(
@@ -541,6 +572,7 @@ def _fused_rays(
             sun,
             shadows,
             offset,
+            facet,
             geo,
             boxes,
             maps,
@@ -812,7 +844,13 @@ class RenderOptions:
     by the surface albedo; ``chunk``: rays per batch (memory bound); ``shadow_offset_cells``: height
     above a patch's terrain where its shadow rays start (cells); ``shadow_offset_shape``: distance, in
     shape cells, before a shadow ray from a shape point may hit the shape; ``shadow_lift_shape``: such
-    rays start this far (shape cells) above the shape along its shading normal.
+    rays start this far (shape cells) above the shape along its shading normal.  ``shading``: patch
+    shading normals ``"smooth"`` (bilinear interpolation of SPC's node slopes) or ``"facet"`` (the flat
+    triangle under the hit, two per cell; albedo stays bilinear).  ``ray_inverse``: pixel → ray by
+    ``"newton"`` per sub-ray (:meth:`Camera.pixel_to_direction`) or ``"grid"`` (exact inverses on a
+    coarse grid, one Newton step per sub-ray: :meth:`Camera.pixel_to_direction_grid`, the same rays to
+    ~1e-13).  ``threads``: Python threads a large patch-only window is split over (None: numba's
+    count; register's templates use 1 and parallelise across landmarks instead).
     """
 
     photometry: str = "spc"
@@ -823,8 +861,15 @@ class RenderOptions:
     shadow_offset_cells: float = 1e-3
     shadow_offset_shape: float = 0.02
     shadow_lift_shape: float = 0.002
+    shading: str = "smooth"
+    ray_inverse: str = "newton"
+    threads: int | None = None
 
     def __post_init__(self):
+        if self.shading not in SHADINGS:
+            raise SpcUsageError(f"shading must be one of {', '.join(SHADINGS)}, got {self.shading!r}")
+        if self.ray_inverse not in ("newton", "grid"):
+            raise SpcUsageError(f"ray_inverse must be newton or grid, got {self.ray_inverse!r}")
         if self.photometry not in PHOTOMETRY_MODELS:
             raise SpcUsageError(
                 f"unknown photometric model {self.photometry!r}; "
@@ -885,13 +930,14 @@ class Rendering:
 
 
 def trace(
-    origins, directions, shape: ShapeSurface | None = None, patches=(), *, albedo_fn=None
+    origins, directions, shape: ShapeSurface | None = None, patches=(), *, albedo_fn=None, shading="smooth"
 ) -> SurfaceHits:
     """Nearest hits of rays (origins (N, 3) or (3,) body km, unit directions (N, 3)) on the shape and
     the patches (composition rule of the module docstring), with shading normals and albedo.
 
     ``albedo_fn(points) -> albedo`` replaces the shape's own albedo at shape hits (the simulator paints
-    its terrain albedo this way).
+    its terrain albedo this way).  ``shading="facet"``: patch normals of the flat triangle under each hit
+    (:meth:`HeightPatch.facet_slopes`) instead of the interpolated node slopes.
     """
     d = _c64(directions)
     o = _c64(np.broadcast_to(np.asarray(origins, dtype=np.float64), d.shape))
@@ -937,6 +983,8 @@ def trace(
         if m.size == 0:
             continue
         z, hx, hy, alb = patch.interpolate(local[m, 0], local[m, 1])
+        if shading == "facet":
+            hx, hy = patch.facet_slopes(local[m, 0], local[m, 1])
         local[m, 2] = z  # on the terrain (the crossing is exact; this removes rounding)
         point[m] = patch.to_body(local[m])
         normal[m] = heightfield.normals_body(hx, hy, patch.ux, patch.uy, patch.uz)
@@ -1067,7 +1115,7 @@ def render(
     return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True)
 
 
-def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None):
+def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False):
     """(surface, geom, shadow) of sub-rays by :func:`_fused_rays`; windows of at least
     :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
     threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
@@ -1077,7 +1125,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
     sh = np.empty(n, bool)
     origin, dirs, ok = _c64(origin), _c64(dirs), np.ascontiguousarray(ok, dtype=bool)
     sun_lit, sun = _c64(sun_lit), _c64(sun)
-    shadows, offset = bool(shadows), float(offset)
+    shadows, offset, facet = bool(shadows), float(offset), bool(facet)
 
     def run(a, b):
         _fused_rays(
@@ -1088,6 +1136,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
             sun,
             shadows,
             offset,
+            facet,
             *arrays,
             surface[a:b],
             geom[a:b],
@@ -1111,7 +1160,16 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
     n = dirs.shape[0]
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
-        origin, dirs, ok, sun, sun_shade, options.shadows, options.shadow_offset_cells, pset.fused_arrays()
+        origin,
+        dirs,
+        ok,
+        sun,
+        sun_shade,
+        options.shadows,
+        options.shadow_offset_cells,
+        pset.fused_arrays(),
+        threads=options.threads,
+        facet=options.shading == "facet",
     )
     hit = surface != SKY
     r = np.zeros(n)
@@ -1155,7 +1213,10 @@ def _render(camera, sun, shape, patches, options, window, albedo_fn, *, fused: b
         ss = samples[None, None, :, None] + offs[None, None, None, :]
         ll, ss = np.broadcast_arrays(ll, ss)
         shape4 = ll.shape
-        dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
+        if options.ray_inverse == "grid":
+            dirs = camera.pixel_to_direction_grid(ss.reshape(-1), ll.reshape(-1))
+        else:
+            dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         ok = np.all(np.isfinite(dirs), axis=1)
         if use_fused:
             hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options)
@@ -1166,6 +1227,7 @@ def _render(camera, sun, shape, patches, options, window, albedo_fn, *, fused: b
                 surf,
                 plist,
                 albedo_fn=albedo_fn,
+                shading=options.shading,
             )
             if not ok.all():
                 hits.surface[~ok] = SKY
