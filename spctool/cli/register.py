@@ -97,6 +97,14 @@ _shared_options = options.option_group(
         is_flag=True,
         help="Image space: leave shadowed pixels out instead of correlating them as dark.",
     ),
+    click.option(
+        "--template-shading",
+        type=click.Choice(["smooth", "facet"]),
+        default="smooth",
+        show_default=True,
+        help="Image space: template normals from interpolated node slopes (smooth) or flat triangles, "
+        "two per maplet cell (facet).",
+    ),
     options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
     options.image_format_option,
     options.json_option,
@@ -149,6 +157,7 @@ def _register_options(kw, schedule, **extra):
         strict_8=kw["strict_8"],
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
+        template_shading=kw["template_shading"],
         predict=popts,
         extract=eopts,
         **extra,
