@@ -281,6 +281,7 @@ class _Landmark:
         "patch",
         "tmpl",
         "tmpl_key",
+        "footprint",
         "ext",
         "ext_camera",
         "shadow",
@@ -296,6 +297,7 @@ class _Landmark:
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
+        self.footprint = None
         self.ext = None
         self.ext_camera = None
         self.shadow = None
@@ -336,6 +338,7 @@ class Registrar:
         """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
         lm = self.landmarks[i]
         lm.pred = lm.pred_camera = lm.ext = lm.ext_camera = lm.tmpl = lm.tmpl_key = lm.shadow = None
+        lm.footprint = None
 
     def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
@@ -489,34 +492,23 @@ class Registrar:
         1) or ≤ ``rerender_tol_coarse``·n (spacing n ≥ 2: the correlation bins n pixels, and the shift is
         measured from where the template sat, so its phase only matters for the final steps).
         """
-        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, render
+        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, _PatchSet, render
 
         if lm.patch is None:
             m = lm.maplet
-            lm.patch = HeightPatch(
+            patch = HeightPatch(
                 m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
             )
+            lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
+        patch = lm.patch.patches[0]
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         if lm.tmpl is not None and lm.tmpl_key[0] is camera and np.max(np.abs(lm.tmpl_key[1] - frac)) <= tol:
             return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
-        # footprint: the projection of the maplet's border nodes, plus a margin
-        q = lm.patch.qsz
-        t = np.arange(-q, q + 1, dtype=np.float64)
-        edge = np.concatenate(
-            [
-                np.stack([t, np.full_like(t, -q)], 1),
-                np.stack([t, np.full_like(t, q)], 1),
-                np.stack([np.full_like(t, -q), t], 1),
-                np.stack([np.full_like(t, q), t], 1),
-            ]
-        )
-        h = lm.patch.interpolate(edge[:, 0], edge[:, 1])[0]
-        s, ln, front = camera.project_with_mask(lm.patch.to_body(np.column_stack([edge, h])))
-        if not np.all(front):
+        if lm.footprint is None or lm.footprint[0] is not camera:
+            lm.footprint = (camera, self._footprint(patch, camera))
+        if lm.footprint[1] is None:
             return None, frac, None
-        mg = int(self.options.template_margin)
-        s0, s1 = int(math.floor(s.min())) - mg, int(math.ceil(s.max())) + mg
-        l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
+        s0, s1, l0, l1 = lm.footprint[1]
         # rays through p − frac: the same camera with its CTR moved by frac
         shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
         ropts = RenderOptions(
@@ -532,12 +524,34 @@ class Registrar:
         cov = np.zeros(shp)
         cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
         if cs0 <= s1 and cl0 <= l1:
-            part = render(shifted, self.sun, None, [lm.patch], ropts, window=(cs0, s1, cl0, l1))
+            part = render(shifted, self.sun, None, lm.patch, ropts, window=(cs0, s1, cl0, l1))
             rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
             cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
         rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
         lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
         return rend, frac.copy(), (s0, s1, l0, l1)
+
+    def _footprint(self, patch, camera):
+        """The template window (s0, s1, l0, l1): the projection of the maplet's border nodes, plus
+        ``template_margin``; None when a border node is behind the camera."""
+        q = patch.qsz
+        t = np.arange(-q, q + 1, dtype=np.float64)
+        edge = np.concatenate(
+            [
+                np.stack([t, np.full_like(t, -q)], 1),
+                np.stack([t, np.full_like(t, q)], 1),
+                np.stack([np.full_like(t, -q), t], 1),
+                np.stack([np.full_like(t, q), t], 1),
+            ]
+        )
+        h = patch.interpolate(edge[:, 0], edge[:, 1])[0]
+        s, ln, front = camera.project_with_mask(patch.to_body(np.column_stack([edge, h])))
+        if not np.all(front):
+            return None
+        mg = int(self.options.template_margin)
+        s0, s1 = int(math.floor(s.min())) - mg, int(math.ceil(s.max())) + mg
+        l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
+        return s0, s1, l0, l1
 
     def _image_step(self, i, camera, center, spacing):
         lm = self.landmarks[i]

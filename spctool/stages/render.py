@@ -1190,7 +1190,11 @@ def _render(camera, sun, shape, patches, options, window, albedo_fn, *, fused: b
     sun = _vec3(sun, "sun")
     sun = sun / np.linalg.norm(sun)
     surf = None if shape is None else ShapeSurface.from_model(shape)
-    plist = _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    plist = (
+        patches
+        if isinstance(patches, _PatchSet)
+        else _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    )
     use_fused = fused and surf is None and len(plist) > 0
     s0, s1, l0, l1 = _window(camera, window)
     nss = int(options.supersample)
