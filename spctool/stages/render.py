@@ -437,13 +437,16 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
-    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, surf,
-    geom, sh,
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
+    surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
     ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
-    split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes."""
+    split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
+    (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
+    where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
+    answer, fewer cells)."""
     surf[k] = SKY
     sh[k] = False
     if not ok[k]:
@@ -544,6 +547,13 @@ def _patch_ray(
             a1 = ly
             a2 = z + offset
             tn = 0.0
+            if b2 > 0.0:  # rising: above the highest cell ahead it can cross nothing
+                top = upmax[p, i, j]
+                if a2 > top:
+                    continue
+                tc = (top - a2) / b2
+                if tc < tf:
+                    tf = tc
         if tf >= tn:
             n = ns[p]
             q = geo[p, 18]
@@ -557,9 +567,51 @@ def _patch_ray(
 
 
 @numba.njit(cache=True, nogil=True)
+def _upwind_max(tops, au, aw, out):
+    """out[i, j] ≥ the top of every cell a ray leaving cell (i, j) along the horizontal direction
+    (au, aw) (cells, axis 0 and 1) can pass over before it leaves the grid (a conservative superset).
+
+    Walk along the dominant axis, one column at a time toward the Sun: before it reaches the next
+    column the ray moves by at most one row (|minor| ≤ |major|), so it stays in rows j − 1 … j + 1 of
+    its own column and enters the next column in rows j − 2 … j + 2 (a row of margin for rays through
+    a corner); from there on the next column's values bound it.  Sun at the zenith: the cell itself.
+    """
+    n0, n1 = tops.shape
+    if au == 0.0 and aw == 0.0:
+        out[:, :] = tops
+        return
+    major0 = abs(au) >= abs(aw)
+    na = n0 if major0 else n1  # along the dominant axis
+    nb = n1 if major0 else n0
+    step = 1 if (au if major0 else aw) > 0.0 else -1
+    for k in range(na):
+        a = na - 1 - k if step > 0 else k  # the column farthest toward the Sun first
+        nxt = a + step
+        for b in range(nb):
+            m = -np.inf
+            for db in range(-1, 2):
+                bb = b + db
+                if 0 <= bb < nb:
+                    v = tops[a, bb] if major0 else tops[bb, a]
+                    if v > m:
+                        m = v
+            if 0 <= nxt < na:
+                for db in range(-2, 3):
+                    bb = b + db
+                    if 0 <= bb < nb:
+                        v = out[nxt, bb] if major0 else out[bb, nxt]
+                        if v > m:
+                            m = v
+            if major0:
+                out[a, b] = m
+            else:
+                out[b, a] = m
+
+
+@numba.njit(cache=True, nogil=True)
 def _fused_rays(
-    origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, surf, geom,
-    sh,
+    origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
+    surf, geom, sh,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
     for k in range(dirs.shape[0]):
@@ -579,6 +631,7 @@ def _fused_rays(
             valids,
             tops,
             ns,
+            upmax,
             surf,
             geom,
             sh,
@@ -603,6 +656,7 @@ class _PatchSet:
         self.los = np.zeros((n, 3))
         self.his = np.zeros((n, 3))
         self._fused = None
+        self._up = None
         for k, p in enumerate(self.patches):
             lo, hi = p.box()
             zc = 0.5 * (lo[2] + hi[2])
@@ -619,16 +673,35 @@ class _PatchSet:
     def __len__(self):
         return len(self.patches)
 
-    def fused_arrays(self):
-        """The patches packed for :func:`_patch_ray` (built once per set).
+    def fused_arrays(self, sun=None):
+        """The patches packed for :func:`_patch_ray` (built once per set), with each patch's
+        :func:`_upwind_max` for the unit Sun direction ``sun`` (+inf, no effect, when None).
 
         ``geo`` (P, 21): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
         row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20);
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
-        ``ns`` (P,): each patch's 2·QSZ + 1.
+        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax`` (P, n − 1, n − 1).
         """
+        return self._packed() + (self._upmax(sun),)
+
+    def _upmax(self, sun):
+        key = None if sun is None else tuple(float(v) for v in sun)
+        if self._up is None or self._up[0] != key:
+            nmax = max(p.heights.shape[0] for p in self.patches)
+            up = np.full((len(self), nmax - 1, nmax - 1), np.inf)
+            if sun is not None:
+                for k, p in enumerate(self.patches):
+                    n = p.heights.shape[0]
+                    su, sw, _ = np.asarray(sun, dtype=np.float64) @ p.rotation
+                    part = np.empty((n - 1, n - 1))
+                    _upwind_max(p.cell_tops, float(su), float(sw), part)
+                    up[k, : n - 1, : n - 1] = part
+            self._up = (key, up)
+        return self._up[1]
+
+    def _packed(self):
         if self._fused is None:
             npatch = len(self)
             nmax = max(p.heights.shape[0] for p in self.patches)
@@ -1167,7 +1240,7 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
         sun_shade,
         options.shadows,
         options.shadow_offset_cells,
-        pset.fused_arrays(),
+        pset.fused_arrays(sun_shade),
         threads=options.threads,
         facet=options.shading == "facet",
     )
