@@ -9,13 +9,44 @@
   from an a-priori pointing error of (5, −3) px.  Target ≤ 10 ms on one core; peers.md §6.4: GIANT's
   surface-feature navigation spends ≈ 70 ms per feature per pass (rendering + correlation).
 
-Best of several repeats (wall clock, warm numba caches).
+Image space (S16 "Future Retina development"; issue 17), beside NASA GIANT 2.0.0's surface-feature
+navigation measured on the same kind of data (one ±20 px pass: render + masked NCC, 236 ms per
+landmark on one core; a 16-landmark picture cold 7.2 s):
+
+* ``register image 99x99 render + search 20 px + converged`` — one landmark of the register scene (99×99
+  maplet of 1 cm at 50 m, a-priori error (5, −3) px): a fresh template, one step at spacing 4 (grid
+  ±5 → ±20 px), then spacing-1 steps until the shift is below 0.005 px (≤ 10).  Target ≤ 25 ms.
+* ``register image S16 pass per landmark, 1 core`` — :func:`register` with the S16 schedule in image space on
+  the 16-landmark 1024² picture of :data:`WORLD16` (99×99 maplets of 5 cm, a-priori errors ≈ 11 px),
+  ``threads=1``, CPU time / 16 (warm).  Target ≤ 25 ms (GIANT 236 ms); the same with 2 threads is
+  informative.
+* ``cold register 16 landmarks image`` / ``maplet`` — ``spctool -C WORLD register PIC --space …`` as
+  a new process (wall, best of 3, numba caches warm on disk).  Target ≤ 1.5 s and image ≤ 2× maplet;
+  ``cold register start-up`` is the same process given one landmark without a maplet (interpreter,
+  imports, SUM/photo/settings, no registration); ``imports + numba initialisation`` is a process that
+  imports the CLI and register and runs one cached kernel (numba's one-time set-up, paid by the first
+  kernel any run loads): the rest of the cold run is lithos-select, loading the other cached kernels
+  and the registration itself.
+* ``register montecarlo s16-50m image 2 jobs`` — ``spctool montecarlo --preset s16-50m --space image -j 2``
+  (12 landmarks × 500 samples; scene from ``SPCTOOL_MC_SCENE`` when set, its build not timed).
+  Target ≤ 20 s.
+
+The 16-landmark world is built once by ``spctool simulate`` (about a minute) into the temporary
+directory (``SPCTOOL_REGISTER_WORLD`` overrides the place) and reused.
+
+Best of several repeats (warm numba caches).  The one-core lines are CPU time of the one thread, and
+the cold and Monte Carlo lines are given as wall time and as CPU time (children's user + system;
+Monte Carlo: the workers' CPU over the 2 jobs): on a machine shared with other work the CPU figure
+is what idle cores' wall clock would show, the wall figure is what this run saw.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -40,14 +71,14 @@ def _scene():
     return _SCENE
 
 
-def _best(fn, repeats, inner=1):
+def _best(fn, repeats, inner=1, clock=time.perf_counter):
     fn()
     best = float("inf")
     for _ in range(repeats):
-        t = time.perf_counter()
+        t = clock()
         for _ in range(inner):
             fn()
-        best = min(best, (time.perf_counter() - t) / inner)
+        best = min(best, (clock() - t) / inner)
     return best
 
 
@@ -82,9 +113,264 @@ def bench_register_s16():
     return ms, "ms", ms <= 10.0
 
 
+# -- image space ------------------------------------------------------------------------------------
+
+#: the 16-landmark world: 99×99 maplets of 5 cm, three 1024² pictures at 220 m (≈ 6.3 cm/px)
+WORLD16 = """seed = 17
+[body]
+radii_km = [0.28, 0.24, 0.2]
+q = 64
+[terrain.craters]
+coefficient = 0.05
+min_diameter_km = 0.0002
+max_diameter_km = 0.003
+[terrain.boulders]
+coefficient = 0.0005
+min_diameter_km = 0.0001
+max_diameter_km = 0.0015
+[terrain.roughness]
+amplitude_km = 0.00007
+min_wavelength_km = 0.00005
+max_wavelength_km = 0.0015
+[terrain.albedo]
+contrast = 0.1
+min_wavelength_km = 0.00005
+max_wavelength_km = 0.0015
+[maplets]
+count = 16
+scale_km = 0.00005
+qsz = 49
+truth_factor = 3
+margin = 8
+[camera]
+npx = 1024
+nln = 1024
+[perturbation]
+position_sigma_km = 0.0005
+attitude_sigma_deg = 0.02
+[[pictures]]
+range_km = 0.22
+[[pictures]]
+view_lat_deg = 8.0
+view_lon_deg = 6.0
+range_km = 0.22
+[[pictures]]
+view_lat_deg = -6.0
+view_lon_deg = -8.0
+range_km = 0.22
+sun_lon_deg = -35.0
+"""
+PICTURE16 = "P000000001A1"
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _spctool(*args, check=True):
+    env = dict(os.environ, PYTHONPATH=str(_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("NUMBA_NUM_THREADS", None)
+    return subprocess.run(
+        [sys.executable, "-m", "spctool.cli.main", *args],
+        env=env,
+        check=check,
+        capture_output=True,
+        text=True,
+    )
+
+
+def _world16() -> Path:
+    key = hashlib.sha256(WORLD16.encode()).hexdigest()[:12]
+    root = Path(
+        os.environ.get("SPCTOOL_REGISTER_WORLD") or Path(tempfile.gettempdir()) / f"spctool-w16-{key}"
+    )
+    if not (root / "TRUTH.json").exists():
+        root.parent.mkdir(parents=True, exist_ok=True)
+        spec = root.parent / f"{root.name}.toml"
+        spec.write_text(WORLD16)
+        _spctool("simulate", str(spec), str(root), "--overwrite")
+    return root
+
+
+_W16 = None
+
+
+def _load16():
+    global _W16
+    if _W16 is None:
+        from spctool.formats.workdir import WorkDir
+        from spctool.geometry.camera import Camera
+
+        wd = WorkDir(_world16())
+        pic = wd.read_picture(PICTURE16)
+        names = wd.landmark_names()
+        _W16 = dict(
+            photo=wd.read_photo(PICTURE16, npx=pic.npx, nln=pic.nln),
+            camera=Camera.from_picture(pic, wd.read_settings()),
+            sun=pic.sz,
+            maplets=[wd.read_maplet(n) for n in names],
+            names=names,
+            thresholds=tuple(float(t) for t in pic.thrsh),
+        )
+    return _W16
+
+
+def bench_image_one():
+    from spctool.stages.register import Registrar
+
+    sc = _scene()
+    cam = rs.pointing_error(sc.camera, 5.0, -3.0)
+    opts = RegisterOptions(space="image", threads=1)
+    out = {}
+
+    def run():
+        reg = Registrar(sc.photo, sc.sun, [sc.maplet], sc.thresholds, opts)
+        st = reg.step(0, cam, reg.project(cam)[0][0], 4)
+        c = st.center + st.shift
+        for _ in range(10):
+            st = reg.step(0, cam, c, 1)
+            c = st.center + st.shift
+            if np.max(np.abs(st.shift)) < 0.005:
+                break
+        out["c"] = c
+
+    ms = _best(run, repeats=10, clock=time.process_time) * 1e3
+    assert np.all(np.abs(out["c"] - sc.truth_pixel) < 0.05), out["c"] - sc.truth_pixel
+    return ms, "ms", ms <= 25.0
+
+
+def _image_pass(threads):
+    def fn():
+        w = _load16()
+        opts = RegisterOptions(space="image", threads=threads)
+
+        def run():
+            r = register(
+                w["photo"], w["camera"], w["sun"], w["maplets"], w["thresholds"], opts, names=w["names"]
+            )
+            assert int(r.ok.sum()) == len(w["names"])
+
+        clock = time.process_time if threads == 1 else time.perf_counter
+        ms = _best(run, repeats=3, clock=clock) * 1e3 / len(w["names"])
+        return ms, "ms", ms <= 25.0 or threads != 1
+
+    return fn
+
+
+_COLD: dict = {}
+
+
+def _child_cpu():
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _cold_run(*args):
+    """(best wall s, best CPU s) of a new ``spctool`` process over 3 runs (after one to warm caches)."""
+    _spctool(*args)  # numba caches on disk
+    wall = cpu = float("inf")
+    for _ in range(3):
+        t, c = time.perf_counter(), _child_cpu()
+        _spctool(*args)
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, _child_cpu() - c)
+    return wall, cpu
+
+
+def _cold(space, names=()):
+    key = (space, names)
+    if key not in _COLD:
+        args = ["-C", str(_world16()), "register", PICTURE16, *names, "--space", space, "-o", os.devnull]
+        _COLD[key] = _cold_run(*args)
+    return _COLD[key]
+
+
+def bench_cold_image():
+    t = _cold("image")[0]
+    return t, "s", t <= 1.5
+
+
+def bench_cold_image_cpu():
+    t = _cold("image")[1]
+    return t, "s", t <= 1.5
+
+
+def bench_cold_maplet_cpu():
+    t = _cold("maplet")[1]
+    return t, "s", True
+
+
+def bench_cold_ratio():
+    r = _cold("image")[1] / _cold("maplet")[1]
+    return r, "x", r <= 2.0
+
+
+def bench_cold_startup():
+    # the same process with one landmark that has no maplet: start-up, inputs and no registration work
+    t = _cold("image", ("NOSUCH",))[1]
+    return t, "s", True
+
+
+_NUMBA_START = (
+    "import numpy as np; import spctool.cli.main, spctool.stages.register; "
+    "from spctool.geometry.camera import Camera; "
+    "Camera(1.0, [1, 1], [[1, 0, 0], [0, 1, 0]], np.eye(3), np.zeros(3), 2, 2).pixel_to_direction(1.0, 1.0)"
+)
+
+
+def bench_cold_numba():
+    """A process that imports the CLI and register and runs one cached numba kernel: interpreter,
+    imports and numba's one-time initialisation (paid by whichever kernel a run loads first)."""
+    env = dict(os.environ, PYTHONPATH=str(_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cmd = [sys.executable, "-c", _NUMBA_START]
+    subprocess.run(cmd, env=env, check=True)
+    best = float("inf")
+    for _ in range(3):
+        c = _child_cpu()
+        subprocess.run(cmd, env=env, check=True)
+        best = min(best, _child_cpu() - c)
+    return best, "s", True
+
+
+def bench_montecarlo_image():
+    """Wall time of the study's run (``timing.run_s`` of the JSON: the 6000 registrations on 2 workers,
+    scene loading excluded)."""
+    import json
+
+    out = Path(tempfile.gettempdir()) / "spctool-bench-mc-image.json"
+    args = ["montecarlo", "--preset", "s16-50m", "--space", "image", "-j", "2", "--json", "-o", str(out)]
+    scene = os.environ.get("SPCTOOL_MC_SCENE")
+    if scene:
+        args += ["--scene", scene]
+    _spctool(*args)
+    _MC.update(json.loads(out.read_text())["timing"])
+    run_s = float(_MC["run_s"])
+    return run_s, "s", run_s <= 20.0
+
+
+_MC: dict = {}
+
+
+def bench_montecarlo_image_cpu():
+    """The workers' CPU seconds of the same run divided by the 2 jobs: its wall time on 2 idle cores."""
+    if not _MC:
+        bench_montecarlo_image()
+    t = float(_MC["cpu_s"]) / 2.0
+    return t, "s", t <= 20.0
+
+
 BENCHMARKS = [
     ("correlate 99x99 11x11", "<= 0.5 ms", bench_correlate),
     ("register 99x99 S16 schedule", "<= 10 ms (GIANT SFN ~70 ms/feature/pass)", bench_register_s16),
+    ("register image 99x99 render + search 20 px + converged", "<= 25 ms (GIANT 236 ms)", bench_image_one),
+    ("register image S16 pass per landmark, 1 core", "<= 25 ms (GIANT 236 ms)", _image_pass(1)),
+    ("register image S16 pass per landmark, 2 threads", "(informative)", _image_pass(2)),
+    ("cold register 16 landmarks 1024^2, image, wall", "<= 1.5 s (GIANT 7.2 s)", bench_cold_image),
+    ("cold register 16 landmarks 1024^2, image, CPU", "<= 1.5 s", bench_cold_image_cpu),
+    ("cold register 16 landmarks 1024^2, maplet, CPU", "(informative)", bench_cold_maplet_cpu),
+    ("cold register image / maplet (CPU)", "<= 2x", bench_cold_ratio),
+    ("cold register start-up, no landmark work (CPU)", "(informative)", bench_cold_startup),
+    ("cold register start-up: imports + numba initialisation (CPU)", "(informative)", bench_cold_numba),
+    ("register montecarlo s16-50m image 2 jobs, wall", "<= 20 s", bench_montecarlo_image),
+    ("register montecarlo s16-50m image 2 jobs, CPU / 2", "<= 20 s", bench_montecarlo_image_cpu),
 ]
 
 

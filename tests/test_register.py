@@ -532,3 +532,76 @@ def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
     result.iterations[:] = 0
     status, c, _ = reg_mod._converge(fake(0.3), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0)
     assert status == "not-converged" and result.iterations[0] == RegisterOptions().converge_max
+
+
+# --------------------------------------------------------------------------------------------------
+# image space: template reuse, threads
+
+
+def _count_renders(monkeypatch):
+    import spctool.stages.render as rmod
+
+    calls = []
+    real = rmod.render
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(rmod, "render", counting)
+    return calls
+
+
+def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
+    """Templates are rendered once per landmark and pose for the coarse steps and re-rendered at spacing 1
+    only past ``rerender_tol`` of phase; converged, the pixel is within 0.002 px of the reference path
+    that renders an exact template (per-ray Newton inverse of the distortion) at every step's own
+    phase — template reuse never freezes the estimate."""
+    from spctool.geometry.camera import Camera
+
+    cam = rs.pointing_error(scene.camera, 4.6, -2.3)
+    steps = tuple(range(10, 1, -1)) + (1,) * 12
+    calls = _count_renders(monkeypatch)
+    fast = register(
+        scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds,
+        RegisterOptions(space="image", steps=steps, keep_images=True),
+    )  # fmt: skip
+    n_fast = len(calls)
+    monkeypatch.setattr(Camera, "pixel_to_direction_grid", Camera.pixel_to_direction)
+    every = RegisterOptions(
+        space="image", steps=steps, rerender_tol=0.0, rerender_tol_coarse=0.0, keep_images=True
+    )
+    exact = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, every)
+    n_exact = len(calls) - n_fast
+    assert fast.status == exact.status == ["ok"]
+    assert n_exact == len(steps)  # the reference renders at every step
+    assert n_fast <= 1 + 12 and n_fast < n_exact - 8  # one template for the nine coarse steps
+    np.testing.assert_allclose(fast.measured, exact.measured, rtol=0, atol=0.002)
+    assert np.all(np.abs(fast.last_steps[0].shift) < 0.002)  # converged, not frozen
+    assert np.all(_err(fast, scene.truth_pixel) < 0.05)
+
+
+def test_image_space_threads_do_not_change_results(scene):
+    """Landmarks run in parallel (one thread per landmark task); N threads give one thread's result
+    bit for bit."""
+    cam = rs.pointing_error(scene.camera, 3.2, 1.7)
+    maplets = [scene.maplet] * 4
+    start = np.array([[np.nan, np.nan], [101.3, 99.2], [98.6, 102.4], [103.9, 97.1]])
+    out = []
+    for threads in (1, 3):
+        opts = RegisterOptions(space="image", threads=threads, steps=(6, 3, 1, 1))
+        out.append(register(scene.photo, cam, scene.sun, maplets, scene.thresholds, opts, apriori=start))
+    one, many = out
+    assert one.status == many.status and one.ok.sum() >= 3
+    np.testing.assert_array_equal(one.measured, many.measured)
+    np.testing.assert_array_equal(one.correlation, many.correlation)
+    np.testing.assert_array_equal(one.iterations, many.iterations)
+
+
+def test_template_options_are_checked():
+    with pytest.raises(SpcUsageError):
+        RegisterOptions(template_shading="flat")
+    with pytest.raises(SpcUsageError):
+        RegisterOptions(rerender_tol_coarse=-1.0)
+    with pytest.raises(SpcUsageError):
+        RegisterOptions(threads=0)

@@ -107,6 +107,14 @@ _shared_options = options.option_group(
         is_flag=True,
         help="Image space: leave shadowed pixels out instead of correlating them as dark.",
     ),
+    click.option(
+        "--template-shading",
+        type=click.Choice(["smooth", "facet"]),
+        default="smooth",
+        show_default=True,
+        help="Image space: template normals from interpolated node slopes (smooth) or flat triangles, "
+        "two per maplet cell (facet).",
+    ),
     options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
     options.image_format_option,
     options.image_zoom_option,
@@ -161,6 +169,7 @@ def _register_options(kw, schedule, **extra):
         peak=kw.get("peak", "quadric"),  # commands that reuse these options without --peak
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
+        template_shading=kw["template_shading"],
         predict=popts,
         extract=eopts,
         **extra,

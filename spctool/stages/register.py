@@ -26,7 +26,16 @@ over a window that extends (k + 1)·n pixels beyond the footprint on every side,
 limited by the maplet's extent.  Offsets are whole photo pixels (binned by n); the shift is in pixels
 directly.  A template placed at displacement d (pixels, relative to the projection c₀ of V) is rendered
 with rays through p − d for its fractional part (the camera's CTR moved by frac(d)) and shifted by the
-integer part; it is re-rendered only when the fractional part moves by more than ``rerender_tol``.
+integer part.  A template is rendered once per landmark and pose and reused: a whole-pixel move of the
+window never needs a new one, and the step's reference is where the template actually sat (its own
+phase), so reuse never biases a shift.  Steps at spacing n ≥ 2 reuse it whatever its phase
+(``rerender_tol_coarse``); a spacing-1 step re-renders it when the phase moved by more than
+``rerender_tol`` (0.0005 px), so a converging L = 1 loop always ends on a template rendered at its own
+estimate and template reuse cannot freeze it.  Templates take one thread each
+(the rays of a pixel window, the distortion inverted on a coarse grid plus one Newton step:
+:meth:`spctool.geometry.camera.Camera.pixel_to_direction_grid`); :func:`register` parallelises
+across landmarks instead (``threads``), with results identical to one thread.  ``template_shading``:
+``smooth`` (interpolated node slopes) or ``facet`` (flat triangles, two per cell; albedo bilinear).
 With ``image_shadows`` (default) shadowed pixels are *used*, dark in both images — the point of
 ray-traced shadows; photo pixels then count when 0 < DN ≤ T2 (T1 is not applied; DN 0 is SPC's
 missing data), template pixels where every sub-ray hit the maplet.
@@ -155,7 +164,11 @@ class RegisterOptions:
       removal) for retina_s16 and ``"autoregister"`` (0,50,.25,0,5) for autoregister; or any
       :class:`spctool.stages.extract.Criteria` spec, or None.
     * image space: ``supersample`` (rays per pixel axis of the template, 2), ``image_shadows`` (use
-      shadowed pixels, True), ``rerender_tol`` (px per unit spacing, 0.02), ``template_margin`` (px
+      shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
+      sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
+      same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
+      (``"smooth"`` | ``"facet"``), ``threads`` (landmarks registered in parallel by :func:`register`:
+      None = numba's thread count; results do not depend on it), ``template_margin`` (px
       added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
       this fraction of its n² pixels on the maplet, 0.5: border bins that average only a sliver of
       template are not compared with full photo bins).
@@ -185,7 +198,10 @@ class RegisterOptions:
     criteria: object = "default"
     supersample: int = 2
     image_shadows: bool = True
-    rerender_tol: float = 0.02
+    rerender_tol: float = 0.0005
+    rerender_tol_coarse: float = 1.0
+    template_shading: str = "smooth"
+    threads: int | None = None
     template_margin: int = 1
     image_bin_fraction: float = 0.5
     keep_images: bool = False
@@ -205,6 +221,12 @@ class RegisterOptions:
             raise SpcUsageError(f"supersample must be >= 1, got {self.supersample}")
         if not float(self.rerender_tol) >= 0.0:
             raise SpcUsageError(f"rerender_tol must be >= 0, got {self.rerender_tol}")
+        if not float(self.rerender_tol_coarse) >= 0.0:
+            raise SpcUsageError(f"rerender_tol_coarse must be >= 0, got {self.rerender_tol_coarse}")
+        if self.template_shading not in ("smooth", "facet"):
+            raise SpcUsageError(f"template_shading must be smooth or facet, got {self.template_shading!r}")
+        if self.threads is not None and int(self.threads) < 1:
+            raise SpcUsageError(f"threads must be >= 1, got {self.threads}")
         if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
             raise SpcUsageError(f"image_bin_fraction must lie in [0, 1], got {self.image_bin_fraction}")
         if int(self.edge_retries) != self.edge_retries or int(self.edge_retries) < 0:
@@ -384,6 +406,7 @@ class _Landmark:
         "patch",
         "tmpl",
         "tmpl_key",
+        "footprint",
         "ext",
         "ext_camera",
         "shadow",
@@ -399,6 +422,7 @@ class _Landmark:
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
+        self.footprint = None
         self.ext = None
         self.ext_camera = None
         self.shadow = None
@@ -439,6 +463,7 @@ class Registrar:
         """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
         lm = self.landmarks[i]
         lm.pred = lm.pred_camera = lm.ext = lm.ext_camera = lm.tmpl = lm.tmpl_key = lm.shadow = None
+        lm.footprint = None
 
     def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
@@ -591,24 +616,53 @@ class Registrar:
         """Rendering of the maplet for a placement whose fractional part is ``frac`` (sample, line).
 
         Returns ``(rendering or None, fractional offset rendered, window (s0, s1, l0, l1))``; the cached
-        template is reused while the camera is the same and ``frac`` moved by ≤ ``rerender_tol``·n (at
-        spacing n a sub-pixel change far below a bin does not matter).
+        template is reused while the camera is the same and ``frac`` moved by ≤ ``rerender_tol`` (spacing
+        1) or ≤ ``rerender_tol_coarse``·n (spacing n ≥ 2: the correlation bins n pixels, and the shift is
+        measured from where the template sat, so its phase only matters for the final steps).
         """
-        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, render
+        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, _PatchSet, render
 
         if lm.patch is None:
             m = lm.maplet
-            lm.patch = HeightPatch(
+            patch = HeightPatch(
                 m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
             )
-        if (
-            lm.tmpl is not None
-            and lm.tmpl_key[0] is camera
-            and np.max(np.abs(lm.tmpl_key[1] - frac)) <= self.options.rerender_tol * spacing
-        ):
+            lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
+        patch = lm.patch.patches[0]
+        tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
+        if lm.tmpl is not None and lm.tmpl_key[0] is camera and np.max(np.abs(lm.tmpl_key[1] - frac)) <= tol:
             return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
-        # footprint: the projection of the maplet's border nodes, plus a margin
-        q = lm.patch.qsz
+        if lm.footprint is None or lm.footprint[0] is not camera:
+            lm.footprint = (camera, self._footprint(patch, camera))
+        if lm.footprint[1] is None:
+            return None, frac, None
+        s0, s1, l0, l1 = lm.footprint[1]
+        # rays through p − frac: the same camera with its CTR moved by frac
+        shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
+        ropts = RenderOptions(
+            photometry=self.options.predict.photometry,
+            supersample=int(self.options.supersample),
+            shadows=bool(self.options.image_shadows),
+            shading=self.options.template_shading,
+            ray_inverse="grid",
+            threads=1,
+        )
+        shp = (l1 - l0 + 1, s1 - s0 + 1)
+        rad = np.zeros(shp)
+        cov = np.zeros(shp)
+        cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
+        if cs0 <= s1 and cl0 <= l1:
+            part = render(shifted, self.sun, None, lm.patch, ropts, window=(cs0, s1, cl0, l1))
+            rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
+            cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
+        rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
+        lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
+        return rend, frac.copy(), (s0, s1, l0, l1)
+
+    def _footprint(self, patch, camera):
+        """The template window (s0, s1, l0, l1): the projection of the maplet's border nodes, plus
+        ``template_margin``; None when a border node is behind the camera."""
+        q = patch.qsz
         t = np.arange(-q, q + 1, dtype=np.float64)
         edge = np.concatenate(
             [
@@ -618,31 +672,14 @@ class Registrar:
                 np.stack([np.full_like(t, q), t], 1),
             ]
         )
-        h = lm.patch.interpolate(edge[:, 0], edge[:, 1])[0]
-        s, ln, front = camera.project_with_mask(lm.patch.to_body(np.column_stack([edge, h])))
+        h = patch.interpolate(edge[:, 0], edge[:, 1])[0]
+        s, ln, front = camera.project_with_mask(patch.to_body(np.column_stack([edge, h])))
         if not np.all(front):
-            return None, frac, None
+            return None
         mg = int(self.options.template_margin)
         s0, s1 = int(math.floor(s.min())) - mg, int(math.ceil(s.max())) + mg
         l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
-        # rays through p − frac: the same camera with its CTR moved by frac
-        shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
-        ropts = RenderOptions(
-            photometry=self.options.predict.photometry,
-            supersample=int(self.options.supersample),
-            shadows=bool(self.options.image_shadows),
-        )
-        shp = (l1 - l0 + 1, s1 - s0 + 1)
-        rad = np.zeros(shp)
-        cov = np.zeros(shp)
-        cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
-        if cs0 <= s1 and cl0 <= l1:
-            part = render(shifted, self.sun, None, [lm.patch], ropts, window=(cs0, s1, cl0, l1))
-            rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
-            cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
-        rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
-        lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
-        return rend, frac.copy(), (s0, s1, l0, l1)
+        return s0, s1, l0, l1
 
     def _image_step(self, i, camera, center, spacing):
         lm = self.landmarks[i]
@@ -866,7 +903,11 @@ def register(
     )
     _cap_warnings(reg, caps, steps, result)
     if opts.schedule == "retina_s16":
-        _drive_s16(reg, camera, steps, start, result, last, tick, caps)
+        workers = _image_workers(opts, n)
+        if workers > 1:
+            _parallel_s16(reg, camera, steps, start, result, last, tick, workers, caps)
+        else:
+            _drive_s16(reg, camera, steps, start, result, last, tick, caps)
     else:
         pos = (
             (np.stack([lm.v for lm in reg.landmarks]) if n else np.zeros((0, 3)))
@@ -890,6 +931,66 @@ def register(
     bad = ~result.ok
     result.covariance[bad] = np.nan
     return result
+
+
+def _image_workers(opts: RegisterOptions, n: int) -> int:
+    """Threads for the landmarks of an image-space S16 run (maplet space stays on one thread: its small
+    numpy steps hold the GIL)."""
+    if opts.space != "image" or n < 2:
+        return 1
+    if opts.threads is None:
+        import numba
+
+        return min(n, int(numba.get_num_threads()))
+    return min(n, int(opts.threads))
+
+
+def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, workers: int, caps):
+    """:func:`_drive_s16` with the landmarks spread over ``workers`` threads, one landmark per task.
+
+    Landmarks are independent (their own template, crop and state; the photo is only read), and the
+    render and correlation kernels release the GIL; every landmark runs exactly the computation of the
+    one-thread driver, so the result does not depend on ``workers`` (``tests/test_register.py``).
+    """
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    lock = threading.Lock()
+
+    def locked_tick(k=1):
+        with lock:
+            tick(k)
+
+    def one(i):
+        sub = object.__new__(Registrar)
+        sub.__dict__.update(reg.__dict__)
+        sub.landmarks = [reg.landmarks[i]]
+        part = RegisterResult(
+            [result.names[i]],
+            result.apriori[i : i + 1],
+            result.measured[i : i + 1].copy(),
+            result.correlation[i : i + 1].copy(),
+            result.iterations[i : i + 1].copy(),
+            result.spacing[i : i + 1].copy(),
+            [result.status[i]],
+            camera,
+            options=result.options,
+            covariance=result.covariance[i : i + 1].copy(),
+        )
+        sub_last = [None]
+        _drive_s16(sub, camera, steps, start[i : i + 1], part, sub_last, locked_tick, caps[i : i + 1])
+        return i, part, sub_last[0]
+
+    with ThreadPoolExecutor(workers) as pool:
+        for i, part, st in pool.map(one, range(len(reg))):
+            result.measured[i] = part.measured[0]
+            result.correlation[i] = part.correlation[0]
+            result.iterations[i] = part.iterations[0]
+            result.spacing[i] = part.spacing[0]
+            result.status[i] = part.status[0]
+            result.covariance[i] = part.covariance[0]
+            result.warnings.extend(part.warnings)
+            last[i] = st
 
 
 def _record(result, last, i, st: LandmarkStep, keep_images: bool):

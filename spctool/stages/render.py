@@ -82,6 +82,7 @@ __all__ = [
     "sky",
     "SKY",
     "SHAPE",
+    "SHADINGS",
 ]
 
 #: surface id of a ray that hits nothing / the shape (patches are numbered 0, 1, …)
@@ -89,6 +90,9 @@ SKY = -2
 SHAPE = -1
 
 _BIG = 1e300
+
+#: shading normals of height patches (:class:`RenderOptions`)
+SHADINGS = ("smooth", "facet")
 
 #: parameter margin of the ICQ cells for shadow rays (see :attr:`ShapeSurface.shadow_shape`)
 SHADOW_PATCH_EPS = 1e-7
@@ -192,6 +196,21 @@ class HeightPatch:
         """((4, n, n) heights, hx, hy, albedo; valid) as the fused renderer reads them."""
         hx, hy, _ = self.slopes
         return np.stack([self.heights, hx, hy, self.albedo]), self.valid
+
+    def facet_slopes(self, x, y):
+        """(hx, hy): slopes of the flat triangle under maplet-frame (x, y) (two per cell, split along the
+        (i, j)–(i+1, j+1) diagonal), the shading of ``shading="facet"``."""
+        n = self.heights.shape[0]
+        q = self.qsz
+        u = np.clip(np.asarray(x, dtype=np.float64) + q, 0.0, n - 1.0)
+        w = np.clip(np.asarray(y, dtype=np.float64) + q, 0.0, n - 1.0)
+        i = np.minimum(np.floor(u).astype(np.intp), n - 2)
+        j = np.minimum(np.floor(w).astype(np.intp), n - 2)
+        h = self.heights
+        lower = (u - i) >= (w - j)
+        hx = np.where(lower, h[i + 1, j] - h[i, j], h[i + 1, j + 1] - h[i, j + 1])
+        hy = np.where(lower, h[i + 1, j + 1] - h[i + 1, j], h[i, j + 1] - h[i, j])
+        return hx, hy
 
     def to_local(self, points) -> np.ndarray:
         """Body points (N, 3) km → maplet-frame (x, y, z) in cells."""
@@ -418,10 +437,16 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
-    k, origin, dirs, ok, sun_lit, sun, shadows, offset, geo, boxes, maps, valids, tops, ns, surf, geom, sh
-):
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
+    surf, geom, sh,
+):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
-    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does)."""
+    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
+    ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
+    split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
+    (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
+    where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
+    answer, fewer cells)."""
     surf[k] = SKY
     sh[k] = False
     if not ok[k]:
@@ -472,8 +497,16 @@ def _patch_ray(
     w01 = (1 - fu) * fw
     w11 = fu * fw
     z = _bilinear_at(maps, p, 0, i, j, w00, w10, w01, w11)
-    hx = _bilinear_at(maps, p, 1, i, j, w00, w10, w01, w11)
-    hy = _bilinear_at(maps, p, 2, i, j, w00, w10, w01, w11)
+    if facet:  # the flat triangle's slopes (HeightPatch.facet_slopes)
+        if fu >= fw:  # corners (i, j), (i+1, j), (i+1, j+1)
+            hx = maps[p, 0, i + 1, j] - maps[p, 0, i, j]
+            hy = maps[p, 0, i + 1, j + 1] - maps[p, 0, i + 1, j]
+        else:  # corners (i, j), (i, j+1), (i+1, j+1)
+            hx = maps[p, 0, i + 1, j + 1] - maps[p, 0, i, j + 1]
+            hy = maps[p, 0, i, j + 1] - maps[p, 0, i, j]
+    else:
+        hx = _bilinear_at(maps, p, 1, i, j, w00, w10, w01, w11)
+        hy = _bilinear_at(maps, p, 2, i, j, w00, w10, w01, w11)
     alb = _bilinear_at(maps, p, 3, i, j, w00, w10, w01, w11)
     # unit shading normal (heightfield.normals_body) and the shading geometry (shade)
     a_ = -hx
@@ -514,6 +547,13 @@ def _patch_ray(
             a1 = ly
             a2 = z + offset
             tn = 0.0
+            if b2 > 0.0:  # rising: above the highest cell ahead it can cross nothing
+                top = upmax[p, i, j]
+                if a2 > top:
+                    continue
+                tc = (top - a2) / b2
+                if tc < tf:
+                    tf = tc
         if tf >= tn:
             n = ns[p]
             q = geo[p, 18]
@@ -527,9 +567,52 @@ def _patch_ray(
 
 
 @numba.njit(cache=True, nogil=True)
+def _upwind_max(tops, au, aw, out):
+    """out[i, j] ≥ the top of every cell a ray leaving cell (i, j) along the horizontal direction
+    (au, aw) (cells, axis 0 and 1) can pass over before it leaves the grid (a conservative superset).
+
+    Walk along the dominant axis, one column at a time toward the Sun: before it reaches the next
+    column the ray moves by at most one row (|minor| ≤ |major|), so it stays in rows j − 1 … j + 1 of
+    its own column and enters the next column in rows j − 2 … j + 2 (a row of margin for rays through
+    a corner); from there on the next column's values bound it.  Sun at the zenith: the cell itself.
+    """
+    n0, n1 = tops.shape
+    if au == 0.0 and aw == 0.0:
+        out[:, :] = tops
+        return
+    major0 = abs(au) >= abs(aw)
+    na = n0 if major0 else n1  # along the dominant axis
+    nb = n1 if major0 else n0
+    step = 1 if (au if major0 else aw) > 0.0 else -1
+    for k in range(na):
+        a = na - 1 - k if step > 0 else k  # the column farthest toward the Sun first
+        nxt = a + step
+        for b in range(nb):
+            m = -np.inf
+            for db in range(-1, 2):
+                bb = b + db
+                if 0 <= bb < nb:
+                    v = tops[a, bb] if major0 else tops[bb, a]
+                    if v > m:
+                        m = v
+            if 0 <= nxt < na:
+                for db in range(-2, 3):
+                    bb = b + db
+                    if 0 <= bb < nb:
+                        v = out[nxt, bb] if major0 else out[bb, nxt]
+                        if v > m:
+                            m = v
+            if major0:
+                out[a, b] = m
+            else:
+                out[b, a] = m
+
+
+@numba.njit(cache=True, nogil=True)
 def _fused_rays(
-    origin, dirs, ok, sun_lit, sun, shadows, offset, geo, boxes, maps, valids, tops, ns, surf, geom, sh
-):
+    origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
+    surf, geom, sh,
+):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
     for k in range(dirs.shape[0]):
         _patch_ray(
@@ -541,12 +624,14 @@ def _fused_rays(
             sun,
             shadows,
             offset,
+            facet,
             geo,
             boxes,
             maps,
             valids,
             tops,
             ns,
+            upmax,
             surf,
             geom,
             sh,
@@ -571,6 +656,7 @@ class _PatchSet:
         self.los = np.zeros((n, 3))
         self.his = np.zeros((n, 3))
         self._fused = None
+        self._up = None
         for k, p in enumerate(self.patches):
             lo, hi = p.box()
             zc = 0.5 * (lo[2] + hi[2])
@@ -587,16 +673,35 @@ class _PatchSet:
     def __len__(self):
         return len(self.patches)
 
-    def fused_arrays(self):
-        """The patches packed for :func:`_patch_ray` (built once per set).
+    def fused_arrays(self, sun=None):
+        """The patches packed for :func:`_patch_ray` (built once per set), with each patch's
+        :func:`_upwind_max` for the unit Sun direction ``sun`` (+inf, no effect, when None).
 
         ``geo`` (P, 21): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
         row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20);
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
-        ``ns`` (P,): each patch's 2·QSZ + 1.
+        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax`` (P, n − 1, n − 1).
         """
+        return self._packed() + (self._upmax(sun),)
+
+    def _upmax(self, sun):
+        key = None if sun is None else tuple(float(v) for v in sun)
+        if self._up is None or self._up[0] != key:
+            nmax = max(p.heights.shape[0] for p in self.patches)
+            up = np.full((len(self), nmax - 1, nmax - 1), np.inf)
+            if sun is not None:
+                for k, p in enumerate(self.patches):
+                    n = p.heights.shape[0]
+                    su, sw, _ = np.asarray(sun, dtype=np.float64) @ p.rotation
+                    part = np.empty((n - 1, n - 1))
+                    _upwind_max(p.cell_tops, float(su), float(sw), part)
+                    up[k, : n - 1, : n - 1] = part
+            self._up = (key, up)
+        return self._up[1]
+
+    def _packed(self):
         if self._fused is None:
             npatch = len(self)
             nmax = max(p.heights.shape[0] for p in self.patches)
@@ -812,7 +917,13 @@ class RenderOptions:
     by the surface albedo; ``chunk``: rays per batch (memory bound); ``shadow_offset_cells``: height
     above a patch's terrain where its shadow rays start (cells); ``shadow_offset_shape``: distance, in
     shape cells, before a shadow ray from a shape point may hit the shape; ``shadow_lift_shape``: such
-    rays start this far (shape cells) above the shape along its shading normal.
+    rays start this far (shape cells) above the shape along its shading normal.  ``shading``: patch
+    shading normals ``"smooth"`` (bilinear interpolation of SPC's node slopes) or ``"facet"`` (the flat
+    triangle under the hit, two per cell; albedo stays bilinear).  ``ray_inverse``: pixel → ray by
+    ``"newton"`` per sub-ray (:meth:`Camera.pixel_to_direction`) or ``"grid"`` (exact inverses on a
+    coarse grid, one Newton step per sub-ray: :meth:`Camera.pixel_to_direction_grid`, the same rays to
+    ~1e-13).  ``threads``: Python threads a large patch-only window is split over (None: numba's
+    count; register's templates use 1 and parallelise across landmarks instead).
     """
 
     photometry: str = "spc"
@@ -823,8 +934,15 @@ class RenderOptions:
     shadow_offset_cells: float = 1e-3
     shadow_offset_shape: float = 0.02
     shadow_lift_shape: float = 0.002
+    shading: str = "smooth"
+    ray_inverse: str = "newton"
+    threads: int | None = None
 
     def __post_init__(self):
+        if self.shading not in SHADINGS:
+            raise SpcUsageError(f"shading must be one of {', '.join(SHADINGS)}, got {self.shading!r}")
+        if self.ray_inverse not in ("newton", "grid"):
+            raise SpcUsageError(f"ray_inverse must be newton or grid, got {self.ray_inverse!r}")
         if self.photometry not in PHOTOMETRY_MODELS:
             raise SpcUsageError(
                 f"unknown photometric model {self.photometry!r}; "
@@ -885,13 +1003,14 @@ class Rendering:
 
 
 def trace(
-    origins, directions, shape: ShapeSurface | None = None, patches=(), *, albedo_fn=None
+    origins, directions, shape: ShapeSurface | None = None, patches=(), *, albedo_fn=None, shading="smooth"
 ) -> SurfaceHits:
     """Nearest hits of rays (origins (N, 3) or (3,) body km, unit directions (N, 3)) on the shape and
     the patches (composition rule of the module docstring), with shading normals and albedo.
 
     ``albedo_fn(points) -> albedo`` replaces the shape's own albedo at shape hits (the simulator paints
-    its terrain albedo this way).
+    its terrain albedo this way).  ``shading="facet"``: patch normals of the flat triangle under each hit
+    (:meth:`HeightPatch.facet_slopes`) instead of the interpolated node slopes.
     """
     d = _c64(directions)
     o = _c64(np.broadcast_to(np.asarray(origins, dtype=np.float64), d.shape))
@@ -937,6 +1056,8 @@ def trace(
         if m.size == 0:
             continue
         z, hx, hy, alb = patch.interpolate(local[m, 0], local[m, 1])
+        if shading == "facet":
+            hx, hy = patch.facet_slopes(local[m, 0], local[m, 1])
         local[m, 2] = z  # on the terrain (the crossing is exact; this removes rounding)
         point[m] = patch.to_body(local[m])
         normal[m] = heightfield.normals_body(hx, hy, patch.ux, patch.uy, patch.uz)
@@ -1076,7 +1197,7 @@ def render(
     return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress)
 
 
-def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None):
+def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False):
     """(surface, geom, shadow) of sub-rays by :func:`_fused_rays`; windows of at least
     :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
     threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
@@ -1086,7 +1207,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
     sh = np.empty(n, bool)
     origin, dirs, ok = _c64(origin), _c64(dirs), np.ascontiguousarray(ok, dtype=bool)
     sun_lit, sun = _c64(sun_lit), _c64(sun)
-    shadows, offset = bool(shadows), float(offset)
+    shadows, offset, facet = bool(shadows), float(offset), bool(facet)
 
     def run(a, b):
         _fused_rays(
@@ -1097,6 +1218,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
             sun,
             shadows,
             offset,
+            facet,
             *arrays,
             surface[a:b],
             geom[a:b],
@@ -1120,7 +1242,16 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
     n = dirs.shape[0]
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
-        origin, dirs, ok, sun, sun_shade, options.shadows, options.shadow_offset_cells, pset.fused_arrays()
+        origin,
+        dirs,
+        ok,
+        sun,
+        sun_shade,
+        options.shadows,
+        options.shadow_offset_cells,
+        pset.fused_arrays(sun_shade),
+        threads=options.threads,
+        facet=options.shading == "facet",
     )
     hit = surface != SKY
     r = np.zeros(n)
@@ -1143,7 +1274,11 @@ def _render(
     sun = _vec3(sun, "sun")
     sun = sun / np.linalg.norm(sun)
     surf = None if shape is None else ShapeSurface.from_model(shape)
-    plist = _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    plist = (
+        patches
+        if isinstance(patches, _PatchSet)
+        else _PatchSet(p if isinstance(p, HeightPatch) else HeightPatch.from_maplet(p) for p in patches)
+    )
     use_fused = fused and surf is None and len(plist) > 0
     s0, s1, l0, l1 = _window(camera, window)
     nss = int(options.supersample)
@@ -1166,7 +1301,10 @@ def _render(
         ss = samples[None, None, :, None] + offs[None, None, None, :]
         ll, ss = np.broadcast_arrays(ll, ss)
         shape4 = ll.shape
-        dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
+        if options.ray_inverse == "grid":
+            dirs = camera.pixel_to_direction_grid(ss.reshape(-1), ll.reshape(-1))
+        else:
+            dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         ok = np.all(np.isfinite(dirs), axis=1)
         if use_fused:
             hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options)
@@ -1177,6 +1315,7 @@ def _render(
                 surf,
                 plist,
                 albedo_fn=albedo_fn,
+                shading=options.shading,
             )
             if not ok.all():
                 hits.surface[~ok] = SKY
