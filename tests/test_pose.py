@@ -291,7 +291,8 @@ def test_nees_with_surface_weights_consistent_with_chi2():
         assert res.converged and res.n_used == 20 and not res.warnings
         values.append(nees(truth, res))
         if seed < 60:
-            uniform.append(  # the formal covariance: no cost/dof scaling (that is a global, not per-landmark, fix)
+            # the formal covariance: no cost/dof scaling (that is a global, not per-landmark, fix)
+            uniform.append(
                 nees(
                     truth,
                     solve_pose(
