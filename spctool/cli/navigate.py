@@ -45,6 +45,7 @@ def _spacings(text: str) -> tuple:
 @options.photo_option()
 @options.flip_rows_option
 @options.space_option
+@options.template_shading_option
 @options.corr_min_option
 @options.photometry_option
 @options.thresholds_option

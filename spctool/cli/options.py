@@ -450,3 +450,13 @@ def pose_options(sigma_px: float, no_prior: bool, min_landmarks: int, **more):
     from spctool.stages.pose import PoseOptions
 
     return PoseOptions(sigma_px=sigma_px, use_prior=not no_prior, min_landmarks=min_landmarks, **more)
+
+
+template_shading_option = click.option(
+    "--template-shading",
+    type=click.Choice(["smooth", "facet"]),
+    default="smooth",
+    show_default=True,
+    help="Image space: template normals from interpolated node slopes (smooth) or flat triangles, "
+    "two per maplet cell (facet).",
+)

@@ -107,14 +107,7 @@ _shared_options = options.option_group(
         is_flag=True,
         help="Image space: leave shadowed pixels out instead of correlating them as dark.",
     ),
-    click.option(
-        "--template-shading",
-        type=click.Choice(["smooth", "facet"]),
-        default="smooth",
-        show_default=True,
-        help="Image space: template normals from interpolated node slopes (smooth) or flat triangles, "
-        "two per maplet cell (facet).",
-    ),
+    options.template_shading_option,
     options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
     options.image_format_option,
     options.image_zoom_option,
