@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from spctool.errors import SpcFormatError, SpcUsageError
-from spctool.formats import fortran, icq
+from spctool.formats import fortran, icq, icq_mesh
 from spctool.formats.mesh import TriangleMesh, read_obj, read_vtk
 
 REAL = Path(__file__).resolve().parents[1] / "fixtures" / "real"
@@ -175,7 +175,7 @@ def test_quads_point_outward_on_a_sphere(q):
 @pytest.mark.parametrize("q", [1, 2, 6])
 def test_merged_sphere_mesh_is_closed(q):
     shape = icq.IcqShape(q, sphere(q))
-    mesh = icq.icq_to_mesh(shape)
+    mesh = icq_mesh.icq_to_mesh(shape)
     faces = mesh.faces
     assert faces.shape == (12 * q * q, 3)
     used = np.unique(faces)
@@ -189,7 +189,7 @@ def test_merged_sphere_mesh_is_closed(q):
     v = mesh.vertices
     volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum() / 6
     assert volume > 0
-    compact = icq.icq_to_mesh(shape, compact=True)
+    compact = icq_mesh.icq_to_mesh(shape, compact=True)
     assert compact.vertices.shape[0] == 6 * q * q + 2
     assert np.array_equal(compact.vertices[compact.faces], mesh.vertices[mesh.faces])
 
@@ -567,10 +567,10 @@ def test_bennu_obj_vertex_lists_are_exact_icq_grids(q, tmp_path):
     n_tri = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     assert np.all(np.einsum("ij,ij->i", n_tri, n_quad) > 0)
     # OBJ → ICQ → OBJ-style mesh: the same vertices exactly
-    shape = icq.mesh_to_icq(mesh)
+    shape = icq_mesh.mesh_to_icq(mesh)
     assert shape.q == q and shape.albedo is None
     assert np.array_equal(bits(shape.flat_vertices()), bits(v))
-    assert np.array_equal(bits(icq.icq_to_mesh(shape).vertices), bits(v))
+    assert np.array_equal(bits(icq_mesh.icq_to_mesh(shape).vertices), bits(v))
     # and through an ICQ file, losslessly in exact style
     p = tmp_path / "SHAPE.TXT"
     icq.write_icq(p, shape, style="exact")
@@ -592,19 +592,19 @@ def test_mesh_to_icq_explains_non_icq_vertex_lists():
     n = q + 1
     v = sphere(q).reshape(-1, 3)
     with pytest.raises(SpcFormatError, match="6\\(Q\\+1\\)² vertices"):
-        icq.mesh_to_icq(TriangleMesh(v[:-1], np.zeros((0, 3), int)))
+        icq_mesh.mesh_to_icq(TriangleMesh(v[:-1], np.zeros((0, 3), int)))
     swapped = v.reshape(6, n * n, 3)[[1, 0, 2, 3, 4, 5]].reshape(-1, 3)  # faces 1 and 2 exchanged
     with pytest.raises(SpcFormatError, match="not in ICQ order"):
-        icq.mesh_to_icq(TriangleMesh(swapped, np.zeros((0, 3), int)))
+        icq_mesh.mesh_to_icq(TriangleMesh(swapped, np.zeros((0, 3), int)))
 
 
 def test_gaskell_vtk_is_near_icq_only():
     """README §4: ICQ layout, but seam duplicates differ by up to 2.9 m (Eros)."""
     mesh = read_vtk(REAL / "gaskell-vtk" / "Eros_ver64q.vtk")
     with pytest.raises(SpcFormatError, match="seam pairs differ") as exc:
-        icq.mesh_to_icq(mesh)
+        icq_mesh.mesh_to_icq(mesh)
     assert "Eros_ver64q.vtk" in str(exc.value)
-    shape = icq.mesh_to_icq(mesh, seam_tolerance=0.003)
+    shape = icq_mesh.mesh_to_icq(mesh, seam_tolerance=0.003)
     assert shape.q == 64 and icq.seam_mismatch(shape) == 0.0
     rep = icq.icq_merge_map(64)
     assert np.array_equal(shape.flat_vertices(), mesh.vertices[rep])

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spctool.errors import SpcFormatError
-from spctool.formats import icq
+from spctool.formats import icq, icq_mesh
 from spctool.formats.mesh import (
     TriangleMesh,
     format_obj,
@@ -211,7 +211,7 @@ def test_gaskell_vtk_rewritten_byte_identically(path, tmp_path):
 @pytest.mark.parametrize("points_type", ["double", "float"])
 def test_vtk_round_trip(binary, points_type):
     shape = icq.IcqShape(8, icq.icq_cube_grid(8) * np.array([0.3, 0.2, 0.1]) * (1 + 1e-9))
-    small = icq.icq_to_mesh(shape)
+    small = icq_mesh.icq_to_mesh(shape)
     normals = small.vertices / np.linalg.norm(small.vertices, axis=1, keepdims=True)
     mesh = TriangleMesh(small.vertices, small.faces, normals, ["title line"])
     back = parse_vtk(format_vtk(mesh, binary=binary, points_type=points_type))

@@ -810,7 +810,8 @@ def test_icq_mesh_numba_and_embree_agree_with_brute_force(compact):
     # as shadow rays with t_min > 0.  The numba BVH was always exact; Embree (float32) was not: it
     # rounded far cameras' origins by tens of metres (hits up to ~60 m off at 1000 km) and returned
     # shadow rays' own triangles at t ≈ 0 < t_min (hits ~0.1–0.6 km short of the true ones).
-    from spctool.formats.icq import IcqShape, icq_to_mesh
+    from spctool.formats.icq import IcqShape
+    from spctool.formats.icq_mesh import icq_to_mesh
 
     q = 32
     icq = IcqShape(q, noisy_ellipsoid(q))
@@ -819,7 +820,8 @@ def test_icq_mesh_numba_and_embree_agree_with_brute_force(compact):
 
 def test_icq_cube_mesh_backends_agree_with_patches():
     # flat-faced ICQ (a cube): in-cell patch hits and triangle hits are the same points
-    from spctool.formats.icq import IcqShape, icq_to_mesh
+    from spctool.formats.icq import IcqShape
+    from spctool.formats.icq_mesh import icq_to_mesh
 
     v = cube_points(16) * 0.25
     _check_backends_on_icq_mesh(icq_to_mesh(IcqShape(16, v)), np.random.default_rng(33), PatchShape(v))

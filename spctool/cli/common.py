@@ -275,7 +275,7 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
     rows += [(n, None) for n in names]
     if rows:
         return rows, "given"
-    from spctool.cli.select import load_candidates
+    from spctool.cli.candidates import load_candidates
     from spctool.stages.select import SelectOptions
 
     cand = load_candidates(ctx, (), None)

@@ -568,12 +568,13 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
             out_kind = "icq"  # SPC keeps shapes as SHAPEFILES/*.TXT
         from spctool.formats import icq as icqmod
         from spctool.formats import mesh as meshmod
+        from spctool.formats.icq_mesh import icq_to_mesh, mesh_to_icq
 
         if out_kind == "icq":
-            shape = obj if kind == "icq" else icqmod.mesh_to_icq(obj)
+            shape = obj if kind == "icq" else mesh_to_icq(obj)
             icqmod.write_icq(dst_p, shape, style=icq_style, **kw)
         elif out_kind in ("obj", "vtk"):
-            mesh = icqmod.icq_to_mesh(obj) if kind == "icq" else obj
+            mesh = icq_to_mesh(obj) if kind == "icq" else obj
             (meshmod.write_obj if out_kind == "obj" else meshmod.write_vtk)(dst_p, mesh, **kw)
         else:
             raise SpcUsageError(f"{dst}: a shape converts to ICQ (SHAPE*.TXT or .ICQ), .obj or .vtk")

@@ -5,7 +5,7 @@ Errors a user can cause (bad files, bad usage) end as ONE stderr line
 the machine refused, 130 on Ctrl-C: :data:`spctool.errors.EXIT_CODES`, listed in
 the --help epilog); ``--debug`` shows the traceback instead.  ``-C DIR`` changes
 directory like ``git -C`` (restored when :meth:`SpcGroup.main` returns).  Commands register themselves from
-their own modules (``spctool/cli/*.py``, :data:`COMMANDS`), which are imported only
+their own modules (``spctool/cli/*.py``, :data:`spctool.cli.commands.COMMANDS`), which are imported only
 when one of their commands runs: ``spctool info`` does not pay for numba, nor
 ``spctool --version`` for anything.
 """
@@ -20,34 +20,9 @@ import traceback
 import click
 
 from spctool import __version__
+from spctool.cli.commands import COMMAND_MODULES, COMMANDS  # noqa: F401 (tests take both from here)
 from spctool.cli.common import Context
 from spctool.errors import EXIT_CODES, SpcEnvironmentError, SpcError, SpcUsageError
-
-#: every command and the module whose ``register(cli)`` adds it, in --help order (mission stages
-#: first); a test checks this table against what the modules register
-COMMANDS = {
-    "lithos-select": "spctool.cli.select",
-    "predict": "spctool.cli.appearance",
-    "extract": "spctool.cli.appearance",
-    "correlate": "spctool.cli.register",
-    "register": "spctool.cli.register",
-    "solve-pose": "spctool.cli.pose",
-    "navigate": "spctool.cli.navigate",
-    "info": "spctool.cli.files",
-    "validate": "spctool.cli.files",
-    "convert": "spctool.cli.files",
-    "project": "spctool.cli.project",
-    "simulate": "spctool.cli.sim",
-    "make-maplets": "spctool.cli.sim",
-    "render": "spctool.cli.sim",
-    "demo": "spctool.cli.sim",
-    "montecarlo": "spctool.cli.montecarlo",
-    "batch": "spctool.cli.batch",
-    "warmup": "spctool.cli.jit",
-    "man": "spctool.cli.completion",
-}
-#: the command modules, in --help order
-COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
 
 
 class SpcGroup(click.Group):

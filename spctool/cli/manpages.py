@@ -1,4 +1,5 @@
-"""Man pages generated from the click commands, so that ``man/`` never drifts from ``--help``.
+"""Man pages generated from the click commands, so that ``man/`` never drifts from ``--help``; and
+``spctool man NAME``, which shows one of them (or installs all), so installed copies never drift either.
 
 ``python -m spctool.cli.manpages man/`` rewrites ``man/spctool.1`` and one
 ``man/spctool-COMMAND.1`` per command; ``tests/test_cli_manpages.py`` fails
@@ -7,12 +8,19 @@ when a committed page differs from what the current ``--help`` text gives.
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import click
 
 from spctool import __version__
+from spctool.cli.common import Context, pass_context
+from spctool.cli.completion import complete_command
+from spctool.errors import SpcUsageError
 
 
 def _escape(text: str) -> str:
@@ -146,6 +154,68 @@ def all_pages() -> dict[str, str]:
         command = cli.get_command(ctx, sub)
         pages[f"spctool-{sub}.1"] = render(command, ["spctool", sub])
     return pages
+
+
+# ------------------------------------------------------------------------------------------------
+# spctool man
+
+
+@click.command("man")
+@click.argument("name", required=False, default="spctool", shell_complete=complete_command)
+@click.option(
+    "--install",
+    "install_dir",
+    metavar="DIR",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Write every page (spctool.1, spctool-COMMAND.1) to DIR instead, e.g. ~/.local/share/man/man1.",
+)
+@click.option("--raw", is_flag=True, help="Print the roff source instead of formatting it with man(1).")
+@pass_context
+def man_cmd(ctx: Context, name, install_dir, raw):
+    """Show the man page of spctool or of one command, or install all of them.
+
+    NAME is a command (register, solve-pose, ...) or 'spctool' (the default).  The pages are
+    generated from the commands' --help, so they always match the installed version.  On a
+    terminal the page is formatted by man(1) (through your pager); otherwise, or with --raw, the
+    roff source is printed.  --install DIR writes every page to DIR: with DIR =
+    ~/.local/share/man/man1 (or any man1 folder on your MANPATH), 'man spctool-register' works.
+    Exit code 2 for an unknown NAME.
+
+    Example:
+
+    \b
+      spctool man register
+      spctool man --install mandir/man1 && man -M mandir spctool-register
+      spctool man solve-pose --raw > spctool-solve-pose.1
+    """
+    from spctool.formats import atomic
+
+    pages = all_pages()
+    if install_dir:
+        folder = Path(install_dir).expanduser()
+        folder.mkdir(parents=True, exist_ok=True)
+        for page, text in pages.items():
+            atomic.write_bytes(folder / page, text.encode("utf-8"))
+        click.echo(f"wrote {len(pages)} man pages to {folder}")
+        return
+    page = "spctool.1" if name in ("spctool", "") else f"spctool-{name}.1"
+    if page not in pages:
+        known = ", ".join(sorted(p[8:-2] for p in pages if p != "spctool.1"))
+        raise SpcUsageError(f"no man page for {name!r} (commands: {known})")
+    text = pages[page]
+    viewer = shutil.which("man")
+    if raw or viewer is None or not sys.stdout.isatty():
+        click.echo(text, nl=False)
+        return
+    with tempfile.TemporaryDirectory(prefix="spctool-man-") as tmp:
+        path = Path(tmp) / page
+        path.write_text(text)
+        subprocess.run([viewer, "-l", str(path)], check=False, env=os.environ.copy())
+
+
+def register(cli):
+    cli.add_command(man_cmd)
 
 
 def main(argv=None) -> int:

@@ -694,7 +694,7 @@ def read_shape(path):
     text = data.decode("latin-1").replace("\r\n", "\n").replace("\r", "\n")
     first = text.split("\n", 1)[0]
     if _SINGLE_INT.fullmatch(first):
-        from spctool.formats.icq import parse_icq  # icq imports this module
+        from spctool.formats.icq import parse_icq  # lazily: icq starts numba
 
         return parse_icq(text, path)
     if re.search(r"(?m)^\s*v\s", text):
