@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from spctool.errors import SpcFormatError
+from spctool.formats.guard import check_name
 
 PHOTO_SUFFIXES = (".DAT", ".dat", ".FITS", ".fits", ".FIT", ".fit", ".PGM", ".pgm", ".PNG", ".png")
 IMAGE_DIRS = ("IMAGEFILES",) + tuple(f"IMAGEFILES{k}" for k in range(1, 10))
@@ -33,14 +34,16 @@ class WorkDir:
         self.root = Path(self.root)
 
     # -- paths ----------------------------------------------------------------------------------
+    # every name becomes part of a path only through these methods, so they refuse a name that
+    # could leave the working directory (guard.check_name: '/', '..', absolute paths, NUL)
     def sum_path(self, picture: str) -> Path:
-        return self.root / "SUMFILES" / f"{picture.strip()}.SUM"
+        return self.root / "SUMFILES" / f"{check_name(picture, 'picture name')}.SUM"
 
     def nom_path(self, picture: str) -> Path:
-        return self.root / "NOMINALS" / f"{picture.strip()}.NOM"
+        return self.root / "NOMINALS" / f"{check_name(picture, 'picture name')}.NOM"
 
     def map_path(self, landmark: str) -> Path:
-        name = landmark.strip()
+        name = check_name(landmark, "landmark name")
         for folder in ("MAPFILES", "EXTFILES"):
             p = self.root / folder / f"{name}.MAP"
             if p.exists():
@@ -48,11 +51,11 @@ class WorkDir:
         return self.root / "MAPFILES" / f"{name}.MAP"
 
     def lmk_path(self, landmark: str) -> Path:
-        return self.root / "LMKFILES" / f"{landmark.strip()}.LMK"
+        return self.root / "LMKFILES" / f"{check_name(landmark, 'landmark name')}.LMK"
 
     def photo_path(self, picture: str) -> Path | None:
         """The photo of ``picture``: IMAGEFILES/, IMAGEFILES1/ … IMAGEFILES9/, first match wins."""
-        name = picture.strip()
+        name = check_name(picture, "picture name")
         for folder in IMAGE_DIRS:
             for suffix in PHOTO_SUFFIXES:
                 p = self.root / folder / f"{name}{suffix}"
@@ -152,7 +155,8 @@ class WorkDir:
         if self.lmrklist_path.exists():
             from spctool.formats.lists import read_lmrklist
 
-            return list(read_lmrklist(self.lmrklist_path).active_names)
+            names = list(read_lmrklist(self.lmrklist_path).active_names)
+            return [check_name(n, "landmark name", self.lmrklist_path) for n in names]
         folder = self.root / "LMKFILES"
         if folder.is_dir():
             return sorted(p.stem for p in folder.glob("*.LMK") if not p.stem.startswith("X"))
@@ -163,7 +167,8 @@ class WorkDir:
         if self.pictlist_path.exists():
             from spctool.formats.lists import read_pictlist
 
-            return list(read_pictlist(self.pictlist_path).active_names)
+            names = list(read_pictlist(self.pictlist_path).active_names)
+            return [check_name(n, "picture name", self.pictlist_path) for n in names]
         folder = self.root / "SUMFILES"
         if folder.is_dir():
             return sorted(p.stem for p in folder.glob("*.SUM"))
