@@ -388,7 +388,10 @@ def picture_inputs(wd: WorkDir, picture: str, photo_name: str | None, maplets: S
     doc: dict = {"sum": [_rel(wd, sum_path), _file_sha256(sum_path)]}
     if photo_name is not None:
         photo = wd.photo_path(photo_name)
-        doc["photo"] = [photo_name, _rel(wd, photo) if photo else None, _file_sha256(photo) if photo else None]
+        if photo is None:
+            doc["photo"] = [photo_name, None, None]
+        else:
+            doc["photo"] = [photo_name, _rel(wd, photo), _file_sha256(photo)]
     doc["maplets"] = {}
     for name in maplets:
         path = wd.map_path(name)
