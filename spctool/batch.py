@@ -1111,6 +1111,7 @@ def run_batch(
     if int(jobs) < 1:
         raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
     names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
+    names = [guard.check_name(n, "picture name") for n in names]  # names become output paths
     fingerprint = options.fingerprint()
     stamp = inputs_stamp(workdir, options, fingerprint)  # workers reuse data of unchanged files
     out_dir.mkdir(parents=True, exist_ok=True)

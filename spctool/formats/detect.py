@@ -28,14 +28,19 @@ def _map_size_ok(size: int, head: bytes) -> bool:
 
 def detect_kind(path) -> str:
     """The kind of file at ``path`` (see module docstring); SpcFormatError if unknown."""
+    from spctool.errors import SpcEnvironmentError
+    from spctool.formats.guard import check_regular
+
     p = Path(path)
-    if not p.exists():
+    if not p.exists() and not p.is_symlink():
         raise SpcFormatError(p, None, "expected an existing file (not found)")
-    if p.is_dir():
-        raise SpcFormatError(p, None, "expected a file, found a directory")
-    size = p.stat().st_size
-    with open(p, "rb") as fh:
-        head = fh.read(4096)
+    # a FIFO would block the read below forever, /dev/zero never end: regular files only
+    size = check_regular(p, "an SPC file or photo")
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(4096)
+    except OSError as exc:
+        raise SpcEnvironmentError.from_oserror(exc, p) from None
     suffix = p.suffix.lower()
     upper = p.name.upper()
     if head.startswith(b"SIMPLE  ="):
