@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib
 import sys
 import traceback
+import warnings
 
 import click
 
@@ -60,7 +61,12 @@ class SpcGroup(click.Group):
         args = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in args[: _first_command_index(self, args)]
         try:
-            rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
+            # numpy's floating-point RuntimeWarnings (file:line, source text) are not for users: an
+            # error is reported by its one line alone; with --debug they are shown as usual
+            with warnings.catch_warnings():
+                if not debug:
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
         except click.exceptions.Exit as exc:
             sys.exit(exc.exit_code)
         except click.exceptions.Abort:  # click turns Ctrl-C at a prompt into Abort

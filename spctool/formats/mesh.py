@@ -110,8 +110,34 @@ def parse_obj(text: str, path=None) -> TriangleMesh:
     lines = text.split("\n")
     fast = _parse_obj_fast(lines, where)
     if fast is not None:
-        return fast
-    return _parse_obj_slow(lines, where)
+        return _checked(fast, where)
+    return _checked(_parse_obj_slow(lines, where), where)
+
+
+#: largest vertex coordinate accepted (km): far beyond any body, small enough that bounding boxes,
+#: padding and squared distances stay finite
+MAX_COORDINATE_KM = 1e12
+
+
+def _checked(mesh: TriangleMesh, where) -> TriangleMesh:
+    """What every stage needs of a shape model: triangles, and finite coordinates of sane size (a
+    file ``validate`` passes must never crash a stage)."""
+    if mesh.face_count == 0:
+        raise SpcFormatError(
+            where,
+            None,
+            f"expected faces (a shape model is a triangle mesh), found {mesh.vertex_count} vertices only",
+        )
+    big = np.abs(mesh.vertices) > MAX_COORDINATE_KM
+    if big.any():
+        k = int(np.flatnonzero(big.any(axis=1))[0])
+        raise SpcFormatError(
+            where,
+            None,
+            f"expected vertex coordinates within ±{MAX_COORDINATE_KM:g} km, found vertex {k + 1} at "
+            f"{mesh.vertices[k].tolist()}",
+        )
+    return mesh
 
 
 def _parse_obj_fast(lines: list[str], where) -> TriangleMesh | None:
@@ -203,6 +229,10 @@ def _parse_obj_slow(lines: list[str], where) -> TriangleMesh:
                 if i == 0:
                     raise SpcFormatError(
                         where, lineno, "expected a vertex index ≠ 0 (OBJ indices are 1-based)"
+                    )
+                if abs(i) > 2**62:
+                    raise SpcFormatError(
+                        where, lineno, f"expected a vertex index of sane size, found {ref!r}"
                     )
                 i = i - 1 if i > 0 else len(verts) + i
                 if i < 0:
@@ -495,7 +525,7 @@ def parse_vtk(data: bytes, path=None) -> TriangleMesh:
     faces = np.concatenate(triangles)
     if normals is not None and normals.shape[0] != points.shape[0]:
         normals = None
-    return TriangleMesh(points, faces, normals, [title] if title else [], path=where)
+    return _checked(TriangleMesh(points, faces, normals, [title] if title else [], path=where), where)
 
 
 def _skip_or_read_attribute(r: _VtkReader, key: str, words: list[str], count: int | None, start: int):
