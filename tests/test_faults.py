@@ -468,3 +468,94 @@ def test_workdir_paths_refuse_bad_names(tmp_path):
         with pytest.raises(SpcUsageError):
             method("../x")
     assert batch.done_summary(tmp_path, tmp_path / "o", "../x", "f") is None
+
+
+# ------------------------------------------------------------------------------------------------
+# internal errors from file content are one line, exit 2; validate is as strict as the stages
+
+
+def _map_with_ux(demo, value) -> Path:
+    import struct
+
+    import numpy as np
+
+    from spctool.formats.maplet import read_map
+
+    path = demo / "MAPFILES" / "B01536.MAP"
+    data = bytearray(path.read_bytes())
+    at = data.find(struct.pack(">f", np.float32(read_map(path).ux[0])))
+    assert at > 0
+    data[at : at + 4] = struct.pack(">f", value)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_map_with_absurd_frame_fails_validate_and_only_its_landmark(demo, tmp_path):
+    path = _map_with_ux(demo, 3.4e38)
+    res = invoke("validate", path)
+    assert res.exit_code == 2 and "orthonormal" in res.stderr and "Warning" not in res.stderr
+    res = invoke("-C", demo, "register", PIC, "B01536", "B01585")
+    assert res.exit_code == 0 and "internal error" not in res.stderr
+    assert "no-maplet" in res.stdout
+    out = run_batch(demo, [PIC], out_dir=tmp_path / "out")
+    assert out.pictures[0].kind == "ok"
+
+
+@pytest.mark.parametrize(
+    "name, text, words",
+    [
+        ("pts.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n", "faces"),
+        ("big.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999999\n", "vertex index"),
+        ("far.obj", "v 0 0 0\nv 1 0 0\nv 0 1e300 0\nf 1 2 3\n", "coordinates"),
+        ("deep.json", '{"landmarks": [], "x": ' + "[" * 100000 + "]" * 100000 + "}", "nested"),
+        ("huge.json", '{"landmarks": [{"name": "A", "sample": ' + "9" * 5001 + "}]}", "JSON"),
+    ],
+)
+def test_content_that_crashed_is_one_line_exit_2(tmp_path, name, text, words):
+    path = tmp_path / name
+    path.write_text(text)
+    for command in ("info", "validate"):
+        res = invoke(command, path)
+        assert res.exit_code == 2 and words in res.stderr, res.stderr
+        assert "internal error" not in res.stderr and "Traceback" not in res.stderr
+
+
+def test_json_table_with_int64_overflow_reads_as_numbers(tmp_path):
+    from spctool.formats.table import read_table
+
+    path = tmp_path / "t.json"
+    path.write_text('{"landmarks": [{"name": "A", "sample": 123456789012345678901234567890, "line": 1}]}')
+    t = read_table(path)
+    assert t["sample"][0] == pytest.approx(1.2345678901234568e29)
+
+
+def test_fits_with_zero_width_or_truncated_data_is_rejected(tmp_path):
+    import numpy as np
+
+    from spctool.formats.photo import format_fits
+
+    good = format_fits(np.arange(64, dtype=np.uint16).reshape(8, 8))
+    zero = good.replace(b"NAXIS1  =                    8", b"NAXIS1  =                    0", 1)
+    (tmp_path / "zero.fits").write_bytes(zero)
+    for command in ("info", "validate"):
+        assert invoke(command, tmp_path / "zero.fits").exit_code == 2
+    assert invoke("convert", tmp_path / "zero.fits", tmp_path / "z.pgm").exit_code == 2
+    big = good.replace(b"NAXIS1  =                    8", b"NAXIS1  =                80000", 1)
+    (tmp_path / "big.fits").write_bytes(big)
+    res = invoke("info", tmp_path / "big.fits")
+    assert res.exit_code == 2 and "data bytes" in res.stderr
+
+
+def test_pgm_with_trailing_bytes_is_rejected(tmp_path):
+    path = tmp_path / "x.pgm"
+    path.write_bytes(b"P5\n4 2\n255\n" + bytes(8) + b"\n")  # trailing newline: fine
+    assert invoke("info", path).exit_code == 0
+    path.write_bytes(b"P5\n4 2\n255\n" + bytes(12))  # a wrong width hidden by extra bytes
+    res = invoke("info", path)
+    assert res.exit_code == 2 and "width or height" in res.stderr
+
+
+def test_runtime_warnings_are_not_printed_before_the_error(demo):
+    path = _map_with_ux(demo, 3.4e38)
+    res = invoke("validate", path)
+    assert "RuntimeWarning" not in res.stderr and len(res.stderr.strip().splitlines()) == 1

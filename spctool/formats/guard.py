@@ -137,6 +137,41 @@ def check_allocation(nbytes: float, what: str, limit: int, where: str | None = N
     raise SpcUsageError(text)
 
 
+#: largest maplet half-size accepted by the stages ((2 QSZ + 1)^2 cells; SPC's are at most a few hundred)
+MAX_QSZ = 4096
+
+
+def landmark_geometry_problem(obj) -> str | None:
+    """Why a landmark's (LMK) or maplet's (MAP) geometry cannot be used by a stage, or None: V/VLM
+    finite, UX/UY/UZ a finite orthonormal frame, SCALE finite and positive, QSZ in 1 … MAX_QSZ.
+    (A MAP with UX = 3.4e38 is a valid record but no maplet: every stage would overflow on it.)"""
+    import numpy as np
+
+    centre = getattr(obj, "vlm", None)
+    if centre is None:
+        centre = getattr(obj, "v", None)
+    with np.errstate(all="ignore"):
+        if centre is not None and not np.all(np.isfinite(np.asarray(centre, float))):
+            return "a finite landmark position V"
+        m = np.vstack([np.asarray(obj.ux, float), np.asarray(obj.uy, float), np.asarray(obj.uz, float)])
+        if not np.all(np.isfinite(m)) or np.abs(m @ m.T - np.eye(3)).max() > 1e-3:
+            return "an orthonormal frame UX, UY, UZ"
+        scale = float(obj.scale)
+        if not (np.isfinite(scale) and 0 < scale < 1e6):
+            return f"a finite positive SCALE (km), found {scale:g}"
+        if not 1 <= int(obj.qsz) <= MAX_QSZ:
+            return f"QSZ in 1 ... {MAX_QSZ}, found {int(obj.qsz)}"
+    return None
+
+
+def check_landmark_geometry(obj, path):
+    """``obj`` when :func:`landmark_geometry_problem` finds nothing, else SpcFormatError naming ``path``."""
+    problem = landmark_geometry_problem(obj)
+    if problem is not None:
+        raise SpcFormatError(path, None, problem)
+    return obj
+
+
 def _human(nbytes: float) -> str:
     value = float(nbytes)
     for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB"):

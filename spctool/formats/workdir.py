@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from spctool.errors import SpcFormatError
-from spctool.formats.guard import check_name
+from spctool.formats.guard import check_landmark_geometry, check_name
 
 PHOTO_SUFFIXES = (".DAT", ".dat", ".FITS", ".fits", ".FIT", ".fit", ".PGM", ".pgm", ".PNG", ".png")
 IMAGE_DIRS = ("IMAGEFILES",) + tuple(f"IMAGEFILES{k}" for k in range(1, 10))
@@ -109,23 +109,23 @@ class WorkDir:
 
         p = Path(landmark)
         if p.suffix.upper() == ".LMK" and p.exists():
-            return read_lmk(p)
+            return check_landmark_geometry(read_lmk(p), p)
         path = self.lmk_path(landmark)
         if not path.exists():
             raise _missing(path, f"the LMK file of landmark {landmark}")
-        return read_lmk(path)
+        return check_landmark_geometry(read_lmk(path), path)  # what every stage needs of it
 
     def read_maplet(self, landmark: str):
         from spctool.formats.maplet import read_map
 
         p = Path(landmark)
         if p.suffix.upper() == ".MAP" and p.exists():
-            m = read_map(p)
+            m = check_landmark_geometry(read_map(p), p)
         else:
             path = self.map_path(landmark)
             if not path.exists():
                 raise _missing(path, f"the MAP file of landmark {landmark}")
-            m = read_map(path)
+            m = check_landmark_geometry(read_map(path), path)
         return m
 
     def read_photo(self, picture: str, npx: int | None = None, nln: int | None = None, **kw):
