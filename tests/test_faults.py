@@ -559,3 +559,11 @@ def test_runtime_warnings_are_not_printed_before_the_error(demo):
     path = _map_with_ux(demo, 3.4e38)
     res = invoke("validate", path)
     assert "RuntimeWarning" not in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_an_input_replaced_in_place_keeps_a_bak(demo):
+    src = demo / "SUMFILES" / f"{PIC}.SUM"
+    before = src.read_bytes()
+    res = invoke("convert", "--force", src, src)
+    assert res.exit_code == 0, res.stderr
+    assert (demo / "SUMFILES" / f"{PIC}.SUM.bak").read_bytes() == before

@@ -535,7 +535,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     """
     src_p, dst_p = Path(src), Path(dst)
     if src_p.resolve() == dst_p.resolve() and not force:
-        raise SpcUsageError(f"{dst}: refusing to overwrite the input (use --force; --backup keeps a copy)")
+        raise SpcUsageError(f"{dst}: refusing to overwrite the input (use --force; the input is kept as .bak)")
     if dst_p.exists() and not force:
         raise SpcUsageError(f"{dst}: exists already (use --force to overwrite)")
     npx, nln = _dat_size(sum_path, npx, nln)
@@ -543,7 +543,8 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     obj = read_any(src_p, kind, npx=npx, nln=nln, byte_order=byte_order, flip_rows=flip_rows)
     out_kind = _out_kind(dst_p) or kind
     written: list[Path] = [dst_p]
-    kw = dict(overwrite=True, backup=backup)
+    same = dst_p.exists() and src_p.resolve() == dst_p.resolve()
+    kw = dict(overwrite=True, backup=backup or same)  # an input is never replaced without a .bak
     if kind in PHOTO_KINDS:
         if out_kind not in PHOTO_KINDS:
             raise SpcUsageError(f"{dst}: a photo converts to .DAT, .fits, .pgm or .png")

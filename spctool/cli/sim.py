@@ -315,12 +315,12 @@ def make_maplets_cmd(
     rows = []
     for name in names:
         m, lm, old = results[name]
-        write_map(wd.map_path(name), m)
+        write_map(wd.map_path(name), m, backup=True)  # a replaced input keeps its .bak
         if old is not None:
             old.vlm, old.ux, old.uy, old.uz = lm.vlm, lm.ux, lm.uy, lm.uz
             old.scale, old.qsz = lm.scale, lm.qsz
             lm = old
-        write_lmk(wd.lmk_path(name), lm)
+        write_lmk(wd.lmk_path(name), lm, backup=True)
         v = np.asarray(lm.vlm)
         r = float(np.linalg.norm(v))
         hv = m.heights[m.valid]
