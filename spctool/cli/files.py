@@ -535,7 +535,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     """
     src_p, dst_p = Path(src), Path(dst)
     if src_p.resolve() == dst_p.resolve() and not force:
-        raise SpcUsageError(f"{dst}: refusing to overwrite the input (use --force; the input is kept as .bak)")
+        raise SpcUsageError(f"{dst}: refusing to overwrite the input (use --force: it is kept as .bak)")
     if dst_p.exists() and not force:
         raise SpcUsageError(f"{dst}: exists already (use --force to overwrite)")
     npx, nln = _dat_size(sum_path, npx, nln)

@@ -27,7 +27,6 @@ import math
 import os
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -96,6 +95,12 @@ _OBJ_IGNORED = frozenset(
     "vt vp l p g o s mg usemtl mtllib maplib usemap bevel c_interp d_interp lod shadow_obj trace_obj "
     "ctech stech cstype deg bmat step curv curv2 surf parm trim hole scrv sp end con call csh".split()
 )
+
+
+def _guard_read(path, what: str) -> bytes:
+    from spctool.formats.guard import read_bytes
+
+    return read_bytes(path, what)  # regular files only (a FIFO would block), size checked first
 
 
 def read_obj(path) -> TriangleMesh:
@@ -427,7 +432,7 @@ def _is_vtk_number(tok: bytes, real: bool) -> bool:
 
 def read_vtk(path) -> TriangleMesh:
     """Read a legacy VTK POLYDATA file (binary big-endian or ASCII)."""
-    return parse_vtk(Path(path).read_bytes(), path)
+    return parse_vtk(_guard_read(path, "a VTK file"), path)
 
 
 def parse_vtk(data: bytes, path=None) -> TriangleMesh:
@@ -712,7 +717,7 @@ def read_shape(path):
     first line holding a single integer starts an ICQ file (which must then have
     6(Q+1)² vertex lines); ``v``/``f`` statements make an OBJ file.
     """
-    data = Path(path).read_bytes()
+    data = _guard_read(path, "a shape model")
     if data.lstrip()[:14].lower() == b"# vtk datafile":
         return parse_vtk(data, path)
     if b"\0" in data[:4096]:
