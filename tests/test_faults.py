@@ -567,3 +567,20 @@ def test_an_input_replaced_in_place_keeps_a_bak(demo):
     res = invoke("convert", "--force", src, src)
     assert res.exit_code == 0, res.stderr
     assert (demo / "SUMFILES" / f"{PIC}.SUM.bak").read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "name, content",
+    [
+        ("q.txt", "9" * 5001 + "\n"),  # detected as ICQ by its lone integer, Q of 5001 digits
+        ("spec.toml", "seed = " + "9" * 5001 + "\n"),
+        ("x.NOM", (DEMO / "NOMINALS" / f"{PIC}.NOM").read_text().replace("BOD_FRAME", "9" * 100000 + "x", 1)),
+    ],
+)
+def test_huge_digit_runs_are_one_line_and_fast(tmp_path, name, content):
+    path = tmp_path / name
+    path.write_text(content)
+    t0 = time.monotonic()
+    res = invoke("simulate", path, tmp_path / "o") if name.endswith(".toml") else invoke("info", path)
+    assert "internal error" not in res.stderr and "Traceback" not in res.stderr
+    assert time.monotonic() - t0 < 10

@@ -76,7 +76,7 @@ def detect_kind(path) -> str:
         return "sum"
     if len(lines) > 3 and "SCOBJ" in lines[2] and any("SIGMA_VSO" in ln for ln in lines[:6]):
         return "nom"
-    if re.fullmatch(r"[+-]?\d+", first):
+    if re.fullmatch(r"[+-]?\d{1,9}", first):  # ICQ's Q; a longer number is no ICQ header
         return "icq"
     if any(ln.startswith(("v ", "f ")) for ln in lines[:2000]) and any(ln.startswith("v ") for ln in lines):
         return "obj"

@@ -729,6 +729,10 @@ def read_shape(path):
     text = data.decode("latin-1").replace("\r\n", "\n").replace("\r", "\n")
     first = text.split("\n", 1)[0]
     if _SINGLE_INT.fullmatch(first):
+        if len(first.strip().lstrip("+-")) > 9:  # no Q has 10 digits (and int() refuses 4300+)
+            raise SpcFormatError(
+                path, 1, f"expected the ICQ resolution Q, found a {len(first.strip())}-digit number"
+            )
         from spctool.formats.icq import parse_icq  # icq imports this module
 
         return parse_icq(text, path)
