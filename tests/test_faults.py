@@ -575,6 +575,7 @@ def test_an_input_replaced_in_place_keeps_a_bak(demo):
         ("q.txt", "9" * 5001 + "\n"),  # detected as ICQ by its lone integer, Q of 5001 digits
         ("spec.toml", "seed = " + "9" * 5001 + "\n"),
         ("x.NOM", (DEMO / "NOMINALS" / f"{PIC}.NOM").read_text().replace("BOD_FRAME", "9" * 100000 + "x", 1)),
+        ("x.SUM", (DEMO / "SUMFILES" / f"{PIC}.SUM").read_text().replace("\n", "\n" + "9" * 100000, 40)),
     ],
 )
 def test_huge_digit_runs_are_one_line_and_fast(tmp_path, name, content):
