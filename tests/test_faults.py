@@ -585,3 +585,13 @@ def test_huge_digit_runs_are_one_line_and_fast(tmp_path, name, content):
     res = invoke("simulate", path, tmp_path / "o") if name.endswith(".toml") else invoke("info", path)
     assert "internal error" not in res.stderr and "Traceback" not in res.stderr
     assert time.monotonic() - t0 < 10
+
+
+def test_map_linked_to_dev_zero_is_refused_by_the_stages(demo):
+    path = demo / "MAPFILES" / "B01536.MAP"
+    path.unlink()
+    path.symlink_to("/dev/zero")
+    t0 = time.monotonic()
+    res = invoke("-C", demo, "register", PIC, "B01536", "B01585")
+    assert res.exit_code == 0 and "device" in res.stderr and "no-maplet" in res.stdout
+    assert time.monotonic() - t0 < 30

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from spctool.errors import SpcFormatError
-from spctool.formats.guard import check_landmark_geometry, check_name
+from spctool.formats.guard import check_landmark_geometry, check_name, check_regular
 
 PHOTO_SUFFIXES = (".DAT", ".dat", ".FITS", ".fits", ".FIT", ".fit", ".PGM", ".pgm", ".PNG", ".png")
 IMAGE_DIRS = ("IMAGEFILES",) + tuple(f"IMAGEFILES{k}" for k in range(1, 10))
@@ -120,11 +120,13 @@ class WorkDir:
 
         p = Path(landmark)
         if p.suffix.upper() == ".MAP" and p.exists():
+            check_regular(p, "a MAP file")
             m = check_landmark_geometry(read_map(p), p)
         else:
             path = self.map_path(landmark)
             if not path.exists():
                 raise _missing(path, f"the MAP file of landmark {landmark}")
+            check_regular(path, "a MAP file")  # a link to /dev/zero or a FIFO is refused, not read
             m = check_landmark_geometry(read_map(path), path)
         return m
 
