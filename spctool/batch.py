@@ -31,10 +31,14 @@ Outputs (under ``out_dir``, SPC layout; every file written atomically, see :mod:
 * ``TABLES/<PIC>.select.txt``, ``TABLES/<PIC>.register.txt``, ``TABLES/<PIC>.pose.txt`` — the landmark
   tables of the three stages (cli-contract.md "Landmark tables");
 * ``TABLES/<PIC>.done.json`` — the done-marker, written **last**: the picture's summary row, its timings,
-  the options fingerprint and the SHA-256 of the input SUM.  A picture counts as done only when its
-  marker exists and both fingerprints match, so a batch interrupted at any instant resumes safely:
-  a picture is redone (its old outputs and marker removed first) unless ``force`` is False and it is
-  done with the same options and the same input SUM.  Failed pictures get no marker (they are retried);
+  the options fingerprint, the spctool version and the SHA-256 of every input the result depends on
+  (:func:`picture_inputs`): its SUM, its photo, the MAP of each maplet it selected (a missing one
+  too), and the shared inputs — INIT_LITHOS, LMRKLIST.TXT, every candidate's LMK (or MAP), the shape
+  model.  A picture counts as done only when its marker exists and every fingerprint matches, so a
+  batch interrupted at any instant resumes safely and a new photo, a changed INIT_LITHOS, LMRKLIST or
+  maplet redoes the pictures it affects: a picture is redone (its old outputs, its marker and any
+  temporary file a killed rename left removed first) unless ``force`` is False and it is done with
+  the same options and the same inputs.  Failed pictures get no marker (they are retried);
 * ``BATCH_SUMMARY.txt`` / ``BATCH_SUMMARY.json`` — the summary of the last run, written by the driver.
 
 Status of a picture (the summary's ``status`` column): ``ok`` (pose solved and converged, SUM updated);
@@ -84,7 +88,7 @@ import numpy as np
 
 from spctool import __version__
 from spctool.errors import SpcError, SpcFormatError, SpcUsageError
-from spctool.formats import atomic
+from spctool.formats import atomic, guard
 from spctool.formats.sumfile import with_measured_landmarks, with_pose
 from spctool.formats.workdir import WorkDir
 from spctool.geometry.shape import as_shape
@@ -107,7 +111,7 @@ __all__ = [
     "start_method",
 ]
 
-MARKER_FORMAT = "spctool-batch-done/1"
+MARKER_FORMAT = "spctool-batch-done/2"  # /2: input fingerprints cover every input (issue #19)
 SUMMARY_FORMAT = "spctool-batch/1"
 TABLES_DIR = "TABLES"
 SUMMARY_STEM = "BATCH_SUMMARY"
@@ -228,6 +232,7 @@ class SharedData:
 
         self.wd = WorkDir(Path(workdir))
         self.options = options
+        self.inputs_sha256 = shared_inputs_sha256(workdir, options)  # before reading: never newer
         self.settings = self.wd.read_settings(options.settings_path)
         self.select_options = SelectOptions.from_settings(self.settings, **options.select)
         names = self.wd.landmark_names()
@@ -338,6 +343,90 @@ def inputs_stamp(workdir, options: BatchOptions, fingerprint: str | None = None)
     return hashlib.sha256(repr(parts).encode("utf-8")).hexdigest()
 
 
+#: SHA-256 of files by (path, size, mtime_ns, inode) — one hash per file version per process
+_HASHES: OrderedDict = OrderedDict()
+_HASHES_KEPT = 65536
+
+
+def _file_sha256(path) -> str | None:
+    """SHA-256 of a file's content, None when it does not exist or cannot be read (cached by
+    :func:`_file_stat`, so the shared inputs are hashed once per process and batch)."""
+    st = _file_stat(Path(path))
+    if len(st) == 1:
+        return None
+    digest = _HASHES.get(st)
+    if digest is None:
+        try:
+            digest = hashlib.sha256(guard.read_bytes(path)).hexdigest()
+        except (OSError, SpcError):
+            return None
+        _HASHES[st] = digest
+        while len(_HASHES) > _HASHES_KEPT:
+            _HASHES.popitem(last=False)
+    return digest
+
+
+def _rel(wd: WorkDir, path: Path) -> str:
+    try:
+        return str(Path(path).resolve().relative_to(wd.root.resolve()))
+    except ValueError:
+        return str(Path(path).resolve())
+
+
+def shared_inputs_sha256(workdir, options: BatchOptions) -> str:
+    """SHA-256 over the content of every input shared by the pictures of a batch: INIT_LITHOS,
+    LMRKLIST.TXT, each candidate landmark's LMK (else MAP), the shape model when the occlusion test
+    may use it, the candidate names, the options' fingerprint and the spctool version."""
+    wd = WorkDir(Path(workdir))
+    files = [Path(options.settings_path) if options.settings_path else wd.settings_path, wd.lmrklist_path]
+    try:
+        names = wd.landmark_names()
+    except SpcError as exc:
+        names = [f"<unreadable: {exc}>"]
+    for name in names:
+        if not guard.is_valid_name(name):
+            continue
+        lmk = wd.lmk_path(name)
+        files.append(lmk if lmk.exists() else wd.map_path(name))
+    if options.occlusion is not False:
+        files.append(Path(options.shape_path) if options.shape_path else wd.shape_path)
+    parts = [__version__, options.fingerprint(), names]
+    parts += [(_rel(wd, f), _file_sha256(f)) for f in files]
+    return hashlib.sha256(repr(parts).encode("utf-8")).hexdigest()
+
+
+def picture_inputs(wd: WorkDir, picture: str, photo_name: str | None, maplets: Sequence[str]) -> dict:
+    """The per-picture inputs of a done-marker: ``{"sum": [path, sha], "photo": [name, path, sha],
+    "maplets": {name: [path, sha]}}`` (paths relative to the working directory, sha None when the
+    file is missing — a maplet that appears later changes the result too)."""
+    sum_path = wd.sum_path(picture)
+    doc: dict = {"sum": [_rel(wd, sum_path), _file_sha256(sum_path)]}
+    if photo_name is not None:
+        photo = wd.photo_path(photo_name)
+        if photo is None:
+            doc["photo"] = [photo_name, None, None]
+        else:
+            doc["photo"] = [photo_name, _rel(wd, photo), _file_sha256(photo)]
+    doc["maplets"] = {}
+    for name in maplets:
+        path = wd.map_path(name)
+        doc["maplets"][name] = [_rel(wd, path), _file_sha256(path)]
+    return doc
+
+
+def _same_inputs(wd: WorkDir, picture: str, stored) -> bool:
+    """True when the per-picture inputs recorded in a marker are unchanged (:func:`picture_inputs`)."""
+    if not isinstance(stored, dict) or not isinstance(stored.get("maplets"), dict):
+        return False
+    try:
+        photo = stored.get("photo")
+        photo_name = photo[0] if isinstance(photo, list) and photo else None
+        now = picture_inputs(wd, picture, photo_name, list(stored["maplets"]))
+    except (SpcError, OSError, TypeError):
+        return False
+    return _json_clean(now) == stored
+
+
 def _candidate_row(wd: WorkDir, name: str):
     """(name, V, UX, UY, UZ, SCALE, QSZ) from LMKFILES/<name>.LMK (V = VLM), else from the MAP (V),
     as ``lithos-select`` and ``register`` take them."""
@@ -433,6 +522,12 @@ class PictureOutcome:
     pose_table: object = None
     sum_text: str | None = None
     input_sha256: str | None = None
+    #: what the done-marker fingerprints (:func:`picture_inputs`): the shared inputs' SHA-256, the
+    #: photo's picture name (from the SUM) and the maplets selected
+    inputs_sha256: str | None = None
+    photo_name: str | None = None
+    maplets: list = field(default_factory=list)
+    workdir: WorkDir | None = None
 
     @property
     def status(self) -> str:
@@ -479,7 +574,7 @@ def _navigate(workdir, picture, options, shared, stamp) -> PictureOutcome:
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     summary = PictureSummary(picture=picture, status="failed: not run", timings=timings)
-    out = PictureOutcome(summary)
+    out = PictureOutcome(summary, workdir=WorkDir(Path(workdir)))
     try:
         if shared is None:
             shared = SharedData.get(workdir, options, stamp)
@@ -510,7 +605,9 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     except OSError as exc:
         raise SpcFormatError(sum_path, None, f"a readable SUM file ({exc.strerror})") from None
     out.input_sha256 = hashlib.sha256(raw).hexdigest()
+    out.inputs_sha256 = shared.inputs_sha256
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
+    out.photo_name = pic.name
     camera = Camera.from_picture(pic, shared.settings)
     photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
     if photo.data.shape != (pic.nln, pic.npx):
@@ -590,6 +687,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     else:
         reg = register(photo, camera, pic.sz, maplets, thrsh, ropts, **stage_kw)
     out.register = reg
+    out.maplets = [sel.names[i] for i in chosen]
     ok = reg.ok
     summary.found = int(ok.sum())
     schedule = ropts.schedule if nav is None else f"two-pass ({len(nav.passes)} run)"
@@ -712,6 +810,7 @@ def output_paths(out_dir, picture: str) -> dict[str, Path]:
     """The files of one picture under ``out_dir`` (``marker`` is written last)."""
     out = Path(out_dir)
     tables = out / TABLES_DIR
+    picture = guard.check_name(picture, "picture name")  # never a path out of out_dir
     return {
         "sum": out / "SUMFILES" / f"{picture}.SUM",
         "select": tables / f"{picture}.select.txt",
@@ -729,6 +828,7 @@ def clear_outputs(out_dir, picture: str) -> None:
             paths[key].unlink()
         except FileNotFoundError:
             pass
+        atomic.remove_stale_temps(paths[key])  # left by a run killed at the rename step
 
 
 def write_outcome(out_dir, outcome: PictureOutcome, fingerprint: str) -> None:
@@ -752,9 +852,19 @@ def write_outcome(out_dir, outcome: PictureOutcome, fingerprint: str) -> None:
         "options_sha256": fingerprint,
         "input_sum_sha256": outcome.input_sha256,
         "spctool_version": __version__,
+        "shared_inputs_sha256": outcome.inputs_sha256,
+        "inputs": outcome_inputs(out_dir, outcome),
         "summary": _json_clean(outcome.summary.as_dict()),
     }
     atomic.write_bytes(paths["marker"], (json.dumps(marker, indent=1) + "\n").encode("utf-8"))
+
+
+def outcome_inputs(out_dir, outcome: PictureOutcome) -> dict | None:
+    """The per-picture input fingerprints of ``outcome`` for its marker (None when unknown)."""
+    wd = outcome.workdir
+    if wd is None:
+        return None
+    return _json_clean(picture_inputs(wd, outcome.summary.picture, outcome.photo_name, outcome.maplets))
 
 
 def read_marker(out_dir, picture: str) -> dict | None:
@@ -769,16 +879,30 @@ def read_marker(out_dir, picture: str) -> dict | None:
     return doc
 
 
-def done_summary(workdir, out_dir, picture: str, fingerprint: str) -> PictureSummary | None:
-    """The stored summary if ``picture`` is done with these options and this input SUM, else None."""
-    doc = read_marker(out_dir, picture)
-    if doc is None or doc.get("options_sha256") != fingerprint:
+def done_summary(
+    workdir, out_dir, picture: str, fingerprint: str, options: BatchOptions | None = None,
+    shared_sha256: str | None = None,
+) -> PictureSummary | None:
+    """The stored summary if ``picture`` is done with these options, this spctool version and the
+    same inputs (its SUM, photo and maplets; with ``options`` or ``shared_sha256`` also the shared
+    inputs, :func:`shared_inputs_sha256`), else None."""
+    if not guard.is_valid_name(picture):
         return None
+    doc = read_marker(out_dir, picture)
+    if doc is None or doc.get("options_sha256") != fingerprint or doc.get("spctool_version") != __version__:
+        return None
+    wd = WorkDir(Path(workdir))
     try:
-        raw = WorkDir(Path(workdir)).sum_path(picture).read_bytes()
+        raw = wd.sum_path(picture).read_bytes()
     except OSError:
         return None
     if doc.get("input_sum_sha256") != hashlib.sha256(raw).hexdigest():
+        return None
+    if not _same_inputs(wd, picture, doc.get("inputs")):
+        return None
+    if shared_sha256 is None and options is not None:
+        shared_sha256 = shared_inputs_sha256(workdir, options)
+    if shared_sha256 is not None and doc.get("shared_inputs_sha256") != shared_sha256:
         return None
     paths = output_paths(out_dir, picture)
     if not paths["sum"].exists():
@@ -826,7 +950,7 @@ def process_picture(
     clock = time.perf_counter()
     try:
         write_outcome(out_dir, outcome, fingerprint)
-    except OSError as exc:
+    except (OSError, SpcError) as exc:  # a full disk, a read-only out_dir: this picture fails
         outcome.summary.status = "failed: " + _one_line(f"cannot write the outputs: {exc}")
     outcome.summary.timings["write_s"] = time.perf_counter() - clock
     return outcome.summary
@@ -943,7 +1067,9 @@ def batch_pictures(workdir, pictlist=None) -> list[str]:
         names = read_pictlist(pictlist).active_names
     else:
         names = WorkDir(Path(workdir)).picture_names()
-    return list(dict.fromkeys(n.strip() for n in names if n.strip()))
+    where = pictlist if pictlist is not None else WorkDir(Path(workdir)).pictlist_path
+    names = [guard.check_name(n, "picture name", where) for n in names if n.strip()]
+    return list(dict.fromkeys(names))
 
 
 def _check_usable(workdir, options: BatchOptions) -> None:
@@ -1024,6 +1150,7 @@ def run_batch(
     if int(jobs) < 1:
         raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
     names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
+    names = [guard.check_name(n, "picture name") for n in names]  # names become output paths
     fingerprint = options.fingerprint()
     stamp = inputs_stamp(workdir, options, fingerprint)  # workers reuse data of unchanged files
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -1032,8 +1159,9 @@ def run_batch(
 
     results: list[PictureSummary | None] = [None] * len(names)
     todo: list[int] = []
+    shared_sha = None if force else shared_inputs_sha256(workdir, options)
     for i, name in enumerate(names):
-        done = None if force else done_summary(workdir, out_dir, name, fingerprint)
+        done = None if force else done_summary(workdir, out_dir, name, fingerprint, shared_sha256=shared_sha)
         if done is not None:
             results[i] = done
             tick(done)
@@ -1276,12 +1404,52 @@ def _new_pool(workers: int, method: str, initargs: tuple):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
+    # the workers end with this process (_watch_parent): PR_SET_PDEATHSIG is tied to the thread
+    # that starts a worker, so it is asked for only when that is this process's main thread
+    tied = threading.current_thread() is threading.main_thread()
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context(method),
-        initializer=_init_worker,
-        initargs=initargs,
+        initializer=_init_guarded_worker,
+        initargs=(os.getpid(), tied, initargs),
     )
+
+
+#: how often a worker checks that the process that started it is alive (seconds)
+PARENT_POLL_S = 0.5
+
+
+def _init_guarded_worker(parent_pid: int, tied: bool, initargs: tuple) -> None:
+    _watch_parent(parent_pid, tied)
+    _init_worker(*initargs)
+
+
+def _watch_parent(parent_pid: int, tied: bool) -> None:
+    """End this worker process when its parent dies (a killed ``spctool batch --jobs N`` must not
+    leave its workers computing forever): on Linux the kernel sends SIGKILL at once
+    (``prctl(PR_SET_PDEATHSIG)``, when ``tied``); everywhere a daemon thread checks every
+    :data:`PARENT_POLL_S` whether the process was re-parented and exits if so."""
+    import sys
+
+    if tied and sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            import signal
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):  # pragma: no cover - no prctl: the thread below suffices
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the guard was in place
+        os._exit(1)
+
+    def watch():
+        while True:
+            time.sleep(PARENT_POLL_S)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="spctool-parent-watch", daemon=True).start()
 
 
 def _stop_pool(pool) -> None:

@@ -64,8 +64,11 @@ class SpcEnvironmentError(SpcError):
     def from_oserror(cls, exc: OSError, path: str | os.PathLike | None = None) -> SpcEnvironmentError:
         """Wrap ``exc``; ``path`` (the user's file) wins over the name the OS reported."""
         where = path if path is not None else (exc.filename if exc.filename is not None else None)
-        reason = exc.strerror or type(exc).__name__
-        return cls(where, reason[:1].lower() + reason[1:])
+        if exc.strerror:
+            reason = exc.strerror[:1].lower() + exc.strerror[1:]
+        else:
+            reason = str(exc) or type(exc).__name__
+        return cls(where, reason)
 
 
 #: documented exit codes of every command (cli --help, man EXIT STATUS, README)

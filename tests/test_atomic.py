@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from spctool.errors import SpcUsageError
+from spctool.errors import SpcEnvironmentError, SpcUsageError
 from spctool.formats import atomic
 
 
@@ -35,7 +35,7 @@ def test_failed_write_leaves_original(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(atomic.os, "replace", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(SpcEnvironmentError, match="disk full"):
         atomic.write_text(p, "lost")
     assert p.read_text() == "keep"
     assert sorted(os.listdir(tmp_path)) == ["x"]

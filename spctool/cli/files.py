@@ -228,6 +228,15 @@ def summarize(kind: str, obj) -> list[str]:
 # validation
 
 
+def _stage_ready(obj, out: list[str]) -> None:
+    """What the stages require of a landmark or maplet (a file validate passes never crashes one)."""
+    from spctool.formats.guard import landmark_geometry_problem
+
+    problem = landmark_geometry_problem(obj)
+    if problem is not None and not out:
+        out.append(f"expected {problem} (the stages refuse this landmark)")
+
+
 def problems_of(kind: str, obj) -> list[str]:
     """Semantic problems beyond parsing (each one line)."""
     out: list[str] = []
@@ -242,6 +251,10 @@ def problems_of(kind: str, obj) -> list[str]:
 
     if kind == "sum":
         check_frame("CX/CY/CZ", obj.rotation)
+        from spctool.formats.guard import MAX_INPUT_BYTES
+
+        if float(obj.npx) * float(obj.nln) * 8 > MAX_INPUT_BYTES:
+            out.append(f"NPX x NLN = {obj.npx} x {obj.nln} is too large a photo")
         if obj.npx <= 0 or obj.nln <= 0:
             out.append(f"NPX, NLN must be positive, found {obj.npx}, {obj.nln}")
         if obj.thrsh[0] > obj.thrsh[1]:
@@ -262,10 +275,12 @@ def problems_of(kind: str, obj) -> list[str]:
             out.append(f"SCALE must be positive, found {obj.scale:g}")
         if obj.qsz <= 0:
             out.append(f"QSZ must be positive, found {obj.qsz}")
+        _stage_ready(obj, out)
     elif kind == "map":
         check_frame("UX/UY/UZ", np.vstack([obj.ux, obj.uy, obj.uz]))
         if not obj.scale > 0:
             out.append(f"SCALE must be positive, found {obj.scale:g}")
+        _stage_ready(obj, out)
         if not obj.valid.any():
             out.append("no valid cell (every albedo byte is 0)")
     elif kind == "icq":
@@ -541,7 +556,7 @@ def convert_cmd(ctx: Context, src, dst, flip_rows, npx, nln, sum_path, byte_orde
     """
     src_p, dst_p = Path(src), Path(dst)
     if src_p.resolve() == dst_p.resolve() and not force:
-        raise SpcUsageError(f"{dst}: refusing to overwrite the input (use --force; --backup keeps a copy)")
+        raise SpcUsageError(f"{dst}: refusing to overwrite the input (use --force: it is kept as .bak)")
     if dst_p.exists() and not force:
         raise SpcUsageError(f"{dst}: exists already (use --force to overwrite)")
     npx, nln = _dat_size(sum_path, npx, nln)

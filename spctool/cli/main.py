@@ -16,6 +16,7 @@ import importlib
 import os
 import sys
 import traceback
+import warnings
 
 import click
 
@@ -51,7 +52,12 @@ class SpcGroup(click.Group):
 
     def _main(self, args, prog_name, complete_var, standalone_mode, debug, extra):
         try:
-            rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
+            # numpy's floating-point RuntimeWarnings (file:line, source text) are not for users: an
+            # error is reported by its one line alone; with --debug they are shown as usual
+            with warnings.catch_warnings():
+                if not debug:
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                rv = super().main(args=args, prog_name=prog_name or "spctool", standalone_mode=False, **extra)
         except click.exceptions.Exit as exc:
             sys.exit(exc.exit_code)
         except click.exceptions.Abort:  # click turns Ctrl-C at a prompt into Abort

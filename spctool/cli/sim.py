@@ -66,10 +66,18 @@ SPEC keys (every key is optional):
 @click.option("--overwrite", is_flag=True, help="Write into a non-empty OUTDIR (replacing same-named files).")
 @click.option("--seed", type=int, default=None, help="Override the SPEC's seed.")
 @click.option("--example", is_flag=True, help="Print a SPEC with every key at its default and exit.")
+@click.option(
+    "--max-memory",
+    "max_memory",
+    default=None,
+    metavar="SIZE",
+    help="Refuse a world whose estimated memory exceeds SIZE (bytes, or with K, M, G, T), checked "
+    "from the SPEC before anything is allocated.  [default: half the physical memory]",
+)
 @options.json_option
 @options.output_option
 @pass_context
-def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, output):
+def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, max_memory, as_json, output):
     from spctool.sim.simulate import load_spec, parse_spec, simulate
 
     if example:
@@ -82,6 +90,7 @@ def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, 
         data = sp.to_dict()
         data["seed"] = int(seed)
         sp = parse_spec(data, base=sp.base, where=str(spec))
+    limit = _parse_size(max_memory) if max_memory is not None else None
     # the simulator names each step as it starts: global shape, landmarks, truth patches and maplets,
     # one render per picture, truth
     with progress(ctx, "simulate", 4 + len(sp.pictures)) as advance:
@@ -92,13 +101,27 @@ def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, as_json, 
             advance(1 if started else 0, description=f"simulate: {message}")
             started.append(message)
 
-        result = simulate(sp, outdir, overwrite=overwrite, progress=step)
+        result = simulate(sp, outdir, overwrite=overwrite, progress=step, max_memory=limit)
         advance(1, description="simulate: done")
     table = truth_table(result.truth)
     table.command = f"simulate {spec} {outdir}"
     table.meta["outdir"] = str(outdir)
     table.meta["files"] = len(result.files)
     emit_table(table, as_json=as_json, output=output)
+
+
+def _parse_size(text: str) -> int:
+    """Bytes of ``8G``, ``500M``, ``2GiB``, ``1e9`` (K, M, G, T are powers of 1024)."""
+    import re
+
+    number = r"([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)"
+    m = re.fullmatch(rf"\s*{number}\s*([KMGT]?)(?:i?B)?\s*", str(text), re.IGNORECASE)
+    if not m:
+        raise SpcUsageError(f"--max-memory: expected a size such as 8G or 500M, got {text!r}")
+    value = float(m.group(1)) * 1024 ** "KMGT".find(m.group(2).upper()) * (1024 if m.group(2) else 1)
+    if not 0 < value < 2**63:
+        raise SpcUsageError(f"--max-memory: expected a positive size, got {text!r}")
+    return int(value)
 
 
 def truth_table(truth: dict):

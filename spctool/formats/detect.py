@@ -26,7 +26,7 @@ def _map_size_ok(size: int, head: bytes) -> bool:
     return False
 
 
-_NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[EDQedq]?[+-]?\d+)?"
+_NUM = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[EDQedq]?[+-]?\d+)?"  # linear backtracking (see fortran)
 
 
 def _numeric_line(line: str, count: int) -> bool:
@@ -60,14 +60,19 @@ def _untagged_kind(lines: list[str]) -> str | None:
 
 def detect_kind(path) -> str:
     """The kind of file at ``path`` (see module docstring); SpcFormatError if unknown."""
+    from spctool.errors import SpcEnvironmentError
+    from spctool.formats.guard import check_regular
+
     p = Path(path)
-    if not p.exists():
+    if not p.exists() and not p.is_symlink():
         raise SpcFormatError(p, None, "expected an existing file (not found)")
-    if p.is_dir():
-        raise SpcFormatError(p, None, "expected a file, found a directory")
-    size = p.stat().st_size
-    with open(p, "rb") as fh:
-        head = fh.read(4096)
+    # a FIFO would block the read below forever, /dev/zero never end: regular files only
+    size = check_regular(p, "an SPC file or photo")
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(4096)
+    except OSError as exc:
+        raise SpcEnvironmentError.from_oserror(exc, p) from None
     suffix = p.suffix.lower()
     upper = p.name.upper()
     if head.startswith(b"SIMPLE  ="):
@@ -106,7 +111,7 @@ def detect_kind(path) -> str:
     untagged = _untagged_kind(lines)
     if untagged is not None:
         return untagged
-    if re.fullmatch(r"[+-]?\d+", first):
+    if re.fullmatch(r"[+-]?\d{1,9}", first):  # ICQ's Q; a longer number is no ICQ header
         return "icq"
     if any(ln.startswith(("v ", "f ")) for ln in lines[:2000]) and any(ln.startswith("v ") for ln in lines):
         return "obj"

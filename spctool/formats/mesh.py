@@ -27,7 +27,6 @@ import math
 import os
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -98,6 +97,12 @@ _OBJ_IGNORED = frozenset(
 )
 
 
+def _guard_read(path, what: str) -> bytes:
+    from spctool.formats.guard import read_bytes
+
+    return read_bytes(path, what)  # regular files only (a FIFO would block), size checked first
+
+
 def read_obj(path) -> TriangleMesh:
     """Read a Wavefront OBJ triangle (or polygon) mesh."""
     return parse_obj(read_text(path), path)
@@ -110,8 +115,34 @@ def parse_obj(text: str, path=None) -> TriangleMesh:
     lines = text.split("\n")
     fast = _parse_obj_fast(lines, where)
     if fast is not None:
-        return fast
-    return _parse_obj_slow(lines, where)
+        return _checked(fast, where)
+    return _checked(_parse_obj_slow(lines, where), where)
+
+
+#: largest vertex coordinate accepted (km): far beyond any body, small enough that bounding boxes,
+#: padding and squared distances stay finite
+MAX_COORDINATE_KM = 1e12
+
+
+def _checked(mesh: TriangleMesh, where) -> TriangleMesh:
+    """What every stage needs of a shape model: triangles, and finite coordinates of sane size (a
+    file ``validate`` passes must never crash a stage)."""
+    if mesh.face_count == 0:
+        raise SpcFormatError(
+            where,
+            None,
+            f"expected faces (a shape model is a triangle mesh), found {mesh.vertex_count} vertices only",
+        )
+    big = np.abs(mesh.vertices) > MAX_COORDINATE_KM
+    if big.any():
+        k = int(np.flatnonzero(big.any(axis=1))[0])
+        raise SpcFormatError(
+            where,
+            None,
+            f"expected vertex coordinates within ±{MAX_COORDINATE_KM:g} km, found vertex {k + 1} at "
+            f"{mesh.vertices[k].tolist()}",
+        )
+    return mesh
 
 
 def _parse_obj_fast(lines: list[str], where) -> TriangleMesh | None:
@@ -203,6 +234,10 @@ def _parse_obj_slow(lines: list[str], where) -> TriangleMesh:
                 if i == 0:
                     raise SpcFormatError(
                         where, lineno, "expected a vertex index ≠ 0 (OBJ indices are 1-based)"
+                    )
+                if abs(i) > 2**62:
+                    raise SpcFormatError(
+                        where, lineno, f"expected a vertex index of sane size, found {ref!r}"
                     )
                 i = i - 1 if i > 0 else len(verts) + i
                 if i < 0:
@@ -397,7 +432,7 @@ def _is_vtk_number(tok: bytes, real: bool) -> bool:
 
 def read_vtk(path) -> TriangleMesh:
     """Read a legacy VTK POLYDATA file (binary big-endian or ASCII)."""
-    return parse_vtk(Path(path).read_bytes(), path)
+    return parse_vtk(_guard_read(path, "a VTK file"), path)
 
 
 def parse_vtk(data: bytes, path=None) -> TriangleMesh:
@@ -495,7 +530,7 @@ def parse_vtk(data: bytes, path=None) -> TriangleMesh:
     faces = np.concatenate(triangles)
     if normals is not None and normals.shape[0] != points.shape[0]:
         normals = None
-    return TriangleMesh(points, faces, normals, [title] if title else [], path=where)
+    return _checked(TriangleMesh(points, faces, normals, [title] if title else [], path=where), where)
 
 
 def _skip_or_read_attribute(r: _VtkReader, key: str, words: list[str], count: int | None, start: int):
@@ -682,7 +717,7 @@ def read_shape(path):
     first line holding a single integer starts an ICQ file (which must then have
     6(Q+1)² vertex lines); ``v``/``f`` statements make an OBJ file.
     """
-    data = Path(path).read_bytes()
+    data = _guard_read(path, "a shape model")
     if data.lstrip()[:14].lower() == b"# vtk datafile":
         return parse_vtk(data, path)
     if b"\0" in data[:4096]:
@@ -694,6 +729,10 @@ def read_shape(path):
     text = data.decode("latin-1").replace("\r\n", "\n").replace("\r", "\n")
     first = text.split("\n", 1)[0]
     if _SINGLE_INT.fullmatch(first):
+        if len(first.strip().lstrip("+-")) > 9:  # no Q has 10 digits (and int() refuses 4300+)
+            raise SpcFormatError(
+                path, 1, f"expected the ICQ resolution Q, found a {len(first.strip())}-digit number"
+            )
         from spctool.formats.icq import parse_icq  # lazily: icq starts numba
 
         return parse_icq(text, path)

@@ -398,6 +398,14 @@ def _pgm_from_bytes(data: bytes, path) -> np.ndarray:
                 f"{need} raster bytes for a {width}x{height} PGM with maximum {maxval} after byte {off}; "
                 f"the file ends after {len(data) - off}",
             )
+        extra = data[off + need :]
+        if extra.strip(_WHITESPACE):  # a wrong width/height would otherwise read a sheared image
+            raise SpcFormatError(
+                path,
+                f"byte {off + need}",
+                f"the end of the file after the {need} raster bytes of a {width}x{height} PGM "
+                f"(found {len(extra)} more bytes: is the width or height wrong?)",
+            )
         raw = np.frombuffer(data, dtype=np.uint8 if nbytes == 1 else ">u2", count=npix, offset=off)
         vals = raw.astype(dtype)
     else:  # P2: plain (ASCII) PGM
@@ -408,6 +416,13 @@ def _pgm_from_bytes(data: bytes, path) -> np.ndarray:
                 path,
                 f"byte {len(data)}",
                 f"{npix} pixel values for a {width}x{height} plain PGM, found {len(toks)}",
+            )
+        if len(toks) > npix:
+            raise SpcFormatError(
+                path,
+                f"byte {off}",
+                f"{npix} pixel values for a {width}x{height} plain PGM, found {len(toks)} "
+                "(is the width or height wrong?)",
             )
         if not all(t.isdigit() for t in toks[:npix]):
             raise SpcFormatError(path, f"byte {off}", "non-negative decimal pixel values in a plain PGM")
@@ -443,9 +458,15 @@ def _png_from_bytes(data: bytes, path) -> np.ndarray:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             with Image.open(io.BytesIO(data)) as im:
+                w, h = im.size  # from the header: checked before the pixels are decoded
+                if w < 1 or h < 1:
+                    raise SpcFormatError(path, None, f"a PNG of at least 1 x 1 pixels, found {w} x {h}")
+                _check_pixels(w, h, 2, path)
                 im.load()
                 mode = im.mode
                 arr = np.asarray(im)
+    except SpcFormatError:
+        raise
     except Exception as exc:  # pillow raises many kinds (OSError, SyntaxError, ValueError…)
         raise SpcFormatError(path, None, f"a readable PNG image ({type(exc).__name__}: {exc})") from None
     if mode == "L":
@@ -499,11 +520,13 @@ def _fits_from_bytes(data: bytes, path) -> np.ndarray:
     from astropy.io import fits
 
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             with fits.open(io.BytesIO(data), memmap=False) as hdul:
                 for k, hdu in enumerate(hdul):
+                    _check_fits_header(hdu.header, len(data), path, k)
                     arr = hdu.data
+                    _check_fits_warnings(caught, path, k)
                     if arr is None or not isinstance(arr, np.ndarray) or arr.dtype.names:
                         continue
                     shape = arr.shape
@@ -513,12 +536,60 @@ def _fits_from_bytes(data: bytes, path) -> np.ndarray:
                         if len(shape) > 2:
                             raise SpcFormatError(path, f"HDU {k}", f"a 2-D image, found shape {shape}")
                         continue
+                    if arr.size == 0:
+                        raise SpcFormatError(
+                            path, f"HDU {k}", f"an image of at least 1 x 1 pixels, found {shape}"
+                        )
                     return _fits_dn(np.array(arr))
     except SpcFormatError:
         raise
     except Exception as exc:  # astropy raises OSError, TypeError, ValueError, VerifyError…
         raise SpcFormatError(path, None, f"a readable FITS file ({type(exc).__name__}: {exc})") from None
     raise SpcFormatError(path, None, "a FITS file with a 2-D image HDU")
+
+
+def _check_pixels(width: int, height: int, bytes_per_pixel: int, path, where=None) -> None:
+    """Refuse an image whose header promises more pixels than the input cap (before decoding)."""
+    from spctool.formats.guard import MAX_INPUT_BYTES, check_allocation
+
+    check_allocation(
+        float(width) * float(height) * bytes_per_pixel,
+        f"a {width} x {height} image",
+        MAX_INPUT_BYTES,
+        where=path,
+    )
+
+
+def _check_fits_header(header, size: int, path, k: int) -> None:
+    """The data an HDU header promises (NAXISn, BITPIX) must fit in the file and the cap."""
+    try:
+        naxis = int(header.get("NAXIS", 0))
+        bitpix = int(header.get("BITPIX", 8))
+        dims = [int(header.get(f"NAXIS{i}", 0)) for i in range(1, naxis + 1)]
+    except (TypeError, ValueError, OverflowError):
+        raise SpcFormatError(path, f"HDU {k}", "integer NAXIS, NAXISn and BITPIX header values") from None
+    if naxis < 0 or any(d < 0 for d in dims) or bitpix not in (8, 16, 32, 64, -32, -64):
+        raise SpcFormatError(
+            path, f"HDU {k}", f"valid NAXIS/BITPIX values, found NAXIS={naxis} BITPIX={bitpix}"
+        )
+    if not dims or header.get("XTENSION", "IMAGE").strip() not in ("IMAGE", "", "IUEIMAGE"):
+        return
+    nbytes = float(np.prod([float(d) for d in dims])) * abs(bitpix) // 8
+    if nbytes > size:
+        raise SpcFormatError(
+            path,
+            f"HDU {k}",
+            f"{nbytes:.0f} data bytes for an image of {' x '.join(map(str, dims))} at BITPIX {bitpix}; "
+            f"the file has {size} bytes in all",
+        )
+
+
+def _check_fits_warnings(caught, path, k: int) -> None:
+    """Astropy pads a truncated data unit with zeros and only warns: that is an error here."""
+    for w in caught:
+        text = str(w.message)
+        if "truncated" in text.lower() or "smaller than the expected" in text.lower():
+            raise SpcFormatError(path, f"HDU {k}", f"complete image data ({' '.join(text.split())[:160]})")
 
 
 def format_fits(data: np.ndarray, header: dict | None = None) -> bytes:
@@ -547,10 +618,9 @@ def format_fits(data: np.ndarray, header: dict | None = None) -> bytes:
 
 
 def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except IsADirectoryError:
-        raise SpcFormatError(path, None, "a photo file, found a directory") from None
+    from spctool.formats.guard import read_bytes
+
+    return read_bytes(path, "a photo file")  # regular files only, size checked first
 
 
 def detect_format(path, head: bytes, *, have_size: bool = False) -> str:

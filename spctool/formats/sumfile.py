@@ -199,7 +199,7 @@ def _scan_fixed(text: str, count: int, width: int) -> tuple[list[float], str] | 
     return values, text[count * width :]
 
 
-_PLAIN = r"([+-]?(?:\d+\.?\d*|\.\d+))"
+_PLAIN = r"([+-]?(?:\d+(?:\.\d*)?|\.\d+))"  # unambiguous: no quadratic backtracking on long digit runs
 _FAST_ROW = {n: re.compile(r"\s*" + r"\s+".join([_PLAIN] * n) + r"(?=\s|\Z)(.*)\Z", re.S) for n in (2, 3)}
 
 

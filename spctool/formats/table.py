@@ -26,6 +26,7 @@ import numpy as np
 
 from spctool import __version__
 from spctool.errors import SpcFormatError
+from spctool.formats import guard
 
 #: Decimal places used for well-known columns; other floats use ``%.6g``.
 COLUMN_DECIMALS: dict[str, int] = {
@@ -87,7 +88,7 @@ def _format_value(column: str, value) -> str:
 
 
 def _parse_value(text: str):
-    if _INT.match(text):
+    if _INT.match(text) and len(text) <= 20:  # longer: a number, not an int64 (nor 4300+ digits)
         return int(text)
     low = text.lower()
     if low in ("true", "false"):
@@ -279,8 +280,16 @@ class LandmarkTable:
             doc = json.loads(text)
         except json.JSONDecodeError as exc:
             raise SpcFormatError(path, exc.lineno, f"expected JSON ({exc.msg})") from None
+        except RecursionError:
+            raise SpcFormatError(
+                path, None, "expected JSON nested at most a few hundred levels deep"
+            ) from None
+        except ValueError:  # json.loads refuses integers of more than 4300 digits
+            raise SpcFormatError(path, None, "expected JSON numbers of at most 4300 digits") from None
         if not isinstance(doc, dict) or not isinstance(doc.get("landmarks"), list):
             raise SpcFormatError(path, None, "expected a JSON object with a 'landmarks' list")
+        if not all(isinstance(r, dict) for r in doc["landmarks"]):
+            raise SpcFormatError(path, None, "expected a JSON object per row of the 'landmarks' list")
         rows = [{k: (math.nan if v is None else v) for k, v in r.items()} for r in doc["landmarks"]]
         meta = {
             k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")
@@ -318,6 +327,13 @@ def _scalar(v):
     return v
 
 
+def _as_float(v) -> float:
+    try:
+        return float(v)
+    except OverflowError:
+        return math.copysign(math.inf, v)
+
+
 def _column(values):
     if isinstance(values, np.ndarray):
         return values
@@ -325,7 +341,9 @@ def _column(values):
     if values and all(isinstance(v, (bool, np.bool_)) for v in values):
         return np.asarray(values, bool)
     if values and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in values):
-        return np.asarray(values, np.int64)
+        if all(-(2**63) <= v < 2**63 for v in values):
+            return np.asarray(values, np.int64)
+        return np.asarray([_as_float(v) for v in values], np.float64)  # beyond int64: as numbers
     if values and all(
         (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)) or v is None
         for v in values
@@ -343,7 +361,7 @@ def read_table(path) -> LandmarkTable:
         p = Path(path)
         if not p.exists():
             raise SpcFormatError(path, None, "expected a landmark table file (not found)")
-        text = p.read_text(encoding="utf-8", errors="replace")
+        text = guard.read_bytes(p, "a landmark table").decode("utf-8", errors="replace")
         name = str(path)
     if text.lstrip().startswith("{"):
         return LandmarkTable.from_json(text, name)

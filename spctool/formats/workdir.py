@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from spctool.errors import SpcFormatError
+from spctool.formats.guard import check_landmark_geometry, check_name, check_regular
 
 PHOTO_SUFFIXES = (".DAT", ".dat", ".FITS", ".fits", ".FIT", ".fit", ".PGM", ".pgm", ".PNG", ".png")
 #: spctool's extension, searched only after SPC's own search for ``<PIC>.DAT`` has failed
@@ -38,14 +39,16 @@ class WorkDir:
         self.root = Path(self.root)
 
     # -- paths ----------------------------------------------------------------------------------
+    # every name becomes part of a path only through these methods, so they refuse a name that
+    # could leave the working directory (guard.check_name: '/', '..', absolute paths, NUL)
     def sum_path(self, picture: str) -> Path:
-        return self.root / "SUMFILES" / f"{picture.strip()}.SUM"
+        return self.root / "SUMFILES" / f"{check_name(picture, 'picture name')}.SUM"
 
     def nom_path(self, picture: str) -> Path:
-        return self.root / "NOMINALS" / f"{picture.strip()}.NOM"
+        return self.root / "NOMINALS" / f"{check_name(picture, 'picture name')}.NOM"
 
     def map_path(self, landmark: str) -> Path:
-        name = landmark.strip()
+        name = check_name(landmark, "landmark name")
         for folder in ("MAPFILES", "EXTFILES"):
             p = self.root / folder / f"{name}.MAP"
             if p.exists():
@@ -53,7 +56,7 @@ class WorkDir:
         return self.root / "MAPFILES" / f"{name}.MAP"
 
     def lmk_path(self, landmark: str) -> Path:
-        return self.root / "LMKFILES" / f"{landmark.strip()}.LMK"
+        return self.root / "LMKFILES" / f"{check_name(landmark, 'landmark name')}.LMK"
 
     def photo_folders(self) -> list[Path]:
         """IMAGEFILES/, IMAGEFILES1/ … IMAGEFILES9/ (FIND_PICFILE.f), then ``ALTDIR=`` (LITHOS)."""
@@ -76,7 +79,7 @@ class WorkDir:
         and LITHOS adds ``ALTDIR=`` -- so a stray PGM in IMAGEFILES/ never wins over the DAT in
         IMAGEFILES1/.  Only when no ``.DAT`` exists anywhere are other formats looked for, same order.
         """
-        name = picture.strip()
+        name = check_name(picture, "picture name")
         folders = self.photo_folders()
         for folder in folders:
             p = folder / f"{name}.DAT"
@@ -135,23 +138,25 @@ class WorkDir:
 
         p = Path(landmark)
         if p.suffix.upper() == ".LMK" and p.exists():
-            return read_lmk(p)
+            return check_landmark_geometry(read_lmk(p), p)
         path = self.lmk_path(landmark)
         if not path.exists():
             raise _missing(path, f"the LMK file of landmark {landmark}")
-        return read_lmk(path)
+        return check_landmark_geometry(read_lmk(path), path)  # what every stage needs of it
 
     def read_maplet(self, landmark: str):
         from spctool.formats.maplet import read_map
 
         p = Path(landmark)
         if p.suffix.upper() == ".MAP" and p.exists():
-            m = read_map(p)
+            check_regular(p, "a MAP file")
+            m = check_landmark_geometry(read_map(p), p)
         else:
             path = self.map_path(landmark)
             if not path.exists():
                 raise _missing(path, f"the MAP file of landmark {landmark}")
-            m = read_map(path)
+            check_regular(path, "a MAP file")  # a link to /dev/zero or a FIFO is refused, not read
+            m = check_landmark_geometry(read_map(path), path)
         return m
 
     def read_photo(self, picture: str, npx: int | None = None, nln: int | None = None, **kw):
@@ -181,7 +186,8 @@ class WorkDir:
         if self.lmrklist_path.exists():
             from spctool.formats.lists import read_lmrklist
 
-            return list(read_lmrklist(self.lmrklist_path).active_names)
+            names = list(read_lmrklist(self.lmrklist_path).active_names)
+            return [check_name(n, "landmark name", self.lmrklist_path) for n in names]
         folder = self.root / "LMKFILES"
         if folder.is_dir():
             return sorted(p.stem for p in folder.glob("*.LMK") if not p.stem.startswith("X"))
@@ -192,7 +198,8 @@ class WorkDir:
         if self.pictlist_path.exists():
             from spctool.formats.lists import read_pictlist
 
-            return list(read_pictlist(self.pictlist_path).active_names)
+            names = list(read_pictlist(self.pictlist_path).active_names)
+            return [check_name(n, "picture name", self.pictlist_path) for n in names]
         folder = self.root / "SUMFILES"
         if folder.is_dir():
             return sorted(p.stem for p in folder.glob("*.SUM"))

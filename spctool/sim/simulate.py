@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +69,7 @@ import numpy as np
 from spctool import __version__
 from spctool.errors import SpcUsageError
 from spctool.formats.atomic import write_text
+from spctool.formats.guard import check_allocation, check_name
 from spctool.formats.icq import IcqShape, format_icq, icq_cube_grid, parse_icq
 from spctool.formats.landmark import write_lmk
 from spctool.formats.lists import LandmarkList, PictureList, PictureListEntry, write_lmrklist, write_pictlist
@@ -254,6 +256,7 @@ def parse_spec(data: dict, base=".", where: str = "SPEC") -> Spec:
             vals["name"] = f"P{i + 1:09d}A1"
         if len(vals["name"]) > 12 or not vals["name"].strip():
             raise SpcUsageError(f"{where}: picture name {vals['name']!r} must have 1 to 12 characters")
+        _plain(vals["name"], f"{where}: pictures[{i}].name")
         if vals["view_lat_deg"] is None:
             vals["view_lat_deg"] = vals["aim_lat_deg"]
         if vals["view_lon_deg"] is None:
@@ -298,6 +301,9 @@ def _check(spec: Spec, where: str):
     for n in m.names:
         if not 1 <= len(n) <= 6:
             raise SpcUsageError(f"{where}: landmark name {n!r} must have 1 to 6 characters")
+        _plain(n, f"{where}: [maplets] names")
+    if m.prefix:
+        _plain(m.prefix, f"{where}: [maplets] prefix")
     if len(set(m.names)) != len(m.names):
         raise SpcUsageError(f"{where}: landmark names must be unique")
     if c.npx < 2 or c.nln < 2 or not c.mmfl > 0:
@@ -313,16 +319,103 @@ def _check(spec: Spec, where: str):
         raise SpcUsageError(f"{where}: seed must be >= 0")
 
 
+def _plain(name: str, where: str) -> None:
+    """A picture or landmark name becomes a file name: a plain identifier only (guard.check_name)."""
+    try:
+        check_name(name, "name")
+    except SpcUsageError as exc:
+        raise SpcUsageError(f"{where}: {exc}") from None
+
+
+#: largest SPEC.toml read (bytes): a SPEC is a few hundred lines
+MAX_SPEC_BYTES = 1 << 20
+
+
 def load_spec(path) -> Spec:
-    """Read and validate a SPEC.toml."""
+    """Read and validate a SPEC.toml (UTF-8, at most :data:`MAX_SPEC_BYTES`)."""
+    from spctool.errors import SpcFormatError
+    from spctool.formats.guard import read_bytes
+
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SpcUsageError(f"{path}: SPEC file not found") from None
+        raw = read_bytes(path, "a SPEC file", max_bytes=MAX_SPEC_BYTES)
+    except SpcFormatError as exc:
+        raise SpcUsageError(str(exc)) from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpcUsageError(
+            f"{path}: byte {exc.start}: expected UTF-8 text (TOML), found byte 0x{raw[exc.start]:02x}"
+        ) from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SpcUsageError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise SpcUsageError(f"{path}: not valid TOML: nested too deeply") from None
+    except ValueError:  # tomllib refuses integers of more than 4300 digits
+        raise SpcUsageError(f"{path}: not valid TOML: numbers of at most 4300 digits expected") from None
     return parse_spec(data, base=path.parent, where=str(path))
+
+
+# ------------------------------------------------------------------------------------------------
+# memory: sizes checked before anything is allocated
+# ------------------------------------------------------------------------------------------------
+
+#: bytes per node of the truth patches (all landmarks at once: positions, heights, albedo, terrain
+#: temporaries), per ICQ vertex of the global shape (vertices, triangles, ray-tracing hierarchy), per
+#: photo pixel (DN, radiance, coverage of every picture) and per ray of one render; measured peak
+#: resident sizes (`/usr/bin/time -f %M`) of worlds scaled in each size, rounded up
+_BYTES_PER_TRUTH_NODE = 320
+_BYTES_PER_VERTEX = 480
+_BYTES_PER_PIXEL = 64
+_BYTES_PER_RAY = 48
+_BASE_BYTES = 400 * 1024**2
+
+
+def default_max_memory() -> int:
+    """Half the physical memory (the default ``--max-memory``), 4 GiB when it cannot be known."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2)
+    except (AttributeError, ValueError, OSError):  # pragma: no cover - not POSIX
+        return 4 * 1024**3
+
+
+def memory_estimate(spec: Spec) -> dict[str, float]:
+    """Peak memory (bytes) of each part of :func:`build_world` / :func:`simulate` for ``spec``,
+    from the sizes alone (nothing allocated): ``shape``, ``truth``, ``photos``, ``total``."""
+    b, m, c, d = spec.body, spec.maplets, spec.camera, spec.detector
+    if m.positions:
+        count = len(m.positions)
+    elif m.names:
+        count = len(m.names)
+    else:
+        count = m.count
+    n_truth = 2 * m.truth_factor * (m.qsz + m.margin) + 1
+    shape = 6.0 * (float(b.q) + 1) ** 2 * _BYTES_PER_VERTEX
+    truth = float(count) * float(n_truth) ** 2 * _BYTES_PER_TRUTH_NODE
+    pixels = float(c.npx) * float(c.nln)
+    photos = pixels * len(spec.pictures) * _BYTES_PER_PIXEL + pixels * d.supersample**2 * _BYTES_PER_RAY
+    return {"shape": shape, "truth": truth, "photos": photos, "total": _BASE_BYTES + shape + truth + photos}
+
+
+def check_memory(spec: Spec, limit: int | None = None, where: str = "SPEC") -> None:
+    """SpcUsageError naming the largest part when :func:`memory_estimate` exceeds ``limit`` bytes
+    (default :func:`default_max_memory`)."""
+    limit = default_max_memory() if limit is None else int(limit)
+    est = memory_estimate(spec)
+    part = max(("shape", "truth", "photos"), key=lambda k: est[k])
+    what = {
+        "shape": "[body] q",
+        "truth": "the truth patches ([maplets] count, qsz, margin, truth_factor)",
+        "photos": "the photos ([camera] npx, nln, [detector] supersample, pictures)",
+    }[part]
+    check_allocation(
+        est["total"],
+        f"the world of {where}",
+        limit,
+        hint=f" (--max-memory); most of it for {what}",
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -724,8 +817,11 @@ def _truth_and_maplets(
     return out
 
 
-def build_world(spec: Spec, progress=None) -> World:
-    """Build a world in memory (no files): shape, cameras, landmarks, truth patches, maplets."""
+def build_world(spec: Spec, progress=None, max_memory: int | None = None) -> World:
+    """Build a world in memory (no files): shape, cameras, landmarks, truth patches, maplets.
+    Refused before anything is allocated when :func:`memory_estimate` exceeds ``max_memory``
+    (default: half the physical memory)."""
+    check_memory(spec, max_memory)
     say = progress or (lambda msg: None)
     terrain = _terrain(spec)
     say("global shape")
@@ -933,10 +1029,13 @@ def _truth_document(world: World, exposures: list[float], photo_paths: list[str]
     }
 
 
-def simulate(spec: Spec | str | Path, outdir, *, overwrite: bool = False, progress=None) -> SimulationResult:
+def simulate(
+    spec: Spec | str | Path, outdir, *, overwrite: bool = False, progress=None, max_memory: int | None = None
+) -> SimulationResult:
     """Build the world of ``spec`` and write the SPC working directory ``outdir`` (module docstring).
 
-    Refuses a non-empty ``outdir`` unless ``overwrite``.
+    Refuses a non-empty ``outdir`` unless ``overwrite``, and a world whose :func:`memory_estimate`
+    exceeds ``max_memory`` bytes (default: half the physical memory) before allocating anything.
     """
     if not isinstance(spec, Spec):
         spec = load_spec(spec)
@@ -946,7 +1045,7 @@ def simulate(spec: Spec | str | Path, outdir, *, overwrite: bool = False, progre
         raise SpcUsageError(f"{out}: exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise SpcUsageError(f"{out}: directory is not empty (use --overwrite to replace its files)")
-    world = build_world(spec, say)
+    world = build_world(spec, say, max_memory=max_memory)
     files: list[Path] = []
 
     def put_text(rel, text):

@@ -1,0 +1,181 @@
+"""Guards at the boundary where outside data become paths or memory.
+
+Hostile or corrupt input must neither escape the directories a user named nor exhaust the machine
+(cli-contract.md "Errors"; issue #19):
+
+* :func:`check_name` — a picture or landmark name read from a PICTLIST, LMRKLIST, a landmark table
+  or a SPEC becomes a file name (``SUMFILES/<PIC>.SUM``); SPC's names are short plain identifiers
+  (spc-formats.md §7: 12-character pictures, 6-character landmarks), so anything with a path
+  separator, ``..``, an absolute path, a NUL or other control character is refused with one line;
+* :func:`check_regular` / :func:`read_bytes` — inputs must be regular files: a FIFO would block a
+  reader forever, ``/dev/zero`` would be read until memory runs out, a directory is not a file;
+  the size is checked against a cap before a byte is read;
+* :func:`check_allocation` — an array size computed from a header or a specification is checked
+  against a cap before it is allocated.
+
+Operating-system refusals (permission denied, EIO) are re-raised as
+:class:`~spctool.errors.SpcEnvironmentError` naming the user's path (exit 3).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import stat
+from pathlib import Path
+
+from spctool.errors import SpcEnvironmentError, SpcFormatError, SpcUsageError
+
+__all__ = [
+    "MAX_INPUT_BYTES",
+    "MAX_NAME_LENGTH",
+    "check_allocation",
+    "check_name",
+    "check_regular",
+    "is_valid_name",
+    "read_bytes",
+]
+
+#: longest picture/landmark name accepted (SPC's are 12 and 6 characters; other missions' a few more)
+MAX_NAME_LENGTH = 64
+#: largest input file read whole (bytes): far above any SPC file (a Q = 1024 ICQ is ~230 MB)
+MAX_INPUT_BYTES = int(os.environ.get("SPCTOOL_MAX_INPUT_BYTES", 8 * 1024**3))
+#: plain identifier: letters, digits, ``_ - + .``; not starting with ``.`` or ``-``
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+\-]*\Z")
+
+
+def is_valid_name(name: str) -> bool:
+    """True when ``name`` is a plain SPC identifier that can safely become part of a file name."""
+    return (
+        isinstance(name, str)
+        and 0 < len(name) <= MAX_NAME_LENGTH
+        and _NAME.match(name) is not None
+        and ".." not in name
+    )
+
+
+def check_name(name: str, what: str = "name", source=None, where=None) -> str:
+    """``name`` stripped, or SpcFormatError (``source`` given: the file it came from) / SpcUsageError
+    naming it: a picture or landmark name must be a plain identifier (module docstring)."""
+    text = name.strip() if isinstance(name, str) else name
+    if is_valid_name(text):
+        return text
+    shown = repr(name)
+    if len(shown) > 60:
+        shown = shown[:57] + "..."
+    expected = (
+        f"a plain {what} (letters, digits, '_', '-', '+', '.'; at most {MAX_NAME_LENGTH} characters; "
+        f"no path separators or '..'), got {shown}"
+    )
+    if source is not None:
+        raise SpcFormatError(source, where, expected)
+    raise SpcUsageError(f"expected {expected}")
+
+
+def check_regular(path, what: str = "a file", max_bytes: int | None = None) -> int:
+    """The size of ``path`` after checking it is a regular file (symbolic links followed) of at
+    most ``max_bytes`` (default :data:`MAX_INPUT_BYTES`).  FIFOs, devices, sockets and directories
+    are refused with one line (SpcFormatError); a missing file too."""
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise SpcFormatError(p, None, f"{what} (file not found)") from None
+    except OSError as exc:
+        raise SpcEnvironmentError.from_oserror(exc, p) from None
+    mode = st.st_mode
+    if not stat.S_ISREG(mode):
+        kind = (
+            "a directory"
+            if stat.S_ISDIR(mode)
+            else "a FIFO (named pipe)"
+            if stat.S_ISFIFO(mode)
+            else "a device"
+            if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket"
+            if stat.S_ISSOCK(mode)
+            else "not a regular file"
+        )
+        raise SpcFormatError(p, None, f"{what} (a regular file), found {kind}")
+    limit = MAX_INPUT_BYTES if max_bytes is None else int(max_bytes)
+    if st.st_size > limit:
+        raise SpcFormatError(
+            p, None, f"{what} of at most {limit} bytes, found {st.st_size} bytes (SPCTOOL_MAX_INPUT_BYTES)"
+        )
+    return st.st_size
+
+
+def read_bytes(path, what: str = "a file", max_bytes: int | None = None) -> bytes:
+    """The content of a regular file (:func:`check_regular`), never more than its checked size."""
+    p = Path(path)
+    size = check_regular(p, what, max_bytes)
+    try:
+        with open(p, "rb") as fh:
+            data = fh.read(size + 1)
+    except IsADirectoryError:
+        raise SpcFormatError(p, None, f"{what}, found a directory") from None
+    except OSError as exc:
+        raise SpcEnvironmentError.from_oserror(exc, p) from None
+    if len(data) > size:  # grew between stat and read: read what the cap allows, no more
+        limit = MAX_INPUT_BYTES if max_bytes is None else int(max_bytes)
+        if len(data) > limit:
+            raise SpcFormatError(p, None, f"{what} of at most {limit} bytes (the file is growing)")
+        with open(p, "rb") as fh:
+            data = fh.read(limit + 1)
+        if len(data) > limit:
+            raise SpcFormatError(p, None, f"{what} of at most {limit} bytes (the file is growing)")
+    return data
+
+
+def check_allocation(nbytes: float, what: str, limit: int, where: str | None = None, hint: str = "") -> None:
+    """SpcUsageError (or SpcFormatError when ``where`` names a file) when ``nbytes`` exceed ``limit``."""
+    if nbytes <= limit:
+        return
+    text = f"{what} would need {_human(nbytes)}, more than the {_human(limit)} allowed{hint}"
+    if where is not None:
+        raise SpcFormatError(where, None, "expected sizes that fit in memory: " + text)
+    raise SpcUsageError(text)
+
+
+#: largest maplet half-size accepted by the stages ((2 QSZ + 1)^2 cells; SPC's are at most a few hundred)
+MAX_QSZ = 4096
+
+
+def landmark_geometry_problem(obj) -> str | None:
+    """Why a landmark's (LMK) or maplet's (MAP) geometry cannot be used by a stage, or None: V/VLM
+    finite, UX/UY/UZ a finite orthonormal frame, SCALE finite and positive, QSZ in 1 … MAX_QSZ.
+    (A MAP with UX = 3.4e38 is a valid record but no maplet: every stage would overflow on it.)"""
+    import numpy as np
+
+    centre = getattr(obj, "vlm", None)
+    if centre is None:
+        centre = getattr(obj, "v", None)
+    with np.errstate(all="ignore"):
+        if centre is not None and not np.all(np.isfinite(np.asarray(centre, float))):
+            return "a finite landmark position V"
+        m = np.vstack([np.asarray(obj.ux, float), np.asarray(obj.uy, float), np.asarray(obj.uz, float)])
+        if not np.all(np.isfinite(m)) or np.abs(m @ m.T - np.eye(3)).max() > 1e-3:
+            return "an orthonormal frame UX, UY, UZ"
+        scale = float(obj.scale)
+        if not (np.isfinite(scale) and 0 < scale < 1e6):
+            return f"a finite positive SCALE (km), found {scale:g}"
+        if not 1 <= int(obj.qsz) <= MAX_QSZ:
+            return f"QSZ in 1 ... {MAX_QSZ}, found {int(obj.qsz)}"
+    return None
+
+
+def check_landmark_geometry(obj, path):
+    """``obj`` when :func:`landmark_geometry_problem` finds nothing, else SpcFormatError naming ``path``."""
+    problem = landmark_geometry_problem(obj)
+    if problem is not None:
+        raise SpcFormatError(path, None, problem)
+    return obj
+
+
+def _human(nbytes: float) -> str:
+    value = float(nbytes)
+    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if value < 1024 or unit == "PiB":
+            return f"{value:.0f} {unit}" if unit == "bytes" else f"{value:.1f} {unit}"
+        value /= 1024
+    return f"{value:.1f} EiB"  # pragma: no cover
