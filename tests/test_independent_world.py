@@ -2,11 +2,20 @@
 mesh finer than the maplets, Lambert shading, cast shadows, noise, a-priori errors of 6, 14 and ~20 px
 (:mod:`spctool.sim.independent`), for a faceted and a smooth truth.
 
-Thresholds asserted are the ones met on this branch (measured, maplet space, both truths):
-two-pass rms 0.022-0.030 px, max 0.060 px; one-pass rms 0.09-0.23 px; image space two-pass rms
-0.053-0.054 px, max 0.116 px.  The issue's targets (two-pass <= 0.03 px, one pass <= 0.05 px, max <= 0.1 px)
-are printed beside the figures (``pytest -s``) and re-measured after the correlation numerics of the
-same issue (2-D quadric peak, converged final step) are merged.
+Thresholds asserted are the issue's targets where the merged code meets them, tight so that a
+regression fails (measured on this world, pooled over 3 pictures x 9 landmarks, 100 % found in both
+passes and both spaces; ``pytest -s`` prints them):
+
+======  ========================  ========================  ==========================
+truth   maplet one pass rms       maplet two-pass rms/max   image two-pass rms/max
+======  ========================  ========================  ==========================
+facet   0.0254 px                 0.0255 / 0.072 px         0.0510 / 0.097 px
+smooth  0.0245 px                 0.0246 / 0.065 px         0.0502 / 0.099 px
+======  ========================  ========================  ==========================
+
+Maplet space meets the issue (two-pass <= 0.03 px, one pass <= 0.05 px, max <= 0.1 px); image space
+meets the max but not the 0.03 px rms (benchmarks/bench_accuracy.py's bigger world: 0.037-0.038 px),
+so its rms keeps a measured bound (``IMAGE_RMS``).
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ from spctool.geometry.shape import embree_available  # noqa: E402
 pytestmark = pytest.mark.skipif(not embree_available(), reason="embreex not installed")
 
 ISSUE_TWO_PASS_RMS, ISSUE_ONE_PASS_RMS, ISSUE_MAX = 0.03, 0.05, 0.1
+IMAGE_RMS = 0.055  # image space, two-pass rms: measured 0.0510 (facet), 0.0502 (smooth)
 
 
 @pytest.fixture(scope="session")
@@ -137,38 +147,50 @@ def test_facet_and_smooth_photos_differ(worlds):
 @pytest.mark.parametrize("truth", ["facet", "smooth"])
 def test_two_pass_navigation_maplet_space(worlds, truth):
     root, doc = worlds[truth]
-    rows = []
+    rows, all1, all2 = [], [], []
     for p in doc["pictures"]:
         res, true_px = _navigate(root, p)
         assert res.status == "ok"
         e1 = _errors(res.passes[0].register, true_px)
         e2 = _errors(res.passes[1].register, true_px)
         assert res.passes[0].register.ok.all() and res.passes[1].register.ok.all()  # 100 % found
+        all1.append(e1)
+        all2.append(e2)
         rms1, rms2 = float(np.sqrt(np.mean(e1**2))), float(np.sqrt(np.mean(e2**2)))
         rows.append((p["name"], p["apriori_px"], rms1, e1.max(), rms2, e2.max()))
-        assert rms2 <= 0.045 and e2.max() <= 0.1  # measured 0.022-0.030 / <= 0.060
-        # one pass now ends with the converged full-resolution stage: within the issue's 0.05 px
-        assert rms1 <= ISSUE_ONE_PASS_RMS
+        # per picture (measured: facet 0.021 / 0.030 / 0.024, smooth 0.020 / 0.029 / 0.023 px)
+        assert rms2 <= 0.035
         # the second pass (from the solved pose) is never worse than the first by more than noise
         assert rms2 <= rms1 + 0.005
         assert res.pose is not None and res.pose.converged
+    e1, e2 = np.concatenate(all1), np.concatenate(all2)
+    rms1, rms2 = float(np.sqrt(np.mean(e1**2))), float(np.sqrt(np.mean(e2**2)))
     print(f"\n{truth} truth, maplet space (issue: two-pass <= {ISSUE_TWO_PASS_RMS}, one pass <= "
           f"{ISSUE_ONE_PASS_RMS}, max <= {ISSUE_MAX} px)")  # fmt: skip
     for r in rows:
-        name, apri, rms1, max1, rms2, max2 = r
-        print(f"  {name} a-priori {apri:5.1f} px: one pass rms {rms1:.3f} max {max1:.3f} | "
-              f"two-pass rms {rms2:.3f} max {max2:.3f}")  # fmt: skip
+        name, apri, r1, m1, r2, m2 = r
+        print(f"  {name} a-priori {apri:5.1f} px: one pass rms {r1:.3f} max {m1:.3f} | "
+              f"two-pass rms {r2:.3f} max {m2:.3f}")  # fmt: skip
+    print(f"  pooled: one pass rms {rms1:.4f} | two-pass rms {rms2:.4f} max {e2.max():.4f}")
+    # the issue's targets (measured pooled: facet 0.025 / 0.025, max 0.072; smooth 0.025 / 0.025, 0.065)
+    assert rms2 <= ISSUE_TWO_PASS_RMS and e2.max() <= 0.08 < ISSUE_MAX
+    assert rms1 <= 0.03 < ISSUE_ONE_PASS_RMS
 
 
 @pytest.mark.parametrize("truth", ["facet", "smooth"])
 def test_two_pass_navigation_image_space(worlds, truth):
     root, doc = worlds[truth]
+    all2 = []
     for p in doc["pictures"]:
         res, true_px = _navigate(root, p, space="image")
         assert res.status == "ok"
-        assert res.passes[0].register.ok.all() and res.passes[1].register.ok.all()
-        e2 = _errors(res.passes[1].register, true_px)
-        assert float(np.sqrt(np.mean(e2**2))) <= 0.08 and e2.max() <= 0.15  # measured 0.053 / 0.116
+        assert res.passes[0].register.ok.all() and res.passes[1].register.ok.all()  # 100 % found
+        all2.append(_errors(res.passes[1].register, true_px))
+    e2 = np.concatenate(all2)
+    rms2 = float(np.sqrt(np.mean(e2**2)))
+    print(f"\n{truth} truth, image space: two-pass rms {rms2:.4f} max {e2.max():.4f} px")
+    # the issue's max <= 0.1 px is met (0.097 / 0.099); its 0.03 px rms is not (0.051 / 0.050)
+    assert rms2 <= IMAGE_RMS and e2.max() <= ISSUE_MAX
 
 
 def test_single_pass_autoregister_loses_the_14px_picture_two_pass_keeps_it(worlds):

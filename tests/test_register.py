@@ -574,7 +574,9 @@ def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
     exact = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, every)
     n_exact = len(calls) - n_fast
     assert fast.status == exact.status == ["ok"]
-    assert n_exact == int(exact.iterations[0])  # the reference renders at every step it runs
+    # the reference renders at every step it runs (the converged final stage may end the L = 1
+    # repeats early: measured 20 of the 21 steps)
+    assert 10 < exact.iterations[0] <= len(steps) and n_exact == exact.iterations[0]
     assert n_fast <= 1 + 12 and n_fast < n_exact - 8  # one template for the nine coarse steps
     np.testing.assert_allclose(fast.measured, exact.measured, rtol=0, atol=0.002)
     assert np.all(np.abs(fast.last_steps[0].shift) < 0.002)  # converged, not frozen

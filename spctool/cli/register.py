@@ -162,7 +162,8 @@ def _register_options(kw, schedule, **extra):
         peak=kw.get("peak", "quadric"),  # commands that reuse these options without --peak
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
-        template_shading=kw["template_shading"],
+        # navigate reuses these options without --template-shading: the RegisterOptions default
+        template_shading=kw.get("template_shading", RegisterOptions.template_shading),
         predict=popts,
         extract=eopts,
         **extra,
