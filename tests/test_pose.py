@@ -760,3 +760,22 @@ def test_measurements_of_another_picture_are_implausible():
     ok = solve_pose(truth, pts, y, PoseOptions(use_prior=False))
     assert ok.plausible and ok.pose_dict()["implausible"] is None
     assert 0.0 <= ok.position_attitude_correlation <= 1.0
+
+
+@pytest.mark.parametrize("value", [1e300, -1e250, 1e154])
+def test_absurd_but_finite_pixels_are_a_pose_error_not_a_crash(value):
+    """A landmark table with a pixel of 1e300 (found by the fuzzer): numpy's LinAlgError from the
+    normal equations becomes a PoseError (one line, exit 1), never an internal error."""
+    from spctool.stages.pose import PoseError
+
+    rng = np.random.default_rng(5)
+    cam = make_camera(rng)
+    pts = make_landmarks(rng, cam, 8)
+    y = observe(cam, pts)
+    y[3, 0] = value
+    try:
+        res = solve_pose(cam, pts, y, PoseOptions(use_prior=False))
+    except PoseError as exc:  # one line, exit 1 on the command line
+        assert str(exc) and "\n" not in str(exc)
+    else:  # the absurd row may instead be rejected as an outlier: then the pose must still be right
+        assert res.converged and res.status[3] != "ok"

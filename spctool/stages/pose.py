@@ -632,7 +632,19 @@ def _covariance_weights(covs, n, floor, fallback):
     return w, ~good
 
 
-def solve_pose(
+def solve_pose(*args, **kwargs) -> PoseResult:
+    """Solve spacecraft position and attitude from N landmark measurements: :func:`_solve_pose`, with
+    a linear-algebra failure (absurd but finite input, e.g. a pixel of 1e300) reported as
+    :class:`PoseError` instead of numpy's LinAlgError."""
+    try:
+        return _solve_pose(*args, **kwargs)
+    except np.linalg.LinAlgError as exc:
+        raise PoseError(
+            f"the pose could not be solved ({exc}): check the measured pixels and landmark positions"
+        ) from None
+
+
+def _solve_pose(
     camera,
     landmark_positions,
     measured,
