@@ -460,3 +460,14 @@ template_shading_option = click.option(
     help="Image space: template normals from interpolated node slopes (smooth) or flat triangles, "
     "two per maplet cell (facet).",
 )
+
+#: register --panels and correlate --panels: one PNG per landmark
+panels_option = click.option(
+    "--panels",
+    "panels",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
+    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
+)

@@ -392,15 +392,7 @@ def _missing_rows(names, columns):
     default=None,
     help="Write every landmark's correlation surface on one page, enlarged, peak marked in red (PNG).",
 )
-@click.option(
-    "--panels",
-    "panels",
-    type=click.Path(file_okay=False),
-    default=None,
-    metavar="DIR",
-    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
-    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
-)
+@options.panels_option
 def correlate_cmd(ctx: Context, **kw):
     """One correlation of each landmark: offset, peak and peak quality.
 
@@ -650,15 +642,7 @@ def correlate_cmd(ctx: Context, **kw):
     metavar="F",
     help="--overlay: draw shift vectors F times their length.  [default: the median shift drawn ~40 px]",
 )
-@click.option(
-    "--panels",
-    "panels",
-    type=click.Path(file_okay=False),
-    default=None,
-    metavar="DIR",
-    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
-    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
-)
+@options.panels_option
 @options.require_option(
     "Exit 1 when fewer than N landmarks are registered (the table is still written). Without it a run "
     "that registers nothing exits 0 with a warning on stderr."
