@@ -597,3 +597,19 @@ def test_map_linked_to_dev_zero_is_refused_by_the_stages(demo):
     res = invoke("-C", demo, "register", PIC, "B01536", "B01585")
     assert res.exit_code == 0 and "device" in res.stderr and "no-maplet" in res.stdout
     assert time.monotonic() - t0 < 30
+
+
+def test_direct_map_and_icq_readers_refuse_non_regular_files(tmp_path):
+    """read_map / read_icq called from Python (not only through the commands) go through the guard:
+    a FIFO is refused at once instead of blocking, a directory is named."""
+    from spctool.errors import SpcFormatError
+    from spctool.formats.icq import read_icq
+    from spctool.formats.maplet import read_map
+
+    fifo = tmp_path / "X.MAP"
+    os.mkfifo(fifo)
+    for reader in (read_map, read_icq):
+        with pytest.raises(SpcFormatError, match="FIFO"):
+            reader(fifo)
+        with pytest.raises(SpcFormatError, match="directory"):
+            reader(tmp_path)

@@ -41,7 +41,6 @@ import math
 import os
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -746,7 +745,9 @@ def parse_icq(text: str, path=None) -> IcqShape:
 
 def read_icq(path) -> IcqShape:
     """Read an ICQ file (``SHAPEFILES/SHAPE.TXT`` or ``*.ICQ``)."""
-    data = Path(path).read_bytes()
+    from spctool.formats.guard import read_bytes
+
+    data = read_bytes(path, "an ICQ shape file")  # regular files only, size checked before reading
     if b"\r" in data:
         data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
     return _parse_bytes(data, path)

@@ -521,11 +521,10 @@ def _decode_cells(raw_h: np.ndarray, raw_a: np.ndarray, hscale: float):
 
 def read_map(path) -> Maplet:
     """Read ``MAPFILES/<NAME>.MAP``; the maplet's ``name`` is the file stem."""
+    from spctool.formats.guard import read_bytes
+
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except IsADirectoryError:
-        raise SpcFormatError(path, None, "a MAP file, found a directory") from None
+    data = read_bytes(path, "a MAP file")  # regular files only, size checked before reading
     return parse_map(data, path)
 
 
