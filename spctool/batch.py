@@ -471,6 +471,8 @@ class PictureSummary:
     covariance: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     resumed: bool = False
+    #: one line per problem that cost this picture landmarks without failing it (an unreadable MAP)
+    notes: list = field(default_factory=list)
 
     @property
     def kind(self) -> str:
@@ -661,6 +663,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         m = shared.maplet(name)
         if isinstance(m, SpcFormatError):
             missing.append(name)
+            summary.notes.append(f"landmark {name} left out (no-maplet): {m}")
             continue
         names.append(name)
         maplets.append(m)
@@ -1020,6 +1023,7 @@ class BatchResult:
         """The summary table, then one ``# PICTURE status: reason`` line per picture not ok (the
         table's status column holds the word only, so the rows stay whitespace-separated)."""
         lines = [f"# {p.picture} {p.status}\n" for p in self.pictures if p.kind != "ok"]
+        lines += [f"# {p.picture} note: {n}\n" for p in self.pictures for n in p.notes]
         return self.to_table().to_text() + "".join(lines)
 
     def to_json_dict(self) -> dict:

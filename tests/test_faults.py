@@ -501,6 +501,11 @@ def test_map_with_absurd_frame_fails_validate_and_only_its_landmark(demo, tmp_pa
     assert "no-maplet" in res.stdout
     out = run_batch(demo, [PIC], out_dir=tmp_path / "out")
     assert out.pictures[0].kind == "ok"
+    # the batch says so: a note in the summary (and its text) and a warning on stderr
+    assert any("B01536" in n and "no-maplet" in n for n in out.pictures[0].notes)
+    assert f"# {PIC} note: landmark B01536 left out" in out.to_text()
+    res = invoke("-C", demo, "batch", "--out-dir", tmp_path / "out2", "--no-figure")
+    assert res.exit_code == 0 and "warning" in res.stderr and "B01536" in res.stderr
 
 
 @pytest.mark.parametrize(

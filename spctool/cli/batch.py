@@ -168,6 +168,8 @@ def batch_cmd(
     with progress(ctx, "batch", len(names), threaded=False) as advance:
 
         def on_result(summary):
+            for note in summary.notes:  # e.g. a corrupt MAP: the picture goes on without that landmark
+                ctx.warn(f"{summary.picture}: {note}")
             if summary.failed:
                 click.echo(f"spctool: {summary.picture} {summary.status}", err=True)
             elif summary.kind != "ok":
