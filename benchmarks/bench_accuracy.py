@@ -58,20 +58,9 @@ def _world(truth):
 
 
 def _inputs(root, p):
-    from spctool.formats.workdir import WorkDir
-    from spctool.geometry.camera import Camera
+    from spctool.sim.independent import load_picture
 
-    wd = WorkDir(root)
-    pic = wd.read_picture(p["name"])
-    names = sorted(p["pixels"])
-    return (
-        pic,
-        Camera.from_picture(pic, wd.read_settings()),
-        wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln),
-        names,
-        [wd.read_maplet(n) for n in names],
-        np.array([p["pixels"][n] for n in names]),
-    )
+    return load_picture(root, p)
 
 
 def _run(pic, cam, photo, names, maplets, space):

@@ -253,34 +253,10 @@ def test_spctool_writers_produce_files_spc_reads(tmp_path):
     from spctool.formats.lists import format_lmrklist, format_pictlist, read_lmrklist, read_pictlist
     from spctool.formats.lithos import DistortModel, Settings, format_lithos
     from spctool.formats.maplet import format_map, read_map
-    from spctool.formats.sumfile import Picture, format_sum, parse_sum
+    from spctool.formats.sumfile import _PICTURE_FIELDS, Picture, format_sum, parse_sum
 
     pic = parse_sum((CORPUS / "sum/CANONICAL.SUM").read_text())
-    fresh = Picture(
-        **{
-            k: getattr(pic, k)
-            for k in (
-                "name",
-                "utc",
-                "npx",
-                "nln",
-                "thrsh",
-                "mmfl",
-                "ctr",
-                "scobj",
-                "cx",
-                "cy",
-                "cz",
-                "sz",
-                "kmatrix",
-                "distortion",
-                "sigma_vso",
-                "sigma_ptg",
-                "landmarks",
-                "limb_fits",
-            )
-        }
-    )
+    fresh = Picture(**{k: getattr(pic, k) for k in _PICTURE_FIELDS})  # every field a Picture is made of
     text = format_sum(fresh)
     lines = text.split("\n")
     assert lines[10][63:73] == "DISTORTION"  # the column globalStat tests

@@ -47,20 +47,9 @@ def worlds(tmp_path_factory):
 
 
 def _load(root, pic_doc):
-    from spctool.formats.workdir import WorkDir
-    from spctool.geometry.camera import Camera
+    from spctool.sim.independent import load_picture
 
-    wd = WorkDir(root)
-    pic = wd.read_picture(pic_doc["name"])
-    names = sorted(pic_doc["pixels"])
-    return (
-        pic,
-        Camera.from_picture(pic, wd.read_settings()),
-        wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln),
-        names,
-        [wd.read_maplet(n) for n in names],
-        np.array([pic_doc["pixels"][n] for n in names]),
-    )
+    return load_picture(root, pic_doc)
 
 
 def _navigate(root, pic_doc, space="maplet", passes=2):

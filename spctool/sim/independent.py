@@ -43,7 +43,15 @@ import numpy as np
 
 from spctool.errors import SpcEnvironmentError, SpcUsageError
 
-__all__ = ["IndependentSpec", "TruthTerrain", "build_world", "pinhole_project", "pinhole_rays", "TRUTHS"]
+__all__ = [
+    "IndependentSpec",
+    "TruthTerrain",
+    "build_world",
+    "load_picture",
+    "pinhole_project",
+    "pinhole_rays",
+    "TRUTHS",
+]
 
 TRUTHS = ("facet", "smooth")
 #: S16's optics (f = 7.68 mm, K = ±454.54 px/mm, line axis flipped): 2.865e-4 rad/px
@@ -436,3 +444,23 @@ def build_world(root, spec: IndependentSpec | None = None) -> dict:
     write_lmrklist(root / "LMRKLIST.TXT", LandmarkList(names))
     (root / "TRUTH.json").write_text(json.dumps(doc, indent=1))
     return doc
+
+
+def load_picture(root, pic_doc: dict):
+    """One picture of a built world, read back through spctool's readers as a user's run would:
+    ``(picture, camera, photo, landmark names, maplets, true pixels (N, 2))``; ``pic_doc`` is the
+    picture's entry of TRUTH.json (``build_world``'s return value)."""
+    from spctool.formats.workdir import WorkDir
+    from spctool.geometry.camera import Camera
+
+    wd = WorkDir(root)
+    pic = wd.read_picture(pic_doc["name"])
+    names = sorted(pic_doc["pixels"])
+    return (
+        pic,
+        Camera.from_picture(pic, wd.read_settings()),
+        wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln),
+        names,
+        [wd.read_maplet(n) for n in names],
+        np.array([pic_doc["pixels"][n] for n in names]),
+    )
