@@ -142,20 +142,7 @@ def navigate_cmd(ctx: Context, **kw):
     if not inp.names:
         raise SpcResultError(f"{inp.pic.name}: no landmark with a maplet to navigate with")
     with progress(ctx, f"navigate {inp.pic.name}", len(inp.names) * (3 if nopts.passes == 2 else 2)) as adv:
-        result = navigate(
-            inp.photo,
-            inp.camera,
-            inp.pic.sz,
-            inp.maplets,
-            inp.thresholds,
-            nopts,
-            apriori=inp.apriori,
-            names=inp.names,
-            positions=inp.positions,
-            prior_sigma_position=inp.pic.sigma_vso,
-            prior_sigma_attitude=inp.pic.sigma_ptg,
-            progress=adv,
-        )
+        result = inp.run(navigate, nopts, adv)
     for w in result.warnings:
         ctx.note_once(w)
     for name in inp.missing:

@@ -207,6 +207,24 @@ class _Inputs:
         self.apriori = np.asarray(self.apriori, dtype=np.float64).reshape(-1, 2)
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
 
+    def run(self, stage, options, progress=None):
+        """``stage(photo, camera, sz, maplets, thresholds, options, ...)`` — register or navigate — on
+        these inputs, with the SUM's sigmas as the pose prior."""
+        return stage(
+            self.photo,
+            self.camera,
+            self.pic.sz,
+            self.maplets,
+            self.thresholds,
+            options,
+            apriori=self.apriori,
+            names=self.names,
+            positions=self.positions,
+            prior_sigma_position=self.pic.sigma_vso,
+            prior_sigma_attitude=self.pic.sigma_ptg,
+            progress=progress,
+        )
+
 
 # ------------------------------------------------------------------------------------------------
 # images
@@ -717,20 +735,7 @@ def register_cmd(ctx: Context, **kw):
     # AUTOREGISTER visits every active landmark once per align pass (fewer after a drop)
     passes = sum(k == "align" for k, _ in schedule_steps(opts)) if schedule == "autoregister" else 1
     with progress(ctx, f"register {inp.pic.name}", passes * len(inp.names)) as adv:
-        result = run_register(
-            inp.photo,
-            inp.camera,
-            inp.pic.sz,
-            inp.maplets,
-            inp.thresholds,
-            opts,
-            apriori=inp.apriori,
-            names=inp.names,
-            positions=inp.positions,
-            prior_sigma_position=inp.pic.sigma_vso,
-            prior_sigma_attitude=inp.pic.sigma_ptg,
-            progress=adv,
-        )
+        result = inp.run(run_register, opts, adv)
     for w in result.warnings:
         ctx.note_once(w)
 
