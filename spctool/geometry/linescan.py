@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from spctool.errors import SpcUsageError
+from spctool.geometry.frames import rot_from_rotvec
 
 __all__ = ["rotate_about", "linescan_position", "linescan_pointing", "project_linescan"]
 
@@ -39,20 +40,6 @@ def rotate_about(v: np.ndarray, axis, theta) -> np.ndarray:
     along = (v @ a)[..., None] * a
     perp = v - along
     return along + np.cos(theta) * perp + np.sin(theta) * np.cross(a, perp)
-
-
-def _rotation_matrices(vecs: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3): angle |v| about v̂ (ROT2MAT)."""
-    z = np.linalg.norm(vecs, axis=-1)
-    safe = np.where(z == 0.0, 1.0, z)
-    u = vecs / safe[..., None]
-    c, s = np.cos(z)[..., None, None], np.sin(z)[..., None, None]
-    k = np.zeros(vecs.shape[:-1] + (3, 3))
-    k[..., 0, 1], k[..., 0, 2] = -u[..., 2], u[..., 1]
-    k[..., 1, 0], k[..., 1, 2] = u[..., 2], -u[..., 0]
-    k[..., 2, 0], k[..., 2, 1] = -u[..., 1], u[..., 0]
-    m = c * np.eye(3) + s * k + (1 - c) * u[..., :, None] * u[..., None, :]
-    return np.where((z == 0.0)[..., None, None], np.eye(3), m)
 
 
 def _tau(ls, dl):
@@ -78,8 +65,7 @@ def linescan_pointing(picture, line) -> np.ndarray:
     if len(ls.cax):
         powers = dl[..., None] ** np.arange(1, len(ls.cax) + 1)
         vec = powers @ ls.cax
-        turned = _rotation_matrices(vec) @ cmat
-        cmat = np.where((dl == 0.0)[..., None, None], cmat, turned)
+        cmat = rot_from_rotvec(vec) @ cmat  # ROT2MAT (identity where dl = 0)
     tau = _tau(ls, dl)[..., None]
     cmat = rotate_about(cmat, ls.trj_axis, tau)
     return rotate_about(cmat, ls.pol_axis, (-ls.pol * dl)[..., None])

@@ -194,13 +194,6 @@ def pinhole_rays(sample, line, rotation, ctr, mmfl=MMFL, kmatrix=KMAT):
 # mesh and rendering
 
 
-def _orient(uz):
-    uz = uz / np.linalg.norm(uz)
-    uy = np.cross([0.0, 0.0, 1.0], uz)
-    uy /= np.linalg.norm(uy)
-    return np.cross(uy, uz), uy, uz
-
-
 def _grid_mesh(terrain: TruthTerrain, half: float, step: float):
     """Vertices (local cells: x, y, h) and faces of the terrain on a square grid, alternating diagonals."""
     n = int(math.ceil(2.0 * half / step)) + 1
@@ -349,7 +342,9 @@ def build_world(root, spec: IndependentSpec | None = None) -> dict:
         (root / d).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(spec.seed)
     s = float(spec.scale_km)
-    ux, uy, uz = _orient(np.array([0.35, -0.2, 1.0]))
+    from spctool.geometry.frames import orient_frame
+
+    ux, uy, uz = orient_frame(np.array([0.35, -0.2, 1.0]))  # SPC ORIENT
     v0 = spec.body_radius_km * uz
     ifov = 1.0 / (MMFL * math.sqrt(abs(KMAT[0, 0] * KMAT[1, 1])))
     # the mesh covers the photo footprint of the most oblique view (cells)

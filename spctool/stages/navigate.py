@@ -336,12 +336,10 @@ def navigate(
     pose1, err1 = _solve(camera, pos, reg1, opts, prior_sigma_position, prior_sigma_attitude)
     pass1 = PassResult(reg1, pose1 if err1 is None else None, err1, steps, time.perf_counter() - t0)
     passes = [pass1]
-    final_camera = camera
     if err1 is not None:
         warnings.append(f"pass 1: no pose ({err1})")
         return NavigateResult(names, passes, "no-pose: " + err1, camera, warnings, opts)
     cam1 = camera.with_pose(scobj=pose1.scobj, rotation=pose1.rotation)
-    final_camera = cam1
     if opts.passes == 1:
         return NavigateResult(names, passes, "ok", cam1, warnings, opts)
 
@@ -362,11 +360,11 @@ def navigate(
     )
     if err2 is not None:  # never lose a picture pass 1 navigated
         warnings.append(f"pass 2: no pose ({err2}); the pass-1 pose and measurements stand")
-        return NavigateResult(names, passes, "ok", final_camera, warnings, opts)
-    final_camera = camera.with_pose(scobj=pose2.scobj, rotation=pose2.rotation)
+        return NavigateResult(names, passes, "ok", cam1, warnings, opts)
+    cam2 = camera.with_pose(scobj=pose2.scobj, rotation=pose2.rotation)
     lost = [names[i] for i in np.flatnonzero(reg1.ok & ~reg2.ok)]
     if lost:
         warnings.append(
             f"pass 2 did not re-register {len(lost)} landmark(s) found in pass 1: {', '.join(lost)}"
         )
-    return NavigateResult(names, passes, "ok", final_camera, warnings, opts)
+    return NavigateResult(names, passes, "ok", cam2, warnings, opts)

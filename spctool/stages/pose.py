@@ -623,12 +623,7 @@ def _covariance_weights(covs, n, floor, fallback):
     det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
     good = np.all(np.isfinite(c), axis=(1, 2)) & (c[:, 0, 0] > 0) & (det > 0)
     w = np.array(fallback, dtype=np.float64, copy=True)
-    cg = c[good]
-    dg = det[good][:, None, None]
-    w[good] = (
-        np.stack([np.stack([cg[:, 1, 1], -cg[:, 0, 1]], -1), np.stack([-cg[:, 1, 0], cg[:, 0, 0]], -1)], 1)
-        / dg
-    )
+    w[good] = np.linalg.inv(c[good])  # finite, positive definite rows only
     return w, ~good
 
 

@@ -96,6 +96,7 @@ full-resolution stage did not settle within ``converge_max`` steps).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -346,9 +347,8 @@ def capped_steps(steps, cap: int) -> list:
     return out
 
 
-def _cap_warnings(reg, caps, steps, result):
-    """One note per cap value that shortened the schedule."""
-    top = max((int(v) for k, v in steps if k == "align"), default=1)
+def _cap_warnings(reg, caps, top, result):
+    """One note per cap value that shortened the schedule (``top``: its largest spacing)."""
     by_cap = {}
     for i, c in enumerate(caps):
         if c < top and result.status[i] == "ok":
@@ -907,7 +907,7 @@ def register(
         [spacing_cap(lm.maplet, opts, camera) if opts.cap_spacing else top for lm in reg.landmarks],
         dtype=np.int64,
     )
-    _cap_warnings(reg, caps, steps, result)
+    _cap_warnings(reg, caps, top, result)
     if opts.schedule == "retina_s16":
         workers = _image_workers(opts, n)
         if workers > 1:
@@ -968,8 +968,7 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             tick(k)
 
     def one(i):
-        sub = object.__new__(Registrar)
-        sub.__dict__.update(reg.__dict__)
+        sub = copy.copy(reg)  # shares the photo and caches; its own landmark list
         sub.landmarks = [reg.landmarks[i]]
         part = RegisterResult(
             [result.names[i]],
@@ -1099,7 +1098,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
                 moved = math.inf
                 if opts.fail_fast:
                     break
-        if state == "ok" and converge and int(st_ok.correlation.spacing) == 1 and last[i] is not None:
+        if state == "ok" and converge and int(st_ok.correlation.spacing) == 1:
             state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor)
             st_ok = st_c or st_ok
         result.status[i] = state or "not-found"
