@@ -600,12 +600,9 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
 
     # ---- inputs ----------------------------------------------------------------------------------
     sum_path = wd.sum_path(picture)
-    try:
-        raw = sum_path.read_bytes()
-    except FileNotFoundError:
-        raise SpcFormatError(sum_path, None, f"the SUM file of picture {picture} (file not found)") from None
-    except OSError as exc:
-        raise SpcFormatError(sum_path, None, f"a readable SUM file ({exc.strerror})") from None
+    if not sum_path.exists():
+        raise SpcFormatError(sum_path, None, f"the SUM file of picture {picture} (file not found)")
+    raw = guard.read_bytes(sum_path, f"the SUM file of picture {picture}")  # regular file, size checked
     out.input_sha256 = hashlib.sha256(raw).hexdigest()
     out.inputs_sha256 = shared.inputs_sha256
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
@@ -1153,8 +1150,10 @@ def run_batch(
         jobs = pool.jobs
     if int(jobs) < 1:
         raise SpcUsageError(f"--jobs must be at least 1, got {jobs}")
-    names = batch_pictures(workdir) if pictures is None else list(dict.fromkeys(pictures))
-    names = [guard.check_name(n, "picture name") for n in names]  # names become output paths
+    if pictures is None:
+        names = batch_pictures(workdir)  # checked names (they become output paths)
+    else:  # checked (stripped) before de-duplication, so "A" and "A " are one picture
+        names = list(dict.fromkeys(guard.check_name(n, "picture name") for n in pictures))
     fingerprint = options.fingerprint()
     stamp = inputs_stamp(workdir, options, fingerprint)  # workers reuse data of unchanged files
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -26,12 +26,11 @@ def _map_size_ok(size: int, head: bytes) -> bool:
     return False
 
 
-_NUM = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[EDQedq]?[+-]?\d+)?"  # linear backtracking (see fortran)
-
-
 def _numeric_line(line: str, count: int) -> bool:
+    from spctool.formats.fortran import is_number
+
     toks = line.replace(",", " ").split()
-    return len(toks) >= count and all(re.fullmatch(_NUM, t) or t.lower() == "nan" for t in toks[:count])
+    return len(toks) >= count and all(is_number(t) or t.lower() == "nan" for t in toks[:count])
 
 
 def _untagged_kind(lines: list[str]) -> str | None:
