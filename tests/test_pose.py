@@ -780,3 +780,4 @@ def test_absurd_but_finite_pixels_are_a_pose_error_not_a_crash(value):
         assert str(exc) and "\n" not in str(exc)
     else:  # the absurd row may instead be rejected as an outlier: then the pose must still be right
         assert res.converged and res.status[3] != "ok"
+        np.testing.assert_allclose(res.scobj, cam.scobj, atol=1e-6)

@@ -118,14 +118,16 @@ def navigate_cmd(ctx: Context, **kw):
     """
     from spctool.cli.register import _Inputs, _register_options
     from spctool.stages.navigate import NavigateOptions, navigate
+    from spctool.stages.register import RegisterOptions
 
+    # register's settings navigate does not expose: RegisterOptions' own defaults, never copies
     kw.update(
         _command="navigate",
-        grid_half=5,
-        min_valid=25,
-        strict_8=False,
-        supersample=2,
-        no_image_shadows=False,
+        grid_half=RegisterOptions.grid_half,
+        min_valid=RegisterOptions.min_valid,
+        strict_8=RegisterOptions.strict_8,
+        supersample=RegisterOptions.supersample,
+        no_image_shadows=not RegisterOptions.image_shadows,
         criteria=None,
     )
     pose = options.pose_options(kw["sigma_px"], kw["no_prior"], kw["min_landmarks"])

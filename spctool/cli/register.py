@@ -162,8 +162,7 @@ def _register_options(kw, schedule, **extra):
         peak=kw.get("peak", "quadric"),  # commands that reuse these options without --peak
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
-        # navigate reuses these options without --template-shading: the RegisterOptions default
-        template_shading=kw.get("template_shading", RegisterOptions.template_shading),
+        template_shading=kw["template_shading"],
         predict=popts,
         extract=eopts,
         **extra,
