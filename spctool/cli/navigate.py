@@ -190,11 +190,7 @@ def navigate_cmd(ctx: Context, **kw):
             click.echo(f"spctool: {line}", err=True)
     if result.status != "ok":
         raise SpcResultError(f"{inp.pic.name}: {result.status}")
-    if kw["require"] is not None and int(result.ok.sum()) < kw["require"]:
-        raise SpcResultError(
-            f"{inp.pic.name}: {int(result.ok.sum())} landmarks registered, "
-            f"fewer than --require {kw['require']}"
-        )
+    options.check_require(inp.pic.name, int(result.ok.sum()), kw["require"], "landmarks registered")
 
 
 def register(cli):

@@ -97,6 +97,14 @@ def require_option(help: str):
     )
 
 
+def check_require(picture: str, found: int, require, what: str) -> None:
+    """The ``--require N`` check: SpcResultError (exit 1) naming ``found`` ``what`` when below N."""
+    if require is not None and found < require:
+        from spctool.errors import SpcResultError
+
+        raise SpcResultError(f"{picture}: {found} {what}, fewer than --require {require}")
+
+
 # ------------------------------------------------------------------------------------------------
 # inputs: picture, photo, landmarks, shape
 

@@ -29,7 +29,7 @@ import numpy as np
 from spctool import __version__
 from spctool.cli import options
 from spctool.cli.common import Context, emit_table, load_stage_inputs, pass_context, progress
-from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
+from spctool.errors import SpcFormatError, SpcUsageError
 
 # ------------------------------------------------------------------------------------------------
 # options shared by both commands
@@ -804,11 +804,7 @@ def register_cmd(ctx: Context, **kw):
     if kw["panels"]:
         n = write_panels(Path(kw["panels"]), inp, result, opts)
         ctx.info(f"wrote {n} panels to {kw['panels']}")
-    if kw["require"] is not None and int(result.ok.sum()) < kw["require"]:
-        raise SpcResultError(
-            f"{inp.pic.name}: {int(result.ok.sum())} landmarks registered, fewer than "
-            f"--require {kw['require']}"
-        )
+    options.check_require(inp.pic.name, int(result.ok.sum()), kw["require"], "landmarks registered")
 
 
 def _why(result, inp) -> str:

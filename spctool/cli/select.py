@@ -17,7 +17,7 @@ import numpy as np
 from spctool.cli import options
 from spctool.cli.candidates import Candidates, load_candidates
 from spctool.cli.common import Context, emit_table, load_photo, load_picture, load_shape, pass_context
-from spctool.errors import SpcResultError, SpcUsageError
+from spctool.errors import SpcUsageError
 from spctool.formats import atomic
 
 # ------------------------------------------------------------------------------------------------
@@ -312,10 +312,7 @@ def select_cmd(
         atomic.write_bytes(overlay, fig.png(), backup=True)
         ctx.info(f"wrote {overlay}")
 
-    if require is not None and result.n_selected < require:
-        raise SpcResultError(
-            f"{pic.name}: {result.n_selected} maplets selected, fewer than --require {require}"
-        )
+    options.check_require(pic.name, result.n_selected, require, "maplets selected")
 
 
 def register(cli):
