@@ -29,6 +29,8 @@ for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MK
 
 import numpy as np  # noqa: E402
 
+from spctool.sim.independent import load_picture  # noqa: E402
+
 _CACHE: dict = {}
 
 
@@ -57,11 +59,6 @@ def _world(truth):
     return _CACHE[truth]
 
 
-def _inputs(root, p):
-    from spctool.sim.independent import load_picture
-
-    return load_picture(root, p)
-
 
 def _run(pic, cam, photo, names, maplets, space):
     from spctool.stages.navigate import NavigateOptions, navigate
@@ -87,7 +84,7 @@ def _figures(truth, space):
         found = total = 0
         e1, e2 = [], []
         for p in doc["pictures"]:
-            pic, cam, photo, names, maplets, tp = _inputs(root, p)
+            pic, cam, photo, names, maplets, tp = load_picture(root, p)
             res = _run(pic, cam, photo, names, maplets, space)
             r1, r2 = res.passes[0].register, res.passes[-1].register
             found += int(r1.ok.sum()) + int(r2.ok.sum())
@@ -121,7 +118,7 @@ def _line(truth, space, what, target):
 def bench_ms_per_landmark():
     root, doc = _world("facet")
     p = doc["pictures"][2]  # the 20 px a-priori error
-    pic, cam, photo, names, maplets, _ = _inputs(root, p)
+    pic, cam, photo, names, maplets, _ = load_picture(root, p)
     _run(pic, cam, photo, names, maplets, "maplet")  # warm (numba, caches)
     best = float("inf")
     for _ in range(3):

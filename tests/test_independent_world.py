@@ -27,6 +27,7 @@ import pytest
 
 pytest.importorskip("trimesh")
 from spctool.geometry.shape import embree_available  # noqa: E402
+from spctool.sim.independent import load_picture  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not embree_available(), reason="embreex not installed")
 
@@ -46,17 +47,12 @@ def worlds(tmp_path_factory):
     return out
 
 
-def _load(root, pic_doc):
-    from spctool.sim.independent import load_picture
-
-    return load_picture(root, pic_doc)
-
 
 def _navigate(root, pic_doc, space="maplet", passes=2):
     from spctool.stages.navigate import NavigateOptions, navigate
     from spctool.stages.register import RegisterOptions
 
-    pic, cam, photo, names, maplets, truth = _load(root, pic_doc)
+    pic, cam, photo, names, maplets, truth = load_picture(root, pic_doc)
     opts = NavigateOptions(passes=passes, register=RegisterOptions(space=space))
     res = navigate(
         photo,
@@ -108,7 +104,7 @@ def test_world_is_an_spc_working_directory_with_the_apriori_errors(worlds):
         assert len(read_lmrklist(root / "LMRKLIST.TXT").names) == 9
         errs = []
         for p in doc["pictures"]:
-            _, cam, photo, names, maplets, true_px = _load(root, p)
+            _, cam, photo, names, maplets, true_px = load_picture(root, p)
             apri = np.stack(cam.project(np.array([m.v for m in maplets])), axis=-1)
             errs.append(np.max(np.linalg.norm(apri - true_px, axis=1)))
             data = np.asarray(photo.data, float)
@@ -123,8 +119,8 @@ def test_world_is_an_spc_working_directory_with_the_apriori_errors(worlds):
 
 def test_facet_and_smooth_photos_differ(worlds):
     """The two truths are different renders of the same terrain (not the same photo twice)."""
-    a = np.asarray(_load(*[worlds["facet"][0], worlds["facet"][1]["pictures"][0]])[2].data, float)
-    b = np.asarray(_load(*[worlds["smooth"][0], worlds["smooth"][1]["pictures"][0]])[2].data, float)
+    a = np.asarray(load_picture(*[worlds["facet"][0], worlds["facet"][1]["pictures"][0]])[2].data, float)
+    b = np.asarray(load_picture(*[worlds["smooth"][0], worlds["smooth"][1]["pictures"][0]])[2].data, float)
     diff = np.abs(a - b)[40:-40, 40:-40]
     assert diff.mean() > 5.0 and np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.9
 
@@ -191,7 +187,7 @@ def test_single_pass_autoregister_loses_the_14px_picture_two_pass_keeps_it(world
     root, doc = worlds["facet"]
     p = doc["pictures"][1]
     assert 13.5 <= p["apriori_px"] <= 14.5
-    pic, cam, photo, names, maplets, _ = _load(root, p)
+    pic, cam, photo, names, maplets, _ = load_picture(root, p)
     old = register(
         photo, cam, pic.sz, maplets, tuple(pic.thrsh), RegisterOptions(schedule="autoregister"), names=names
     )
