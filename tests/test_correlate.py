@@ -20,6 +20,7 @@ from spctool.stages.correlate import (
     bin_image,
     correlate,
     find_peak,
+    gradient_offset,
     ncc_surface,
     parabola_vertex,
     peak_covariance,
@@ -510,6 +511,90 @@ def test_quadric_recovers_shifts_in_the_ncc_of_a_tilted_texture():
     assert h[0, 1] / math.sqrt(h[0, 0] * h[1, 1]) < -0.4  # tilted
     assert np.max(np.abs(eq)) <= 0.01
     assert np.max(np.abs(ep)) > 0.05
+
+
+# --------------------------------------------------------------------------------------------------
+# the least-squares alignment ("gradient")
+
+
+def _sharp(n, shift=(0.0, 0.0), theta=35.0, seed=5):
+    """A sharp anisotropic texture (wavelengths 2.5–6 cells, like sun-shaded terrain at full resolution)."""
+    return tilted_field(*cells(n, shift), seed=seed, lam=(2.5, 6.0), theta_deg=theta)
+
+
+def _blob_mask(n):
+    """An asymmetric validity mask: a cut corner and a shadow-like hole off the centre."""
+    m = np.ones((n, n), bool)
+    m[: n // 3, : n // 4] = False
+    yy, xx = np.mgrid[:n, :n]
+    m[(yy - 0.7 * n) ** 2 + (xx - 0.3 * n) ** 2 < (0.12 * n) ** 2] = False
+    return m
+
+
+def test_gradient_is_exactly_zero_at_a_perfect_alignment_where_a_vertex_is_not():
+    """E = 3·P + 7 placed at a whole-cell offset: the alignment reads that offset to rounding, while the
+    quadric's (and the parabolas') vertex of the same, asymmetric, surface is off by more than 1e-3
+    cell — the bias a re-centring loop cannot remove (issue #15)."""
+    n, d = 61, np.array([2.0, -1.0])
+    e = 3.0 * _sharp(n, d) + 7.0
+    p = _sharp(n)
+    mask = _blob_mask(n)
+    g = correlate(e, p, predicted_valid=mask, options=CorrelateOptions(peak="gradient"))
+    q = correlate(e, p, predicted_valid=mask)
+    par = correlate(e, p, predicted_valid=mask, options=CorrelateOptions(peak="parabola"))
+    assert g.ok and g.peak_fit == "gradient" and g.peak == pytest.approx(1.0)
+    np.testing.assert_allclose(g.offset, d, rtol=0, atol=1e-9)
+    assert np.max(np.abs(q.offset - d)) > 1e-3 and np.max(np.abs(par.offset - d)) > 1e-3
+    # the covariance is still the surface's (the quadric's Hessian at the same grid peak)
+    np.testing.assert_array_equal(g.hessian, q.hessian)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    dx=st.floats(-0.5, 0.5),
+    dy=st.floats(-0.5, 0.5),
+    theta=st.floats(0.0, 180.0),
+    seed=st.integers(0, 50),
+)
+def test_gradient_zero_is_the_true_subpixel_shift_of_rotated_textures(dx, dy, theta, seed):
+    """The alignment read with P re-centred on c, F(c), vanishes at the true shift: a root finder on F
+    (as register's converged stage re-extracts / re-renders until F < tol) recovers the shift of sharp,
+    rotated textures under an asymmetric mask to ≤ 1e-3 cell, where the quadric's fixed point is off
+    by up to several 1e-2.  (F's slope is not 1: central differences underestimate a sharp
+    texture's gradient, so plain re-centring would oscillate slowly; the zero does not move.)"""
+    from scipy.optimize import root
+
+    n = 51
+    d = np.array([dx, dy])
+    e = _sharp(n, d, theta, seed)
+    mask = _blob_mask(n)
+    opts = CorrelateOptions(peak="gradient")
+
+    def f(c):
+        r = correlate(e, _sharp(n, c, theta, seed), predicted_valid=mask, options=opts)
+        assert r.ok and r.peak_fit == "gradient"
+        return r.offset
+
+    sol = root(f, np.zeros(2), method="hybr", options={"xtol": 1e-9})
+    assert np.max(np.abs(f(sol.x))) < 1e-6
+    assert np.max(np.abs(sol.x - d)) <= 1e-3
+
+
+def test_gradient_offset_refuses_degenerate_pairs():
+    n = 21
+    p = _sharp(n)
+    ok = np.ones((n, n), bool)
+    assert not gradient_offset(np.full((n, n), 5.0), ok, p, ok, (0, 0))[2]  # no gain
+    assert not gradient_offset(-p, ok, p, ok, (0, 0))[2]  # negative gain
+    assert not gradient_offset(p, ok, np.full((n, n), 1.0), ok, (0, 0))[2]  # constant prediction
+    few = np.zeros((n, n), bool)
+    few[5:7, 5:8] = True
+    assert not gradient_offset(p, few, p, few, (0, 0))[2]  # < 8 usable pixels
+    assert not gradient_offset(p, ok, p, ok, (n, 0))[2]  # no overlap
+    # a shift beyond the linear range (> 1 cell) is refused; correlate then keeps the quadric
+    far = _sharp(n, (0.9, 0.0))
+    dr, dc, good = gradient_offset(far, ok, p, ok, (0, 0), max_move=0.5)
+    assert not good and math.isnan(dr) and math.isnan(dc)
 
 
 def test_peak_covariance_formula_and_degenerate_cases():

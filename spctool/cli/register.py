@@ -77,11 +77,12 @@ _shared_options = options.option_group(
     ),
     click.option(
         "--peak",
-        type=click.Choice(["quadric", "parabola"]),
+        type=click.Choice(["quadric", "parabola", "gradient"]),
         default="quadric",
         show_default=True,
-        help="Sub-pixel peak: least-squares 2-D quadric on the 3x3 neighbourhood (with the cross term) "
-        "or SPC's two 1-D parabolas (legacy runs; biased on tilted peaks).",
+        help="Sub-pixel peak: least-squares 2-D quadric on the 3x3 neighbourhood (with the cross term), "
+        "SPC's two 1-D parabolas (legacy runs; biased on tilted peaks) or gradient (least-squares "
+        "alignment of the two images at the grid peak: exactly 0 when they agree).",
     ),
     options.photometry_option,
     options.shadows_option,
@@ -596,6 +597,15 @@ def correlate_cmd(ctx: Context, **kw):
     help="Final stage: repeat the last spacing-1 step until the estimate moves by less than PX.",
 )
 @click.option(
+    "--converge-peak",
+    type=click.Choice(["gradient", "quadric", "parabola"]),
+    default="gradient",
+    show_default=True,
+    help="Final stage's sub-pixel estimate: gradient (least-squares alignment, zero when prediction "
+    "and photo agree) or a vertex of the correlation surface (biased up to 0.05 px where the surface "
+    "is asymmetric).",
+)
+@click.option(
     "--converge-max",
     type=click.IntRange(min=0),
     default=10,
@@ -676,7 +686,9 @@ def register_cmd(ctx: Context, **kw):
     pose solve; each pass re-predicts and re-extracts with the updated pose.  Both end with a
     converged full-resolution stage: the last spacing-1 step is repeated until the estimate moves by
     less than --converge-tol (at most --converge-max times; else the status is not-converged), then
-    AUTOREGISTER solves the pose once more.  A schedule is fitted to
+    AUTOREGISTER solves the pose once more.  That stage reads each step by least-squares alignment
+    of prediction and photo (--converge-peak gradient: exactly zero when they agree, where a vertex of
+    the correlation surface keeps up to 0.05 px of bias) and moves by secant steps.  A schedule is fitted to
     each maplet: a step at spacing L searches +-K*L cells and works only while K*L <= Q + 1, Q the
     maplet's half-width (Shoemaker et al. 2016: L = 10 for 99x99 maplets; a 49x49 maplet: L <= 5), so
     coarser steps are replaced by one step at the largest L that fits, with a note on stderr
@@ -705,6 +717,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C demo register P000000001A1 --schedule autoregister --write-sum --overlay reg.png
       spctool -C demo register P000000001A1 B01980 --space image --json
       spctool -C demo register P000000001A1 --peak parabola --converge-max 0 --edge-retries 0  # S16
+      spctool -C demo register P000000001A1 --converge-peak quadric  # the previous release's final stage
     """
     from spctool.stages.register import RegisterOptions, schedule_steps
     from spctool.stages.register import register as run_register
@@ -719,6 +732,7 @@ def register_cmd(ctx: Context, **kw):
         "converge_tol": kw["converge_tol"],
         "edge_retries": kw["edge_retries"],
         "converge_max": kw["converge_max"],
+        "converge_peak": kw["converge_peak"],
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])

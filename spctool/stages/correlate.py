@@ -56,6 +56,12 @@ E (image space, :func:`correlate` with anchors).  With spacing n:
    (L15 Eq. 3.65 has +2y₀ in the curvature: erratum 29 — with it the correction has the wrong sign;
    Eq. 3.64's d²x/dy² means (d²y/dx²)⁻¹, erratum 28).  For a strict local maximum |δ| ≤ ½.  Keep it
    for reproducing legacy runs.
+   ``peak="gradient"`` reads no vertex: it aligns the two binned images at the grid peak by least
+   squares (E ≈ a·P + b − a·δ·∇P, :func:`gradient_offset`; the quadric where that fit fails).  Any
+   vertex of a sampled surface is biased where the surface is asymmetric about its maximum — and with
+   masks and shading it is: a template identical to the photo still reads 0.03–0.05 px off with the
+   quadric — while the alignment is exactly 0 there; the register loop's converged full-resolution
+   stage uses it (``RegisterOptions.converge_peak``).
 6. **Offset** in full-resolution cells: Δx (along UX) = n·((r₀ − k) + δ_r), Δy (along UY) =
    n·((c₀ − k) + δ_c).  The picture shift is δ = J_xy·Δ (Stage H, :mod:`spctool.stages.register`).
 
@@ -109,8 +115,9 @@ __all__ = [
 
 #: status words of a correlation (cli-contract.md "Landmark tables")
 STATUSES = ("ok", "edge-peak", "not-found", "low-correlation")
-#: sub-pixel peak estimators: 2-D least-squares quadric (default) or SPC's separable parabolas
-PEAK_METHODS = ("quadric", "parabola")
+#: sub-pixel peak estimators: 2-D least-squares quadric (default), SPC's separable parabolas, or the
+#: least-squares image alignment at the grid peak (:func:`gradient_offset`)
+PEAK_METHODS = ("quadric", "parabola", "gradient")
 
 
 @dataclass
@@ -128,7 +135,9 @@ class CorrelateOptions:
       (0: any valid pixel, L15 Eq. 3.57; image space uses 1 so that a template's partial border bins,
       which average only the template's pixels, are not compared with full photo bins).
     * ``peak`` — sub-pixel estimator: ``"quadric"`` (2-D least squares on the 3×3 neighbourhood, with
-      the cross term; default) or ``"parabola"`` (SPC/L15: one parabola per axis, for legacy runs).
+      the cross term; default), ``"parabola"`` (SPC/L15: one parabola per axis, for legacy runs) or
+      ``"gradient"`` (least-squares alignment of the two images at the grid peak,
+      :func:`gradient_offset`; unbiased at zero offset, the register loop's converged stage uses it).
     """
 
     grid_half: int = 5
@@ -176,7 +185,8 @@ class Correlation:
     hessian: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
     #: (2, 2) covariance of ``offset`` in full-resolution cells² (array axes; NaN if none)
     covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
-    #: sub-pixel estimate used: "quadric", "parabola" or "parabola-fallback" (quadric rejected); "" if none
+    #: sub-pixel estimate used: "gradient", "quadric", "parabola" or "parabola-fallback" (quadric
+    #: rejected); "" if none
     peak_fit: str = ""
 
     @property
@@ -546,6 +556,68 @@ def quadric_vertex(z3, max_move: float = 1.0):
     return float(dr), float(dc), h, True
 
 
+def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
+    """Sub-cell offset (δ_r, δ_c) of E relative to P placed at ``origin``, by least-squares alignment:
+    ``(δ_r, δ_c, ok)``.
+
+    Pairs E[i + o0, j + o1] with P[i, j] (``origin`` = (o0, o1), the grid peak's placement) and fits,
+    over the pixels valid in both whose axis neighbours are valid in P,
+
+        E ≈ a·P + b + c_r·g_r + c_c·g_c,     δ = −(c_r, c_c)/a
+
+    the first-order expansion of E(m) = a·P(m − δ) + b (an affine change of brightness and a shift δ),
+    with g = ∇P the prediction's central-difference gradient.  Only the prediction's: it carries no
+    photo noise (the mean of both images' gradients converges in fewer steps but puts the photo's
+    noise into the regressors, which doubled the s16-50m Monte Carlo's worst maplet-space bias, 0.046 →
+    0.109 px).  Why (issue #15): a peak read off a sampled
+    correlation surface — parabola or quadric — is biased wherever the surface is not symmetric about
+    its maximum, and a correlation surface of shaded terrain over a masked window is not: at a
+    perfect alignment (E = a·P + b) the 3×3 quadric still moves by up to 0.05 px, and re-centring
+    cannot remove it.  This estimate is exactly zero there whatever the gradients' errors, so a loop
+    that re-extracts (or re-renders) until it is below a tolerance stops at the least-squares
+    alignment.  ``ok`` is False (δ NaN) with fewer than 8 usable pixels, a singular system, a
+    non-positive gain a, or |δ| > ``max_move`` along an axis (outside the linear range).
+    """
+    nan = (math.nan, math.nan, False)
+    o0, o1 = int(origin[0]), int(origin[1])
+    hp, wp = p.shape
+    he, we = e.shape
+    # P rows i with 1 ≤ i ≤ hp − 2 (central differences) whose E row i + o0 is inside E
+    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
+    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
+    if i1 - i0 < 1 or j1 - j0 < 1:
+        return nan
+
+    def win(a, di, dj, oi=0, oj=0):
+        return a[i0 + oi + di : i1 + oi + di, j0 + oj + dj : j1 + oj + dj]
+
+    ok = win(mp, 0, 0) & win(me, 0, 0, o0, o1)
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ok &= win(mp, di, dj)
+    if np.count_nonzero(ok) < 8:
+        return nan
+    pv, ev = win(p, 0, 0)[ok], win(e, 0, 0, o0, o1)[ok]
+    gr = 0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok]
+    gc = 0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok]
+    pm, em = pv.mean(), ev.mean()
+    pc, ec = pv - pm, ev - em  # centring removes b
+    if not float(pc @ pc) > 0.0:
+        return nan
+    gr, gc = gr - gr.mean(), gc - gc.mean()
+    m = np.stack([pc, gr, gc], axis=1)
+    try:
+        coef = np.linalg.solve(m.T @ m, m.T @ ec)
+    except np.linalg.LinAlgError:
+        return nan
+    a, cr, cc = (float(x) for x in coef)
+    if not (a > 0.0 and math.isfinite(cr) and math.isfinite(cc)):
+        return nan
+    dr, dc = -cr / a, -cc / a
+    if not (abs(dr) <= max_move and abs(dc) <= max_move):
+        return nan
+    return dr, dc, True
+
+
 def resampled_noise_footprint(pixels_per_cell: float) -> float:
     """Cells per independent noise sample of a photo resampled bilinearly onto cells of
     ``pixels_per_cell`` pixels (linear; √|det J_xy| times the spacing n for binned maplet cells).
@@ -613,7 +685,7 @@ def _find_peak(s, corr_min, strict_8, peak):
         return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
     qr, qc, h, q_ok = quadric_vertex(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2])
     status = "ok" if pk >= corr_min else "low-correlation"
-    if peak == "quadric" and q_ok:
+    if peak != "parabola" and q_ok:  # "gradient" refines it in correlate()
         return status, pk, (r0, c0), (qr, qc), h, "quadric"
     # SPC's two parabolas (|δ| ≤ ½ for the strict maximum checked above)
     dr = _vertex(up, pk, down)
@@ -693,6 +765,12 @@ def correlate(
     surf, cnts = ncc_surface(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
     status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     k = opts.grid_half
+    if opts.peak == "gradient" and status in ("ok", "low-correlation"):
+        g_r, g_c, g_ok = gradient_offset(
+            eb, meb, pb, mpb, (origin[0] + idx[0] - k, origin[1] + idx[1] - k)
+        )
+        if g_ok:
+            dr, dc, fit = g_r, g_c, "gradient"
     cov = np.full((2, 2), np.nan)
     if idx is None or status == "not-found":
         off = np.full(2, np.nan)

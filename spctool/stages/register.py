@@ -105,7 +105,13 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.stages.correlate import CorrelateOptions, Correlation, correlate, resampled_noise_footprint
+from spctool.stages.correlate import (
+    PEAK_METHODS,
+    CorrelateOptions,
+    Correlation,
+    correlate,
+    resampled_noise_footprint,
+)
 from spctool.stages.extract import (
     ZENITH_EPS,
     ExtractOptions,
@@ -154,6 +160,11 @@ class RegisterOptions:
     * ``converge_tol`` (px, 0.005) / ``converge_max`` (10) — the final full-resolution stage (module
       docstring): repeat the last spacing-1 step until the estimate moves by less than the tolerance,
       at most this many extra steps (0: the schedule exactly, as S16/SPC run it).
+    * ``converge_peak`` — the sub-pixel estimator of that stage: ``"gradient"`` (default:
+      least-squares alignment at the grid peak, exactly zero when prediction and photo agree, so the
+      loop stops at the least-squares alignment; :func:`spctool.stages.correlate.gradient_offset`) or
+      ``"quadric"`` / ``"parabola"`` (as ``peak``; a vertex read off an asymmetric correlation surface
+      keeps a bias of up to 0.05 px that re-centring cannot remove).
     * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (True).
     * ``edge_retries`` — S16 driver: a step whose peak is on the border of the grid (``edge-peak``)
       moves to that border maximum and is repeated, at most this many times per step (0: S16, which
@@ -197,6 +208,7 @@ class RegisterOptions:
     peak: str = "quadric"
     converge_tol: float = 0.005
     converge_max: int = 10
+    converge_peak: str = "gradient"
     fail_fast: bool = True
     edge_retries: int = 2
     pose_update: bool = True
@@ -230,6 +242,10 @@ class RegisterOptions:
             raise SpcUsageError(f"rerender_tol must be >= 0, got {self.rerender_tol}")
         if not float(self.rerender_tol_coarse) >= 0.0:
             raise SpcUsageError(f"rerender_tol_coarse must be >= 0, got {self.rerender_tol_coarse}")
+        if self.converge_peak not in PEAK_METHODS:
+            raise SpcUsageError(
+                f"converge_peak must be one of {', '.join(PEAK_METHODS)}, got {self.converge_peak!r}"
+            )
         if self.template_shading not in ("smooth", "facet"):
             raise SpcUsageError(f"template_shading must be smooth or facet, got {self.template_shading!r}")
         if self.threads is not None and int(self.threads) < 1:
@@ -460,6 +476,8 @@ class Registrar:
         )
         self.landmarks = [_Landmark(m, str(n)) for m, n in zip(maplets, names)]
         self._copts = self.options.correlate_options
+        #: the converged stage's correlation settings (its sub-pixel estimator)
+        self._copts_final = dataclasses.replace(self._copts, peak=self.options.converge_peak)
 
     def __len__(self):
         return len(self.landmarks)
@@ -489,13 +507,19 @@ class Registrar:
         return lm.pred
 
     # -- one step ------------------------------------------------------------------------------
-    def step(self, i: int, camera, center, spacing: int, *, apply_criteria: bool = False) -> LandmarkStep:
-        """Correlate landmark ``i`` with V placed at pixel ``center`` (sample, line), spacing n."""
+    def step(
+        self, i: int, camera, center, spacing: int, *, apply_criteria: bool = False, final: bool = False
+    ) -> LandmarkStep:
+        """Correlate landmark ``i`` with V placed at pixel ``center`` (sample, line), spacing n
+        (``final``: a step of the converged stage, with ``converge_peak``'s estimator)."""
+        copts = self._copts_final if final else self._copts
         if self.options.space == "image":
-            return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing)
-        return self._maplet_step(i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria)
+            return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing, copts)
+        return self._maplet_step(
+            i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria, copts
+        )
 
-    def _maplet_step(self, i, camera, center, spacing, apply_criteria):
+    def _maplet_step(self, i, camera, center, spacing, apply_criteria, copts):
         lm = self.landmarks[i]
         ext = self.extraction(i, camera, center, apply_criteria)
         pred = self.prediction(i, camera)
@@ -507,7 +531,7 @@ class Registrar:
             extracted_valid=ext.valid,
             predicted_valid=pred.lit,
             spacing=spacing,
-            options=self._copts,
+            options=copts,
             noise_footprint=resampled_noise_footprint(h_bin) if h_bin > 0 else 1.0,
         )
         status = corr.status if ext.status == "ok" else ext.status
@@ -687,7 +711,7 @@ class Registrar:
         l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
         return s0, s1, l0, l1
 
-    def _image_step(self, i, camera, center, spacing):
+    def _image_step(self, i, camera, center, spacing, copts):
         lm = self.landmarks[i]
         c0 = np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2)
         disp = center - c0
@@ -737,7 +761,7 @@ class Registrar:
         p_anchor = (a_l - l0, a_s - s0)
         e_anchor = (a_l + di_l - cl_lo, a_s + di_s - cs_lo)
         copts = dataclasses.replace(
-            self._copts, min_value=None, bin_min_fraction=self.options.image_bin_fraction
+            copts, min_value=None, bin_min_fraction=self.options.image_bin_fraction
         )
         corr = correlate(
             crop,
@@ -1017,11 +1041,38 @@ def _converges(steps, opts) -> bool:
 _CYCLE_FACTOR = 20.0
 
 
+def _broyden_step(jac, f, dc, df):
+    """The secant (Broyden) update of the final stage's Jacobian estimate ``jac`` of F(c) = (where the
+    step says V is) − c, given the last move ``dc`` and the change ``df`` of F; then the step −jac⁻¹·F.
+    Falls back to the plain step F (jac = −I) when the update leaves the Jacobian far from −I (a gain
+    outside 0.2–5 on an axis, a turn, or a singular matrix): the secant then measured noise, not gain."""
+    minus_i = -np.eye(2)
+    if dc is not None:
+        den = float(dc @ dc)
+        if den > 0.0:
+            jac = jac + np.outer(df - jac @ dc, dc) / den
+    g = -jac
+    eig = np.linalg.eigvals(g)
+    if not (np.all(np.isfinite(eig)) and np.all(np.abs(eig.imag) <= 0.5 * np.abs(eig.real))):
+        return minus_i, f.copy()
+    if not (np.all(eig.real >= 0.2) and np.all(eig.real <= 5.0)):
+        return minus_i, f.copy()
+    return jac, np.linalg.solve(g, f)
+
+
 def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
     """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
-    than ``converge_tol`` (``moved``: the move of the step that produced ``c``).  Returns
+    than ``converge_tol`` (``moved``: the move of the step that produced ``c``; the stage runs at least
+    once when its estimator ``converge_peak`` is not the schedule's ``peak``).  Returns
     ``(status, c, step)``: ``"ok"``; a failed step's status; or ``"not-converged"`` after
     ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
+
+    The moves are secant (Broyden) steps on F(c) = (where the step puts V) − c, whose zero is the
+    converged estimate: the first is the plain step F, later ones divide by the gain the previous steps
+    measured (a least-squares alignment whose central-difference gradients underestimate a sharp
+    template's slope overshoots by up to 1.7×, which plain steps would turn into a slow oscillation).
+    The zero, and so the result, does not depend on the steps taken; ``halve_shift`` keeps plain
+    half steps.
 
     A cycle — the estimate goes round two, three or four places, as an image-space template
     re-rendered at each sub-pixel placement can make it (0.01–0.09 px in the s16-50m Monte Carlo) —
@@ -1030,18 +1081,32 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
     the converged estimate (``ok``)."""
     opts = reg.options
     tol = opts.converge_tol
+    if opts.converge_peak != opts.peak:
+        moved = math.inf  # at least one step reads the estimate with the stage's own estimator
     st_ok = None
     hist = [np.asarray(c, dtype=np.float64)]
+    jac = -np.eye(2)
+    prev = None  # (c, F) of the previous step
     k = 0
     while not moved < tol:
         if k >= opts.converge_max:
             return "not-converged", c, st_ok
-        st = reg.step(i, camera, c, 1)
+        st = reg.step(i, camera, c, 1, final=True)
         _record(result, last, i, st, opts.keep_images)
         k += 1
         if not st.ok:
             return st.status, c, st_ok
-        new = st.center + factor * st.shift
+        f = st.center + st.shift - c
+        if factor != 1.0:
+            move = factor * f
+        else:
+            dc, df = (None, None) if prev is None else (c - prev[0], f - prev[1])
+            jac, move = _broyden_step(jac, f, dc, df)
+            scale = float(np.hypot(*move))
+            if scale > 1.0:  # never more than a pixel per step (the linear range of the estimator)
+                move = move / scale
+        prev = (c, f)
+        new = c + move
         moved = float(np.hypot(*(new - c)))
         st_ok = st
         back = [j for j in range(len(hist) - 1) if np.hypot(*(new - hist[j])) < tol]
