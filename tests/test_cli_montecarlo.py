@@ -52,7 +52,7 @@ def test_json_report(run_cli, scene_file):
     assert row["ok"] == 3 and abs(row["sample_mean"]) < 0.3 and abs(row["line_mean"]) < 0.3
     assert (one["config"]["seed"], one["config"]["sampling"], one["config"]["fields"]) == (7, "lhs", "cell")
     steps = [n for _, n in one["config"]["plan"][0]["steps"]]
-    assert steps == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1, 1]
+    assert steps == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1]
     assert set(one["checks"]) == {"s16_table3", "image_targets", "image_targets_per_landmark"}
     assert len(one["s16_table3"]["landmarks"]) == 12
     assert one["timing"]["samples"] == 3

@@ -272,13 +272,15 @@ def test_error_is_truth_minus_register(scene):
 
 def test_default_plans():
     (o,) = mc.default_plan("maplet")
-    assert [n for _, n in o.steps] == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1, 1]
+    assert [n for _, n in o.steps] == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1]  # refine = 1, then converged
+    assert o.converge_max > 0 and o.converge_peak == "gradient"
     assert o.extract.linearized and o.extract.criteria is None and o.schedule == "retina_s16"
     (s16,) = mc.default_plan("maplet", refine=0)
     assert s16.steps is None and s16.s16_spacings == (10, 9, 8, 7, 6, 5, 4, 3, 2, 1)
     coarse, fine = mc.default_plan("image", refine=3)
     assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
     assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]
+    assert coarse.converge_max == 0 and fine.converge_max > 0  # the fine phase ends converged
     assert len(mc.default_plan("image", refine=0)) == 1
     with pytest.raises(SpcUsageError):
         mc.default_plan("pixel")

@@ -154,11 +154,13 @@ def register(cli: click.Group) -> None:
     @click.option(
         "--refine",
         type=click.IntRange(min=0),
-        default=2,
+        default=1,
         show_default=True,
         metavar="N",
         help="Refinement steps at L = 1 that re-extract (maplet) or re-render (image) at the current "
-        "estimate; maplet space with 0 is the schedule of Shoemaker et al. 2016 exactly.",
+        "estimate, before register's converged stage (least-squares alignment until the estimate "
+        "moves < 0.005 px); maplet space with 0 is the schedule of Shoemaker et al. 2016 followed "
+        "by that stage.",
     )
     @click.option(
         "--jobs",

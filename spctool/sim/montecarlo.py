@@ -283,7 +283,7 @@ class MonteCarloConfig:
         return [int(n) for o in self.plan for k, n in schedule_steps(o) if k == "align"]
 
 
-def default_plan(space: str = "maplet", refine: int = 2, **changes) -> tuple[RegisterOptions, ...]:
+def default_plan(space: str = "maplet", refine: int = 1, **changes) -> tuple[RegisterOptions, ...]:
     """The registration of one landmark in the study.
 
     * ``"maplet"`` — S16's driver (``retina_s16``: L = 10 … 1, ±5L cells, ρ ≥ 0.3, no pose update) with
@@ -293,7 +293,8 @@ def default_plan(space: str = "maplet", refine: int = 2, **changes) -> tuple[Reg
     * ``"image"`` — S16's image-space direction (Retina; S16 gives no schedule): a coarse search at
       L = 4, 2, 1 on a 25 × 25 grid (±48 px at L = 4: the search is not limited by the maplet) with the
       template rendered once (re-rendered only if its sub-pixel placement moves by more than half a bin),
-      then ``refine`` steps at L = 1 that re-render the template at the current estimate every time.
+      then ``refine`` steps at L = 1 that re-render the template at the current estimate every time,
+      ending with register's converged stage (the coarse phase then runs its schedule only).
 
     ``changes`` are applied to every phase's :class:`RegisterOptions`.
     """
@@ -320,6 +321,8 @@ def default_plan(space: str = "maplet", refine: int = 2, **changes) -> tuple[Reg
             grid_half=12,
             rerender_tol=0.5,
         )
+        if refine:  # the fine phase ends converged; the coarse one only acquires
+            coarse["converge_max"] = 0
         coarse.update(changes)
         plan = [RegisterOptions(**coarse)]
         if refine:
