@@ -184,12 +184,12 @@ class RegisterOptions:
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
-      (``"smooth"``, the default, | ``"facet"``; chosen on the two independent worlds of issue #15,
-      faceted and smooth truth, two-pass image-space rms / max in px, smooth vs facet shading —
-      tests' world (27 landmarks): facet truth 0.051 / 0.097 vs 0.054 / 0.133, smooth truth
-      0.050 / 0.099 vs 0.053 / 0.135; benchmark world (96): facet truth 0.038 / 0.091 vs
-      0.037 / 0.088, smooth truth 0.038 / 0.091 vs 0.037 / 0.087 — facet's gain on one world is
-      < 0.001 px, its loss on the other 0.003 px rms and 0.035 px max), ``threads`` (landmarks
+      (``"smooth"``, the default, | ``"facet"``; chosen on the two independent worlds of issue #15
+      and the s16-50m Monte Carlo, two-pass image-space rms in px, smooth vs facet — tests' world
+      (27 landmarks): 0.029 vs 0.024 (facet truth), 0.028 vs 0.024 (smooth truth); benchmark world
+      (96): 0.019 vs 0.020 for both truths; but facet normals differentiate height noise, and with the
+      Monte Carlo's 3.33 mm height errors on 1 cm cells 10 of 12 landmarks end low-correlation —
+      README "Template shading"), ``threads`` (landmarks
       registered in parallel by :func:`register`: None = numba's thread count; results do not depend
       on it), ``template_margin`` (px
       added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
