@@ -267,12 +267,24 @@ def cell_tops(h, valid):
 def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
     """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none).
 
+    :func:`_march` without a horizon bound.
+    """
+    return _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, cmax, False)
+
+
+@njit(cache=True, forceinline=True)
+def _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bound, use_bound):
+    """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none).
+
     The ray is clipped to the grid box and to z ≤ hmax, then stepped from grid line to grid line
     (integer counters, robust to rounding; only the line just crossed is recomputed).  A cell whose ray
     segment lies above ``cmax`` (:func:`cell_tops`: its highest corner plus a margin far above
     rounding, −inf where a corner is missing, which the crossing never enters) is passed over: the
     bilinear surface never exceeds its corners.  Inside a cell the crossing is the exact root of the
     quadratic the ray meets.
+
+    ``use_bound``: ``bound`` (n0 − 1, n1 − 1) is :func:`horizon_bound` for this ray's direction; the
+    march ends (nan) as soon as the ray is above it at the start of a cell's segment (the same answer).
     """
     n0, n1 = h.shape
     t_lo = t_min
@@ -348,6 +360,8 @@ def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t
             i = min(max(i, 0), n0 - 2)
             j = int(math.floor(w0 + tm * dw))
             j = min(max(j, 0), n1 - 2)
+            if use_bound and z0 + t_a * dz > bound[i, j]:
+                return math.nan  # above its horizon: no crossing ahead
             if z0 + t_a * dz > cmax[i, j] and z0 + t_b * dz > cmax[i, j]:
                 pass  # the segment passes above the cell's highest corner
             elif valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
@@ -433,3 +447,59 @@ def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
             t_min[m],
             t_max[m],
         )
+
+
+@njit(cache=True, nogil=True)
+def horizon_bound(tops, au, aw, az, out):
+    """out[i, j] ≥ top(c) − z_c for every cell c a ray leaving any point of cell (i, j) along the direction
+    (au, aw, az) (index units, heights in cells) can pass over, where z_c is how much the ray has risen
+    when it enters c: a ray starting at least out[i, j] high (strictly above, with ``tops`` =
+    :func:`cell_tops`, margin included) never meets the terrain.  +inf (no bound) unless the ray rises.
+
+    The shadow ray's early exit (S16 "Future Retina development", issue 17): the same sweep as
+    ``_upwind_max`` (one column at a time along the dominant axis, farthest toward the Sun first; a
+    column changes the minor row by at most one, plus a row of margin at corners), with the rise
+    counted: a ray entering column c in row b crosses the whole column (one unit of the dominant
+    axis, i.e. a rise of ``az / max(|au|, |aw|)``, the ray's rise per unit of the dominant axis, cut
+    by 1e-12 to stay conservative under rounding) before it enters column c ± 1 in rows b − 2 … b + 2.
+    ``entry[c, b]`` bounds rays entering column c at its near edge in row b; ``out`` rays starting
+    anywhere in the cell (no rise before the next column).
+    """
+    n0, n1 = tops.shape
+    big = max(abs(au), abs(aw))
+    if not az > 0.0:
+        out[:, :] = np.inf
+        return
+    if big == 0.0:  # straight up: the ray stays in its cell
+        out[:, :] = tops
+        return
+    rise = (az / big) * (1.0 - 1e-12)
+    major0 = abs(au) >= abs(aw)
+    na = n0 if major0 else n1
+    nb = n1 if major0 else n0
+    step = 1 if (au if major0 else aw) > 0.0 else -1
+    entry = np.empty((na, nb))
+    for k in range(na):
+        a = na - 1 - k if step > 0 else k
+        nxt = a + step
+        for b in range(nb):
+            own = -np.inf
+            for db in range(-1, 2):
+                bb = b + db
+                if 0 <= bb < nb:
+                    v = tops[a, bb] if major0 else tops[bb, a]
+                    if v > own:
+                        own = v
+            ahead = -np.inf
+            if 0 <= nxt < na:
+                for db in range(-2, 3):
+                    bb = b + db
+                    if 0 <= bb < nb:
+                        v = entry[nxt, bb]
+                        if v > ahead:
+                            ahead = v
+            entry[a, b] = max(own, ahead - rise)
+            if major0:
+                out[a, b] = max(own, ahead)
+            else:
+                out[b, a] = max(own, ahead)

@@ -63,7 +63,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import _first_crossing, cell_tops
+from spctool.geometry._heightkernels import _first_crossing, _march, cell_tops, horizon_bound
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -438,7 +438,7 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    surf, geom, sh,
+    horizon, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
@@ -446,7 +446,8 @@ def _patch_ray(
     split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
     (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
     where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
-    answer, fewer cells)."""
+    answer, fewer cells); ``horizon`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the shadow
+    march ends where the ray is above it (+inf: no shortcut, the reference)."""
     surf[k] = SKY
     sh[k] = False
     if not ok[k]:
@@ -557,9 +558,9 @@ def _patch_ray(
         if tf >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _first_crossing(
+            tp = _march(
                 maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
-                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf,
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf, horizon[p, : n - 1, : n - 1], True,
             )  # fmt: skip
             if math.isfinite(tp):
                 sh[k] = True
@@ -611,7 +612,7 @@ def _upwind_max(tops, au, aw, out):
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    surf, geom, sh,
+    horizon, surf, geom, sh,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
     for k in range(dirs.shape[0]):
@@ -632,6 +633,7 @@ def _fused_rays(
             tops,
             ns,
             upmax,
+            horizon,
             surf,
             geom,
             sh,
@@ -673,33 +675,38 @@ class _PatchSet:
     def __len__(self):
         return len(self.patches)
 
-    def fused_arrays(self, sun=None):
+    def fused_arrays(self, sun=None, fast=True):
         """The patches packed for :func:`_patch_ray` (built once per set), with each patch's
-        :func:`_upwind_max` for the unit Sun direction ``sun`` (+inf, no effect, when None).
+        :func:`_upwind_max` and ``horizon_bound`` for the unit Sun direction ``sun`` (+inf, no effect,
+        when None; ``fast=False``: no horizon shortcut, the reference march).
 
         ``geo`` (P, 21): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
         row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20);
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
-        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax`` (P, n − 1, n − 1).
+        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon`` (P, n − 1, n − 1).
         """
-        return self._packed() + (self._upmax(sun),)
+        up, hor = self._upmax(sun)
+        return self._packed() + (up, hor if fast else np.full_like(hor, np.inf))
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
         if self._up is None or self._up[0] != key:
             nmax = max(p.heights.shape[0] for p in self.patches)
             up = np.full((len(self), nmax - 1, nmax - 1), np.inf)
+            hor = np.full((len(self), nmax - 1, nmax - 1), np.inf)
             if sun is not None:
                 for k, p in enumerate(self.patches):
                     n = p.heights.shape[0]
-                    su, sw, _ = np.asarray(sun, dtype=np.float64) @ p.rotation
+                    su, sw, sz = np.asarray(sun, dtype=np.float64) @ p.rotation
                     part = np.empty((n - 1, n - 1))
                     _upwind_max(p.cell_tops, float(su), float(sw), part)
                     up[k, : n - 1, : n - 1] = part
-            self._up = (key, up)
-        return self._up[1]
+                    horizon_bound(p.cell_tops, float(su), float(sw), float(sz), part)
+                    hor[k, : n - 1, : n - 1] = part
+            self._up = (key, up, hor)
+        return self._up[1], self._up[2]
 
     def _packed(self):
         if self._fused is None:
@@ -1237,8 +1244,9 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
     return surface, geom, sh
 
 
-def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions):
-    """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel."""
+def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True):
+    """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
+    without the exact shortcuts — the horizon bound — as the reference for them)."""
     n = dirs.shape[0]
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
@@ -1249,7 +1257,7 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
         sun_shade,
         options.shadows,
         options.shadow_offset_cells,
-        pset.fused_arrays(sun_shade),
+        pset.fused_arrays(sun_shade, fast),
         threads=options.threads,
         facet=options.shading == "facet",
     )
@@ -1267,9 +1275,10 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
 
 
 def _render(
-    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None
+    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None, fast=True
 ) -> Rendering:
-    """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path)."""
+    """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path),
+    ``fast=False`` the fused path without its exact shortcuts (the reference for them)."""
     options = options or RenderOptions()
     sun = _vec3(sun, "sun")
     sun = sun / np.linalg.norm(sun)
@@ -1307,7 +1316,7 @@ def _render(
             dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         ok = np.all(np.isfinite(dirs), axis=1)
         if use_fused:
-            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options)
+            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast)
         else:
             hits = trace(
                 origin,
