@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 from numba import njit
+from numba.core import cgutils
+from numba.extending import intrinsic, overload
 
 
 @njit(cache=True, inline="always")
@@ -231,14 +233,48 @@ def normals(hx, hy, ux, uy, uz, out):
         out[m, 2] = n2 * inv
 
 
+@intrinsic
+def borrowed(typingctx, ary):
+    """The array ``ary`` as a view without a reference count (meminfo NULL), for a kernel's per-ray helpers.
+
+    Numba increments and decrements (atomically) the reference count of every array argument of every
+    call, inlined or not: a per-ray helper with a dozen array arguments paid dozens of atomic operations
+    per ray, more than its arithmetic.  A view without a meminfo skips them (a NULL test instead).  Only
+    valid while the caller holds ``ary``: use it inside one kernel call, never return or store it.
+    """
+
+    def codegen(context, builder, sig, args):
+        view = cgutils.create_struct_proxy(sig.return_type)(context, builder, value=args[0])
+        view.meminfo = cgutils.get_null_value(view.meminfo.type)
+        return view._getvalue()
+
+    return ary(ary), codegen
+
+
+def _ix(a, p, i, j):
+    """a[i, j] of a 2-D grid, a[p, i, j] of a stack of grids (compiled per array type, below)."""
+    return a[i, j] if a.ndim == 2 else a[p, i, j]
+
+
+@overload(_ix, inline="always")
+def _ix_impl(a, p, i, j):
+    # Stacks of patches are indexed in place: a slice per ray (a new array view) would cost an atomic
+    # reference count increment and decrement, which is most of a short march.
+    if a.ndim == 2:
+        return lambda a, p, i, j: a[i, j]
+    return lambda a, p, i, j: a[p, i, j]
+
+
 @njit(cache=True, inline="always")
-def _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t):
-    """Ray height minus bilinear terrain height of cell (i, j) at parameter t."""
+def _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t):
+    """Ray height minus bilinear terrain height of cell (i, j) (of grid p of a stack) at parameter t."""
     fu = u0 + t * du - i
     fw = w0 + t * dw - j
     gu = 1.0 - fu
     gw = 1.0 - fw
-    terrain = gw * (gu * h[i, j] + fu * h[i + 1, j]) + fw * (gu * h[i, j + 1] + fu * h[i + 1, j + 1])
+    terrain = gw * (gu * _ix(h, p, i, j) + fu * _ix(h, p, i + 1, j)) + fw * (
+        gu * _ix(h, p, i, j + 1) + fu * _ix(h, p, i + 1, j + 1)
+    )
     return z0 + t * dz - terrain
 
 
@@ -269,11 +305,12 @@ def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t
 
     :func:`_march` without a horizon bound.
     """
-    return _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, cmax, False)
+    n0, n1 = h.shape
+    return _march(h, valid, cmax, 0, n0, n1, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, cmax, False)
 
 
 @njit(cache=True, forceinline=True)
-def _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bound, use_bound):
+def _march(h, valid, cmax, p, n0, n1, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bound, use_bound):
     """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none).
 
     The ray is clipped to the grid box and to z ≤ hmax, then stepped from grid line to grid line
@@ -285,8 +322,9 @@ def _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bou
 
     ``use_bound``: ``bound`` (n0 − 1, n1 − 1) is :func:`horizon_bound` for this ray's direction; the
     march ends (nan) as soon as the ray is above it at the start of a cell's segment (the same answer).
+    The grids are (n0, n1) arrays, or stacks (P, ≥ n0, ≥ n1) of which grid ``p`` is used (its first n0
+    rows and n1 columns).
     """
-    n0, n1 = h.shape
     t_lo = t_min
     t_hi = t_max
     # Clip to the grid box 0 <= u <= n0-1, 0 <= w <= n1-1 ...
@@ -360,19 +398,24 @@ def _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bou
             i = min(max(i, 0), n0 - 2)
             j = int(math.floor(w0 + tm * dw))
             j = min(max(j, 0), n1 - 2)
-            if use_bound and z0 + t_a * dz > bound[i, j]:
+            if use_bound and z0 + t_a * dz > _ix(bound, p, i, j):
                 return math.nan  # above its horizon: no crossing ahead
-            if z0 + t_a * dz > cmax[i, j] and z0 + t_b * dz > cmax[i, j]:
+            if z0 + t_a * dz > _ix(cmax, p, i, j) and z0 + t_b * dz > _ix(cmax, p, i, j):
                 pass  # the segment passes above the cell's highest corner
-            elif valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
-                fa = _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_a)
+            elif (
+                _ix(valid, p, i, j)
+                and _ix(valid, p, i + 1, j)
+                and _ix(valid, p, i, j + 1)
+                and _ix(valid, p, i + 1, j + 1)
+            ):
+                fa = _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_a)
                 if fa < 0.0:
                     return t_a
                 # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
-                h00 = h[i, j]
-                a_lin = h[i + 1, j] - h00
-                b_lin = h[i, j + 1] - h00
-                twist = h[i + 1, j + 1] - h[i + 1, j] - h[i, j + 1] + h00
+                h00 = _ix(h, p, i, j)
+                a_lin = _ix(h, p, i + 1, j) - h00
+                b_lin = _ix(h, p, i, j + 1) - h00
+                twist = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
                 pa = u0 + t_a * du - i
                 qa = w0 + t_a * dw - j
                 a_coef = -twist * du * dw
@@ -383,7 +426,7 @@ def _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bou
                     s_v = -b_coef / (2.0 * a_coef)
                     if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
                         hi = t_a + s_v
-                if math.isnan(hi) and _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
+                if math.isnan(hi) and _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
                     hi = t_b
                 if not math.isnan(hi):
                     # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
@@ -400,7 +443,7 @@ def _march(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bou
                         mid = 0.5 * (lo + hi)
                         if mid <= lo or mid >= hi:
                             break
-                        if _cell_f(h, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
+                        if _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
                             hi = mid
                         else:
                             lo = mid

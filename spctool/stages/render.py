@@ -63,7 +63,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import _first_crossing, _march, cell_tops, horizon_bound
+from spctool.geometry._heightkernels import _first_crossing, _march, borrowed, cell_tops, horizon_bound
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -437,8 +437,8 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
-    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, surf, geom, sh,
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
+    upmax, horizon, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
@@ -471,9 +471,9 @@ def _patch_ray(
         if tmax >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _first_crossing(
-                maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
-                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
+            tp = _march(
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
             )  # fmt: skip
             if math.isfinite(tp) and tp < t:
                 t = tp
@@ -559,8 +559,8 @@ def _patch_ray(
             n = ns[p]
             q = geo[p, 18]
             tp = _march(
-                maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
-                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf, horizon[p, : n - 1, : n - 1], True,
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf, horizon, True,
             )  # fmt: skip
             if math.isfinite(tp):
                 sh[k] = True
@@ -615,6 +615,14 @@ def _fused_rays(
     horizon, surf, geom, sh,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
+    # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
+    # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
+    origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
+    sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
+    maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
+    upmax, horizon = borrowed(upmax), borrowed(horizon)
+    surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
+    hts = borrowed(maps[:, 0])
     for k in range(dirs.shape[0]):
         _patch_ray(
             k,
@@ -629,6 +637,7 @@ def _fused_rays(
             geo,
             boxes,
             maps,
+            hts,
             valids,
             tops,
             ns,
