@@ -129,3 +129,24 @@ def test_fast_render_equals_the_full_march(seed, emission, sun_elev, q, holes, s
         np.testing.assert_array_equal(fast.shadow, ref.shadow)
         np.testing.assert_array_equal(fast.surface, ref.surface)
         np.testing.assert_allclose(fast.radiance, ref.radiance, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("nss", [1, 2, 3, 4, 5, 7])
+def test_bin_subrays_equals_the_numpy_means_bit_for_bit(nss):
+    from spctool.geometry._rasterkernels import bin_subrays
+
+    rng = np.random.default_rng(nss)
+    nl, width = 7, 11
+    n = nl * width * nss * nss
+    r = rng.uniform(size=n) * rng.integers(0, 2, size=n)
+    hit = rng.uniform(size=n) > 0.3
+    sh = rng.uniform(size=n) > 0.7
+    surface = rng.integers(-2, 3, size=n).astype(np.int32)
+    rad, cov, shd = np.empty((nl, width)), np.empty((nl, width)), np.empty((nl, width))
+    sid = np.empty((nl, width), np.int16)
+    bin_subrays(r, hit, sh, surface, nss, rad, cov, shd, sid)
+    shape4 = (nl, nss, width, nss)
+    np.testing.assert_array_equal(rad, r.reshape(shape4).mean(axis=(1, 3)))
+    np.testing.assert_array_equal(cov, hit.reshape(shape4).sum(axis=(1, 3)) / nss**2)
+    np.testing.assert_array_equal(shd, sh.reshape(shape4).sum(axis=(1, 3)) / nss**2)
+    np.testing.assert_array_equal(sid, surface.reshape(shape4)[:, 0, :, 0])

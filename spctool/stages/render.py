@@ -64,6 +64,7 @@ import numpy as np
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
 from spctool.geometry._heightkernels import _first_crossing, _march, borrowed, cell_tops, horizon_bound
+from spctool.geometry._rasterkernels import bin_subrays
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -441,7 +442,8 @@ def _patch_ray(
     upmax, horizon, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
-    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
+    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
+    without ``ok`` or a finite direction are sky.
     ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
     split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
     (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
@@ -450,14 +452,14 @@ def _patch_ray(
     march ends where the ray is above it (+inf: no shortcut, the reference)."""
     surf[k] = SKY
     sh[k] = False
-    if not ok[k]:
+    d0 = dirs[k, 0]
+    d1 = dirs[k, 1]
+    d2 = dirs[k, 2]
+    if not (ok[k] and math.isfinite(d0) and math.isfinite(d1) and math.isfinite(d2)):
         return
     o0 = origin[0]
     o1 = origin[1]
     o2 = origin[2]
-    d0 = dirs[k, 0]
-    d1 = dirs[k, 1]
-    d2 = dirs[k, 2]
     npatch = geo.shape[0]
     t = np.inf
     best = -1
@@ -1323,10 +1325,11 @@ def _render(
             dirs = camera.pixel_to_direction_grid(ss.reshape(-1), ll.reshape(-1))
         else:
             dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
-        ok = np.all(np.isfinite(dirs), axis=1)
-        if use_fused:
+        if use_fused:  # the kernel makes rays without a finite direction sky
+            ok = np.ones(dirs.shape[0], bool)
             hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast)
         else:
+            ok = np.all(np.isfinite(dirs), axis=1)
             hits = trace(
                 origin,
                 np.where(ok[:, None], dirs, np.array([0.0, 0.0, 1.0])),
@@ -1345,15 +1348,13 @@ def _render(
             )
             r = shade(hits, dirs, sun, options=options, shadow=sh)
             hit, surface = hits.hit, hits.surface
-        sid[a:b] = surface.reshape(shape4)[:, 0, :, 0]
         if progress is not None:
             progress(b - a)
-        if nss == 1:  # one ray per pixel: the means below are the values themselves
-            rad[a:b] = r.reshape(b - a, width)
-            cov[a:b] = hit.reshape(b - a, width)
-            shd[a:b] = sh.reshape(b - a, width)
+        if nss < 8:  # pixel means of the sub-rays, bit for bit the NumPy means below
+            bin_subrays(r, hit, sh, surface, nss, rad[a:b], cov[a:b], shd[a:b], sid[a:b])
             continue
         k = nss * nss
+        sid[a:b] = surface.reshape(shape4)[:, 0, :, 0]
         rad[a:b] = r.reshape(shape4).mean(axis=(1, 3))
         cov[a:b] = hit.reshape(shape4).sum(axis=(1, 3)) / k
         shd[a:b] = sh.reshape(shape4).sum(axis=(1, 3)) / k
