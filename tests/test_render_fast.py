@@ -13,10 +13,11 @@
 
 import math
 
+import numba
 import numpy as np
 import pytest
 
-from spctool.geometry._heightkernels import cell_tops, horizon_bound
+from spctool.geometry._heightkernels import cell_tops, horizon_bound, intersect_rays, lit_from
 from spctool.geometry.camera import Camera
 from spctool.geometry.frames import orient_frame
 from spctool.sim.simulate import look_rotation
@@ -41,7 +42,8 @@ def test_horizon_bound_is_a_true_bound(azimuth, elevation):
     tops = cell_tops(np.where(valid, h, 0.0), valid)
     au, aw, az = _direction(azimuth, elevation)
     out = np.empty_like(tops)
-    horizon_bound(tops, au, aw, az, out)
+    entry = np.empty_like(tops)
+    horizon_bound(tops, au, aw, az, out, entry)
     assert np.all(out >= tops)
     rho = np.arange(0.0, 80.0, 0.005)  # horizontal travel
     rise = az / math.hypot(au, aw)  # per unit of horizontal travel
@@ -52,15 +54,70 @@ def test_horizon_bound_is_a_true_bound(azimuth, elevation):
         keep = (uu >= 0) & (uu < n0) & (ww >= 0) & (ww < n1)
         seen = tops[uu[keep].astype(int), ww[keep].astype(int)] - rise * rho[keep]
         assert seen.max() <= out[i, j] + 1e-12
+    # entry bounds: rays entering a column (along the dominant axis) at its near edge
+    major0 = abs(au) >= abs(aw)
+    for _ in range(300):
+        i, j = rng.integers(0, n0), rng.integers(0, n1)
+        if major0:
+            u, w = (float(i) if au > 0 else i + 1.0), j + rng.uniform()
+        else:
+            u, w = i + rng.uniform(), (float(j) if aw > 0 else j + 1.0)
+        r1 = rho + 1e-9  # just inside the column (at its edge a cell index would name the neighbour)
+        uu, ww = u + r1 * au / math.hypot(au, aw), w + r1 * aw / math.hypot(au, aw)
+        keep = (uu >= 0) & (uu < n0) & (ww >= 0) & (ww < n1)
+        seen = tops[uu[keep].astype(int), ww[keep].astype(int)] - rise * rho[keep]
+        assert seen.max() <= entry[i, j] + 1e-12
 
 
 def test_horizon_bound_special_directions():
     tops = np.arange(12.0).reshape(3, 4)
-    out = np.empty_like(tops)
-    horizon_bound(tops, 0.3, 0.4, -0.1, out)  # a descending ray: no bound
-    assert np.all(out == np.inf)
-    horizon_bound(tops, 0.0, 0.0, 1.0, out)  # straight up: its own cell
+    out, entry = np.empty_like(tops), np.empty_like(tops)
+    horizon_bound(tops, 0.3, 0.4, -0.1, out, entry)  # a descending ray: no bound
+    assert np.all(out == np.inf) and np.all(entry == np.inf)
+    horizon_bound(tops, 0.0, 0.0, 1.0, out, entry)  # straight up: its own cell
     np.testing.assert_array_equal(out, tops)
+
+
+@numba.njit
+def _lit_many(h, tops, entry, starts, d, out):
+    n0, n1 = h.shape
+    for k in range(starts.shape[0]):
+        u, w, z = starts[k]
+        out[k] = lit_from(h, tops, entry, 0, n0, n1, u, w, z, d[0], d[1], d[2])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_lit_from_never_declares_a_blocked_ray_lit(seed):
+    """Shadow rays from random points just above random terrains: wherever lit_from says "lit", the exact
+    march (heightfield.intersect_rays) finds no crossing; and it says so for most rays of a high Sun."""
+    rng = np.random.default_rng(seed)
+    n = 24
+    h = np.cumsum(rng.normal(size=(n, n)), 0) * 0.3 + rng.normal(size=(n, n)) * (0.2 + 0.3 * (seed % 3))
+    valid = np.ones((n, n), bool)
+    if seed % 2:
+        valid[rng.integers(0, n, 10), rng.integers(0, n, 10)] = False
+    h = np.where(valid, h, 0.0)
+    tops = cell_tops(h, valid)
+    el = [3.0, 15.0, 35.0, 55.0, 75.0][seed % 5]
+    au, aw, az = _direction(rng.uniform(0, 360), el)
+    out, entry = np.empty_like(tops), np.empty_like(tops)
+    horizon_bound(tops, au, aw, az, out, entry)
+    m = 4000
+    uw = rng.uniform(0, n - 1, size=(m, 2))
+    i, j = uw.astype(int).T
+    fu, fw = uw[:, 0] - i, uw[:, 1] - j
+    z = (1 - fw) * ((1 - fu) * h[i, j] + fu * h[i + 1, j])
+    z += fw * ((1 - fu) * h[i, j + 1] + fu * h[i + 1, j + 1])
+    ok = valid[i, j] & valid[i + 1, j] & valid[i, j + 1] & valid[i + 1, j + 1]  # points on full cells
+    starts = np.column_stack([uw, z + 1e-3])[ok]
+    d = np.array([au, aw, az]) * rng.uniform(0.5, 3.0)  # any scale of the direction
+    lit = np.empty(starts.shape[0], bool)
+    _lit_many(h, tops, entry, starts, d, lit)
+    dirs = np.broadcast_to(d, starts.shape)
+    t = np.empty(starts.shape[0])
+    intersect_rays(h, valid, starts, np.ascontiguousarray(dirs), np.zeros(len(t)), np.full(len(t), 1e9), t)
+    assert not np.any(lit & np.isfinite(t))
+    assert np.any(lit) or el < 35.0  # the shortcut does fire
 
 
 def _world(seed, emission, sun_elev, q, holes):

@@ -493,7 +493,7 @@ def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
 
 
 @njit(cache=True, nogil=True)
-def horizon_bound(tops, au, aw, az, out):
+def horizon_bound(tops, au, aw, az, out, entry_out):
     """out[i, j] ≥ top(c) − z_c for every cell c a ray leaving any point of cell (i, j) along the direction
     (au, aw, az) (index units, heights in cells) can pass over, where z_c is how much the ray has risen
     when it enters c: a ray starting at least out[i, j] high (strictly above, with ``tops`` =
@@ -505,16 +505,18 @@ def horizon_bound(tops, au, aw, az, out):
     counted: a ray entering column c in row b crosses the whole column (one unit of the dominant
     axis, i.e. a rise of ``az / max(|au|, |aw|)``, the ray's rise per unit of the dominant axis, cut
     by 1e-12 to stay conservative under rounding) before it enters column c ± 1 in rows b − 2 … b + 2.
-    ``entry[c, b]`` bounds rays entering column c at its near edge in row b; ``out`` rays starting
-    anywhere in the cell (no rise before the next column).
+    ``entry[c, b]`` bounds rays entering column c at its near edge in row b (returned in ``entry_out``,
+    indexed like ``tops``); ``out`` rays starting anywhere in the cell (no rise before the next column).
     """
     n0, n1 = tops.shape
     big = max(abs(au), abs(aw))
     if not az > 0.0:
         out[:, :] = np.inf
+        entry_out[:, :] = np.inf
         return
     if big == 0.0:  # straight up: the ray stays in its cell
         out[:, :] = tops
+        entry_out[:, :] = np.inf
         return
     rise = (az / big) * (1.0 - 1e-12)
     major0 = abs(au) >= abs(aw)
@@ -544,5 +546,72 @@ def horizon_bound(tops, au, aw, az, out):
             entry[a, b] = max(own, ahead - rise)
             if major0:
                 out[a, b] = max(own, ahead)
+                entry_out[a, b] = entry[a, b]
             else:
                 out[b, a] = max(own, ahead)
+                entry_out[b, a] = entry[a, b]
+
+
+@njit(cache=True, inline="always")
+def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
+    """True when the ray (u, w, z0) + t·(du, dw, dz), t ≥ 0, starting just above the terrain of its own cell,
+    provably meets no terrain: the march would find no crossing (a shadow ray's early exit).
+
+    Three conservative tests, all on exact geometry (``cmax`` = :func:`cell_tops` and ``entry`` =
+    :func:`horizon_bound`'s entry bounds for this direction carry margins far above rounding):
+
+    * its own cell: the ray rises faster than the bilinear surface can along it anywhere in the cell
+      (the directional slope is linear in the position, so its maximum is at a corner), so it stays
+      above the terrain there (it starts above it);
+    * the cells of its own column (along the dominant axis) in the next row or two: the ray rises
+      ``dz·t`` before it can reach them;
+    * everything from the next column on: the ray's height where it enters that column is above the
+      entry bound of the rows it can enter in.
+    """
+    if not dz > 0.0 or (du == 0.0 and dw == 0.0):
+        return False
+    i = min(max(int(math.floor(u)), 0), n0 - 2)
+    j = min(max(int(math.floor(w)), 0), n1 - 2)
+    # own cell: directional slope a·du + b·dw + c·(fw·du + fu·dw) at the four corners
+    h00 = _ix(h, p, i, j)
+    a = _ix(h, p, i + 1, j) - h00
+    b = _ix(h, p, i, j + 1) - h00
+    c = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
+    base = a * du + b * dw
+    smax = max(max(base, base + c * du), max(base + c * dw, base + c * (du + dw)))
+    if not dz > smax + 1e-12 * (abs(dz) + abs(smax)):
+        return False
+    major0 = abs(du) >= abs(dw)
+    dM = du if major0 else dw  # dominant (major) and minor components
+    dm = dw if major0 else du
+    cM = i if major0 else j
+    cm = j if major0 else i
+    pM = u if major0 else w
+    pm = w if major0 else u
+    nM = (n0 if major0 else n1) - 1  # cells along each axis
+    nm = (n1 if major0 else n0) - 1
+    # own column, the rows ahead along the minor axis
+    if dm != 0.0:
+        sm = 1 if dm > 0.0 else -1
+        gap = (cm + 1.0 - pm) if dm > 0.0 else (pm - cm)
+        for k in range(1, 3):
+            r = cm + k * sm
+            if 0 <= r < nm:
+                t = max(gap + (k - 1.0), 0.0) / abs(dm)
+                top = _ix(cmax, p, cM, r) if major0 else _ix(cmax, p, r, cM)
+                if not z0 + dz * t > top:
+                    return False
+    # the next column along the major axis, entered at t_e
+    sM = 1 if dM > 0.0 else -1
+    nxt = cM + sM
+    if 0 <= nxt < nM:
+        gapM = (cM + 1.0 - pM) if dM > 0.0 else (pM - cM)
+        t_e = max(gapM, 0.0) / abs(dM)
+        z_e = z0 + dz * t_e
+        r_e = int(math.floor(pm + dm * t_e))
+        for r in range(r_e - 1, r_e + 2):
+            if 0 <= r < nm:
+                bound = _ix(entry, p, nxt, r) if major0 else _ix(entry, p, r, nxt)
+                if not z_e > bound:
+                    return False
+    return True

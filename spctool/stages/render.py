@@ -63,7 +63,14 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import _first_crossing, _march, borrowed, cell_tops, horizon_bound
+from spctool.geometry._heightkernels import (
+    _first_crossing,
+    _march,
+    borrowed,
+    cell_tops,
+    horizon_bound,
+    lit_from,
+)
 from spctool.geometry._rasterkernels import bin_subrays
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
@@ -439,7 +446,7 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
-    upmax, horizon, surf, geom, sh,
+    upmax, horizon, entry, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
@@ -448,8 +455,10 @@ def _patch_ray(
     split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
     (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
     where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
-    answer, fewer cells); ``horizon`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the shadow
-    march ends where the ray is above it (+inf: no shortcut, the reference)."""
+    answer, fewer cells); ``horizon``, ``entry`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the
+    shadow march ends where the ray is above it, and ``lit_from`` declares a shadow ray lit without a march
+    where it provably clears its own cell and the entry bound of the next column (+inf: no shortcut,
+    the reference)."""
     surf[k] = SKY
     sh[k] = False
     d0 = dirs[k, 0]
@@ -534,13 +543,31 @@ def _patch_ray(
     geom[k, 3] = alb
     if not shadows or not (n0 * sun_lit[0] + n1 * sun_lit[1] + n2 * sun_lit[2] > 0.0):
         return
-    # cast shadow (shadowed): the ray toward the Sun from the hit's body point (HeightPatch.to_body)
+    # cast shadow (shadowed): first the own patch's quick answers — the ray rises above the highest cell
+    # ahead (upmax), or provably clears its own cell and its horizon (lit_from; shortcuts on where the
+    # horizon bound is finite) — with the Sun in maplet cells exactly as _slab_local computes it
+    inv = geo[p, 16]
+    b0 = (s0 * geo[p, 7] + s1 * geo[p, 10] + s2 * geo[p, 13]) * inv
+    b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
+    b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
+    own_lit = False
+    if b2 > 0.0:
+        top = upmax[p, i, j]
+        own_lit = z + offset > top
+        if not own_lit and horizon[p, i, j] < np.inf:
+            q = geo[p, 18]
+            own_lit = lit_from(hts, tops, entry, p, n, n, lx + q, ly + q, z + offset, b0, b1, b2)
+    if own_lit and npatch == 1:
+        return
+    # the ray toward the Sun from the hit's body point (HeightPatch.to_body)
     scale = geo[p, 17]
     x0 = geo[p, 4] + scale * (lx * geo[p, 7] + ly * geo[p, 8] + z * geo[p, 9])
     x1 = geo[p, 5] + scale * (lx * geo[p, 10] + ly * geo[p, 11] + z * geo[p, 12])
     x2 = geo[p, 6] + scale * (lx * geo[p, 13] + ly * geo[p, 14] + z * geo[p, 15])
     for p in range(npatch):
         own = p == best
+        if own and own_lit:
+            continue
         if not own and _sphere_miss(geo, p, x0, x1, x2, s0, s1, s2):
             continue
         # the box raised by the relief: for the own patch its exit is where the ray leaves the column
@@ -550,11 +577,8 @@ def _patch_ray(
             a1 = ly
             a2 = z + offset
             tn = 0.0
-            if b2 > 0.0:  # rising: above the highest cell ahead it can cross nothing
-                top = upmax[p, i, j]
-                if a2 > top:
-                    continue
-                tc = (top - a2) / b2
+            if b2 > 0.0:  # rising: the march ends above the highest cell ahead
+                tc = (upmax[p, i, j] - a2) / b2
                 if tc < tf:
                     tf = tc
         if tf >= tn:
@@ -614,7 +638,7 @@ def _upwind_max(tops, au, aw, out):
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, surf, geom, sh,
+    horizon, entry, surf, geom, sh,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
     # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
@@ -622,7 +646,7 @@ def _fused_rays(
     origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
     sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
     maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
-    upmax, horizon = borrowed(upmax), borrowed(horizon)
+    upmax, horizon, entry = borrowed(upmax), borrowed(horizon), borrowed(entry)
     surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
     hts = borrowed(maps[:, 0])
     for k in range(dirs.shape[0]):
@@ -645,6 +669,7 @@ def _fused_rays(
             ns,
             upmax,
             horizon,
+            entry,
             surf,
             geom,
             sh,
@@ -696,10 +721,12 @@ class _PatchSet:
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
-        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon`` (P, n − 1, n − 1).
+        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon``, ``entry`` (P, n − 1, n − 1).
         """
-        up, hor = self._upmax(sun)
-        return self._packed() + (up, hor if fast else np.full_like(hor, np.inf))
+        up, hor, ent = self._upmax(sun)
+        if not fast:
+            hor = ent = np.full_like(hor, np.inf)
+        return self._packed() + (up, hor, ent)
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
@@ -707,6 +734,7 @@ class _PatchSet:
             nmax = max(p.heights.shape[0] for p in self.patches)
             up = np.full((len(self), nmax - 1, nmax - 1), np.inf)
             hor = np.full((len(self), nmax - 1, nmax - 1), np.inf)
+            ent = np.full((len(self), nmax - 1, nmax - 1), np.inf)
             if sun is not None:
                 for k, p in enumerate(self.patches):
                     n = p.heights.shape[0]
@@ -714,10 +742,12 @@ class _PatchSet:
                     part = np.empty((n - 1, n - 1))
                     _upwind_max(p.cell_tops, float(su), float(sw), part)
                     up[k, : n - 1, : n - 1] = part
-                    horizon_bound(p.cell_tops, float(su), float(sw), float(sz), part)
+                    part2 = np.empty((n - 1, n - 1))
+                    horizon_bound(p.cell_tops, float(su), float(sw), float(sz), part, part2)
                     hor[k, : n - 1, : n - 1] = part
-            self._up = (key, up, hor)
-        return self._up[1], self._up[2]
+                    ent[k, : n - 1, : n - 1] = part2
+            self._up = (key, up, hor, ent)
+        return self._up[1:]
 
     def _packed(self):
         if self._fused is None:
