@@ -493,6 +493,48 @@ def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
 
 
 @njit(cache=True, nogil=True)
+def _upwind_max(tops, au, aw, out):
+    """out[i, j] ≥ the top of every cell a ray leaving cell (i, j) along the horizontal direction
+    (au, aw) (cells, axis 0 and 1) can pass over before it leaves the grid (a conservative superset).
+
+    Walk along the dominant axis, one column at a time toward the Sun: before it reaches the next
+    column the ray moves by at most one row (|minor| ≤ |major|), so it stays in rows j − 1 … j + 1 of
+    its own column and enters the next column in rows j − 2 … j + 2 (a row of margin for rays through
+    a corner); from there on the next column's values bound it.  Sun at the zenith: the cell itself.
+    """
+    n0, n1 = tops.shape
+    if au == 0.0 and aw == 0.0:
+        out[:, :] = tops
+        return
+    major0 = abs(au) >= abs(aw)
+    na = n0 if major0 else n1  # along the dominant axis
+    nb = n1 if major0 else n0
+    step = 1 if (au if major0 else aw) > 0.0 else -1
+    for k in range(na):
+        a = na - 1 - k if step > 0 else k  # the column farthest toward the Sun first
+        nxt = a + step
+        for b in range(nb):
+            m = -np.inf
+            for db in range(-1, 2):
+                bb = b + db
+                if 0 <= bb < nb:
+                    v = tops[a, bb] if major0 else tops[bb, a]
+                    if v > m:
+                        m = v
+            if 0 <= nxt < na:
+                for db in range(-2, 3):
+                    bb = b + db
+                    if 0 <= bb < nb:
+                        v = out[nxt, bb] if major0 else out[bb, nxt]
+                        if v > m:
+                            m = v
+            if major0:
+                out[a, b] = m
+            else:
+                out[b, a] = m
+
+
+@njit(cache=True, nogil=True)
 def horizon_bound(tops, au, aw, az, out, entry_out):
     """out[i, j] ≥ top(c) − z_c for every cell c a ray leaving any point of cell (i, j) along the direction
     (au, aw, az) (index units, heights in cells) can pass over, where z_c is how much the ray has risen
