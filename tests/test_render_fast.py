@@ -207,26 +207,3 @@ def test_bin_subrays_equals_the_numpy_means_bit_for_bit(nss):
     np.testing.assert_array_equal(cov, hit.reshape(shape4).sum(axis=(1, 3)) / nss**2)
     np.testing.assert_array_equal(shd, sh.reshape(shape4).sum(axis=(1, 3)) / nss**2)
     np.testing.assert_array_equal(sid, surface.reshape(shape4)[:, 0, :, 0])
-
-
-@pytest.mark.parametrize(
-    "seed, emission, sun_elev, q, ss",
-    [(2, 65.0, 8.0, 14, 1), (3, 70.0, 35.0, 10, 3), (6, 60.0, 20.0, 14, 2), (7, 65.0, 30.0, 30, 1),
-     (8, 75.0, 30.0, 30, 2), (4, 40.0, 3.0, 14, 2)],
-)  # fmt: skip
-def test_rasterised_hints_equal_the_full_march(monkeypatch, seed, emission, sun_elev, q, ss):
-    """The forward rasterisation (forced on) gives the full march's pictures; the fraction of pixels that
-    differ is reported and must be 0 on these rough, oblique worlds (a hint is only a starting block,
-    dropped near depth discontinuities)."""
-    import spctool.stages.render as rmod
-
-    monkeypatch.setattr(rmod, "RASTER_MIN_MARCH", 0.0)
-    patches, sun, cam = _world(seed, emission, sun_elev, q, True)
-    opts = RenderOptions(supersample=ss, shadows=True, ray_inverse="grid", threads=1)
-    hints = rmod._raster_hints(cam, patches[0], 1, 1, cam.npx, cam.nln, ss)
-    assert np.mean(hints[..., 0] >= 0) > 0.0
-    fast = render(cam, sun, None, patches[:1], opts)
-    ref = _render(cam, sun, None, patches[:1], opts, None, None, fused=True, fast=False)
-    differ = np.abs(fast.radiance - ref.radiance) > 1e-12
-    assert np.count_nonzero(differ) == 0
-    np.testing.assert_array_equal(fast.coverage, ref.coverage)

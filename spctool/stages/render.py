@@ -72,7 +72,7 @@ from spctool.geometry._heightkernels import (
     horizon_bound,
     lit_from,
 )
-from spctool.geometry._rasterkernels import bin_subrays, block_crossing, drop_discontinuous, raster_cells
+from spctool.geometry._rasterkernels import bin_subrays
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -447,13 +447,11 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
-    upmax, horizon, entry, hint, surf, geom, sh,
+    upmax, horizon, entry, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
-    without ``ok`` or a finite direction are sky.  ``hint`` (N, 2) or (0, 2): the cell (i, j) of patch 0
-    the forward rasterisation found for sub-ray k (−1: none) — its 3×3 block is marched first
-    (:func:`~spctool.geometry._rasterkernels.block_crossing`), the full march when that finds nothing.
+    without ``ok`` or a finite direction are sky.
     ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
     split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
     (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
@@ -485,17 +483,10 @@ def _patch_ray(
         if tmax >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = math.nan
-            if k < hint.shape[0] and hint[k, 0] >= 0:  # the rasterised cell's block first
-                tp = block_crossing(
-                    hts, valids, tops, p, n, geo[p, 19], geo[p, 20],
-                    a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, hint[k, 0], hint[k, 1],
-                )  # fmt: skip
-            if not math.isfinite(tp):
-                tp = _march(
-                    hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
-                    a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
-                )  # fmt: skip
+            tp = _march(
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
+            )  # fmt: skip
             if math.isfinite(tp) and tp < t:
                 t = tp
                 best = p
@@ -606,7 +597,7 @@ def _patch_ray(
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, entry, hint, surf, geom, sh,
+    horizon, entry, surf, geom, sh,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
     # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
@@ -614,7 +605,7 @@ def _fused_rays(
     origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
     sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
     maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
-    upmax, horizon, entry, hint = borrowed(upmax), borrowed(horizon), borrowed(entry), borrowed(hint)
+    upmax, horizon, entry = borrowed(upmax), borrowed(horizon), borrowed(entry)
     surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
     hts = borrowed(maps[:, 0])
     for k in range(dirs.shape[0]):
@@ -638,7 +629,6 @@ def _fused_rays(
             upmax,
             horizon,
             entry,
-            hint,
             surf,
             geom,
             sh,
@@ -1214,9 +1204,7 @@ def render(
     return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress)
 
 
-def _trace_fused(
-    origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False, hint=None
-):
+def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False):
     """(surface, geom, shadow) of sub-rays by :func:`_fused_rays`; windows of at least
     :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
     threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
@@ -1227,7 +1215,6 @@ def _trace_fused(
     origin, dirs, ok = _c64(origin), _c64(dirs), np.ascontiguousarray(ok, dtype=bool)
     sun_lit, sun = _c64(sun_lit), _c64(sun)
     shadows, offset, facet = bool(shadows), float(offset), bool(facet)
-    hint = np.full((0, 2), -1, np.int32) if hint is None else np.ascontiguousarray(hint, dtype=np.int32)
 
     def run(a, b):
         _fused_rays(
@@ -1240,7 +1227,6 @@ def _trace_fused(
             offset,
             facet,
             *arrays,
-            hint[a:b] if hint.shape[0] else hint,
             surface[a:b],
             geom[a:b],
             sh[a:b],
@@ -1258,7 +1244,7 @@ def _trace_fused(
     return surface, geom, sh
 
 
-def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True, hint=None):
+def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True):
     """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
     without the exact shortcuts — the horizon bound — as the reference for them)."""
     n = dirs.shape[0]
@@ -1274,7 +1260,6 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions,
         pset.fused_arrays(sun_shade, fast),
         threads=options.threads,
         facet=options.shading == "facet",
-        hint=hint,
     )
     hit = surface != SKY
     r = np.zeros(n)
@@ -1287,47 +1272,6 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions,
             rm = rm * g[:, 3]
         r[m] = np.where(sh[m], 0.0, rm)
     return hit, r, sh, surface
-
-
-#: mean horizontal march (cells) from which a one-patch render rasterises the patch first: half the relief
-#: times tan(emission) at the patch centre (near-nadir views march ~2 cells, which a hint cannot shorten)
-RASTER_MIN_MARCH = 4.0
-#: a depth discontinuity of the rasterisation: neighbouring sub-rays' cells more than this many cells apart;
-#: the sub-rays within RASTER_EDGE_RADIUS of one take the full march
-RASTER_JUMP = 2
-RASTER_EDGE_RADIUS = 2
-
-
-def _long_march(camera, patch) -> bool:
-    zlo, zhi = patch.height_range
-    e = camera.position - patch.v
-    cos_e = float(e @ patch.uz) / float(np.linalg.norm(e))
-    if not cos_e > 0.0:
-        return True
-    return 0.5 * (zhi - zlo) * math.sqrt(max(1.0 - cos_e * cos_e, 0.0)) / cos_e >= RASTER_MIN_MARCH
-
-
-def _raster_hints(camera, patch, s0, l0, width, height, nss):
-    """(height·nss, width·nss, 2) int32: the patch cell under each sub-ray by forward rasterisation
-    (:func:`~spctool.geometry._rasterkernels.raster_cells`; −1 none or next to a depth discontinuity)."""
-    n = patch.heights.shape[0]
-    x = np.arange(-patch.qsz, patch.qsz + 1.0)
-    loc = np.stack(np.broadcast_arrays(x[:, None], x[None, :], patch.heights), axis=-1).reshape(-1, 3)
-    pts = patch.to_body(loc)
-    smp, lin, front = camera.project_with_mask(pts)
-    depth = camera.to_camera(pts)[:, 2]
-    # sub-ray grid coordinates: sub-ray (line a·nss + u, sample s·nss + v) sits at integers
-    xs = ((smp - s0 + 0.5) * nss - 0.5).reshape(n, n)
-    ys = ((lin - l0 + 0.5) * nss - 0.5).reshape(n, n)
-    ok = (
-        patch.valid.reshape(-1) & front & np.isfinite(xs.reshape(-1)) & np.isfinite(ys.reshape(-1))
-    ).reshape(n, n)
-    hint = np.full((height * nss, width * nss, 2), -1, np.int32)
-    zbuf = np.full((height * nss, width * nss), np.inf)
-    raster_cells(xs, ys, depth.reshape(n, n), ok, hint, zbuf)
-    out = np.empty_like(hint)
-    drop_discontinuous(hint, RASTER_JUMP, RASTER_EDGE_RADIUS, out)
-    return out
 
 
 def _render(
@@ -1358,9 +1302,6 @@ def _render(
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
     origin = camera.position
     samples = np.arange(s0, s1 + 1, dtype=np.float64)
-    hints = None
-    if use_fused and fast and len(plist) == 1 and _long_march(camera, plist.patches[0]):
-        hints = _raster_hints(camera, plist.patches[0], s0, l0, width, height, nss)
     for a in range(0, height, lines_per_chunk):
         b = min(height, a + lines_per_chunk)
         lines = np.arange(l0 + a, l0 + b, dtype=np.float64)
@@ -1375,8 +1316,7 @@ def _render(
             dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         if use_fused:  # the kernel makes rays without a finite direction sky
             ok = np.ones(dirs.shape[0], bool)
-            hn = None if hints is None else hints[a * nss : b * nss].reshape(-1, 2)
-            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast, hn)
+            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast)
         else:
             ok = np.all(np.isfinite(dirs), axis=1)
             hits = trace(
