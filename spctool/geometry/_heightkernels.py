@@ -546,7 +546,10 @@ def horizon_bound(tops, au, aw, az, out, entry_out):
     column changes the minor row by at most one, plus a row of margin at corners), with the rise
     counted: a ray entering column c in row b crosses the whole column (one unit of the dominant
     axis, i.e. a rise of ``az / max(|au|, |aw|)``, the ray's rise per unit of the dominant axis, cut
-    by 1e-12 to stay conservative under rounding) before it enters column c ± 1 in rows b − 2 … b + 2.
+    by 1e-12 to stay conservative under rounding) before it enters column c ± 1 in rows b − 2 … b + 2
+    — only on the side it moves to (rows b … b + 2 for a positive minor component; its minor change
+    per column is below one) unless the direction is within 1e-9 of a diagonal or has no minor
+    component.
     ``entry[c, b]`` bounds rays entering column c at its near edge in row b (returned in ``entry_out``,
     indexed like ``tops``); ``out`` rays starting anywhere in the cell (no rise before the next column).
     """
@@ -565,13 +568,21 @@ def horizon_bound(tops, au, aw, az, out, entry_out):
     na = n0 if major0 else n1
     nb = n1 if major0 else n0
     step = 1 if (au if major0 else aw) > 0.0 else -1
+    # rows a ray can reach: one-sided along the minor direction unless it is (nearly) diagonal or zero
+    minor = aw if major0 else au
+    one_sided = minor != 0.0 and abs(abs(au) - abs(aw)) > 1e-9 * big
+    lo_own, hi_own, lo_next, hi_next = -1, 1, -2, 2
+    if one_sided and minor > 0.0:
+        lo_own, hi_own, lo_next, hi_next = 0, 1, 0, 2
+    elif one_sided:
+        lo_own, hi_own, lo_next, hi_next = -1, 0, -2, 0
     entry = np.empty((na, nb))
     for k in range(na):
         a = na - 1 - k if step > 0 else k
         nxt = a + step
         for b in range(nb):
             own = -np.inf
-            for db in range(-1, 2):
+            for db in range(lo_own, hi_own + 1):
                 bb = b + db
                 if 0 <= bb < nb:
                     v = tops[a, bb] if major0 else tops[bb, a]
@@ -579,7 +590,7 @@ def horizon_bound(tops, au, aw, az, out, entry_out):
                         own = v
             ahead = -np.inf
             if 0 <= nxt < na:
-                for db in range(-2, 3):
+                for db in range(lo_next, hi_next + 1):
                     bb = b + db
                     if 0 <= bb < nb:
                         v = entry[nxt, bb]
@@ -612,6 +623,8 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
     """
     if not dz > 0.0 or (du == 0.0 and dw == 0.0):
         return False
+    if abs(abs(du) - abs(dw)) <= 1e-9 * max(abs(du), abs(dw)):
+        return False  # (nearly) diagonal: the sweep's dominant axis might be the other one
     i = min(max(int(math.floor(u)), 0), n0 - 2)
     j = min(max(int(math.floor(w)), 0), n1 - 2)
     # own cell: directional slope a·du + b·dw + c·(fw·du + fu·dw) at the four corners
