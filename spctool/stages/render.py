@@ -49,7 +49,10 @@ centres at integers, ``spc-formats.md`` §0.4): the image array is ``radiance[li
 Speed: scenes of patches without a shape (register's image-space templates) take a fused per-ray
 kernel that equals the batch functions :func:`trace` → :func:`shadowed` → :func:`shade` up to rounding
 (≤ 1e-12 relative; the "fused path" section below), runs on the calling thread for small windows and
-reuses each patch's packed maps between renders (``benchmarks/bench_render.py``).
+reuses each patch's packed maps between renders (``benchmarks/bench_render.py``).  Its shadow rays
+take exact shortcuts (issue 17): a rise-aware horizon bound ends the march, and a ray that provably
+clears its own cell and that bound is lit without one (``_render(..., fast=False)`` is the plain
+march, the reference; ``tests/test_render_fast.py``).
 """
 
 from __future__ import annotations
