@@ -663,8 +663,12 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
         gapM = (cM + 1.0 - pM) if dM > 0.0 else (pM - cM)
         t_e = max(gapM, 0.0) / abs(dM)
         z_e = z0 + dz * t_e
-        r_e = int(math.floor(pm + dm * t_e))
-        for r in range(r_e - 1, r_e + 2):
+        m_e = pm + dm * t_e
+        r_e = int(math.floor(m_e))
+        # the row it enters in, and a neighbour row where it enters within rounding of a row line
+        r_lo = r_e - 1 if m_e - r_e < 1e-9 else r_e
+        r_hi = r_e + 1 if r_e + 1.0 - m_e < 1e-9 else r_e
+        for r in range(r_lo, r_hi + 1):
             if 0 <= r < nm:
                 bound = _ix(entry, p, nxt, r) if major0 else _ix(entry, p, r, nxt)
                 if not z_e > bound:
