@@ -454,7 +454,7 @@ def _patch_ray(
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
-    without ``ok`` or a finite direction are sky.
+    without ``ok`` or a finite direction are sky (geom (0, 0, 1, 0): dark).
     ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
     split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
     (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
@@ -465,6 +465,10 @@ def _patch_ray(
     the reference)."""
     surf[k] = SKY
     sh[k] = False
+    geom[k, 0] = 0.0  # sky: dark (μ₀ = μ = 0, α = 0, albedo 0), radiance exactly 0 under every law
+    geom[k, 1] = 0.0
+    geom[k, 2] = 1.0
+    geom[k, 3] = 0.0
     d0 = dirs[k, 0]
     d1 = dirs[k, 1]
     d2 = dirs[k, 2]
@@ -1249,8 +1253,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
 
 def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True):
     """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
-    without the exact shortcuts — the horizon bound — as the reference for them)."""
-    n = dirs.shape[0]
+    without the exact shadow shortcuts, as the reference for them)."""
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
         origin,
@@ -1265,15 +1268,13 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions,
         facet=options.shading == "facet",
     )
     hit = surface != SKY
-    r = np.zeros(n)
-    m = np.flatnonzero(hit)
-    if m.size:  # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo
-        g = geom[m]
-        alpha = np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0)))
-        rm = reflectance(g[:, 0], g[:, 1], alpha, options.photometry)
-        if options.use_albedo:
-            rm = rm * g[:, 3]
-        r[m] = np.where(sh[m], 0.0, rm)
+    # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
+    # sub-ray (the kernel leaves sky dark: 0), element by element the arithmetic of the hits alone
+    alpha = np.degrees(np.arccos(np.clip(geom[:, 2], -1.0, 1.0)))
+    r = reflectance(geom[:, 0], geom[:, 1], alpha, options.photometry)
+    if options.use_albedo:
+        r = r * geom[:, 3]
+    r = np.where(sh, 0.0, r)
     return hit, r, sh, surface
 
 
