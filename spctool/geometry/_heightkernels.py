@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 from numba import njit
+from numba.core import cgutils
+from numba.extending import intrinsic, overload
 
 
 @njit(cache=True, inline="always")
@@ -231,14 +233,48 @@ def normals(hx, hy, ux, uy, uz, out):
         out[m, 2] = n2 * inv
 
 
+@intrinsic
+def borrowed(typingctx, ary):
+    """The array ``ary`` as a view without a reference count (meminfo NULL), for a kernel's per-ray helpers.
+
+    Numba increments and decrements (atomically) the reference count of every array argument of every
+    call, inlined or not: a per-ray helper with a dozen array arguments paid dozens of atomic operations
+    per ray, more than its arithmetic.  A view without a meminfo skips them (a NULL test instead).  Only
+    valid while the caller holds ``ary``: use it inside one kernel call, never return or store it.
+    """
+
+    def codegen(context, builder, sig, args):
+        view = cgutils.create_struct_proxy(sig.return_type)(context, builder, value=args[0])
+        view.meminfo = cgutils.get_null_value(view.meminfo.type)
+        return view._getvalue()
+
+    return ary(ary), codegen
+
+
+def _ix(a, p, i, j):
+    """a[i, j] of a 2-D grid, a[p, i, j] of a stack of grids (compiled per array type, below)."""
+    return a[i, j] if a.ndim == 2 else a[p, i, j]
+
+
+@overload(_ix, inline="always")
+def _ix_impl(a, p, i, j):
+    # Stacks of patches are indexed in place: a slice per ray (a new array view) would cost an atomic
+    # reference count increment and decrement, which is most of a short march.
+    if a.ndim == 2:
+        return lambda a, p, i, j: a[i, j]
+    return lambda a, p, i, j: a[p, i, j]
+
+
 @njit(cache=True, inline="always")
-def _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t):
-    """Ray height minus bilinear terrain height of cell (i, j) at parameter t."""
+def _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t):
+    """Ray height minus bilinear terrain height of cell (i, j) (of grid p of a stack) at parameter t."""
     fu = u0 + t * du - i
     fw = w0 + t * dw - j
     gu = 1.0 - fu
     gw = 1.0 - fw
-    terrain = gw * (gu * h[i, j] + fu * h[i + 1, j]) + fw * (gu * h[i, j + 1] + fu * h[i + 1, j + 1])
+    terrain = gw * (gu * _ix(h, p, i, j) + fu * _ix(h, p, i + 1, j)) + fw * (
+        gu * _ix(h, p, i, j + 1) + fu * _ix(h, p, i + 1, j + 1)
+    )
     return z0 + t * dz - terrain
 
 
@@ -267,14 +303,28 @@ def cell_tops(h, valid):
 def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max):
     """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none).
 
+    :func:`_march` without a horizon bound.
+    """
+    n0, n1 = h.shape
+    return _march(h, valid, cmax, 0, n0, n1, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, cmax, False)
+
+
+@njit(cache=True, forceinline=True)
+def _march(h, valid, cmax, p, n0, n1, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t_max, bound, use_bound):
+    """First t in [t_min, t_max] where the ray goes below the bilinear terrain (nan if none).
+
     The ray is clipped to the grid box and to z ≤ hmax, then stepped from grid line to grid line
     (integer counters, robust to rounding; only the line just crossed is recomputed).  A cell whose ray
     segment lies above ``cmax`` (:func:`cell_tops`: its highest corner plus a margin far above
     rounding, −inf where a corner is missing, which the crossing never enters) is passed over: the
     bilinear surface never exceeds its corners.  Inside a cell the crossing is the exact root of the
     quadratic the ray meets.
+
+    ``use_bound``: ``bound`` (n0 − 1, n1 − 1) is :func:`horizon_bound` for this ray's direction; the
+    march ends (nan) as soon as the ray is above it at the start of a cell's segment (the same answer).
+    The grids are (n0, n1) arrays, or stacks (P, ≥ n0, ≥ n1) of which grid ``p`` is used (its first n0
+    rows and n1 columns).
     """
-    n0, n1 = h.shape
     t_lo = t_min
     t_hi = t_max
     # Clip to the grid box 0 <= u <= n0-1, 0 <= w <= n1-1 ...
@@ -348,17 +398,24 @@ def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t
             i = min(max(i, 0), n0 - 2)
             j = int(math.floor(w0 + tm * dw))
             j = min(max(j, 0), n1 - 2)
-            if z0 + t_a * dz > cmax[i, j] and z0 + t_b * dz > cmax[i, j]:
+            if use_bound and z0 + t_a * dz > _ix(bound, p, i, j):
+                return math.nan  # above its horizon: no crossing ahead
+            if z0 + t_a * dz > _ix(cmax, p, i, j) and z0 + t_b * dz > _ix(cmax, p, i, j):
                 pass  # the segment passes above the cell's highest corner
-            elif valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
-                fa = _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_a)
+            elif (
+                _ix(valid, p, i, j)
+                and _ix(valid, p, i + 1, j)
+                and _ix(valid, p, i, j + 1)
+                and _ix(valid, p, i + 1, j + 1)
+            ):
+                fa = _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_a)
                 if fa < 0.0:
                     return t_a
                 # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
-                h00 = h[i, j]
-                a_lin = h[i + 1, j] - h00
-                b_lin = h[i, j + 1] - h00
-                twist = h[i + 1, j + 1] - h[i + 1, j] - h[i, j + 1] + h00
+                h00 = _ix(h, p, i, j)
+                a_lin = _ix(h, p, i + 1, j) - h00
+                b_lin = _ix(h, p, i, j + 1) - h00
+                twist = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
                 pa = u0 + t_a * du - i
                 qa = w0 + t_a * dw - j
                 a_coef = -twist * du * dw
@@ -369,7 +426,7 @@ def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t
                     s_v = -b_coef / (2.0 * a_coef)
                     if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
                         hi = t_a + s_v
-                if math.isnan(hi) and _cell_f(h, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
+                if math.isnan(hi) and _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
                     hi = t_b
                 if not math.isnan(hi):
                     # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
@@ -386,7 +443,7 @@ def _first_crossing(h, valid, cmax, hmin, hmax, u0, w0, z0, du, dw, dz, t_min, t
                         mid = 0.5 * (lo + hi)
                         if mid <= lo or mid >= hi:
                             break
-                        if _cell_f(h, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
+                        if _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
                             hi = mid
                         else:
                             lo = mid
@@ -433,3 +490,187 @@ def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
             t_min[m],
             t_max[m],
         )
+
+
+@njit(cache=True, nogil=True)
+def _upwind_max(tops, au, aw, out):
+    """out[i, j] ≥ the top of every cell a ray leaving cell (i, j) along the horizontal direction
+    (au, aw) (cells, axis 0 and 1) can pass over before it leaves the grid (a conservative superset).
+
+    Walk along the dominant axis, one column at a time toward the Sun: before it reaches the next
+    column the ray moves by at most one row (|minor| ≤ |major|), so it stays in rows j − 1 … j + 1 of
+    its own column and enters the next column in rows j − 2 … j + 2 (a row of margin for rays through
+    a corner); from there on the next column's values bound it.  Sun at the zenith: the cell itself.
+    """
+    n0, n1 = tops.shape
+    if au == 0.0 and aw == 0.0:
+        out[:, :] = tops
+        return
+    major0 = abs(au) >= abs(aw)
+    na = n0 if major0 else n1  # along the dominant axis
+    nb = n1 if major0 else n0
+    step = 1 if (au if major0 else aw) > 0.0 else -1
+    for k in range(na):
+        a = na - 1 - k if step > 0 else k  # the column farthest toward the Sun first
+        nxt = a + step
+        for b in range(nb):
+            m = -np.inf
+            for db in range(-1, 2):
+                bb = b + db
+                if 0 <= bb < nb:
+                    v = tops[a, bb] if major0 else tops[bb, a]
+                    if v > m:
+                        m = v
+            if 0 <= nxt < na:
+                for db in range(-2, 3):
+                    bb = b + db
+                    if 0 <= bb < nb:
+                        v = out[nxt, bb] if major0 else out[bb, nxt]
+                        if v > m:
+                            m = v
+            if major0:
+                out[a, b] = m
+            else:
+                out[b, a] = m
+
+
+@njit(cache=True, nogil=True)
+def horizon_bound(tops, au, aw, az, out, entry_out):
+    """out[i, j] ≥ top(c) − z_c for every cell c a ray leaving any point of cell (i, j) along the direction
+    (au, aw, az) (index units, heights in cells) can pass over, where z_c is how much the ray has risen
+    when it enters c: a ray starting at least out[i, j] high (strictly above, with ``tops`` =
+    :func:`cell_tops`, margin included) never meets the terrain.  +inf (no bound) unless the ray rises.
+
+    The shadow ray's early exit (S16 "Future Retina development", issue 17): the same sweep as
+    ``_upwind_max`` (one column at a time along the dominant axis, farthest toward the Sun first; a
+    column changes the minor row by at most one, plus a row of margin at corners), with the rise
+    counted: a ray entering column c in row b crosses the whole column (one unit of the dominant
+    axis, i.e. a rise of ``az / max(|au|, |aw|)``, the ray's rise per unit of the dominant axis, cut
+    by 1e-12 to stay conservative under rounding) before it enters column c ± 1 in rows b − 2 … b + 2
+    — only on the side it moves to (rows b … b + 2 for a positive minor component; its minor change
+    per column is below one) unless the direction is within 1e-9 of a diagonal or has no minor
+    component.
+    ``entry[c, b]`` bounds rays entering column c at its near edge in row b (returned in ``entry_out``,
+    indexed like ``tops``); ``out`` rays starting anywhere in the cell (no rise before the next column).
+    """
+    n0, n1 = tops.shape
+    big = max(abs(au), abs(aw))
+    if not az > 0.0:
+        out[:, :] = np.inf
+        entry_out[:, :] = np.inf
+        return
+    if big == 0.0:  # straight up: the ray stays in its cell
+        out[:, :] = tops
+        entry_out[:, :] = np.inf
+        return
+    rise = (az / big) * (1.0 - 1e-12)
+    major0 = abs(au) >= abs(aw)
+    na = n0 if major0 else n1
+    nb = n1 if major0 else n0
+    step = 1 if (au if major0 else aw) > 0.0 else -1
+    # rows a ray can reach: one-sided along the minor direction unless it is (nearly) diagonal or zero
+    minor = aw if major0 else au
+    one_sided = minor != 0.0 and abs(abs(au) - abs(aw)) > 1e-9 * big
+    lo_own, hi_own, lo_next, hi_next = -1, 1, -2, 2
+    if one_sided and minor > 0.0:
+        lo_own, hi_own, lo_next, hi_next = 0, 1, 0, 2
+    elif one_sided:
+        lo_own, hi_own, lo_next, hi_next = -1, 0, -2, 0
+    entry = np.empty((na, nb))
+    for k in range(na):
+        a = na - 1 - k if step > 0 else k
+        nxt = a + step
+        for b in range(nb):
+            own = -np.inf
+            for db in range(lo_own, hi_own + 1):
+                bb = b + db
+                if 0 <= bb < nb:
+                    v = tops[a, bb] if major0 else tops[bb, a]
+                    if v > own:
+                        own = v
+            ahead = -np.inf
+            if 0 <= nxt < na:
+                for db in range(lo_next, hi_next + 1):
+                    bb = b + db
+                    if 0 <= bb < nb:
+                        v = entry[nxt, bb]
+                        if v > ahead:
+                            ahead = v
+            entry[a, b] = max(own, ahead - rise)
+            if major0:
+                out[a, b] = max(own, ahead)
+                entry_out[a, b] = entry[a, b]
+            else:
+                out[b, a] = max(own, ahead)
+                entry_out[b, a] = entry[a, b]
+
+
+@njit(cache=True, inline="always")
+def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
+    """True when the ray (u, w, z0) + t·(du, dw, dz), t ≥ 0, starting just above the terrain of its own cell,
+    provably meets no terrain: the march would find no crossing (a shadow ray's early exit).
+
+    Three conservative tests, all on exact geometry (``cmax`` = :func:`cell_tops` and ``entry`` =
+    :func:`horizon_bound`'s entry bounds for this direction carry margins far above rounding):
+
+    * its own cell: the ray rises faster than the bilinear surface can along it anywhere in the cell
+      (the directional slope is linear in the position, so its maximum is at a corner), so it stays
+      above the terrain there (it starts above it);
+    * the cells of its own column (along the dominant axis) in the next row or two: the ray rises
+      ``dz·t`` before it can reach them;
+    * everything from the next column on: the ray's height where it enters that column is above the
+      entry bound of the rows it can enter in.
+    """
+    if not dz > 0.0 or (du == 0.0 and dw == 0.0):
+        return False
+    if abs(abs(du) - abs(dw)) <= 1e-9 * max(abs(du), abs(dw)):
+        return False  # (nearly) diagonal: the sweep's dominant axis might be the other one
+    i = min(max(int(math.floor(u)), 0), n0 - 2)
+    j = min(max(int(math.floor(w)), 0), n1 - 2)
+    # own cell: directional slope a·du + b·dw + c·(fw·du + fu·dw) at the four corners
+    h00 = _ix(h, p, i, j)
+    a = _ix(h, p, i + 1, j) - h00
+    b = _ix(h, p, i, j + 1) - h00
+    c = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
+    base = a * du + b * dw
+    smax = max(max(base, base + c * du), max(base + c * dw, base + c * (du + dw)))
+    if not dz > smax + 1e-12 * (abs(dz) + abs(smax)):
+        return False
+    major0 = abs(du) >= abs(dw)
+    dM = du if major0 else dw  # dominant (major) and minor components
+    dm = dw if major0 else du
+    cM = i if major0 else j
+    cm = j if major0 else i
+    pM = u if major0 else w
+    pm = w if major0 else u
+    nM = (n0 if major0 else n1) - 1  # cells along each axis
+    nm = (n1 if major0 else n0) - 1
+    # own column, the rows ahead along the minor axis
+    if dm != 0.0:
+        sm = 1 if dm > 0.0 else -1
+        gap = (cm + 1.0 - pm) if dm > 0.0 else (pm - cm)
+        for k in range(1, 3):
+            r = cm + k * sm
+            if 0 <= r < nm:
+                t = max(gap + (k - 1.0), 0.0) / abs(dm)
+                top = _ix(cmax, p, cM, r) if major0 else _ix(cmax, p, r, cM)
+                if not z0 + dz * t > top:
+                    return False
+    # the next column along the major axis, entered at t_e
+    sM = 1 if dM > 0.0 else -1
+    nxt = cM + sM
+    if 0 <= nxt < nM:
+        gapM = (cM + 1.0 - pM) if dM > 0.0 else (pM - cM)
+        t_e = max(gapM, 0.0) / abs(dM)
+        z_e = z0 + dz * t_e
+        m_e = pm + dm * t_e
+        r_e = int(math.floor(m_e))
+        # the row it enters in, and a neighbour row where it enters within rounding of a row line
+        r_lo = r_e - 1 if m_e - r_e < 1e-9 else r_e
+        r_hi = r_e + 1 if r_e + 1.0 - m_e < 1e-9 else r_e
+        for r in range(r_lo, r_hi + 1):
+            if 0 <= r < nm:
+                bound = _ix(entry, p, nxt, r) if major0 else _ix(entry, p, r, nxt)
+                if not z_e > bound:
+                    return False
+    return True

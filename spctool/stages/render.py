@@ -49,7 +49,10 @@ centres at integers, ``spc-formats.md`` §0.4): the image array is ``radiance[li
 Speed: scenes of patches without a shape (register's image-space templates) take a fused per-ray
 kernel that equals the batch functions :func:`trace` → :func:`shadowed` → :func:`shade` up to rounding
 (≤ 1e-12 relative; the "fused path" section below), runs on the calling thread for small windows and
-reuses each patch's packed maps between renders (``benchmarks/bench_render.py``).
+reuses each patch's packed maps between renders (``benchmarks/bench_render.py``).  Its shadow rays
+take exact shortcuts (issue 17): a rise-aware horizon bound ends the march, and a ray that provably
+clears its own cell and that bound is lit without one (``_render(..., fast=False)`` is the plain
+march, the reference; ``tests/test_render_fast.py``).
 """
 
 from __future__ import annotations
@@ -63,7 +66,16 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import _first_crossing, cell_tops
+from spctool.geometry._heightkernels import (
+    _first_crossing,
+    _march,
+    _upwind_max,
+    borrowed,
+    cell_tops,
+    horizon_bound,
+    lit_from,
+)
+from spctool.geometry._rasterkernels import bin_subrays
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
 from spctool.photometry import phase_angle_deg, reflectance
@@ -437,26 +449,34 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
-    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    surf, geom, sh,
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
+    upmax, horizon, entry, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
-    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does).
+    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
+    without ``ok`` or a finite direction are sky (geom (0, 0, 1, 0): dark).
     ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
     split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
     (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
     where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
-    answer, fewer cells)."""
+    answer, fewer cells); ``horizon``, ``entry`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the
+    shadow march ends where the ray is above it, and ``lit_from`` declares a shadow ray lit without a march
+    where it provably clears its own cell and the entry bound of the next column (+inf: no shortcut,
+    the reference)."""
     surf[k] = SKY
     sh[k] = False
-    if not ok[k]:
+    geom[k, 0] = 0.0  # sky: dark (μ₀ = μ = 0, α = 0, albedo 0), radiance exactly 0 under every law
+    geom[k, 1] = 0.0
+    geom[k, 2] = 1.0
+    geom[k, 3] = 0.0
+    d0 = dirs[k, 0]
+    d1 = dirs[k, 1]
+    d2 = dirs[k, 2]
+    if not (ok[k] and math.isfinite(d0) and math.isfinite(d1) and math.isfinite(d2)):
         return
     o0 = origin[0]
     o1 = origin[1]
     o2 = origin[2]
-    d0 = dirs[k, 0]
-    d1 = dirs[k, 1]
-    d2 = dirs[k, 2]
     npatch = geo.shape[0]
     t = np.inf
     best = -1
@@ -470,9 +490,9 @@ def _patch_ray(
         if tmax >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _first_crossing(
-                maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
-                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
+            tp = _march(
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
             )  # fmt: skip
             if math.isfinite(tp) and tp < t:
                 t = tp
@@ -531,13 +551,31 @@ def _patch_ray(
     geom[k, 3] = alb
     if not shadows or not (n0 * sun_lit[0] + n1 * sun_lit[1] + n2 * sun_lit[2] > 0.0):
         return
-    # cast shadow (shadowed): the ray toward the Sun from the hit's body point (HeightPatch.to_body)
+    # cast shadow (shadowed): first the own patch's quick answers — the ray rises above the highest cell
+    # ahead (upmax), or provably clears its own cell and its horizon (lit_from; shortcuts on where the
+    # horizon bound is finite) — with the Sun in maplet cells exactly as _slab_local computes it
+    inv = geo[p, 16]
+    b0 = (s0 * geo[p, 7] + s1 * geo[p, 10] + s2 * geo[p, 13]) * inv
+    b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
+    b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
+    own_lit = False
+    if b2 > 0.0:
+        top = upmax[p, i, j]
+        own_lit = z + offset > top
+        if not own_lit and horizon[p, i, j] < np.inf:
+            q = geo[p, 18]
+            own_lit = lit_from(hts, tops, entry, p, n, n, lx + q, ly + q, z + offset, b0, b1, b2)
+    if own_lit and npatch == 1:
+        return
+    # the ray toward the Sun from the hit's body point (HeightPatch.to_body)
     scale = geo[p, 17]
     x0 = geo[p, 4] + scale * (lx * geo[p, 7] + ly * geo[p, 8] + z * geo[p, 9])
     x1 = geo[p, 5] + scale * (lx * geo[p, 10] + ly * geo[p, 11] + z * geo[p, 12])
     x2 = geo[p, 6] + scale * (lx * geo[p, 13] + ly * geo[p, 14] + z * geo[p, 15])
     for p in range(npatch):
         own = p == best
+        if own and own_lit:
+            continue
         if not own and _sphere_miss(geo, p, x0, x1, x2, s0, s1, s2):
             continue
         # the box raised by the relief: for the own patch its exit is where the ray leaves the column
@@ -547,19 +585,16 @@ def _patch_ray(
             a1 = ly
             a2 = z + offset
             tn = 0.0
-            if b2 > 0.0:  # rising: above the highest cell ahead it can cross nothing
-                top = upmax[p, i, j]
-                if a2 > top:
-                    continue
-                tc = (top - a2) / b2
+            if b2 > 0.0:  # rising: the march ends above the highest cell ahead
+                tc = (upmax[p, i, j] - a2) / b2
                 if tc < tf:
                     tf = tc
         if tf >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _first_crossing(
-                maps[p, 0, :n, :n], valids[p, :n, :n], tops[p, : n - 1, : n - 1], geo[p, 19], geo[p, 20],
-                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf,
+            tp = _march(
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf, horizon, True,
             )  # fmt: skip
             if math.isfinite(tp):
                 sh[k] = True
@@ -567,53 +602,19 @@ def _patch_ray(
 
 
 @numba.njit(cache=True, nogil=True)
-def _upwind_max(tops, au, aw, out):
-    """out[i, j] ≥ the top of every cell a ray leaving cell (i, j) along the horizontal direction
-    (au, aw) (cells, axis 0 and 1) can pass over before it leaves the grid (a conservative superset).
-
-    Walk along the dominant axis, one column at a time toward the Sun: before it reaches the next
-    column the ray moves by at most one row (|minor| ≤ |major|), so it stays in rows j − 1 … j + 1 of
-    its own column and enters the next column in rows j − 2 … j + 2 (a row of margin for rays through
-    a corner); from there on the next column's values bound it.  Sun at the zenith: the cell itself.
-    """
-    n0, n1 = tops.shape
-    if au == 0.0 and aw == 0.0:
-        out[:, :] = tops
-        return
-    major0 = abs(au) >= abs(aw)
-    na = n0 if major0 else n1  # along the dominant axis
-    nb = n1 if major0 else n0
-    step = 1 if (au if major0 else aw) > 0.0 else -1
-    for k in range(na):
-        a = na - 1 - k if step > 0 else k  # the column farthest toward the Sun first
-        nxt = a + step
-        for b in range(nb):
-            m = -np.inf
-            for db in range(-1, 2):
-                bb = b + db
-                if 0 <= bb < nb:
-                    v = tops[a, bb] if major0 else tops[bb, a]
-                    if v > m:
-                        m = v
-            if 0 <= nxt < na:
-                for db in range(-2, 3):
-                    bb = b + db
-                    if 0 <= bb < nb:
-                        v = out[nxt, bb] if major0 else out[bb, nxt]
-                        if v > m:
-                            m = v
-            if major0:
-                out[a, b] = m
-            else:
-                out[b, a] = m
-
-
-@numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    surf, geom, sh,
+    horizon, entry, surf, geom, sh,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
+    # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
+    # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
+    origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
+    sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
+    maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
+    upmax, horizon, entry = borrowed(upmax), borrowed(horizon), borrowed(entry)
+    surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
+    hts = borrowed(maps[:, 0])
     for k in range(dirs.shape[0]):
         _patch_ray(
             k,
@@ -628,10 +629,13 @@ def _fused_rays(
             geo,
             boxes,
             maps,
+            hts,
             valids,
             tops,
             ns,
             upmax,
+            horizon,
+            entry,
             surf,
             geom,
             sh,
@@ -673,33 +677,43 @@ class _PatchSet:
     def __len__(self):
         return len(self.patches)
 
-    def fused_arrays(self, sun=None):
+    def fused_arrays(self, sun=None, fast=True):
         """The patches packed for :func:`_patch_ray` (built once per set), with each patch's
-        :func:`_upwind_max` for the unit Sun direction ``sun`` (+inf, no effect, when None).
+        :func:`_upwind_max` and ``horizon_bound`` for the unit Sun direction ``sun`` (+inf, no effect,
+        when None; ``fast=False``: no horizon shortcut, the reference march).
 
         ``geo`` (P, 21): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
         row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20);
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
-        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax`` (P, n − 1, n − 1).
+        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon``, ``entry`` (P, n − 1, n − 1).
         """
-        return self._packed() + (self._upmax(sun),)
+        up, hor, ent = self._upmax(sun)
+        if not fast:
+            hor = ent = np.full_like(hor, np.inf)
+        return self._packed() + (up, hor, ent)
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
         if self._up is None or self._up[0] != key:
             nmax = max(p.heights.shape[0] for p in self.patches)
             up = np.full((len(self), nmax - 1, nmax - 1), np.inf)
+            hor = np.full((len(self), nmax - 1, nmax - 1), np.inf)
+            ent = np.full((len(self), nmax - 1, nmax - 1), np.inf)
             if sun is not None:
                 for k, p in enumerate(self.patches):
                     n = p.heights.shape[0]
-                    su, sw, _ = np.asarray(sun, dtype=np.float64) @ p.rotation
+                    su, sw, sz = np.asarray(sun, dtype=np.float64) @ p.rotation
                     part = np.empty((n - 1, n - 1))
                     _upwind_max(p.cell_tops, float(su), float(sw), part)
                     up[k, : n - 1, : n - 1] = part
-            self._up = (key, up)
-        return self._up[1]
+                    part2 = np.empty((n - 1, n - 1))
+                    horizon_bound(p.cell_tops, float(su), float(sw), float(sz), part, part2)
+                    hor[k, : n - 1, : n - 1] = part
+                    ent[k, : n - 1, : n - 1] = part2
+            self._up = (key, up, hor, ent)
+        return self._up[1:]
 
     def _packed(self):
         if self._fused is None:
@@ -1237,9 +1251,9 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
     return surface, geom, sh
 
 
-def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions):
-    """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel."""
-    n = dirs.shape[0]
+def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True):
+    """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
+    without the exact shadow shortcuts, as the reference for them)."""
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
         origin,
@@ -1249,27 +1263,26 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions)
         sun_shade,
         options.shadows,
         options.shadow_offset_cells,
-        pset.fused_arrays(sun_shade),
+        pset.fused_arrays(sun_shade, fast),
         threads=options.threads,
         facet=options.shading == "facet",
     )
     hit = surface != SKY
-    r = np.zeros(n)
-    m = np.flatnonzero(hit)
-    if m.size:  # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo
-        g = geom[m]
-        alpha = np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0)))
-        rm = reflectance(g[:, 0], g[:, 1], alpha, options.photometry)
-        if options.use_albedo:
-            rm = rm * g[:, 3]
-        r[m] = np.where(sh[m], 0.0, rm)
+    # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
+    # sub-ray (the kernel leaves sky dark: 0), element by element the arithmetic of the hits alone
+    alpha = np.degrees(np.arccos(np.clip(geom[:, 2], -1.0, 1.0)))
+    r = reflectance(geom[:, 0], geom[:, 1], alpha, options.photometry)
+    if options.use_albedo:
+        r = r * geom[:, 3]
+    r = np.where(sh, 0.0, r)
     return hit, r, sh, surface
 
 
 def _render(
-    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None
+    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None, fast=True
 ) -> Rendering:
-    """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path)."""
+    """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path),
+    ``fast=False`` the fused path without its exact shortcuts (the reference for them)."""
     options = options or RenderOptions()
     sun = _vec3(sun, "sun")
     sun = sun / np.linalg.norm(sun)
@@ -1305,10 +1318,11 @@ def _render(
             dirs = camera.pixel_to_direction_grid(ss.reshape(-1), ll.reshape(-1))
         else:
             dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
-        ok = np.all(np.isfinite(dirs), axis=1)
-        if use_fused:
-            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options)
+        if use_fused:  # the kernel makes rays without a finite direction sky
+            ok = np.ones(dirs.shape[0], bool)
+            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast)
         else:
+            ok = np.all(np.isfinite(dirs), axis=1)
             hits = trace(
                 origin,
                 np.where(ok[:, None], dirs, np.array([0.0, 0.0, 1.0])),
@@ -1327,15 +1341,13 @@ def _render(
             )
             r = shade(hits, dirs, sun, options=options, shadow=sh)
             hit, surface = hits.hit, hits.surface
-        sid[a:b] = surface.reshape(shape4)[:, 0, :, 0]
         if progress is not None:
             progress(b - a)
-        if nss == 1:  # one ray per pixel: the means below are the values themselves
-            rad[a:b] = r.reshape(b - a, width)
-            cov[a:b] = hit.reshape(b - a, width)
-            shd[a:b] = sh.reshape(b - a, width)
+        if nss < 8:  # pixel means of the sub-rays, bit for bit the NumPy means below
+            bin_subrays(r, hit, sh, surface, nss, rad[a:b], cov[a:b], shd[a:b], sid[a:b])
             continue
         k = nss * nss
+        sid[a:b] = surface.reshape(shape4)[:, 0, :, 0]
         rad[a:b] = r.reshape(shape4).mean(axis=(1, 3))
         cov[a:b] = hit.reshape(shape4).sum(axis=(1, 3)) / k
         shd[a:b] = sh.reshape(shape4).sum(axis=(1, 3)) / k

@@ -1,0 +1,209 @@
+"""The fused renderer's exact shortcuts (issue 17) against the plain march they replace.
+
+* :func:`spctool.geometry._heightkernels.horizon_bound` — the shadow march's rise-aware early end — is
+  checked by brute force: rays from random points of random cells, sampled finely along their path to
+  the grid edge, never pass over a cell whose top exceeds the ray's height there by more than the
+  bound allows;
+* whole renders of random rough height patches (grazing and steep views, low and high Sun, missing
+  nodes, patches partly outside the window, supersample 1–3, smooth and facet shading, shadows on and
+  off) with the shortcuts equal the reference (``_render(..., fast=False)``: the fused kernel with the
+  full march) — the shortcuts only end marches that cannot find a crossing, so the pictures are equal
+  to the last bit, which is what is asserted (stricter than the 1e-12 the issue allows).
+"""
+
+import math
+
+import numba
+import numpy as np
+import pytest
+
+from spctool.geometry._heightkernels import cell_tops, horizon_bound, intersect_rays, lit_from
+from spctool.geometry.camera import Camera
+from spctool.geometry.frames import orient_frame
+from spctool.sim.simulate import look_rotation
+from spctool.stages.render import HeightPatch, RenderOptions, _render, render
+
+
+def _direction(azimuth_deg, elevation_deg):
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)
+
+
+@pytest.mark.parametrize(
+    "azimuth, elevation",
+    [(0.0, 5.0), (20.0, 30.0), (45.0, 10.0), (90.0, 60.0), (135.0, 2.0), (200.0, 45.0), (260.0, 80.0),
+     (315.0, 20.0), (333.0, 0.5)],
+)  # fmt: skip
+def test_horizon_bound_is_a_true_bound(azimuth, elevation):
+    rng = np.random.default_rng(int(azimuth * 10 + elevation))
+    n0, n1 = 27, 21
+    h = rng.normal(size=(n0 + 1, n1 + 1)) * 2.0 + 6.0 * (rng.uniform(size=(n0 + 1, n1 + 1)) > 0.97)
+    valid = rng.uniform(size=h.shape) > 0.03
+    tops = cell_tops(np.where(valid, h, 0.0), valid)
+    au, aw, az = _direction(azimuth, elevation)
+    out = np.empty_like(tops)
+    entry = np.empty_like(tops)
+    horizon_bound(tops, au, aw, az, out, entry)
+    assert np.all(out >= tops)
+    rho = np.arange(0.0, 80.0, 0.005)  # horizontal travel
+    rise = az / math.hypot(au, aw)  # per unit of horizontal travel
+    for _ in range(300):
+        i, j = rng.integers(0, n0), rng.integers(0, n1)
+        u, w = i + rng.uniform(), j + rng.uniform()
+        uu, ww = u + rho * au / math.hypot(au, aw), w + rho * aw / math.hypot(au, aw)
+        keep = (uu >= 0) & (uu < n0) & (ww >= 0) & (ww < n1)
+        seen = tops[uu[keep].astype(int), ww[keep].astype(int)] - rise * rho[keep]
+        assert seen.max() <= out[i, j] + 1e-12
+    # entry bounds: rays entering a column (along the dominant axis) at its near edge
+    major0 = abs(au) >= abs(aw)
+    for _ in range(300):
+        i, j = rng.integers(0, n0), rng.integers(0, n1)
+        if major0:
+            u, w = (float(i) if au > 0 else i + 1.0), j + rng.uniform()
+        else:
+            u, w = i + rng.uniform(), (float(j) if aw > 0 else j + 1.0)
+        r1 = rho + 1e-9  # just inside the column (at its edge a cell index would name the neighbour)
+        uu, ww = u + r1 * au / math.hypot(au, aw), w + r1 * aw / math.hypot(au, aw)
+        keep = (uu >= 0) & (uu < n0) & (ww >= 0) & (ww < n1)
+        seen = tops[uu[keep].astype(int), ww[keep].astype(int)] - rise * rho[keep]
+        assert seen.max() <= entry[i, j] + 1e-12
+
+
+def test_horizon_bound_special_directions():
+    tops = np.arange(12.0).reshape(3, 4)
+    out, entry = np.empty_like(tops), np.empty_like(tops)
+    horizon_bound(tops, 0.3, 0.4, -0.1, out, entry)  # a descending ray: no bound
+    assert np.all(out == np.inf) and np.all(entry == np.inf)
+    horizon_bound(tops, 0.0, 0.0, 1.0, out, entry)  # straight up: its own cell
+    np.testing.assert_array_equal(out, tops)
+
+
+@numba.njit
+def _lit_many(h, tops, entry, starts, d, out):
+    n0, n1 = h.shape
+    for k in range(starts.shape[0]):
+        u, w, z = starts[k]
+        out[k] = lit_from(h, tops, entry, 0, n0, n1, u, w, z, d[0], d[1], d[2])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_lit_from_never_declares_a_blocked_ray_lit(seed):
+    """Shadow rays from random points just above random terrains: wherever lit_from says "lit", the exact
+    march (heightfield.intersect_rays) finds no crossing; and it says so for most rays of a high Sun."""
+    rng = np.random.default_rng(seed)
+    n = 24
+    h = np.cumsum(rng.normal(size=(n, n)), 0) * 0.3 + rng.normal(size=(n, n)) * (0.2 + 0.3 * (seed % 3))
+    valid = np.ones((n, n), bool)
+    if seed % 2:
+        valid[rng.integers(0, n, 10), rng.integers(0, n, 10)] = False
+    h = np.where(valid, h, 0.0)
+    tops = cell_tops(h, valid)
+    el = [3.0, 15.0, 35.0, 55.0, 75.0][seed % 5]
+    au, aw, az = _direction(rng.uniform(0, 360), el)
+    out, entry = np.empty_like(tops), np.empty_like(tops)
+    horizon_bound(tops, au, aw, az, out, entry)
+    m = 4000
+    uw = rng.uniform(0, n - 1, size=(m, 2))
+    i, j = uw.astype(int).T
+    fu, fw = uw[:, 0] - i, uw[:, 1] - j
+    z = (1 - fw) * ((1 - fu) * h[i, j] + fu * h[i + 1, j])
+    z += fw * ((1 - fu) * h[i, j + 1] + fu * h[i + 1, j + 1])
+    ok = valid[i, j] & valid[i + 1, j] & valid[i, j + 1] & valid[i + 1, j + 1]  # points on full cells
+    starts = np.column_stack([uw, z + 1e-3])[ok]
+    d = np.array([au, aw, az]) * rng.uniform(0.5, 3.0)  # any scale of the direction
+    lit = np.empty(starts.shape[0], bool)
+    _lit_many(h, tops, entry, starts, d, lit)
+    dirs = np.broadcast_to(d, starts.shape)
+    t = np.empty(starts.shape[0])
+    intersect_rays(h, valid, starts, np.ascontiguousarray(dirs), np.zeros(len(t)), np.full(len(t), 1e9), t)
+    assert not np.any(lit & np.isfinite(t))
+    assert np.any(lit) or el < 35.0  # the shortcut does fire
+
+
+def _world(seed, emission, sun_elev, q, holes):
+    """A rough patch (and a second one beside it), a camera ``emission`` deg off the patch normal with
+    an OWEN distortion, a Sun ``sun_elev`` deg above the patch plane."""
+    rng = np.random.default_rng(seed)
+    ux, uy, uz = orient_frame(np.array([0.3, -0.2, 0.9]))
+    v = np.array([0.3, -0.1, 0.4])
+    scale = 0.002
+    n = 2 * q + 1
+    patches = []
+    for k in range(2):
+        h = np.cumsum(np.cumsum(rng.normal(size=(n, n)), 0), 1) * 0.08
+        h += rng.normal(size=(n, n)) * 0.6
+        h -= h.mean()
+        valid = np.ones((n, n), bool)
+        if holes:
+            valid[rng.integers(0, n, 6), rng.integers(0, n, 6)] = False
+            valid[q + 2 : q + 5, q - 6 : q - 3] = False
+        alb = 1.0 + 0.2 * rng.uniform(-1, 1, size=(n, n))
+        vk = v + k * 1.6 * q * scale * (ux + 0.3 * uy)
+        patches.append(HeightPatch(h, scale, vk, ux, uy, uz, albedo=alb, valid=valid))
+    el = math.radians(sun_elev)
+    saz = rng.uniform(0, 2 * math.pi)
+    sun = math.cos(el) * (math.cos(saz) * ux + math.sin(saz) * uy) + math.sin(el) * uz
+    e = math.radians(emission)
+    caz = rng.uniform(0, 2 * math.pi)
+    look = math.cos(e) * uz + math.sin(e) * (math.cos(caz) * ux + math.sin(caz) * uy)
+    pos = v + 0.6 * look
+    npx = 90
+    cam = Camera(
+        mmfl=10.0,
+        ctr=[(npx + 1) / 2 + 7.0, (npx + 1) / 2 - 5.0],  # the patch partly outside the window
+        kmatrix=[[55.0, 0, 0], [0, 55.0, 0]],
+        rotation=look_rotation(pos, v, 0.3),
+        scobj=-pos,
+        npx=npx,
+        nln=npx,
+        model="OWEN",
+        coefficients=np.array([0, 1e-4, 2e-3, 0, 0, 1e-5, 0]),
+    )
+    return patches, sun, cam
+
+
+@pytest.mark.parametrize(
+    "seed, emission, sun_elev, q, holes, ss, shading, shadows",
+    [
+        (1, 10.0, 60.0, 14, False, 2, "smooth", True),
+        (2, 65.0, 8.0, 14, True, 1, "facet", True),
+        (3, 70.0, 35.0, 10, True, 3, "smooth", True),
+        (4, 40.0, 3.0, 14, False, 2, "facet", True),
+        (5, 0.0, 85.0, 12, True, 2, "smooth", True),
+        (6, 60.0, 20.0, 14, True, 2, "smooth", False),
+    ],
+)
+def test_fast_render_equals_the_full_march(seed, emission, sun_elev, q, holes, ss, shading, shadows):
+    patches, sun, cam = _world(seed, emission, sun_elev, q, holes)
+    opts = RenderOptions(supersample=ss, shading=shading, shadows=shadows, ray_inverse="grid", threads=1)
+    for plist in (patches[:1], patches):
+        fast = render(cam, sun, None, plist, opts)
+        ref = _render(cam, sun, None, plist, opts, None, None, fused=True, fast=False)
+        assert 0.1 < np.mean(ref.coverage > 0) < 0.95  # the patch fills part of the window
+        if shadows and sun_elev < 40:
+            assert np.count_nonzero(ref.shadow) > 20
+        np.testing.assert_array_equal(fast.coverage, ref.coverage)
+        np.testing.assert_array_equal(fast.shadow, ref.shadow)
+        np.testing.assert_array_equal(fast.surface, ref.surface)
+        np.testing.assert_allclose(fast.radiance, ref.radiance, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("nss", [1, 2, 3, 4, 5, 7])
+def test_bin_subrays_equals_the_numpy_means_bit_for_bit(nss):
+    from spctool.geometry._rasterkernels import bin_subrays
+
+    rng = np.random.default_rng(nss)
+    nl, width = 7, 11
+    n = nl * width * nss * nss
+    r = rng.uniform(size=n) * rng.integers(0, 2, size=n)
+    hit = rng.uniform(size=n) > 0.3
+    sh = rng.uniform(size=n) > 0.7
+    surface = rng.integers(-2, 3, size=n).astype(np.int32)
+    rad, cov, shd = np.empty((nl, width)), np.empty((nl, width)), np.empty((nl, width))
+    sid = np.empty((nl, width), np.int16)
+    bin_subrays(r, hit, sh, surface, nss, rad, cov, shd, sid)
+    shape4 = (nl, nss, width, nss)
+    np.testing.assert_array_equal(rad, r.reshape(shape4).mean(axis=(1, 3)))
+    np.testing.assert_array_equal(cov, hit.reshape(shape4).sum(axis=(1, 3)) / nss**2)
+    np.testing.assert_array_equal(shd, sh.reshape(shape4).sum(axis=(1, 3)) / nss**2)
+    np.testing.assert_array_equal(sid, surface.reshape(shape4)[:, 0, :, 0])
