@@ -93,9 +93,10 @@ def test_unperturbed_error_maplet_space(scene, schedule):
     assert r.status == ["ok"]
     assert np.all(_err(r, scene.truth_pixel) <= 0.02)
     assert r.correlation[0] > 0.9
-    # S16's L = 10 fits 99x99; the converged stage reads at least one step with its own estimator
-    n_schedule = 10 if schedule == "retina_s16" else 3
-    assert n_schedule + 1 <= r.iterations[0] <= n_schedule + opts.converge_max
+    # S16's L = 10 fits 99x99.  The converged stage reads at least one step with its own estimator:
+    # S16's last L = 1 step is that step; AUTOREGISTER's pose solve comes between, so one more
+    n_schedule, n_min = (10, 10) if schedule == "retina_s16" else (3, 4)
+    assert n_min <= r.iterations[0] <= n_schedule + opts.converge_max
     assert r.spacing[0] == 1
 
 
@@ -251,7 +252,7 @@ def test_outside_landmarks_are_skipped(scene):
     )
     assert r.status == ["outside", "outside", "ok"]
     np.testing.assert_array_equal(r.iterations[:2], [0, 0])
-    assert 11 <= r.iterations[2] <= 10 + RegisterOptions().converge_max
+    assert 10 <= r.iterations[2] <= 10 + RegisterOptions().converge_max
 
 
 def test_fail_fast_and_continue(scene):
@@ -629,8 +630,9 @@ def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
     exact = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, every)
     n_exact = len(calls) - n_fast
     assert fast.status == exact.status == ["ok"]
-    # the reference renders at every step it runs (the schedule's 21, then the converged stage's)
-    assert len(steps) < exact.iterations[0] <= len(steps) + every.converge_max
+    # the reference renders at every step it runs (the schedule's 21, the last being the converged
+    # stage's first, then the rest of that stage's)
+    assert len(steps) <= exact.iterations[0] <= len(steps) + every.converge_max
     assert n_exact == exact.iterations[0]
     assert n_fast < n_exact - 8  # one template for the nine coarse steps
     np.testing.assert_allclose(fast.measured, exact.measured, rtol=0, atol=0.002)

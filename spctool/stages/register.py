@@ -180,7 +180,8 @@ class RegisterOptions:
     * ``criteria`` — Stage E removal applied at the first extraction: ``"default"`` = ``None`` (no
       removal) for retina_s16 and ``"autoregister"`` (0,50,.25,0,5) for autoregister; or any
       :class:`spctool.stages.extract.Criteria` spec, or None.
-    * image space: ``supersample`` (rays per pixel axis of the template, 2), ``image_shadows`` (use
+    * image space: ``supersample`` (rays per pixel axis of the template, 2; ``supersample_coarse``,
+      1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``image_shadows`` (use
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
@@ -221,6 +222,7 @@ class RegisterOptions:
     min_pose_landmarks: int = 3
     criteria: object = "default"
     supersample: int = 2
+    supersample_coarse: int = 1
     image_shadows: bool = True
     rerender_tol: float = 0.0005
     rerender_tol_coarse: float = 1.0
@@ -243,6 +245,8 @@ class RegisterOptions:
             raise SpcUsageError(f"corr_min must lie in [-1, 1], got {self.corr_min}")
         if int(self.supersample) < 1:
             raise SpcUsageError(f"supersample must be >= 1, got {self.supersample}")
+        if int(self.supersample_coarse) < 1:
+            raise SpcUsageError(f"supersample_coarse must be >= 1, got {self.supersample_coarse}")
         if not float(self.rerender_tol) >= 0.0:
             raise SpcUsageError(f"rerender_tol must be >= 0, got {self.rerender_tol}")
         if not float(self.rerender_tol_coarse) >= 0.0:
@@ -665,7 +669,14 @@ class Registrar:
             lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
         patch = lm.patch.patches[0]
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
-        if lm.tmpl is not None and lm.tmpl_key[0] is camera and np.max(np.abs(lm.tmpl_key[1] - frac)) <= tol:
+        # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
+        nss = int(self.options.supersample if spacing <= 1 else self.options.supersample_coarse)
+        if (
+            lm.tmpl is not None
+            and lm.tmpl_key[0] is camera
+            and np.max(np.abs(lm.tmpl_key[1] - frac)) <= tol
+            and lm.tmpl.options.supersample >= nss
+        ):
             return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
         if lm.footprint is None or lm.footprint[0] is not camera:
             lm.footprint = (camera, self._footprint(patch, camera))
@@ -676,7 +687,7 @@ class Registrar:
         shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
         ropts = RenderOptions(
             photometry=self.options.predict.photometry,
-            supersample=int(self.options.supersample),
+            supersample=nss,
             shadows=bool(self.options.image_shadows),
             shading=self.options.template_shading,
             ray_inverse="grid",
@@ -1065,10 +1076,11 @@ def _broyden_step(jac, f, dc, df):
     return jac, np.linalg.solve(g, f)
 
 
-def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
+def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_final=False):
     """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
     than ``converge_tol`` (``moved``: the move of the step that produced ``c``; the stage runs at least
-    once when its estimator ``converge_peak`` is not the schedule's ``peak``).  Returns
+    once when its estimator ``converge_peak`` is not the schedule's ``peak``, unless ``read_final``:
+    that step was already read with it).  Returns
     ``(status, c, step)``: ``"ok"``; a failed step's status; or ``"not-converged"`` after
     ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
 
@@ -1086,7 +1098,7 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor):
     the converged estimate (``ok``)."""
     opts = reg.options
     tol = opts.converge_tol
-    if opts.converge_peak != opts.peak:
+    if opts.converge_peak != opts.peak and not read_final:
         moved = math.inf  # at least one step reads the estimate with the stage's own estimator
     st_ok = None
     hist = [np.asarray(c, dtype=np.float64)]
@@ -1138,20 +1150,26 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
         first = True
         moved = math.inf
         st_ok = None
-        for kind, value in capped_steps(steps, int(caps[i])):
+        plan = list(capped_steps(steps, int(caps[i])))
+        aligns = [k for k, (kind, _) in enumerate(plan) if kind == "align"]
+        # the schedule's last step at spacing 1 is the converged stage's first: read it with its estimator
+        final_at = aligns[-1] if converge and aligns and int(plan[aligns[-1]][1]) == 1 else -1
+        read_final = False
+        for at, (kind, value) in enumerate(plan):
+            final = at == final_at
             if kind == "drop":
                 if state == "ok" and not result.correlation[i] >= value:
                     state = "low-correlation"
                     break
                 continue
-            st = reg.step(i, camera, c, int(value), apply_criteria=first)
+            st = reg.step(i, camera, c, int(value), apply_criteria=first, final=final)
             first = False
             _record(result, last, i, st, opts.keep_images)
             retries = 0
             while st.status == "edge-peak" and retries < opts.edge_retries and np.all(np.isfinite(st.shift)):
                 # the maximum on the border of the grid: the peak lies beyond the search; go there
                 c = st.center + st.shift
-                st = reg.step(i, camera, c, int(value))
+                st = reg.step(i, camera, c, int(value), final=final)
                 _record(result, last, i, st, opts.keep_images)
                 retries += 1
             if st.status.startswith("removed-") or st.status == "outside":
@@ -1163,13 +1181,14 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
                 c = new
                 state = "ok"
                 st_ok = st
+                read_final = final
             else:
                 state = st.status
                 moved = math.inf
                 if opts.fail_fast:
                     break
         if state == "ok" and converge and int(st_ok.correlation.spacing) == 1:
-            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor)
+            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor, read_final)
             st_ok = st_c or st_ok
         result.status[i] = state or "not-found"
         if result.status[i] in ("ok", "not-converged"):
