@@ -75,10 +75,10 @@ from spctool.geometry._heightkernels import (
     horizon_bound,
     lit_from,
 )
-from spctool.geometry._rasterkernels import bin_subrays
+from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays
 from spctool.geometry.shape import PatchShape, TriangleShape
+from spctool.photometry import ALPHA0_DEG, FIXED_BETA, phase_angle_deg, reflectance
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
-from spctool.photometry import phase_angle_deg, reflectance
 
 __all__ = [
     "HeightPatch",
@@ -1270,11 +1270,9 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions,
     hit = surface != SKY
     # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
     # sub-ray (the kernel leaves sky dark: 0), element by element the arithmetic of the hits alone
-    alpha = np.degrees(np.arccos(np.clip(geom[:, 2], -1.0, 1.0)))
-    r = reflectance(geom[:, 0], geom[:, 1], alpha, options.photometry)
-    if options.use_albedo:
-        r = r * geom[:, 3]
-    r = np.where(sh, 0.0, r)
+    r = np.empty(geom.shape[0])
+    law = LAW_CODES[options.photometry]
+    shade_subrays(geom, sh, law, FIXED_BETA, ALPHA0_DEG, bool(options.use_albedo), r)
     return hit, r, sh, surface
 
 
