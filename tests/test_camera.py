@@ -663,3 +663,25 @@ def test_grid_seeded_inverse_keeps_non_invertible_pixels_nan():
     want = cam.pixel_to_direction(s, ln)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     np.testing.assert_allclose(got[[0, 2]], want[[0, 2]], rtol=0, atol=1e-12)
+
+
+def test_with_ctr_equals_replace():
+    """with_ctr (register's shifted template camera) is dataclasses.replace(ctr=…) without re-packing."""
+    import dataclasses
+
+    cam = Camera(
+        mmfl=7.68, ctr=[512.5, 500.25], kmatrix=[[454.54, 0, 0.1], [0.3, -454.54, 0]], rotation=np.eye(3),
+        scobj=np.array([1.0, 2.0, -30.0]), npx=1024, nln=1024, model="OWEN",
+        coefficients=[0.01, 1e-4, 2e-3, 1e-5, 1e-4, 1e-5, 1e-5], legacy_d=[1e-3, 1e-6, 0, 0],
+    )  # fmt: skip
+    new = cam.ctr + np.array([0.137, -0.42])
+    a = cam.with_ctr(new)
+    b = dataclasses.replace(cam, ctr=new)
+    for f in dataclasses.fields(Camera):
+        np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name))
+    assert a._q == b._q and a._guess == b._guess and a._code == b._code
+    assert not a.ctr.flags.writeable and np.array_equal(cam.ctr, [512.5, 500.25])
+    s, ln = np.array([100.3, 700.9]), np.array([40.2, 999.1])
+    np.testing.assert_array_equal(a.pixel_to_direction(s, ln), b.pixel_to_direction(s, ln))
+    p = np.array([[0.1, 0.2, 0.3]])
+    np.testing.assert_array_equal(a.project(p), b.project(p))

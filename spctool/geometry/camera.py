@@ -42,6 +42,7 @@ a cold compile of the three kernels takes roughly 10–15 s once per machine and
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -746,6 +747,16 @@ class Camera:
         if rotation is not None:
             changes["rotation"] = rotation
         return dataclasses.replace(self, **changes)
+
+    def with_ctr(self, ctr) -> Camera:
+        """Copy with the optical centre CTR moved to ``ctr`` (everything else shared; no re-validation:
+        ``dataclasses.replace(self, ctr=ctr)`` field for field, without re-packing the model)."""
+        ctr = _f64(ctr, (2,), "ctr")
+        out = copy.copy(self)
+        set_ = object.__setattr__
+        set_(out, "ctr", ctr)
+        set_(out, "_q", (self._q[0], float(ctr[0]), float(ctr[1])) + self._q[3:])
+        return out
 
     def updated(self, dposition=None, dtheta=None) -> Camera:
         """Copy after a pose-solver step: position += dposition; T⁺ = Rot(−δθ)·T.

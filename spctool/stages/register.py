@@ -684,7 +684,7 @@ class Registrar:
             return None, frac, None
         s0, s1, l0, l1 = lm.footprint[1]
         # rays through p − frac: the same camera with its CTR moved by frac
-        shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
+        shifted = camera.with_ctr(camera.ctr + frac)
         ropts = RenderOptions(
             photometry=self.options.predict.photometry,
             supersample=nss,
