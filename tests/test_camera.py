@@ -607,8 +607,8 @@ def test_grid_seeded_inverse_equals_newton(model, coef):
     """pixel_to_direction_grid (exact inverses on a coarse grid; bicubic interpolation where it checks
     exact to 1e-7 px, else one Newton step per point) gives pixel_to_direction's rays within 1e-6 px
     (the Newton-only path to 1e-12), on template-sized windows (one across the optical axis, where
-    OWEN's odd terms are not smooth) and across a whole photo; pixel_to_direction_lattice equals it
-    bit for bit on a window's sub-ray lattice."""
+    OWEN's odd terms are not smooth) and across a whole photo; so does pixel_to_direction_lattice on a
+    window's sub-ray lattice, also from its kept grid after a CTR shift."""
     if model == "LITHOS":
         args = dict(mmfl=50.0, kmatrix=[[100, 0, 0], [0, 100, 0]], model="OWEN")
     else:
@@ -640,11 +640,16 @@ def test_grid_seeded_inverse_equals_newton(model, coef):
         # a template window's sub-ray lattice (supersample 2)
         subs = lo + 0.25 + 0.5 * np.arange(int(2 * (hi - lo)))
         subl = lo + 3.75 + 0.5 * np.arange(int(2 * (hi - lo)) - 7)
-        lat = cam.pixel_to_direction_lattice(subs, subl)
         ss, ll = np.broadcast_arrays(subs[None, :], subl[:, None])
-        flat = cam.pixel_to_direction_grid(ss.reshape(-1), ll.reshape(-1))
-        np.testing.assert_array_equal(lat.reshape(-1, 3), flat)
-        assert pixel_error(flat, ss.reshape(-1), ll.reshape(-1)) < 1e-6
+        lat = cam.pixel_to_direction_lattice(subs, subl)
+        assert lat.shape == ss.shape + (3,)
+        assert pixel_error(lat.reshape(-1, 3), ss.reshape(-1), ll.reshape(-1)) < 1e-6
+        np.testing.assert_array_equal(cam.pixel_to_direction_lattice(subs, subl), lat)  # kept grid
+        # the kept grid serves a camera with CTR moved by a fraction of a pixel (register's templates)
+        moved = cam.with_ctr(cam.ctr + np.array([0.31, -0.27]))
+        lat2 = moved.pixel_to_direction_lattice(subs, subl).reshape(-1, 3)
+        smp, lin = moved.focal_to_pixel(lat2[:, 0] / lat2[:, 2], lat2[:, 1] / lat2[:, 2])
+        assert np.max(np.maximum(np.abs(smp - ss.reshape(-1)), np.abs(lin - ll.reshape(-1)))) < 1e-6
     assert cam.pixel_to_direction_grid([], []).shape == (0, 3)
     assert cam.pixel_to_direction_lattice([], [1.0, 2.0]).shape == (2, 0, 3)
 

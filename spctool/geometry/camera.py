@@ -45,6 +45,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -608,6 +610,11 @@ class ProjectionJacobians(NamedTuple):
 
 
 _EYE = np.eye(3)
+#: :meth:`Camera.pixel_to_direction_lattice`'s grids by (intrinsics but CTR, step, tolerance, node range):
+#: (x̄, ȳ of the nodes, good cells, their count); least recently used dropped beyond the size below
+_LATTICE_GRIDS: OrderedDict = OrderedDict()
+_LATTICE_GRIDS_MAX = 256
+_LATTICE_LOCK = threading.Lock()
 _ZERO3 = np.zeros(3)
 # read-only like the Camera's own arrays, so the kernels see one array type (one compilation)
 _EYE.flags.writeable = False
@@ -969,18 +976,48 @@ class Camera:
 
     def pixel_to_direction_lattice(self, samples, lines, *, grid_step: float = 4.0, interp_tol: float = 1e-7):
         """:meth:`pixel_to_direction_grid` of every (sample, line) of ``lines`` × ``samples`` (1-D), as a
-        (len(lines), len(samples), 3) array — a template window's sub-ray lattice.  The same rays to the
-        last bit; the bicubic path costs 4 + 4 products per point instead of 16 + 16."""
+        (len(lines), len(samples), 3) array — a template window's sub-ray lattice — within 1e-7 px of
+        :meth:`pixel_to_direction` like it.  The grid's nodes sit at CTR + k·``grid_step`` and depend on
+        the intrinsics but neither on CTR nor on the pose, so the inverses and the choice of cells are
+        kept (:data:`_LATTICE_GRIDS`, a few hundred windows) for the next window with the same nodes —
+        a template re-rendered with its CTR moved by a fraction of a pixel; the bicubic path then costs
+        4 + 4 products per point."""
         sf = _flat(samples)
         lf = _flat(lines)
         if sf.size == 0 or lf.size == 0 or not (np.isfinite(sf).all() and np.isfinite(lf).all()):
             ss, ll = np.meshgrid(sf, lf)
             return self.pixel_to_direction_grid(ss, ll, grid_step=grid_step, interp_tol=interp_tol)
-        grid = self._inverse_grid(sf, lf, grid_step)
+        step = float(grid_step)
+        c1, c2 = float(self.ctr[0]), float(self.ctr[1])
+        ka = math.floor((float(sf.min()) - c1) / step) - 1
+        kb = math.floor((float(sf.max()) - c1) / step) + 2
+        ja = math.floor((float(lf.min()) - c2) / step) - 1
+        jb = math.floor((float(lf.max()) - c2) / step) + 2
+        key = (self._code, self._q[0], self._q[3:], step, float(interp_tol), ka, kb, ja, jb)
+        with _LATTICE_LOCK:
+            hit = _LATTICE_GRIDS.get(key)
+            if hit is not None:
+                _LATTICE_GRIDS.move_to_end(key)
+        if hit is None:  # exact inverses of the camera with CTR = 0 (the same nodes whatever the CTR)
+            canon = self.with_ctr([0.0, 0.0])
+            gs, gl = np.meshgrid(step * np.arange(ka, kb + 1), step * np.arange(ja, jb + 1), indexing="ij")
+            gxn, gyn, _, _ = canon._invert(gs, gl, _EYE, 1e-10, 50)
+            gxn = _flat(gxn).reshape(gs.shape)
+            gyn = _flat(gyn).reshape(gs.shape)
+            good = np.empty(gs.shape, dtype=np.bool_)
+            ngood = _k_cubic_cells(
+                canon._q, canon._code, gxn, gyn, ka * step, ja * step, step, float(interp_tol), good
+            )
+            hit = gxn, gyn, good, ngood
+            with _LATTICE_LOCK:
+                _LATTICE_GRIDS[key] = hit
+                while len(_LATTICE_GRIDS) > _LATTICE_GRIDS_MAX:
+                    _LATTICE_GRIDS.popitem(last=False)
+        gxn, gyn, good, ngood = hit
+        grid = (gxn, gyn, c1 + ka * step, c2 + ja * step, step)
         dirs = np.empty((lf.size, sf.size, 3))
         redo = np.ones((lf.size, sf.size), dtype=np.bool_)
-        good = np.empty(grid[0].shape, dtype=np.bool_)
-        if _k_cubic_cells(self._q, self._code, *grid, float(interp_tol), good):
+        if ngood:
             _k_cubic_lattice(sf, lf, *grid, good, self.rotation, dirs, redo)
         if redo.any():
             ss, ll = np.broadcast_arrays(sf[None, :], lf[:, None])
