@@ -599,31 +599,59 @@ END
         ("OWEN", [0.01, 1e-4, 2e-3, 1e-5, 1e-4, 1e-5, 1e-5]),
         ("RADIAL", [0.0, -3e-3, 1e-5]),
         ("CUBIC", [0, 0, 1.0, 0, 1e-4, 0, 0, 1e-6, 0, 0, 0, 0, 0, 1.0, 0, 2e-4, 0, 0, 0, 1e-6, 0]),
+        ("OWEN", [0.0, 3e-3, 5e-2, 1e-3, 1e-3, 1e-3, 1e-3]),  # strongly distorted (~25 px at the corners)
+        ("LITHOS", [0, 0, 1.2e-3, 0, -3e-9, 0, 0]),  # the INIT_LITHOS OWEN entry of the test above
     ],
 )
 def test_grid_seeded_inverse_equals_newton(model, coef):
-    """pixel_to_direction_grid (exact inverses on a coarse grid, one Newton step per point) gives
-    pixel_to_direction's rays to 1e-12, on a template-sized window and across a whole photo; points
-    without a preimage stay NaN."""
+    """pixel_to_direction_grid (exact inverses on a coarse grid; bicubic interpolation where it checks
+    exact to 1e-7 px, else one Newton step per point) gives pixel_to_direction's rays within 1e-6 px
+    (the Newton-only path to 1e-12), on template-sized windows (one across the optical axis, where
+    OWEN's odd terms are not smooth) and across a whole photo; so does pixel_to_direction_lattice on a
+    window's sub-ray lattice, also from its kept grid after a CTR shift."""
+    if model == "LITHOS":
+        args = dict(mmfl=50.0, kmatrix=[[100, 0, 0], [0, 100, 0]], model="OWEN")
+    else:
+        args = dict(mmfl=7.68, kmatrix=[[454.54, 0, 0.1], [0.3, -454.54, 0]], model=model)
     cam = Camera(
-        mmfl=7.68,
         ctr=[512.5, 512.5],
-        kmatrix=[[454.54, 0, 0.1], [0.3, -454.54, 0]],
         rotation=np.eye(3),
         scobj=np.zeros(3),
         npx=1024,
         nln=1024,
-        model=model,
         coefficients=np.asarray(coef, float),
+        **args,
     )
+
+    def pixel_error(dirs, s, ln):
+        smp, lin = cam.focal_to_pixel(dirs[:, 0] / dirs[:, 2], dirs[:, 1] / dirs[:, 2])
+        return np.max(np.maximum(np.abs(smp - s), np.abs(lin - ln)))
+
     rng = np.random.default_rng(3)
-    for lo, hi in ((300.0, 420.0), (-20.0, 1045.0)):
+    for lo, hi in ((300.0, 420.0), (470.0, 551.0), (-20.0, 1045.0)):
         s = rng.uniform(lo, hi, 5000)
         ln = rng.uniform(lo, hi, 5000)
         want = cam.pixel_to_direction(s, ln)
         got = cam.pixel_to_direction_grid(s, ln)
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        assert pixel_error(want, s, ln) < 1e-9
+        assert pixel_error(got, s, ln) < 1e-6
+        newton = cam.pixel_to_direction_grid(s, ln, interp_tol=-1.0)
+        np.testing.assert_allclose(newton, want, rtol=0, atol=1e-12)
+        # a template window's sub-ray lattice (supersample 2)
+        subs = lo + 0.25 + 0.5 * np.arange(int(2 * (hi - lo)))
+        subl = lo + 3.75 + 0.5 * np.arange(int(2 * (hi - lo)) - 7)
+        ss, ll = np.broadcast_arrays(subs[None, :], subl[:, None])
+        lat = cam.pixel_to_direction_lattice(subs, subl)
+        assert lat.shape == ss.shape + (3,)
+        assert pixel_error(lat.reshape(-1, 3), ss.reshape(-1), ll.reshape(-1)) < 1e-6
+        np.testing.assert_array_equal(cam.pixel_to_direction_lattice(subs, subl), lat)  # kept grid
+        # the kept grid serves a camera with CTR moved by a fraction of a pixel (register's templates)
+        moved = cam.with_ctr(cam.ctr + np.array([0.31, -0.27]))
+        lat2 = moved.pixel_to_direction_lattice(subs, subl).reshape(-1, 3)
+        smp, lin = moved.focal_to_pixel(lat2[:, 0] / lat2[:, 2], lat2[:, 1] / lat2[:, 2])
+        assert np.max(np.maximum(np.abs(smp - ss.reshape(-1)), np.abs(lin - ll.reshape(-1)))) < 1e-6
     assert cam.pixel_to_direction_grid([], []).shape == (0, 3)
+    assert cam.pixel_to_direction_lattice([], [1.0, 2.0]).shape == (2, 0, 3)
 
 
 def test_grid_seeded_inverse_keeps_non_invertible_pixels_nan():
@@ -640,3 +668,25 @@ def test_grid_seeded_inverse_keeps_non_invertible_pixels_nan():
     want = cam.pixel_to_direction(s, ln)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     np.testing.assert_allclose(got[[0, 2]], want[[0, 2]], rtol=0, atol=1e-12)
+
+
+def test_with_ctr_equals_replace():
+    """with_ctr (register's shifted template camera) is dataclasses.replace(ctr=…) without re-packing."""
+    import dataclasses
+
+    cam = Camera(
+        mmfl=7.68, ctr=[512.5, 500.25], kmatrix=[[454.54, 0, 0.1], [0.3, -454.54, 0]], rotation=np.eye(3),
+        scobj=np.array([1.0, 2.0, -30.0]), npx=1024, nln=1024, model="OWEN",
+        coefficients=[0.01, 1e-4, 2e-3, 1e-5, 1e-4, 1e-5, 1e-5], legacy_d=[1e-3, 1e-6, 0, 0],
+    )  # fmt: skip
+    new = cam.ctr + np.array([0.137, -0.42])
+    a = cam.with_ctr(new)
+    b = dataclasses.replace(cam, ctr=new)
+    for f in dataclasses.fields(Camera):
+        np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name))
+    assert a._q == b._q and a._guess == b._guess and a._code == b._code
+    assert not a.ctr.flags.writeable and np.array_equal(cam.ctr, [512.5, 500.25])
+    s, ln = np.array([100.3, 700.9]), np.array([40.2, 999.1])
+    np.testing.assert_array_equal(a.pixel_to_direction(s, ln), b.pixel_to_direction(s, ln))
+    p = np.array([[0.1, 0.2, 0.3]])
+    np.testing.assert_array_equal(a.project(p), b.project(p))

@@ -623,7 +623,12 @@ def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
         RegisterOptions(space="image", steps=steps, keep_images=True),
     )  # fmt: skip
     n_fast = len(calls)
+    def newton_lattice(camera, samples, lines, **_):
+        ss, ll = np.meshgrid(np.asarray(samples, float), np.asarray(lines, float))
+        return camera.pixel_to_direction(ss, ll)
+
     monkeypatch.setattr(Camera, "pixel_to_direction_grid", Camera.pixel_to_direction)
+    monkeypatch.setattr(Camera, "pixel_to_direction_lattice", newton_lattice)
     every = RegisterOptions(
         space="image", steps=steps, rerender_tol=0.0, rerender_tol_coarse=0.0, keep_images=True
     )

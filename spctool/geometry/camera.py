@@ -42,8 +42,11 @@ a cold compile of the three kernels takes roughly 10–15 s once per machine and
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -51,6 +54,7 @@ import numba
 import numpy as np
 
 from spctool.errors import SpcUsageError
+from spctool.geometry._cubicgrid import _cubic_at, _cubic_weights, _k_cubic, _k_cubic_lattice
 from spctool.geometry.frames import apply_attitude_update, skew
 
 __all__ = ["Camera", "MODELS", "ProjectionJacobians", "model_code"]
@@ -449,6 +453,45 @@ def _k_polish(smp, lin, q, model, gxn, gyn, s0, l0, step, max_move, rot, dirs, r
         dirs[i, 2] = r02 * cx + r12 * cy + r22 * nrm
 
 
+@numba.njit(**_JIT)
+def _k_cubic_cells(q, model, gxn, gyn, s0, l0, step, tol, good):
+    """``good[a, b]``: the bicubic (tensor cubic Lagrange) interpolant of the grid's exact inverses may
+    replace the Newton step in cell (a, b) (interior cells a, b = 1 … n − 3).  Its pixel residual
+    max(|Δsample|, |Δline|) is measured at the cell's centre — where the error term (t+1)t(t−1)(t−2)
+    peaks in both directions for a smooth map — and at its four quarter points (t = ¼, ¾); a cell is
+    good when those residuals are ≤ ``tol`` in it and in every cell within two cells (the stencils
+    sharing its nodes: a map that is not smooth there, e.g. OWEN's odd terms at the optical axis, spoils
+    them all).  Returns the number of good cells."""
+    ns = gxn.shape[0]
+    nl = gxn.shape[1]
+    bad = np.ones((ns, nl), dtype=np.bool_)
+    for a in range(1, ns - 2):
+        for b in range(1, nl - 2):
+            worst = 0.0
+            for k in range(5):
+                tu = 0.5 if k == 0 else (0.25 if k < 3 else 0.75)
+                tw = 0.5 if k == 0 else (0.25 if k % 2 == 1 else 0.75)
+                xn = _cubic_at(gxn, a, b, _cubic_weights(tu), _cubic_weights(tw))
+                yn = _cubic_at(gyn, a, b, _cubic_weights(tu), _cubic_weights(tw))
+                sv, lv = _pixel_value(model, q, xn, yn)
+                e = max(abs(sv - (s0 + (a + tu) * step)), abs(lv - (l0 + (b + tw) * step)))
+                if not e <= worst:
+                    worst = e if e == e else np.inf
+            bad[a, b] = not worst <= tol
+    count = 0
+    for a in range(ns):
+        for b in range(nl):
+            ok = 1 <= a < ns - 2 and 1 <= b < nl - 2
+            if ok:
+                for i in range(max(a - 2, 0), min(a + 3, ns)):
+                    for j in range(max(b - 2, 0), min(b + 3, nl)):
+                        if bad[i, j] and 1 <= i < ns - 2 and 1 <= j < nl - 2:
+                            ok = False
+            good[a, b] = ok
+            count += ok
+    return count
+
+
 # --------------------------------------------------------------------------------------------------
 # Camera
 # --------------------------------------------------------------------------------------------------
@@ -467,6 +510,11 @@ class ProjectionJacobians(NamedTuple):
 
 
 _EYE = np.eye(3)
+#: :meth:`Camera.pixel_to_direction_lattice`'s grids by (intrinsics but CTR, step, tolerance, node range):
+#: (x̄, ȳ of the nodes, good cells, their count); least recently used dropped beyond the size below
+_LATTICE_GRIDS: OrderedDict = OrderedDict()
+_LATTICE_GRIDS_MAX = 256
+_LATTICE_LOCK = threading.Lock()
 _ZERO3 = np.zeros(3)
 # read-only like the Camera's own arrays, so the kernels see one array type (one compilation)
 _EYE.flags.writeable = False
@@ -606,6 +654,16 @@ class Camera:
         if rotation is not None:
             changes["rotation"] = rotation
         return dataclasses.replace(self, **changes)
+
+    def with_ctr(self, ctr) -> Camera:
+        """Copy with the optical centre CTR moved to ``ctr`` (everything else shared; no re-validation:
+        ``dataclasses.replace(self, ctr=ctr)`` field for field, without re-packing the model)."""
+        ctr = _f64(ctr, (2,), "ctr")
+        out = copy.copy(self)
+        set_ = object.__setattr__
+        set_(out, "ctr", ctr)
+        set_(out, "_q", (self._q[0], float(ctr[0]), float(ctr[1])) + self._q[3:])
+        return out
 
     def updated(self, dposition=None, dtheta=None) -> Camera:
         """Copy after a pose-solver step: position += dposition; T⁺ = Rot(−δθ)·T.
@@ -755,39 +813,117 @@ class Camera:
         """
         return self._invert(sample, line, self.rotation, tol, max_iter)[2]
 
-    def pixel_to_direction_grid(self, sample, line, *, grid_step: float = 8.0, max_move: float = 1e-3):
+    def pixel_to_direction_grid(
+        self, sample, line, *, grid_step: float = 4.0, max_move: float = 1e-3, interp_tol: float = 1e-7
+    ):
         """:meth:`pixel_to_direction` for many points of a small region (a template window's sub-rays).
 
         The distortion is inverted exactly (Newton, 1e-10 px) only on a grid of nodes ``grid_step`` px
-        apart over the points' bounding box; each point starts from the bilinear interpolation of its
-        cell's nodes and takes one Newton step on the full map.  The seed is within ``max_move`` px of
-        the answer (else the point gets the full iteration), so after the step the residual is of order
-        (curvature of the map)·``max_move``² — far below 1e-10 px for the smooth models here
-        (``tests/test_camera.py`` checks it against :meth:`pixel_to_direction`).
+        apart over the points' bounding box (one node beyond it on each side).  In the grid cells where the
+        bicubic (tensor cubic Lagrange) interpolant of those inverses reproduces the pixel to ``interp_tol``
+        px at the centre and quarter points of the cell and of its neighbours (:func:`_k_cubic_cells`),
+        a point takes the interpolant as it is (no Newton step; ≤ 1e-7 px from the exact inverse on the
+        cameras of ``tests/test_camera.py``).  Elsewhere (e.g. next to the optical axis, where OWEN's odd
+        terms are not smooth) a point starts from the bilinear interpolation of its cell's nodes and
+        takes one Newton step on the full map (``interp_tol < 0``: everywhere).  The seed
+        is within ``max_move`` px of the answer (else the point gets the full iteration), so after the
+        step the residual is of order (curvature of the map)·``max_move``² — far below 1e-10 px for the
+        smooth models here (``tests/test_camera.py`` checks both against :meth:`pixel_to_direction`).
         """
         s, ln = np.broadcast_arrays(np.asarray(sample, dtype=np.float64), np.asarray(line, dtype=np.float64))
         lead = s.shape
         sf = _flat(s)
         lf = _flat(ln)
-        n = sf.size
-        dirs = np.empty((n, 3))
-        if n == 0:
-            return dirs.reshape(lead + (3,))
+        if sf.size == 0:
+            return np.empty(lead + (3,))
+        grid = self._inverse_grid(sf, lf, grid_step)
+        dirs = np.empty((sf.size, 3))
+        redo = np.ones(sf.size, dtype=np.bool_)
+        good = np.empty(grid[0].shape, dtype=np.bool_)
+        if _k_cubic_cells(self._q, self._code, *grid, float(interp_tol), good):
+            _k_cubic(sf, lf, *grid, good, self.rotation, dirs, redo)
+        self._polish(sf, lf, grid, float(max_move), dirs, redo)
+        return dirs.reshape(lead + (3,))
+
+    def _polish(self, sf, lf, grid, max_move, dirs, redo):
+        """Directions of the points ``redo`` (1-D ``sf``, ``lf``; ``dirs`` (N, 3)): one Newton step from the
+        grid's bilinear seed, the full iteration where that is not exact."""
+        if not redo.any():
+            return
+        idx = None if redo.all() else np.flatnonzero(redo)
+        ps, pl = (sf, lf) if idx is None else (sf[idx], lf[idx])
+        pd = np.empty((ps.size, 3))
+        again = np.empty(ps.size, dtype=np.bool_)
+        _k_polish(ps, pl, self._q, self._code, *grid, max_move, self.rotation, pd, again)
+        if again.any():
+            pd[again] = self._invert(ps[again], pl[again], self.rotation, 1e-10, 50)[2]
+        if idx is None:
+            dirs[:] = pd
+        else:
+            dirs[idx] = pd
+
+    def _inverse_grid(self, sf, lf, grid_step):
+        """(x̄, ȳ of the nodes (ns, nl), s0, l0, step): exact inverses on nodes ``grid_step`` apart over
+        the bounding box of the points, one node beyond it on each side."""
         step = float(grid_step)
-        s0 = float(np.nanmin(sf)) - 1e-9
-        l0 = float(np.nanmin(lf)) - 1e-9
-        ns = int(math.floor((float(np.nanmax(sf)) - s0) / step)) + 2
-        nl = int(math.floor((float(np.nanmax(lf)) - l0) / step)) + 2
+        s0 = float(np.nanmin(sf)) - step - 1e-9
+        l0 = float(np.nanmin(lf)) - step - 1e-9
+        ns = int(math.floor((float(np.nanmax(sf)) - s0) / step)) + 3
+        nl = int(math.floor((float(np.nanmax(lf)) - l0) / step)) + 3
         gs, gl = np.meshgrid(s0 + step * np.arange(ns), l0 + step * np.arange(nl), indexing="ij")
         gxn, gyn, _, _ = self._invert(gs, gl, _EYE, 1e-10, 50)
-        redo = np.empty(n, dtype=np.bool_)
-        _k_polish(
-            sf, lf, self._q, self._code, _flat(gxn).reshape(ns, nl), _flat(gyn).reshape(ns, nl),
-            s0, l0, step, float(max_move), self.rotation, dirs, redo,
-        )  # fmt: skip
+        return _flat(gxn).reshape(ns, nl), _flat(gyn).reshape(ns, nl), s0, l0, step
+
+    def pixel_to_direction_lattice(self, samples, lines, *, grid_step: float = 4.0, interp_tol: float = 1e-7):
+        """:meth:`pixel_to_direction_grid` of every (sample, line) of ``lines`` × ``samples`` (1-D), as a
+        (len(lines), len(samples), 3) array — a template window's sub-ray lattice — within 1e-7 px of
+        :meth:`pixel_to_direction` like it.  The grid's nodes sit at CTR + k·``grid_step`` and depend on
+        the intrinsics but neither on CTR nor on the pose, so the inverses and the choice of cells are
+        kept (:data:`_LATTICE_GRIDS`, a few hundred windows) for the next window with the same nodes —
+        a template re-rendered with its CTR moved by a fraction of a pixel; the bicubic path then costs
+        4 + 4 products per point."""
+        sf = _flat(samples)
+        lf = _flat(lines)
+        if sf.size == 0 or lf.size == 0 or not (np.isfinite(sf).all() and np.isfinite(lf).all()):
+            ss, ll = np.meshgrid(sf, lf)
+            return self.pixel_to_direction_grid(ss, ll, grid_step=grid_step, interp_tol=interp_tol)
+        step = float(grid_step)
+        c1, c2 = float(self.ctr[0]), float(self.ctr[1])
+        ka = math.floor((float(sf.min()) - c1) / step) - 1
+        kb = math.floor((float(sf.max()) - c1) / step) + 2
+        ja = math.floor((float(lf.min()) - c2) / step) - 1
+        jb = math.floor((float(lf.max()) - c2) / step) + 2
+        key = (self._code, self._q[0], self._q[3:], step, float(interp_tol), ka, kb, ja, jb)
+        with _LATTICE_LOCK:
+            hit = _LATTICE_GRIDS.get(key)
+            if hit is not None:
+                _LATTICE_GRIDS.move_to_end(key)
+        if hit is None:  # exact inverses of the camera with CTR = 0 (the same nodes whatever the CTR)
+            canon = self.with_ctr([0.0, 0.0])
+            gs, gl = np.meshgrid(step * np.arange(ka, kb + 1), step * np.arange(ja, jb + 1), indexing="ij")
+            gxn, gyn, _, _ = canon._invert(gs, gl, _EYE, 1e-10, 50)
+            gxn = _flat(gxn).reshape(gs.shape)
+            gyn = _flat(gyn).reshape(gs.shape)
+            good = np.empty(gs.shape, dtype=np.bool_)
+            ngood = _k_cubic_cells(
+                canon._q, canon._code, gxn, gyn, ka * step, ja * step, step, float(interp_tol), good
+            )
+            hit = gxn, gyn, good, ngood
+            with _LATTICE_LOCK:
+                _LATTICE_GRIDS[key] = hit
+                while len(_LATTICE_GRIDS) > _LATTICE_GRIDS_MAX:
+                    _LATTICE_GRIDS.popitem(last=False)
+        gxn, gyn, good, ngood = hit
+        grid = (gxn, gyn, c1 + ka * step, c2 + ja * step, step)
+        dirs = np.empty((lf.size, sf.size, 3))
+        redo = np.ones((lf.size, sf.size), dtype=np.bool_)
+        if ngood:
+            _k_cubic_lattice(sf, lf, *grid, good, self.rotation, dirs, redo)
         if redo.any():
-            dirs[redo] = self._invert(sf[redo], lf[redo], self.rotation, 1e-10, 50)[2]
-        return dirs.reshape(lead + (3,))
+            ss, ll = np.broadcast_arrays(sf[None, :], lf[:, None])
+            flat = dirs.reshape(-1, 3)
+            self._polish(ss.reshape(-1), ll.reshape(-1), grid, 1e-3, flat, redo.reshape(-1))
+        return dirs
 
     # ---- Jacobians ------------------------------------------------------------------------------
 

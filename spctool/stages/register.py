@@ -32,8 +32,9 @@ phase), so reuse never biases a shift.  Steps at spacing n ≥ 2 reuse it whatev
 (``rerender_tol_coarse``); a spacing-1 step re-renders it when the phase moved by more than
 ``rerender_tol`` (0.0005 px), so a converging L = 1 loop always ends on a template rendered at its own
 estimate and template reuse cannot freeze it.  Templates take one thread each
-(the rays of a pixel window, the distortion inverted on a coarse grid plus one Newton step:
-:meth:`spctool.geometry.camera.Camera.pixel_to_direction_grid`); :func:`register` parallelises
+(the rays of a pixel window, the distortion inverted on a coarse grid and interpolated bicubically,
+one Newton step where that is not exact to 1e-7 px:
+:meth:`spctool.geometry.camera.Camera.pixel_to_direction_lattice`); :func:`register` parallelises
 across landmarks instead (``threads``), with results identical to one thread.  ``template_shading``:
 ``smooth`` (interpolated node slopes) or ``facet`` (flat triangles, two per cell; albedo bilinear).
 With ``image_shadows`` (default) shadowed pixels are *used*, dark in both images — the point of
@@ -684,7 +685,7 @@ class Registrar:
             return None, frac, None
         s0, s1, l0, l1 = lm.footprint[1]
         # rays through p − frac: the same camera with its CTR moved by frac
-        shifted = dataclasses.replace(camera, ctr=camera.ctr + frac)
+        shifted = camera.with_ctr(camera.ctr + frac)
         ropts = RenderOptions(
             photometry=self.options.predict.photometry,
             supersample=nss,

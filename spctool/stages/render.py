@@ -75,10 +75,10 @@ from spctool.geometry._heightkernels import (
     horizon_bound,
     lit_from,
 )
-from spctool.geometry._rasterkernels import bin_subrays
+from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays
 from spctool.geometry.shape import PatchShape, TriangleShape
+from spctool.photometry import ALPHA0_DEG, FIXED_BETA, phase_angle_deg, reflectance
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
-from spctool.photometry import phase_angle_deg, reflectance
 
 __all__ = [
     "HeightPatch",
@@ -935,9 +935,10 @@ class RenderOptions:
     shading normals ``"smooth"`` (bilinear interpolation of SPC's node slopes) or ``"facet"`` (the flat
     triangle under the hit, two per cell; albedo stays bilinear).  ``ray_inverse``: pixel → ray by
     ``"newton"`` per sub-ray (:meth:`Camera.pixel_to_direction`) or ``"grid"`` (exact inverses on a
-    coarse grid, one Newton step per sub-ray: :meth:`Camera.pixel_to_direction_grid`, the same rays to
-    ~1e-13).  ``threads``: Python threads a large patch-only window is split over (None: numba's
-    count; register's templates use 1 and parallelise across landmarks instead).
+    coarse grid, interpolated bicubically where that is exact to 1e-7 px, else one Newton step per
+    sub-ray: :meth:`Camera.pixel_to_direction_lattice`, the same rays to ~1e-7 px).  ``threads``:
+    Python threads a large patch-only window is split over (None: numba's count; register's templates
+    use 1 and parallelise across landmarks instead).
     """
 
     photometry: str = "spc"
@@ -1270,11 +1271,9 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions,
     hit = surface != SKY
     # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
     # sub-ray (the kernel leaves sky dark: 0), element by element the arithmetic of the hits alone
-    alpha = np.degrees(np.arccos(np.clip(geom[:, 2], -1.0, 1.0)))
-    r = reflectance(geom[:, 0], geom[:, 1], alpha, options.photometry)
-    if options.use_albedo:
-        r = r * geom[:, 3]
-    r = np.where(sh, 0.0, r)
+    r = np.empty(geom.shape[0])
+    law = LAW_CODES[options.photometry]
+    shade_subrays(geom, sh, law, FIXED_BETA, ALPHA0_DEG, bool(options.use_albedo), r)
     return hit, r, sh, surface
 
 
@@ -1306,17 +1305,17 @@ def _render(
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
     origin = camera.position
     samples = np.arange(s0, s1 + 1, dtype=np.float64)
+    sub_samples = (samples[:, None] + offs[None, :]).reshape(-1)
     for a in range(0, height, lines_per_chunk):
         b = min(height, a + lines_per_chunk)
         lines = np.arange(l0 + a, l0 + b, dtype=np.float64)
-        # sub-ray grid: (line, sub-line, sample, sub-sample)
-        ll = lines[:, None, None, None] + offs[None, :, None, None]
-        ss = samples[None, None, :, None] + offs[None, None, None, :]
-        ll, ss = np.broadcast_arrays(ll, ss)
-        shape4 = ll.shape
+        # sub-ray grid: (line, sub-line, sample, sub-sample), i.e. the lattice sub-lines × sub-samples
+        shape4 = (b - a, nss, width, nss)
+        sub_lines = (lines[:, None] + offs[None, :]).reshape(-1)
         if options.ray_inverse == "grid":
-            dirs = camera.pixel_to_direction_grid(ss.reshape(-1), ll.reshape(-1))
+            dirs = camera.pixel_to_direction_lattice(sub_samples, sub_lines).reshape(-1, 3)
         else:
+            ll, ss = np.broadcast_arrays(sub_lines[:, None], sub_samples[None, :])
             dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         if use_fused:  # the kernel makes rays without a finite direction sky
             ok = np.ones(dirs.shape[0], bool)
