@@ -985,6 +985,20 @@ def test_approximate_diameter_matches_all_pairs(seed, axes):
     assert approx == pytest.approx(exact, rel=1e-12)
 
 
+@pytest.mark.parametrize("q, axes", [(40, (1.3, 0.7, 0.9)), (36, (1.0, 1.0, 1.0)), (40, (2.0, 1.0, 0.99))])
+def test_max_diameter_of_large_bodies_equals_all_pairs(q, axes):
+    """Above EXACT_DIAMETER_POINTS vertices the diameter comes from the vertices far enough from the
+    centroid to end one (elongated bodies) or from the hull / directional path (round ones): all
+    pairs of the cratered body's vertices agree to rounding either way."""
+    from scipy.spatial.distance import pdist
+
+    from spctool.geometry.shape import EXACT_DIAMETER_POINTS
+
+    s = PatchShape(cratered_sphere(q) * np.array(axes))
+    assert s._verts.shape[0] > EXACT_DIAMETER_POINTS
+    assert s.max_diameter == pytest.approx(pdist(s._verts).max(), rel=1e-12)
+
+
 def test_as_shape_from_formats_objects(real):
     from spctool.formats.icq import IcqShape, icq_cube_grid
     from spctool.formats.mesh import read_obj
