@@ -20,9 +20,10 @@ landmark on one core; a 16-landmark picture cold 7.2 s):
   the 16-landmark 1024² picture of :data:`WORLD16` (99×99 maplets of 5 cm, a-priori errors ≈ 11 px),
   ``threads=1``, CPU time / 16 (warm).  Target ≤ 25 ms (GIANT 236 ms); the same with 2 threads is
   informative.
-* ``register image two-pass navigation per landmark, 1 core`` — :func:`spctool.stages.navigate.navigate` in image
-  space on the same picture (pass 1, pose, pass 2 from the solved pose), CPU time / 16.  Target ≤ 50 ms
-  (GIANT's PnP + second pass: 363 ms per landmark).
+* ``register image two-pass navigation per landmark, 1 core`` —
+  :func:`spctool.stages.navigate.navigate` in image space on the same picture (pass 1, pose, pass 2
+  from the solved pose), CPU time / 16.  Target ≤ 50 ms (GIANT's PnP + second pass: 363 ms per
+  landmark).
 * ``cold register 16 landmarks image`` / ``maplet`` — ``spctool -C WORLD register PIC --space …`` as
   a new process (wall, best of 3, numba caches warm on disk).  Target ≤ 1.5 s and image ≤ 2× maplet;
   ``cold register start-up`` is the same process given one landmark without a maplet (interpreter,
