@@ -564,6 +564,16 @@ def test_final_stage_secant_steps_converge_whatever_the_estimator_gain(gain):
     )
     assert status == "ok" and np.hypot(*(c - target)) < opts.converge_tol
     assert result.iterations[0] <= 6
+    # seeded with the schedule's last read (register passes it), the first move is already a secant
+    start = np.array([10.0, 20.0])
+    before = start - np.array([0.21, -0.13])
+    seed = (before, gain @ (target - before))
+    seeded = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
+    status, c2, _ = reg_mod._converge(
+        SimpleNamespace(options=opts, step=step), 0, None, start, 1.0, seeded, [None], 1.0, True, seed
+    )
+    assert status == "ok" and np.hypot(*(c2 - target)) < opts.converge_tol
+    assert seeded.iterations[0] <= 6
 
 
 @pytest.mark.parametrize("azimuth", [200.0, 60.0, 300.0])

@@ -1077,7 +1077,7 @@ def _broyden_step(jac, f, dc, df):
     return jac, np.linalg.solve(g, f)
 
 
-def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_final=False):
+def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_final=False, seed=None):
     """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
     than ``converge_tol`` (``moved``: the move of the step that produced ``c``; the stage runs at least
     once when its estimator ``converge_peak`` is not the schedule's ``peak``, unless ``read_final``:
@@ -1086,8 +1086,9 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_fi
     ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
 
     The moves are secant (Broyden) steps on F(c) = (where the step puts V) − c, whose zero is the
-    converged estimate: the first is the plain step F, later ones divide by the gain the previous steps
-    measured (a least-squares alignment whose central-difference gradients underestimate a sharp
+    converged estimate: the first is the plain step F (or, with ``seed`` = (c, F) of the schedule's
+    last step read the same way, already a secant step), later ones divide by the gain the previous
+    steps measured (a least-squares alignment whose central-difference gradients underestimate a sharp
     template's slope overshoots by up to 1.7×, which plain steps would turn into a slow oscillation).
     The zero, and so the result, does not depend on the steps taken; ``halve_shift`` keeps plain
     half steps.
@@ -1104,7 +1105,7 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_fi
     st_ok = None
     hist = [np.asarray(c, dtype=np.float64)]
     jac = -np.eye(2)
-    prev = None  # (c, F) of the previous step
+    prev = seed  # (c, F) of the previous step (``seed``: the schedule's last step, read the same way)
     k = 0
     while not moved < tol:
         if k >= opts.converge_max:
@@ -1156,6 +1157,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
         # the schedule's last step at spacing 1 is the converged stage's first: read it with its estimator
         final_at = aligns[-1] if converge and aligns and int(plan[aligns[-1]][1]) == 1 else -1
         read_final = False
+        seed = None
         for at, (kind, value) in enumerate(plan):
             final = at == final_at
             if kind == "drop":
@@ -1179,6 +1181,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
             if st.ok:
                 new = st.center + factor * st.shift
                 moved = float(np.hypot(*(new - c)))
+                seed = (c, st.center + st.shift - c) if final and factor == 1.0 else None
                 c = new
                 state = "ok"
                 st_ok = st
@@ -1189,7 +1192,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
                 if opts.fail_fast:
                     break
         if state == "ok" and converge and int(st_ok.correlation.spacing) == 1:
-            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor, read_final)
+            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor, read_final, seed)
             st_ok = st_c or st_ok
         result.status[i] = state or "not-found"
         if result.status[i] in ("ok", "not-converged"):
