@@ -570,7 +570,7 @@ def test_final_stage_secant_steps_converge_whatever_the_estimator_gain(gain):
     seed = (before, gain @ (target - before))
     seeded = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
     status, c2, _ = reg_mod._converge(
-        SimpleNamespace(options=opts, step=step), 0, None, start, 1.0, seeded, [None], 1.0, True, seed
+        SimpleNamespace(options=opts, step=step), 0, None, start, 1.0, seeded, [None], 1.0, seed
     )
     assert status == "ok" and np.hypot(*(c2 - target)) < opts.converge_tol
     assert seeded.iterations[0] <= 6

@@ -1077,17 +1077,17 @@ def _broyden_step(jac, f, dc, df):
     return jac, np.linalg.solve(g, f)
 
 
-def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_final=False, seed=None):
+def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=None):
     """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
     than ``converge_tol`` (``moved``: the move of the step that produced ``c``; the stage runs at least
-    once when its estimator ``converge_peak`` is not the schedule's ``peak``, unless ``read_final``:
-    that step was already read with it).  Returns
+    once when its estimator ``converge_peak`` is not the schedule's ``peak``, unless ``seed`` = (c, F)
+    says the schedule's last step was already read with it).  Returns
     ``(status, c, step)``: ``"ok"``; a failed step's status; or ``"not-converged"`` after
     ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
 
     The moves are secant (Broyden) steps on F(c) = (where the step puts V) − c, whose zero is the
-    converged estimate: the first is the plain step F (or, with ``seed`` = (c, F) of the schedule's
-    last step read the same way, already a secant step), later ones divide by the gain the previous
+    converged estimate: the first is the plain step F (or, with a ``seed``, already a secant step),
+    later ones divide by the gain the previous
     steps measured (a least-squares alignment whose central-difference gradients underestimate a sharp
     template's slope overshoots by up to 1.7×, which plain steps would turn into a slow oscillation).
     The zero, and so the result, does not depend on the steps taken; ``halve_shift`` keeps plain
@@ -1100,7 +1100,7 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, read_fi
     the converged estimate (``ok``)."""
     opts = reg.options
     tol = opts.converge_tol
-    if opts.converge_peak != opts.peak and not read_final:
+    if opts.converge_peak != opts.peak and seed is None:
         moved = math.inf  # at least one step reads the estimate with the stage's own estimator
     st_ok = None
     hist = [np.asarray(c, dtype=np.float64)]
@@ -1156,8 +1156,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
         aligns = [k for k, (kind, _) in enumerate(plan) if kind == "align"]
         # the schedule's last step at spacing 1 is the converged stage's first: read it with its estimator
         final_at = aligns[-1] if converge and aligns and int(plan[aligns[-1]][1]) == 1 else -1
-        read_final = False
-        seed = None
+        seed = None  # (c, F) of the schedule's last step when the converged stage's estimator read it
         for at, (kind, value) in enumerate(plan):
             final = at == final_at
             if kind == "drop":
@@ -1181,18 +1180,17 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
             if st.ok:
                 new = st.center + factor * st.shift
                 moved = float(np.hypot(*(new - c)))
-                seed = (c, st.center + st.shift - c) if final and factor == 1.0 else None
+                seed = (c, st.center + st.shift - c) if final else None
                 c = new
                 state = "ok"
                 st_ok = st
-                read_final = final
             else:
                 state = st.status
                 moved = math.inf
                 if opts.fail_fast:
                     break
         if state == "ok" and converge and int(st_ok.correlation.spacing) == 1:
-            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor, read_final, seed)
+            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor, seed)
             st_ok = st_c or st_ok
         result.status[i] = state or "not-found"
         if result.status[i] in ("ok", "not-converged"):
