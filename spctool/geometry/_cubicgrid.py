@@ -19,6 +19,28 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @numba.njit(inline="always", **_JIT)
+def rotation_tuple(rot):
+    """The 3×3 ``rot`` as a row-major 9-tuple of scalars (read once per kernel, not per point)."""
+    return (
+        rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0], rot[2, 1], rot[2, 2]
+    )  # fmt: skip
+
+
+@numba.njit(inline="always", **_JIT)
+def focal_direction(xn, yn, rr):
+    """Unit body-frame direction Rᵀ·(x̄, ȳ, 1)/‖(x̄, ȳ, 1)‖ of a normalised focal-plane point
+    (``rr`` = :func:`rotation_tuple` of R, the body→camera rotation)."""
+    nrm = 1.0 / math.sqrt(xn * xn + yn * yn + 1.0)
+    cx = xn * nrm
+    cy = yn * nrm
+    return (
+        rr[0] * cx + rr[3] * cy + rr[6] * nrm,
+        rr[1] * cx + rr[4] * cy + rr[7] * nrm,
+        rr[2] * cx + rr[5] * cy + rr[8] * nrm,
+    )
+
+
+@numba.njit(inline="always", **_JIT)
 def _cubic_weights(t):
     """Cubic Lagrange weights of the nodes −1, 0, 1, 2 at fraction t of the middle interval."""
     tp = t + 1.0
@@ -42,9 +64,7 @@ def _cubic_at(g, a, b, wa, wb):
 def _k_cubic(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
     """Directions from the bicubic interpolant of the grid's exact inverses (no Newton step) in the
     cells that ``camera._k_cubic_cells`` found ``good``; ``redo`` elsewhere."""
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    rr = rotation_tuple(rot)
     ns = gxn.shape[0]
     nl = gxn.shape[1]
     inv = 1.0 / step
@@ -61,12 +81,7 @@ def _k_cubic(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
         wb = _cubic_weights(w - b)
         xn = _cubic_at(gxn, a, b, wa, wb)
         yn = _cubic_at(gyn, a, b, wa, wb)
-        nrm = 1.0 / math.sqrt(xn * xn + yn * yn + 1.0)
-        cx = xn * nrm
-        cy = yn * nrm
-        dirs[i, 0] = r00 * cx + r10 * cy + r20 * nrm
-        dirs[i, 1] = r01 * cx + r11 * cy + r21 * nrm
-        dirs[i, 2] = r02 * cx + r12 * cy + r22 * nrm
+        dirs[i, 0], dirs[i, 1], dirs[i, 2] = focal_direction(xn, yn, rr)
 
 
 @numba.njit(**_JIT)
@@ -74,9 +89,7 @@ def _k_cubic_lattice(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
     """:func:`_k_cubic` on the lattice lines × samples (``dirs`` (nl, ns, 3), ``redo`` (nl, ns)), the
     same arithmetic in the same order: each line's weights and the grid columns' sums over lines once
     per line, each sample's weights once per call (4 + 4 products per point instead of 16 + 16)."""
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    rr = rotation_tuple(rot)
     ng = gxn.shape[0]
     mg = gxn.shape[1]
     inv = 1.0 / step
@@ -111,9 +124,4 @@ def _k_cubic_lattice(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
             wa0, wa1, wa2, wa3 = wcol[c, 0], wcol[c, 1], wcol[c, 2], wcol[c, 3]
             xn = wa0 * rx[a - 1] + wa1 * rx[a] + wa2 * rx[a + 1] + wa3 * rx[a + 2]
             yn = wa0 * ry[a - 1] + wa1 * ry[a] + wa2 * ry[a + 1] + wa3 * ry[a + 2]
-            nrm = 1.0 / math.sqrt(xn * xn + yn * yn + 1.0)
-            cx = xn * nrm
-            cy = yn * nrm
-            dirs[r, c, 0] = r00 * cx + r10 * cy + r20 * nrm
-            dirs[r, c, 1] = r01 * cx + r11 * cy + r21 * nrm
-            dirs[r, c, 2] = r02 * cx + r12 * cy + r22 * nrm
+            dirs[r, c, 0], dirs[r, c, 1], dirs[r, c, 2] = focal_direction(xn, yn, rr)

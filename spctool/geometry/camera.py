@@ -54,7 +54,14 @@ import numba
 import numpy as np
 
 from spctool.errors import SpcUsageError
-from spctool.geometry._cubicgrid import _cubic_at, _cubic_weights, _k_cubic, _k_cubic_lattice
+from spctool.geometry._cubicgrid import (
+    _cubic_at,
+    _cubic_weights,
+    _k_cubic,
+    _k_cubic_lattice,
+    focal_direction,
+    rotation_tuple,
+)
 from spctool.geometry.frames import apply_attitude_update, skew
 
 __all__ = ["Camera", "MODELS", "ProjectionJacobians", "model_code"]
@@ -339,9 +346,7 @@ def _k_invert(smp, lin, q, model, guess, tol, max_iter, rot, xn_out, yn_out, dir
     steps.  The model is evaluated at one call site only (it is inlined; this keeps compile time low).
     """
     g11, g12, g21, g22, gs = guess
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    rr = rotation_tuple(rot)
     for i in range(smp.shape[0]):
         ts = smp[i]
         tl = lin[i]
@@ -393,12 +398,7 @@ def _k_invert(smp, lin, q, model, guess, tol, max_iter, rot, xn_out, yn_out, dir
             yn = np.nan
         xn_out[i] = xn
         yn_out[i] = yn
-        nrm = 1.0 / math.sqrt(xn * xn + yn * yn + 1.0)
-        cx = xn * nrm
-        cy = yn * nrm
-        dirs[i, 0] = r00 * cx + r10 * cy + r20 * nrm
-        dirs[i, 1] = r01 * cx + r11 * cy + r21 * nrm
-        dirs[i, 2] = r02 * cx + r12 * cy + r22 * nrm
+        dirs[i, 0], dirs[i, 1], dirs[i, 2] = focal_direction(xn, yn, rr)
 
 
 @numba.njit(**_JIT)
@@ -410,9 +410,7 @@ def _k_polish(smp, lin, q, model, gxn, gyn, s0, l0, step, max_move, rot, dirs, r
     more than ``max_move`` (a seed too poor for one step to be exact), where a node is NaN or the point
     lies off the grid, ``redo`` is set and the caller runs the full iteration there.
     """
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    rr = rotation_tuple(rot)
     ns = gxn.shape[0]
     nl = gxn.shape[1]
     inv = 1.0 / step
@@ -445,12 +443,7 @@ def _k_polish(smp, lin, q, model, gxn, gyn, s0, l0, step, max_move, rot, dirs, r
         xn += (j12 * fl - j22 * fs) / det
         yn += (j21 * fs - j11 * fl) / det
         redo[i] = False
-        nrm = 1.0 / math.sqrt(xn * xn + yn * yn + 1.0)
-        cx = xn * nrm
-        cy = yn * nrm
-        dirs[i, 0] = r00 * cx + r10 * cy + r20 * nrm
-        dirs[i, 1] = r01 * cx + r11 * cy + r21 * nrm
-        dirs[i, 2] = r02 * cx + r12 * cy + r22 * nrm
+        dirs[i, 0], dirs[i, 1], dirs[i, 2] = focal_direction(xn, yn, rr)
 
 
 @numba.njit(**_JIT)
