@@ -43,9 +43,17 @@ def test_first_run_note_only_when_the_command_kernels_are_cold(monkeypatch, tmp_
         return next(f for f, ks in jit.FAMILIES.items() if (module, name) in ks)
 
     assert jit.cold_families(["camera", "maplet", "rays"]) == ["maplet"]
+    from numba.core import event
+
     said = []
     monkeypatch.setattr(Context, "note_once", lambda self, m: said.append(m))
-    jit.first_run_note(Context(), "register", args=["register", "P1"])
+    disarm = jit.first_run_note(Context(), "register", args=["register", "P1"])
+    assert said == []  # armed, not said: a command that refuses its input first prints only its error
+    with event.trigger_event("numba:compile"):  # numba starts compiling (a cache miss)
+        pass
+    disarm()
+    with event.trigger_event("numba:compile"):  # disarmed when the command ends
+        pass
     assert len(said) == 1 and "maplet" in said[0] and "spctool warmup" in said[0]
     for command, args, verbosity in (
         ("solve-pose", ["solve-pose", "P1"], 0),  # camera only: warm
@@ -53,8 +61,21 @@ def test_first_run_note_only_when_the_command_kernels_are_cold(monkeypatch, tmp_
         ("register", ["register", "P1"], -1),  # -q
         ("info", ["info", "X.SUM"], 0),
     ):
-        jit.first_run_note(Context(verbosity=verbosity), command, args=args)
+        assert jit.first_run_note(Context(verbosity=verbosity), command, args=args) is None
+    with event.trigger_event("numba:compile"):
+        pass
     assert len(said) == 1
+
+
+def test_cold_kernels_leave_a_refused_input_with_one_stderr_line(monkeypatch, tmp_path):
+    """CI's fuzz found it: a cold cache printed the compile note before simulate refused its spec."""
+    monkeypatch.setattr(jit, "cold_families", lambda fams: list(fams))  # every kernel cold
+    spec = tmp_path / "spec.toml"
+    spec.write_text("seet = 1\n")
+    res = CliRunner().invoke(cli, ["simulate", str(spec), str(tmp_path / "w")])
+    assert res.exit_code == 2
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("spctool: error:") and "spec.toml" in lines[0], lines
 
 
 def test_every_command_with_kernels_is_known_to_the_note():

@@ -4,7 +4,9 @@ spctool's hot loops are numba kernels compiled on their first call and cached on
 module, or in ``NUMBA_CACHE_DIR``).  On a fresh install the first command that needs them spends
 20–30 s compiling with nothing else to show, so :func:`first_run_note` checks, before a command runs,
 whether the kernels that command uses have a cached index file (numba's own cache locator says where)
-and, when one is missing, prints one note on stderr.  ``spctool warmup`` compiles every kernel the
+and, when one is missing, arms one note on stderr that is printed when numba really starts compiling
+(its ``numba:compile`` event).  A command that refuses its input before any kernel runs therefore
+prints its one error line and nothing else.  ``spctool warmup`` compiles every kernel the
 commands use by running the shipped demo through lithos-select, register (maplet and image space),
 solve-pose, a small render and make-maplets, so that later commands start at once.
 """
@@ -77,20 +79,44 @@ def cold_families(families) -> list[str]:
     return cold
 
 
-def first_run_note(ctx: Context, command: str | None, args=None) -> None:
-    """One stderr note (silenced by -q) when ``command`` is about to compile kernels for the first time."""
+def first_run_note(ctx: Context, command: str | None, args=None):
+    """Arm one stderr note (silenced by -q), printed when ``command`` starts compiling kernels it
+    has no cache for.  Returns the function that disarms it (call it when the command ends), or None
+    when nothing was armed."""
     args = sys.argv[1:] if args is None else args
     if not command or command not in COMMAND_FAMILIES or ctx.verbosity < 0:
-        return
+        return None
     if any(a in ("-h", "--help", "--example", "--copy-to") for a in args):
-        return
+        return None
     cold = cold_families(COMMAND_FAMILIES[command])
-    if cold:
-        ctx.note_once(
-            f"compiling spctool's numba kernels ({', '.join(cold)}) on first use: this run spends a few "
-            f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
-            "'spctool warmup' compiles them all now)"
-        )
+    if not cold:
+        return None
+    from numba.core import event as numba_event  # numba only for commands with cold kernels
+
+    class NoteOnCompile(numba_event.Listener):
+        """Prints the note at the first ``numba:compile`` start (a cache miss), then stays quiet."""
+
+        def on_start(self, event) -> None:
+            ctx.note_once(message)  # once: note_once remembers it
+
+        def on_end(self, event) -> None:
+            pass
+
+    message = (
+        f"compiling spctool's numba kernels ({', '.join(cold)}) on first use: this run spends a few "
+        f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
+        "'spctool warmup' compiles them all now)"
+    )
+    listener = NoteOnCompile()
+    numba_event.register("numba:compile", listener)
+
+    def disarm() -> None:
+        try:
+            numba_event.unregister("numba:compile", listener)
+        except ValueError:  # already gone
+            pass
+
+    return disarm
 
 
 @click.command("warmup")

@@ -182,7 +182,9 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
     if not ctx.resilient_parsing:  # not while completing
         from spctool.cli.jit import first_run_note
 
-        first_run_note(ctx.obj, ctx.invoked_subcommand)
+        disarm = first_run_note(ctx.obj, ctx.invoked_subcommand)
+        if disarm is not None:
+            ctx.call_on_close(disarm)
 
 
 if __name__ == "__main__":  # pragma: no cover
