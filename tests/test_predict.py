@@ -264,6 +264,68 @@ def test_cast_shadows_behind_a_wall():
     assert not spc.shadowed.any()
 
 
+def _wall_scene():
+    q = 15
+    n = 2 * q + 1
+    h = np.zeros((n, n))
+    h[:, q] = 6.0
+    m = _maplet(q=q, heights=h, albedo=np.ones((n, n)), uz=(0.0, 0.0, 1.0))
+    elev = 40.0
+    sun = math.cos(math.radians(elev)) * m.uy + math.sin(math.radians(elev)) * m.uz
+    return m, m.v + 3.0 * m.uz, sun
+
+
+def test_auto_shadows_follow_what_the_photo_shows():
+    """shadows="auto": SPC's rule when the extraction zeroed the shadows (they were below T1) or when
+    there is no extraction; the maplet's cast shadows when the photo shows them above T1."""
+    m, pos, sun = _wall_scene()
+    cast = predict(m, pos, sun, PredictOptions(shadows="cast"))
+    spc = predict(m, pos, sun, PredictOptions(shadows="spc"))
+    assert PredictOptions().shadows == "auto"
+    alone = predict(m, pos, sun)  # no photo: nothing says the shadows are not marked
+    assert alone.options.shadows == "spc" and np.array_equal(alone.image, spc.image)
+    # a photo whose shadows were below T1: the extraction is 0 there (SPC's own case)
+    marked = np.where(cast.shadowed, 0.0, 100.0 + 50.0 * spc.reflectance)
+    res = predict(m, pos, sun, extracted=marked)
+    assert res.options.shadows == "spc" and not res.shadowed.any()
+    # the same photo with its shadows at 40 DN, above T1: they are predicted
+    unmarked = np.where(cast.shadowed, 40.0, marked)
+    res = predict(m, pos, sun, extracted=unmarked)
+    assert res.options.shadows == "cast" and np.array_equal(res.shadowed, cast.shadowed)
+    assert np.array_equal(res.lit, cast.lit)
+    # a precomputed cast-shadow mask gives the same prediction
+    from spctool.geometry import heightfield
+
+    mask = heightfield.cast_shadows(m.heights, m.valid, m.ux, m.uy, m.uz, sun / np.linalg.norm(sun))
+    again = predict(m, pos, sun, extracted=unmarked, cast_shadows=mask)
+    assert np.array_equal(again.image, res.image) and again.options.shadows == "cast"
+
+
+def test_resolve_shadows_thresholds():
+    from spctool.stages import predict as pr
+
+    valid = np.ones((40, 40), bool)  # 1600 cells: 1 % is 16, below the 20-cell floor
+    ext = np.full((40, 40), 10.0)
+    few = np.zeros((40, 40), bool)
+    few.flat[:19] = True
+    assert pr.resolve_shadows(few, ext, valid) == "spc"  # too few shadow cells to matter
+    some = np.zeros((40, 40), bool)
+    some.flat[:40] = True
+    assert pr.resolve_shadows(some, ext, valid) == "cast"  # all above T1
+    ext2 = ext.copy()
+    ext2.flat[:11] = 0.0  # 29 of 40 (72.5 %) above T1: below the 75 % needed
+    assert pr.resolve_shadows(some, ext2, valid) == "spc"
+    ext2.flat[10] = 10.0  # 30 of 40: exactly 75 %
+    assert pr.resolve_shadows(some, ext2, valid) == "cast"
+    big = np.ones((100, 100), bool)  # 1 % of 10000 = 100 cells
+    ext3 = np.full((100, 100), 10.0)
+    mask = np.zeros((100, 100), bool)
+    mask.flat[:99] = True
+    assert pr.resolve_shadows(mask, ext3, big) == "spc"
+    mask.flat[99] = True
+    assert pr.resolve_shadows(mask, ext3, big) == "cast"
+
+
 def test_options_are_validated():
     with pytest.raises(SpcUsageError):
         PredictOptions(photometry="hapke")

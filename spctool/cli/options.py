@@ -192,11 +192,12 @@ photometry_option = click.option(
 
 shadows_option = click.option(
     "--shadows",
-    type=click.Choice(["spc", "cast"]),
-    default="spc",
+    type=click.Choice(["auto", "spc", "cast"]),
+    default="auto",
     show_default=True,
     help="spc: dark only where the incidence exceeds 90 deg; cast: also ray-marched cast shadows over "
-    "the maplet.",
+    "the maplet; auto: cast where the photo shows a maplet's cast shadows above THRSH T1 (which SPC's "
+    "rule would call lit), else spc.",
 )
 
 linearized_option = click.option(

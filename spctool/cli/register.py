@@ -322,7 +322,7 @@ def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
         shift=tuple(float(x) for x in shift),
     )
     if st.extraction is not None:
-        pred = predict(inp.maplets[i], camera.position, inp.pic.sz, opts.predict)
+        pred = predict(inp.maplets[i], camera.position, inp.pic.sz, opts.predict, extracted=st.extraction)
         fig = figures.landmark_panel(
             name,
             inp.pic.name,

@@ -128,7 +128,7 @@ from spctool.stages.extract import (
     shadow_offsets,
 )
 from spctool.stages.pose import PoseError, PoseOptions, solve_pose
-from spctool.stages.predict import PredictOptions, predict, unit_vector
+from spctool.stages.predict import PredictOptions, predict, resolve_shadows, unit_vector
 
 __all__ = [
     "SCHEDULES",
@@ -442,6 +442,8 @@ class _Landmark:
         "ext",
         "ext_camera",
         "shadow",
+        "shadow_mode",
+        "cast",
     )
 
     def __init__(self, maplet, name):
@@ -451,6 +453,8 @@ class _Landmark:
         self.v = np.asarray(maplet.v, dtype=np.float64)
         self.pred = None
         self.pred_camera = None
+        self.shadow_mode = None  # predict's shadows="auto", resolved on the first extraction
+        self.cast = None  # the maplet's cast-shadow cells for the Registrar's Sun
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
@@ -509,12 +513,35 @@ class Registrar:
         inside = front & (s >= 1.0) & (s <= npx) & (ln >= 1.0) & (ln <= nln)
         return np.stack([s, ln], axis=-1), inside
 
-    def prediction(self, i: int, camera):
+    def prediction(self, i: int, camera, extraction=None):
+        """The prediction of landmark ``i`` for ``camera`` (cached per camera).  With
+        ``predict.shadows="auto"`` the landmark's first ``extraction`` decides, once, whether its cast
+        shadows are predicted (:func:`spctool.stages.predict.resolve_shadows`)."""
         lm = self.landmarks[i]
+        popts = self.options.predict
+        if popts.shadows != "spc" and lm.cast is None:  # the Sun is the Registrar's: once per landmark
+            m = lm.maplet
+            sun = self.sun / np.linalg.norm(self.sun)
+            lm.cast = heightfield.cast_shadows(
+                np.asarray(m.heights, dtype=np.float64), np.asarray(m.valid, dtype=bool), m.ux, m.uy, m.uz,
+                sun, tol=popts.shadow_tol,
+            )  # fmt: skip
+        if popts.shadows == "auto":
+            if lm.shadow_mode is None and extraction is not None:
+                valid = np.asarray(lm.maplet.valid, dtype=bool) & lm.slopes[2]
+                lm.shadow_mode = resolve_shadows(lm.cast & valid, extraction.image, valid)
+                lm.pred = None
+            popts = dataclasses.replace(popts, shadows=lm.shadow_mode or "spc")
         if lm.pred is None or lm.pred_camera is not camera:
-            lm.pred = predict(lm.maplet, camera.position, self.sun, self.options.predict, slopes=lm.slopes)
+            lm.pred = predict(
+                lm.maplet, camera.position, self.sun, popts, slopes=lm.slopes, cast_shadows=lm.cast
+            )
             lm.pred_camera = camera
         return lm.pred
+
+    def cast_shadow_landmarks(self) -> list[str]:
+        """The landmarks whose prediction ``shadows="auto"`` switched to cast shadows."""
+        return [lm.name for lm in self.landmarks if lm.shadow_mode == "cast"]
 
     # -- one step ------------------------------------------------------------------------------
     def step(
@@ -532,7 +559,7 @@ class Registrar:
     def _maplet_step(self, i, camera, center, spacing, apply_criteria, copts):
         lm = self.landmarks[i]
         ext = self.extraction(i, camera, center, apply_criteria)
-        pred = self.prediction(i, camera)
+        pred = self.prediction(i, camera, ext)
         # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
         h_bin = spacing * math.sqrt(abs(float(np.linalg.det(ext.jxy)))) if ext.jxy is not None else 1.0
         corr = correlate(
@@ -977,6 +1004,14 @@ def register(
     result.last_steps = last
     bad = ~result.ok
     result.covariance[bad] = np.nan
+    cast = reg.cast_shadow_landmarks()
+    if cast:
+        listed = ", ".join(cast[:4]) + (", ..." if len(cast) > 4 else "")
+        result.warnings.append(
+            f"{len(cast)} landmark(s) predicted with their cast shadows ({listed}): the photo shows them "
+            f"above THRSH T1 = {reg.thresholds[0]:g} DN, where SPC's prediction would call them lit "
+            "(predict shadows 'auto'; --shadows spc keeps SPC's rule)"
+        )
     return result
 
 
