@@ -556,6 +556,56 @@ def quadric_vertex(z3, max_move: float = 1.0):
     return float(dr), float(dc), h, True
 
 
+@numba.njit(cache=True, nogil=True)
+def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: no cover - compiled
+    """:func:`gradient_offset`'s least squares in two passes over P rows i0 ≤ i < i1, columns
+    j0 ≤ j < j1 (E at + (o0, o1)), over the pixels valid in both whose four axis neighbours are valid
+    in P: the means of P, E and the central differences (g_r, g_c), then the normal matrix of the
+    centred regressors (P, g_r, g_c) and its right-hand side with the centred E.  Returns the count."""
+    n = 0
+    sp = se = sr = sc = 0.0
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            if not (mp[i, j] and me[i + o0, j + o1]):
+                continue
+            if not (mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]):
+                continue
+            n += 1
+            sp += p[i, j]
+            se += e[i + o0, j + o1]
+            sr += 0.5 * (p[i + 1, j] - p[i - 1, j])
+            sc += 0.5 * (p[i, j + 1] - p[i, j - 1])
+    if n == 0:
+        return 0
+    mp_ = sp / n
+    me_ = se / n
+    mr = sr / n
+    mc = sc / n
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            if not (mp[i, j] and me[i + o0, j + o1]):
+                continue
+            if not (mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]):
+                continue
+            x0 = p[i, j] - mp_
+            x1 = 0.5 * (p[i + 1, j] - p[i - 1, j]) - mr
+            x2 = 0.5 * (p[i, j + 1] - p[i, j - 1]) - mc
+            y = e[i + o0, j + o1] - me_
+            normal[0, 0] += x0 * x0
+            normal[0, 1] += x0 * x1
+            normal[0, 2] += x0 * x2
+            normal[1, 1] += x1 * x1
+            normal[1, 2] += x1 * x2
+            normal[2, 2] += x2 * x2
+            rhs[0] += x0 * y
+            rhs[1] += x1 * y
+            rhs[2] += x2 * y
+    normal[1, 0] = normal[0, 1]
+    normal[2, 0] = normal[0, 2]
+    normal[2, 1] = normal[1, 2]
+    return n
+
+
 def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
     """Sub-cell offset (δ_r, δ_c) of E relative to P placed at ``origin``, by least-squares alignment:
     ``(δ_r, δ_c, ok)``.
@@ -587,26 +637,17 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
     j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
     if i1 - i0 < 1 or j1 - j0 < 1:
         return nan
-
-    def win(a, di, dj, oi=0, oj=0):
-        return a[i0 + oi + di : i1 + oi + di, j0 + oj + dj : j1 + oj + dj]
-
-    ok = win(mp, 0, 0) & win(me, 0, 0, o0, o1)
-    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        ok &= win(mp, di, dj)
-    if np.count_nonzero(ok) < 8:
+    normal = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    count = _k_alignment(
+        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
+        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
+        o0, o1, i0, i1, j0, j1, normal, rhs,
+    )  # fmt: skip
+    if count < 8 or not normal[0, 0] > 0.0:
         return nan
-    pv, ev = win(p, 0, 0)[ok], win(e, 0, 0, o0, o1)[ok]
-    gr = 0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok]
-    gc = 0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok]
-    pm, em = pv.mean(), ev.mean()
-    pc, ec = pv - pm, ev - em  # centring removes b
-    if not float(pc @ pc) > 0.0:
-        return nan
-    gr, gc = gr - gr.mean(), gc - gc.mean()
-    m = np.stack([pc, gr, gc], axis=1)
     try:
-        coef = np.linalg.solve(m.T @ m, m.T @ ec)
+        coef = np.linalg.solve(normal, rhs)
     except np.linalg.LinAlgError:
         return nan
     a, cr, cc = (float(x) for x in coef)
