@@ -512,7 +512,7 @@ def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
     def fake(amplitude):
         a, b = np.array([10.0, 20.0]), np.array([10.0 + amplitude, 20.0])
 
-        def step(i, camera, c, spacing, final=False):
+        def step(i, camera, c, spacing, final=False, draft=False):
             target = b if np.hypot(*(c - a)) < np.hypot(*(c - b)) else a
             corr = Correlation(np.zeros((3, 3)), np.zeros((3, 3), np.int64), 1, "ok", 0.9, (1, 1), (0.0, 0.0))
             return reg_mod.LandmarkStep(np.array(c, float), target - c, corr, None, "ok")
@@ -525,7 +525,7 @@ def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
     # a 3-cycle (an equilateral triangle of side 0.02 px) converges to its centre
     tri = np.array([[10.0, 20.0], [10.02, 20.0], [10.01, 20.0 + 0.01 * math.sqrt(3.0)]])
 
-    def step3(i, camera, c, spacing, final=False):
+    def step3(i, camera, c, spacing, final=False, draft=False):
         k = int(np.argmin(np.hypot(*(tri - c).T)))
         corr = Correlation(np.zeros((3, 3)), np.zeros((3, 3), np.int64), 1, "ok", 0.9, (1, 1), (0.0, 0.0))
         return reg_mod.LandmarkStep(np.array(c, float), tri[(k + 1) % 3] - c, corr, None, "ok")
@@ -553,7 +553,7 @@ def test_final_stage_secant_steps_converge_whatever_the_estimator_gain(gain):
 
     target = np.array([10.37, 19.81])
 
-    def step(i, camera, c, spacing, final=False):
+    def step(i, camera, c, spacing, final=False, draft=False):
         corr = Correlation(np.zeros((3, 3)), np.zeros((3, 3), np.int64), 1, "ok", 0.9, (1, 1), (0.0, 0.0))
         return reg_mod.LandmarkStep(np.array(c, float), gain @ (target - c), corr, None, "ok")
 
@@ -579,7 +579,8 @@ def test_final_stage_secant_steps_converge_whatever_the_estimator_gain(gain):
 @pytest.mark.parametrize("azimuth", [200.0, 60.0, 300.0])
 def test_converged_stage_is_exact_on_a_perfect_model(azimuth):
     """The photo is spctool's own rendering of the maplet itself: the template is a perfect model.  The
-    least-squares alignment stops image space within 0.0005 px of the truth and maplet space (whose
+    least-squares alignment stops image space within 0.001 px of the truth (measured 0.0001–0.0006 px,
+    with or without draft steps: a fifth of the stage's 0.005 px tolerance) and maplet space (whose
     extraction resamples the photo bilinearly) within 0.004 px; a vertex of the correlation surface
     stops 0.005–0.013 px off, measured (the bias of an asymmetric peak that re-centring keeps).
 
@@ -601,7 +602,7 @@ def test_converged_stage_is_exact_on_a_perfect_model(azimuth):
             r = register(photo, cam, sc.sun, [sc.maplet], sc.thresholds, opts)
             assert r.status == ["ok"]
             err[peak, space] = float(np.hypot(*(r.measured[0] - sc.truth_pixel)))
-    assert err["gradient", "image"] <= 0.0005
+    assert err["gradient", "image"] <= 0.001
     assert err["gradient", "maplet"] <= 0.004
     assert err["quadric", "image"] > 3 * err["gradient", "image"]
     auto = register(photo, cam, sc.sun, [sc.maplet], sc.thresholds, RegisterOptions(space="maplet"))
@@ -662,6 +663,43 @@ def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
     np.testing.assert_allclose(fast.measured, exact.measured, rtol=0, atol=0.002)
     assert np.hypot(*fast.last_steps[0].shift) < RegisterOptions().converge_tol  # converged, not frozen
     assert np.all(_err(fast, scene.truth_pixel) < 0.05)
+
+
+@pytest.mark.parametrize("pointing", [(4.6, -2.3), (-6.1, 3.4), (1.2, 0.8)])
+def test_converged_stage_drafts_then_ends_on_full_templates(scene, monkeypatch, pointing):
+    """Image space (``converge_draft``): the converged stage's first steps render at
+    ``supersample_coarse`` (a quarter of the rays) until a move is below ``_DRAFT_TOL``, then at
+    ``supersample``; it only ends on a full template, so the result is that template's zero: within
+    the stage's tolerance of the stage run with full templates throughout, for fewer rays."""
+    import spctool.stages.render as rmod
+    from spctool.stages import register as reg_mod
+
+    rays = []
+    real = rmod.render
+
+    def counting(camera, sun, shape=None, patches=(), options=None, **k):
+        out = real(camera, sun, shape, patches, options, **k)
+        rays.append(int(options.supersample) ** 2 * out.radiance.size)
+        return out
+
+    monkeypatch.setattr(rmod, "render", counting)
+    cam = rs.pointing_error(scene.camera, *pointing)
+    runs = {}
+    for draft in (True, False):
+        rays.clear()
+        opts = RegisterOptions(space="image", steps=(4, 1), converge_draft=draft, keep_images=True)
+        r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+        assert r.status == ["ok"]
+        assert r.last_steps[0].template.options.supersample == opts.supersample  # ended on a full one
+        runs[draft] = (r, sum(rays))
+    (drafted, n_draft), (full, n_full) = runs[True], runs[False]
+    tol = RegisterOptions().converge_tol
+    assert np.hypot(*(drafted.measured[0] - full.measured[0])) <= 2 * tol
+    assert np.all(_err(drafted, scene.truth_pixel) < 0.05)
+    assert n_draft < 0.8 * n_full
+    # no drafts where the coarse templates are as fine as the full ones (the Monte Carlo's plan)
+    assert not reg_mod._drafts(RegisterOptions(space="image", supersample=1))
+    assert not reg_mod._drafts(RegisterOptions(space="maplet"))
 
 
 def test_image_space_threads_do_not_change_results(scene):

@@ -615,6 +615,14 @@ def correlate_cmd(ctx: Context, **kw):
     "that has not settled is 'not-converged'.",
 )
 @click.option(
+    "--no-converge-draft",
+    "no_converge_draft",
+    is_flag=True,
+    help="Image space: render every final-stage template with --supersample rays (default: the first "
+    "steps use one ray per pixel until a step moves by less than 0.15 px; the stage still ends on full "
+    "templates).",
+)
+@click.option(
     "--edge-retries",
     type=click.IntRange(min=0),
     default=2,
@@ -733,6 +741,7 @@ def register_cmd(ctx: Context, **kw):
         "edge_retries": kw["edge_retries"],
         "converge_max": kw["converge_max"],
         "converge_peak": kw["converge_peak"],
+        "converge_draft": not kw["no_converge_draft"],
     }
     if kw["steps"]:
         extra["steps"] = _parse_steps(kw["steps"])

@@ -182,7 +182,11 @@ class RegisterOptions:
       removal) for retina_s16 and ``"autoregister"`` (0,50,.25,0,5) for autoregister; or any
       :class:`spctool.stages.extract.Criteria` spec, or None.
     * image space: ``supersample`` (rays per pixel axis of the template, 2; ``supersample_coarse``,
-      1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``image_shadows`` (use
+      1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``converge_draft`` (True: the
+      converged stage's steps render at ``supersample_coarse``, a quarter of the rays, until one
+      moves the estimate by less than ``_DRAFT_TOL`` px, then at ``supersample``; it only stops on a
+      full template, so the result is that template's zero; the draft steps only bring it near
+      first), ``image_shadows`` (use
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
@@ -224,6 +228,7 @@ class RegisterOptions:
     criteria: object = "default"
     supersample: int = 2
     supersample_coarse: int = 1
+    converge_draft: bool = True
     image_shadows: bool = True
     rerender_tol: float = 0.0005
     rerender_tol_coarse: float = 1.0
@@ -545,13 +550,22 @@ class Registrar:
 
     # -- one step ------------------------------------------------------------------------------
     def step(
-        self, i: int, camera, center, spacing: int, *, apply_criteria: bool = False, final: bool = False
+        self,
+        i: int,
+        camera,
+        center,
+        spacing: int,
+        *,
+        apply_criteria: bool = False,
+        final: bool = False,
+        draft: bool = False,
     ) -> LandmarkStep:
         """Correlate landmark ``i`` with V placed at pixel ``center`` (sample, line), spacing n
-        (``final``: a step of the converged stage, with ``converge_peak``'s estimator)."""
+        (``final``: a step of the converged stage, with ``converge_peak``'s estimator; ``draft``: image
+        space, its template rendered at ``supersample_coarse``)."""
         copts = self._copts_final if final else self._copts
         if self.options.space == "image":
-            return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing, copts)
+            return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing, copts, draft)
         return self._maplet_step(
             i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria, copts
         )
@@ -679,7 +693,7 @@ class Registrar:
             eopts.edge_steps,
         )
 
-    def _template(self, lm: _Landmark, camera, frac, spacing: int = 1):
+    def _template(self, lm: _Landmark, camera, frac, spacing: int = 1, draft: bool = False):
         """Rendering of the maplet for a placement whose fractional part is ``frac`` (sample, line).
 
         Returns ``(rendering or None, fractional offset rendered, window (s0, s1, l0, l1))``; the cached
@@ -698,7 +712,7 @@ class Registrar:
         patch = lm.patch.patches[0]
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
-        nss = int(self.options.supersample if spacing <= 1 else self.options.supersample_coarse)
+        nss = int(self.options.supersample if spacing <= 1 and not draft else self.options.supersample_coarse)
         if (
             lm.tmpl is not None
             and lm.tmpl_key[0] is camera
@@ -755,12 +769,12 @@ class Registrar:
         l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
         return s0, s1, l0, l1
 
-    def _image_step(self, i, camera, center, spacing, copts):
+    def _image_step(self, i, camera, center, spacing, copts, draft=False):
         lm = self.landmarks[i]
         c0 = np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2)
         disp = center - c0
         frac = disp - np.round(disp)
-        rend, f_t, window = self._template(lm, camera, frac, spacing)
+        rend, f_t, window = self._template(lm, camera, frac, spacing, draft)
         g = 2 * self._copts.grid_half + 1
         if rend is None:
             corr = Correlation(
@@ -1112,7 +1126,20 @@ def _broyden_step(jac, f, dc, df):
     return jac, np.linalg.solve(g, f)
 
 
-def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=None):
+#: the converged stage's draft steps (``converge_draft``) end with the first that moves by less than this
+_DRAFT_TOL = 0.15
+
+
+def _drafts(opts) -> bool:
+    """The converged stage starts with draft steps: image space, whose coarse templates have fewer rays."""
+    return (
+        bool(opts.converge_draft)
+        and opts.space == "image"
+        and int(opts.supersample_coarse) < int(opts.supersample)
+    )
+
+
+def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=None, draft=False):
     """Repeat the spacing-1 step of landmark ``i`` from pixel ``c`` until the estimate moves by less
     than ``converge_tol`` (``moved``: the move of the step that produced ``c``; the stage runs at least
     once when its estimator ``converge_peak`` is not the schedule's ``peak``, unless ``seed`` = (c, F)
@@ -1132,7 +1159,13 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
     re-rendered at each sub-pixel placement can make it (0.01–0.09 px in the s16-50m Monte Carlo) —
     is detected when a step returns within ``converge_tol`` of an estimate two or more steps before;
     if the places of the cycle are less than ``_CYCLE_FACTOR``·``converge_tol`` apart, their mean is
-    the converged estimate (``ok``)."""
+    the converged estimate (``ok``).
+
+    ``draft`` (``converge_draft``, image space): the steps render their templates at
+    ``supersample_coarse`` until one moves by less than ``_DRAFT_TOL``; from then on at
+    ``supersample``, with the secant Jacobian kept but no secant across the change of template (a
+    draft and a full template read slightly different zeros).  ``draft`` says whether ``seed`` came
+    from a draft step.  The stage ends only on a full step."""
     opts = reg.options
     tol = opts.converge_tol
     if opts.converge_peak != opts.peak and seed is None:
@@ -1141,11 +1174,13 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
     hist = [np.asarray(c, dtype=np.float64)]
     jac = -np.eye(2)
     prev = seed  # (c, F) of the previous step (``seed``: the schedule's last step, read the same way)
+    if draft and moved < _DRAFT_TOL:  # the seed's draft already came close: full templates now
+        draft, prev, moved = False, None, math.inf
     k = 0
     while not moved < tol:
         if k >= opts.converge_max:
             return "not-converged", c, st_ok
-        st = reg.step(i, camera, c, 1, final=True)
+        st = reg.step(i, camera, c, 1, final=True, draft=draft)
         _record(result, last, i, st, opts.keep_images)
         k += 1
         if not st.ok:
@@ -1162,6 +1197,13 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
         prev = (c, f)
         new = c + move
         moved = float(np.hypot(*(new - c)))
+        if draft:
+            if moved < _DRAFT_TOL:  # close: the next steps read full templates, from here
+                draft, prev, moved = False, None, math.inf
+                hist = []
+            c = new
+            hist.append(c)
+            continue
         st_ok = st
         back = [j for j in range(len(hist) - 1) if np.hypot(*(new - hist[j])) < tol]
         if back and moved >= tol:
@@ -1199,14 +1241,15 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
                     state = "low-correlation"
                     break
                 continue
-            st = reg.step(i, camera, c, int(value), apply_criteria=first, final=final)
+            draft = final and _drafts(opts)  # the converged stage's first step: a draft template
+            st = reg.step(i, camera, c, int(value), apply_criteria=first, final=final, draft=draft)
             first = False
             _record(result, last, i, st, opts.keep_images)
             retries = 0
             while st.status == "edge-peak" and retries < opts.edge_retries and np.all(np.isfinite(st.shift)):
                 # the maximum on the border of the grid: the peak lies beyond the search; go there
                 c = st.center + st.shift
-                st = reg.step(i, camera, c, int(value), final=final)
+                st = reg.step(i, camera, c, int(value), final=final, draft=draft)
                 _record(result, last, i, st, opts.keep_images)
                 retries += 1
             if st.status.startswith("removed-") or st.status == "outside":
@@ -1225,7 +1268,9 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
                 if opts.fail_fast:
                     break
         if state == "ok" and converge and int(st_ok.correlation.spacing) == 1:
-            state, c, st_c = _converge(reg, i, camera, c, moved, result, last, factor, seed)
+            state, c, st_c = _converge(
+                reg, i, camera, c, moved, result, last, factor, seed, draft=final_at >= 0 and _drafts(opts)
+            )
             st_ok = st_c or st_ok
         result.status[i] = state or "not-found"
         if result.status[i] in ("ok", "not-converged"):
