@@ -125,7 +125,7 @@ def bench_register_s16():
         return register(sc.photo, cam, sc.sun, [sc.maplet], sc.thresholds, opts)
 
     r = run()
-    assert r.status == ["ok"] and r.iterations[0] == 10
+    assert r.status == ["ok"] and r.iterations[0] >= 10  # the schedule, then the converged stage
     assert np.all(np.abs(r.measured[0] - sc.truth_pixel) < 0.05)
     ms = _best(run, repeats=20) * 1e3
     return ms, "ms", ms <= 10.0
