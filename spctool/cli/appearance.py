@@ -197,6 +197,7 @@ def _run(ctx: Context, stage: str, kw: dict):
     written = 0
     tiles = []  # --sheet: (caption, image, valid)
     command = "predict" if stage == "predicted" else "extract"
+    cast = []  # landmarks whose shadows="auto" became "cast"
     with progress(ctx, f"{command} {pic.name}", len(inputs.landmarks)) as advance:
         for name, pixel in inputs.landmarks:
             row = {"name": name, "picture": pic.name}
@@ -306,7 +307,15 @@ def _run(ctx: Context, stage: str, kw: dict):
             if kw["sheet"] and front:
                 image, valid = (pred.image, pred.lit) if stage == "predicted" else (ext.image, ext.valid)
                 tiles.append((f"{name} rho {row['correlation']:.2f} {row['status']}", image, valid))
+            if popts.shadows == "auto" and pred.options.shadows == "cast":
+                cast.append(name)
             advance()
+    if cast:
+        ctx.note_once(
+            f"{len(cast)} landmark(s) predicted with their cast shadows ({', '.join(cast[:4])}"
+            f"{', ...' if len(cast) > 4 else ''}): the photo shows them above THRSH T1 = {thresholds[0]:g} "
+            "DN (--shadows spc keeps SPC's rule)"
+        )
 
     columns = [
         "name",

@@ -556,6 +556,14 @@ def quadric_vertex(z3, max_move: float = 1.0):
     return float(dr), float(dc), h, True
 
 
+@numba.njit(cache=True, inline="always")
+def _k_usable(me, mp, o0, o1, i, j):  # pragma: no cover - compiled
+    """P pixel (i, j) valid with its four axis neighbours, and its E pixel valid."""
+    return (
+        mp[i, j] and me[i + o0, j + o1] and mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]
+    )
+
+
 @numba.njit(cache=True, nogil=True)
 def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: no cover - compiled
     """:func:`gradient_offset`'s least squares in two passes over P rows i0 ≤ i < i1, columns
@@ -566,9 +574,7 @@ def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: 
     sp = se = sr = sc = 0.0
     for i in range(i0, i1):
         for j in range(j0, j1):
-            if not (mp[i, j] and me[i + o0, j + o1]):
-                continue
-            if not (mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]):
+            if not _k_usable(me, mp, o0, o1, i, j):
                 continue
             n += 1
             sp += p[i, j]
@@ -583,9 +589,7 @@ def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: 
     mc = sc / n
     for i in range(i0, i1):
         for j in range(j0, j1):
-            if not (mp[i, j] and me[i + o0, j + o1]):
-                continue
-            if not (mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]):
+            if not _k_usable(me, mp, o0, o1, i, j):
                 continue
             x0 = p[i, j] - mp_
             x1 = 0.5 * (p[i + 1, j] - p[i - 1, j]) - mr
