@@ -184,7 +184,7 @@ class RegisterOptions:
     * image space: ``supersample`` (rays per pixel axis of the template, 2; ``supersample_coarse``,
       1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``converge_draft`` (True: the
       converged stage's steps render at ``supersample_coarse``, a quarter of the rays, until one
-      moves the estimate by less than ``_DRAFT_TOL`` px, then at ``supersample``; it only stops on a
+      moves the estimate by less than 0.15 px (``_DRAFT_TOL``), then at ``supersample``; it only stops on a
       full template, so the result is that template's zero; the draft steps only bring it near
       first), ``image_shadows`` (use
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
