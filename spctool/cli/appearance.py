@@ -179,7 +179,7 @@ def _run(ctx: Context, stage: str, kw: dict):
     from spctool.formats.table import LandmarkTable
     from spctool.geometry import heightfield
     from spctool.stages.extract import extract
-    from spctool.stages.predict import predict, unit_vector
+    from spctool.stages.predict import cast_shadow_note, predict, unit_vector
 
     wd = ctx.wd
     inputs = load_stage_inputs(ctx, kw, photo_required=stage == "extracted")
@@ -311,11 +311,7 @@ def _run(ctx: Context, stage: str, kw: dict):
                 cast.append(name)
             advance()
     if cast:
-        ctx.note_once(
-            f"{len(cast)} landmark(s) predicted with their cast shadows ({', '.join(cast[:4])}"
-            f"{', ...' if len(cast) > 4 else ''}): the photo shows them above THRSH T1 = {thresholds[0]:g} "
-            "DN (--shadows spc keeps SPC's rule)"
-        )
+        ctx.note_once(cast_shadow_note(cast, thresholds[0]))
 
     columns = [
         "name",

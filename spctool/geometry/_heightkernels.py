@@ -492,6 +492,17 @@ def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
         )
 
 
+@njit(cache=True, inline="always")
+def _column_max(grid, a, b, half, nb, major0, m):
+    """max(m, grid values of column ``a`` along the dominant axis, rows b − half … b + half inside the
+    grid) — ``grid[a, ·]`` when axis 0 dominates (``major0``), else ``grid[·, a]``."""
+    for bb in range(max(b - half, 0), min(b + half + 1, nb)):
+        v = grid[a, bb] if major0 else grid[bb, a]
+        if v > m:
+            m = v
+    return m
+
+
 @njit(cache=True, nogil=True)
 def _upwind_max(tops, au, aw, out):
     """out[i, j] ≥ the top of every cell a ray leaving cell (i, j) along the horizontal direction
@@ -514,20 +525,9 @@ def _upwind_max(tops, au, aw, out):
         a = na - 1 - k if step > 0 else k  # the column farthest toward the Sun first
         nxt = a + step
         for b in range(nb):
-            m = -np.inf
-            for db in range(-1, 2):
-                bb = b + db
-                if 0 <= bb < nb:
-                    v = tops[a, bb] if major0 else tops[bb, a]
-                    if v > m:
-                        m = v
+            m = _column_max(tops, a, b, 1, nb, major0, -np.inf)
             if 0 <= nxt < na:
-                for db in range(-2, 3):
-                    bb = b + db
-                    if 0 <= bb < nb:
-                        v = out[nxt, bb] if major0 else out[bb, nxt]
-                        if v > m:
-                            m = v
+                m = _column_max(out, nxt, b, 2, nb, major0, m)
             if major0:
                 out[a, b] = m
             else:

@@ -65,6 +65,7 @@ __all__ = [
     "Prediction",
     "PredictOptions",
     "SHADOW_MODES",
+    "cast_shadow_note",
     "fit_brightness",
     "pearson",
     "predict",
@@ -291,6 +292,16 @@ def resolve_shadows(shadowed, extracted_image, valid) -> str:
         return "spc"
     above = int(np.count_nonzero(np.asarray(extracted_image)[shadowed] > 0.0))
     return "cast" if above >= AUTO_SHADOW_LIT_FRACTION * n_shadow else "spc"
+
+
+def cast_shadow_note(names, t1: float) -> str:
+    """The one line that says which landmarks ``shadows="auto"`` predicted with their cast shadows."""
+    listed = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+    return (
+        f"{len(names)} landmark(s) predicted with their cast shadows ({listed}): the photo shows them "
+        f"above THRSH T1 = {t1:g} DN, where SPC's prediction would call them lit (--shadows spc keeps "
+        "SPC's rule)"
+    )
 
 
 def predict(

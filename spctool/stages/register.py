@@ -128,7 +128,13 @@ from spctool.stages.extract import (
     shadow_offsets,
 )
 from spctool.stages.pose import PoseError, PoseOptions, solve_pose
-from spctool.stages.predict import PredictOptions, predict, resolve_shadows, unit_vector
+from spctool.stages.predict import (
+    PredictOptions,
+    cast_shadow_note,
+    predict,
+    resolve_shadows,
+    unit_vector,
+)
 
 __all__ = [
     "SCHEDULES",
@@ -1020,12 +1026,7 @@ def register(
     result.covariance[bad] = np.nan
     cast = reg.cast_shadow_landmarks()
     if cast:
-        listed = ", ".join(cast[:4]) + (", ..." if len(cast) > 4 else "")
-        result.warnings.append(
-            f"{len(cast)} landmark(s) predicted with their cast shadows ({listed}): the photo shows them "
-            f"above THRSH T1 = {reg.thresholds[0]:g} DN, where SPC's prediction would call them lit "
-            "(predict shadows 'auto'; --shadows spc keeps SPC's rule)"
-        )
+        result.warnings.append(cast_shadow_note(cast, reg.thresholds[0]))
     return result
 
 
