@@ -27,6 +27,13 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   3.33 mm truth that rendered the photo — plus the photo's one noise draw, which moves it by only
   ~0.001 px (six draws measured).  It is a floor under every landmark's |mean| that no estimator
   removes: the |mean| target above cannot be met on this preset while it exceeds 0.03 px.
+* ``accuracy montecarlo <space> zero perturbation, exact maplets`` — the same on the control world
+  (``s16_scene(exact_maplets=True)``: truth at the maplets' own 1 cm, so the maplets are the surface
+  that rendered the photo).  This is the registration's own error.  Image space with templates at the
+  photo's supersampling (2) must stay ≤ 0.01 px (a regression guard: 0.005 px measured); the
+  Monte Carlo's image plan (supersample 1, for speed) and maplet space (bilinear extraction, no pixel
+  integration in the prediction) are informative.  Set ``SPCTOOL_MC_SCENE_EXACT=FILE`` to reuse
+  that scene.
 
 Each space is run once per process; its figures are served from that run.
 """
@@ -42,6 +49,7 @@ from spctool.sim import montecarlo as mc
 
 _SCENE = None
 _SCENE_S = None
+_EXACT = None
 _RUNS: dict = {}
 
 
@@ -175,12 +183,40 @@ def _acc_success(space):
     return fn
 
 
+def _exact_scene():
+    global _EXACT
+    if _EXACT is None:
+        path = os.environ.get("SPCTOOL_MC_SCENE_EXACT")
+        if path and os.path.isfile(path):
+            _EXACT = mc.load_scene(path)
+        else:
+            _EXACT = mc.s16_scene(16, exact_maplets=True)
+            if path:
+                mc.save_scene(_EXACT, path)
+    return _EXACT
+
+
+def _zero_error(scene, space, **changes) -> float:
+    """Worst landmark's |error| (px) with every Table 2 sigma at 0; ``changes`` to the default plan."""
+    cfg = mc.MonteCarloConfig(
+        samples=1, seed=0, space=space, sigma_scale=0.0, plan=mc.default_plan(space, **changes)
+    )
+    err = mc.run(scene, cfg, jobs=1).error[:, 0, :]
+    return float(np.max(np.hypot(err[:, 0], err[:, 1])))  # NaN (a landmark lost) fails every target
+
+
 def _model_error(space):
     def fn():
-        res = mc.run(_scene(), mc.MonteCarloConfig(samples=2, seed=0, space=space, sigma_scale=0.0), jobs=1)
-        err = res.error[:, 0, :]
-        v = float(np.nanmax(np.hypot(err[:, 0], err[:, 1])))
-        return v, "px", True
+        v = _zero_error(_scene(), space)
+        return v, "px", bool(np.isfinite(v))
+
+    return fn
+
+
+def _exact_error(space, limit=None, **changes):
+    def fn():
+        v = _zero_error(_exact_scene(), space, **changes)
+        return v, "px", (v <= limit) if limit is not None else bool(np.isfinite(v))
 
     return fn
 
@@ -214,6 +250,21 @@ BENCHMARKS = [
         "accuracy montecarlo image model error at zero perturbation (worst landmark)",
         "(informative: a floor under |mean|)",
         _model_error("image"),
+    ),
+    (
+        "accuracy montecarlo image zero perturbation, exact maplets, templates at supersample 2",
+        "<= 0.01 px (the registration's own error)",
+        _exact_error("image", 0.01, supersample=2),
+    ),
+    (
+        "accuracy montecarlo image zero perturbation, exact maplets, Monte Carlo plan",
+        "(informative: supersample 1)",
+        _exact_error("image"),
+    ),
+    (
+        "accuracy montecarlo maplet zero perturbation, exact maplets",
+        "(informative)",
+        _exact_error("maplet"),
     ),
 ]
 

@@ -455,6 +455,32 @@ def test_scene_file_round_trip(scene, tmp_path):
         scene.subset(["NOPE"])
 
 
+@pytest.mark.parametrize("exact", [True, False])
+def test_s16_exact_maplets_control_world_is_the_photo_surface(exact):
+    """``exact_maplets``: the onboard maplet is the surface that renders the photo (to the MAP encoding's
+    quantisation); the preset's own maplets differ from it by the 3.33 mm → 1 cm smoothing."""
+    from spctool.formats.maplet import format_map, parse_map
+    from spctool.sim.simulate import build_world, parse_spec
+
+    d = mc.s16_spec(16, exact_maplets=exact)
+    for key in ("names", "positions"):  # one landmark is enough
+        d["maplets"][key] = d["maplets"][key][:1]
+    lm = build_world(parse_spec(d), lambda msg: None).landmarks[0]
+    m = parse_map(format_map(lm.maplet), "X.MAP", name="X")
+    truth = lm.truth
+    k = 1 if exact else 3  # truth nodes per maplet cell
+    margin = d["maplets"]["margin"] * k
+    nodes = slice(margin, margin + 99 * k, k)
+    at_nodes = truth.heights[nodes, nodes] * truth.scale / m.scale
+    assert np.linalg.norm(np.asarray(m.v) - np.asarray(truth.v)) < 1e-8  # same V (km)
+    diff = np.abs(m.heights - at_nodes).max()
+    if exact:
+        assert diff < 1e-3  # cells: the MAP encoding's quantisation
+        assert np.allclose(m.albedo, truth.albedo[nodes, nodes], atol=0.0051)  # MAP albedo: 0.01 steps
+    else:
+        assert diff > 0.1  # cells: the smoothing of the preset's 3.33 mm truth
+
+
 def test_s16_spec_camera_and_scene_window():
     from spctool.sim.simulate import parse_spec
 

@@ -387,7 +387,10 @@ def test_image_space_templates_equal_the_general_renderer(scene, monkeypatch):
     np.testing.assert_allclose(fast.measured, ref.measured, rtol=0, atol=1e-9)
     tf, tr = fast.last_steps[0].template, ref.last_steps[0].template
     assert tf.radiance.shape == tr.radiance.shape and np.count_nonzero(tr.coverage) > 1000
-    np.testing.assert_allclose(tf.radiance, tr.radiance, rtol=1e-12, atol=1e-15)
+    # rounding is relative to the template's scale, not to each pixel: near the terminator a pixel's
+    # value is a small difference (8e-14 off at 1e-3 of the peak on a CPU whose numba build fuses
+    # multiply-adds differently)
+    np.testing.assert_allclose(tf.radiance, tr.radiance, rtol=0, atol=1e-12 * np.max(np.abs(tr.radiance)))
     np.testing.assert_array_equal(tf.coverage, tr.coverage)
 
 
@@ -643,6 +646,7 @@ def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
         RegisterOptions(space="image", steps=steps, keep_images=True),
     )  # fmt: skip
     n_fast = len(calls)
+
     def newton_lattice(camera, samples, lines, **_):
         ss, ll = np.meshgrid(np.asarray(samples, float), np.asarray(lines, float))
         return camera.pixel_to_direction(ss, ll)

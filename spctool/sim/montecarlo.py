@@ -469,7 +469,7 @@ S16_POSITIONS = (
 S16_PICTURE = "S16A0050M001"
 
 
-def s16_spec(seed: int = 16) -> dict:
+def s16_spec(seed: int = 16, *, exact_maplets: bool = False) -> dict:
     """The SPEC (:func:`spctool.sim.simulate.parse_spec` mapping) of the ``s16-50m`` world.
 
     Camera: S16 Table 1 with a zero OWEN model (nominal ε = 0, checklist §12.1).  Body: a 0.42 × 0.40 ×
@@ -480,7 +480,13 @@ def s16_spec(seed: int = 16) -> dict:
     extractions far off the maplet still see real terrain.  One picture at 50 m along the local
     vertical of (10°, 20°), Sun 45° from the vertical.  No a-priori errors in the SUM: the study
     perturbs its own knowledge.
+
+    ``exact_maplets``: the control world — truth at the maplet's own 1 cm (truth_factor 1, no smoothing),
+    so the onboard maplets are the surface that rendered the photo (up to the MAP encoding's
+    quantisation).  Whatever error remains at zero perturbation there belongs to the registration, not
+    to the preset's 3.33 mm → 1 cm loss of detail.
     """
+    truth_factor, smoothing = (1, 0.0) if exact_maplets else (3, 0.5)
     return {
         "seed": int(seed),
         "body": {"name": "EV5SYNTH", "radii_km": [0.21, 0.2, 0.185], "q": 64},
@@ -523,9 +529,9 @@ def s16_spec(seed: int = 16) -> dict:
             "positions": [list(p) for p in S16_POSITIONS],
             "scale_km": 1e-5,
             "qsz": 49,
-            "truth_factor": 3,
+            "truth_factor": truth_factor,
             "margin": 40,
-            "smoothing_cells": 0.5,
+            "smoothing_cells": smoothing,
         },
         "camera": {
             "npx": 2592,
@@ -568,15 +574,18 @@ def scene_window_half(
     return int(math.ceil(half_diag + apriori + search))
 
 
-def s16_scene(seed: int = 16, *, window_half: int | None = None, progress=None) -> Scene:
+def s16_scene(
+    seed: int = 16, *, window_half: int | None = None, progress=None, exact_maplets: bool = False
+) -> Scene:
     """Build the ``s16-50m`` scene (module docstring): world of :func:`s16_spec`, truth photo rendered in
     a window of ``window_half`` px (default :func:`scene_window_half`) around every landmark, detector
-    noise from the world's seed, onboard maplets as written to MAP files."""
+    noise from the world's seed, onboard maplets as written to MAP files (``exact_maplets``: the
+    control world of :func:`s16_spec`)."""
     from spctool.formats.maplet import format_map, parse_map
     from spctool.sim.simulate import build_world, expose, parse_spec
 
     say = progress or (lambda msg: None)
-    spec = parse_spec(s16_spec(seed), where="preset s16-50m")
+    spec = parse_spec(s16_spec(seed, exact_maplets=exact_maplets), where="preset s16-50m")
     world = build_world(spec, say)
     pic = world.pictures[0]
     cam = pic.camera
@@ -603,6 +612,7 @@ def s16_scene(seed: int = 16, *, window_half: int | None = None, progress=None) 
     info = {
         "preset": "s16-50m",
         "world_seed": int(seed),
+        "exact_maplets": bool(exact_maplets),
         "spec": spec.to_dict(),
         "exposure_dn": float(exposure),
         "window_half_px": window_half,
