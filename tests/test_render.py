@@ -296,14 +296,17 @@ def test_fused_patch_path_equals_the_general_path(opts):
     assert np.count_nonzero(ref.surface == 1) > 500 and np.count_nonzero(ref.surface == 0) > 500
     if opts.shadows:
         assert 200 < np.count_nonzero(ref.shadow) < ref.shadow.size // 2
-    np.testing.assert_allclose(fast.radiance, ref.radiance, rtol=1e-12, atol=1e-14)
+    # rounding relative to the image's scale: near the terminator a pixel is a small difference, and a
+    # CPU whose numba build fuses multiply-adds differently rounds it differently (test_register)
+    np.testing.assert_allclose(fast.radiance, ref.radiance, rtol=0, atol=1e-12 * np.abs(ref.radiance).max())
     np.testing.assert_array_equal(fast.coverage, ref.coverage)
     np.testing.assert_array_equal(fast.shadow, ref.shadow)
     np.testing.assert_array_equal(fast.surface, ref.surface)
     # one patch alone, as register renders its templates
     fast1 = render(cam, sun, None, patches[:1], opts, window=win)
     ref1 = _render(cam, sun, None, patches[:1], opts, win, None, fused=False)
-    np.testing.assert_allclose(fast1.radiance, ref1.radiance, rtol=1e-12, atol=1e-14)
+    scale1 = np.abs(ref1.radiance).max()
+    np.testing.assert_allclose(fast1.radiance, ref1.radiance, rtol=0, atol=1e-12 * scale1)
     np.testing.assert_array_equal(fast1.shadow, ref1.shadow)
 
 
