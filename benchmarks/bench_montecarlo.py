@@ -31,9 +31,9 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   (``s16_scene(exact_maplets=True)``: truth at the maplets' own 1 cm, so the maplets are the surface
   that rendered the photo).  This is the registration's own error.  Image space with templates at the
   photo's supersampling (2) must stay ≤ 0.01 px (a regression guard: 0.005 px measured); the
-  Monte Carlo's image plan (supersample 1, for speed) and maplet space (bilinear extraction, no pixel
-  integration in the prediction) are informative.  Set ``SPCTOOL_MC_SCENE_EXACT=FILE`` to reuse
-  that scene.
+  Monte Carlo's image plan (supersample 1, for speed) and maplet space (with the study's S16
+  settings, and with register's exact extraction and cast shadows) are informative.  Set
+  ``SPCTOOL_MC_SCENE_EXACT=FILE`` to reuse that scene.
 
 Each space is run once per process; its figures are served from that run.
 """
@@ -46,6 +46,8 @@ import time
 import numpy as np
 
 from spctool.sim import montecarlo as mc
+from spctool.stages.extract import ExtractOptions
+from spctool.stages.predict import PredictOptions
 
 _SCENE = None
 _SCENE_S = None
@@ -263,8 +265,17 @@ BENCHMARKS = [
     ),
     (
         "accuracy montecarlo maplet zero perturbation, exact maplets",
-        "(informative)",
+        "(informative: S16's linearised extraction, SPC's shadows)",
         _exact_error("maplet"),
+    ),
+    (
+        "accuracy montecarlo maplet zero perturbation, exact maplets, exact extraction, cast shadows",
+        "(informative)",
+        _exact_error(
+            "maplet",
+            extract=ExtractOptions(linearized=False, criteria=None),
+            predict=PredictOptions(shadows="cast"),
+        ),
     ),
 ]
 
