@@ -5,7 +5,7 @@ terrain rendered with cast shadows and noise — with S16's 500 Latin Hypercube 
 of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both spaces, on every CPU
 (``default_jobs()``; this machine has 2 cores).
 
-* ``scene build`` — :func:`spctool.sim.montecarlo.s16_scene` (world + windowed render): done once,
+* ``scene build`` — :func:`spctool.sim.montecarlo_scene.s16_scene` (world + windowed render): done once,
   ``spctool montecarlo --scene FILE`` keeps it.  Set ``SPCTOOL_MC_SCENE=FILE`` to reuse a saved scene.
 * ``<space> 12x500 time`` — wall time of :func:`spctool.sim.montecarlo.run` (6000 registrations),
   target ≤ 120 s per space (the issue).
@@ -46,6 +46,8 @@ import time
 import numpy as np
 
 from spctool.sim import montecarlo as mc
+from spctool.sim import montecarlo_report as mcr
+from spctool.sim import montecarlo_scene as mcs
 from spctool.stages.extract import ExtractOptions
 from spctool.stages.predict import PredictOptions
 
@@ -61,11 +63,11 @@ def _scene():
         path = os.environ.get("SPCTOOL_MC_SCENE")
         t = time.perf_counter()
         if path and os.path.isfile(path):
-            _SCENE = mc.load_scene(path)
+            _SCENE = mcs.load_scene(path)
         else:
-            _SCENE = mc.s16_scene(16)
+            _SCENE = mcs.s16_scene(16)
             if path:
-                mc.save_scene(_SCENE, path)
+                mcs.save_scene(_SCENE, path)
         _SCENE_S = time.perf_counter() - t
     return _SCENE
 
@@ -75,7 +77,7 @@ def _run(space):
         scene = _scene()
         cfg = mc.MonteCarloConfig(samples=500, seed=0, space=space)
         res = mc.run(scene, cfg, jobs=mc.default_jobs())
-        _RUNS[space] = (res, mc.summarise(res))
+        _RUNS[space] = (res, mcr.summarise(res))
     return _RUNS[space]
 
 
@@ -127,31 +129,31 @@ def bench_maplet_std_ratio():
 def bench_image_success():
     _, s = _run("image")
     v = s["overall"]["success_rate"]
-    return 100.0 * v, "%", v >= mc.IMAGE_TARGETS["success_rate"]
+    return 100.0 * v, "%", v >= mcr.IMAGE_TARGETS["success_rate"]
 
 
 def bench_image_mean():
     _, s = _run("image")
     v = max(abs(s["overall"]["sample_mean"]), abs(s["overall"]["line_mean"]))
-    return v, "px", v <= mc.IMAGE_TARGETS["abs_mean_px"]
+    return v, "px", v <= mcr.IMAGE_TARGETS["abs_mean_px"]
 
 
 def bench_image_std():
     _, s = _run("image")
     v = max(s["overall"]["sample_std"], s["overall"]["line_std"])
-    return v, "px", v <= mc.IMAGE_TARGETS["std_px"]
+    return v, "px", v <= mcr.IMAGE_TARGETS["std_px"]
 
 
 def bench_image_worst_mean():
     _, s = _run("image")
     v = max(s["overall"]["max_abs_sample_mean"], s["overall"]["max_abs_line_mean"])
-    return v, "px", v <= mc.IMAGE_TARGETS["abs_mean_px"]
+    return v, "px", v <= mcr.IMAGE_TARGETS["abs_mean_px"]
 
 
 def bench_image_worst_std():
     _, s = _run("image")
     v = max(s["overall"]["max_sample_std"], s["overall"]["max_line_std"])
-    return v, "px", v <= mc.IMAGE_TARGETS["std_px"]
+    return v, "px", v <= mcr.IMAGE_TARGETS["std_px"]
 
 
 #: issue #15's per-landmark accuracy targets (both spaces)
@@ -190,11 +192,11 @@ def _exact_scene():
     if _EXACT is None:
         path = os.environ.get("SPCTOOL_MC_SCENE_EXACT")
         if path and os.path.isfile(path):
-            _EXACT = mc.load_scene(path)
+            _EXACT = mcs.load_scene(path)
         else:
-            _EXACT = mc.s16_scene(16, exact_maplets=True)
+            _EXACT = mcs.s16_scene(16, exact_maplets=True)
             if path:
-                mc.save_scene(_EXACT, path)
+                mcs.save_scene(_EXACT, path)
     return _EXACT
 
 

@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import register_scene as rs  # noqa: E402
 
-from spctool.sim import montecarlo as mc  # noqa: E402
+from spctool.sim import montecarlo_scene as mcs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "fixtures" / "demo"
@@ -23,11 +23,11 @@ DEMO = ROOT / "fixtures" / "demo"
 def scene_file(tmp_path_factory):
     """A 99×99-cell landmark (1 cm) at 50 m through S16's optics, saved as a scene file."""
     sc = rs.scene(q=49, q_truth=90, npx=170, nln=170)
-    m = mc.Knowledge.from_maplet(sc.maplet, "LMK001")
-    scene = mc.Scene(
+    m = mcs.Knowledge.from_maplet(sc.maplet, "LMK001")
+    scene = mcs.Scene(
         "P0001", sc.photo, sc.thresholds, sc.camera, sc.sun, [m], [sc.maplet.v], info={"preset": None}
     )
-    return mc.save_scene(scene, tmp_path_factory.mktemp("mc") / "scene.npz")
+    return mcs.save_scene(scene, tmp_path_factory.mktemp("mc") / "scene.npz")
 
 
 def _doc(result):
@@ -163,7 +163,7 @@ def test_working_directory_made_by_simulate(run_cli, tmp_path):
     truth = json.loads((DEMO / "TRUTH.json").read_text())
     pic = truth["pictures"][0]["name"]
     lm = truth["landmarks"][0]
-    scene = mc.scene_from_workdir(DEMO, pic, [lm["name"]])
+    scene = mcs.scene_from_workdir(DEMO, pic, [lm["name"]])
     px = lm["pixels"][pic]
     assert np.allclose(scene.truth[0], [px["sample"], px["line"]], atol=1e-9)
     assert np.allclose(scene.sun, truth["pictures"][0]["true"]["sz"])

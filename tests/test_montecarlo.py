@@ -22,6 +22,8 @@ import register_scene as rs  # noqa: E402
 from spctool.errors import SpcUsageError  # noqa: E402
 from spctool.geometry.frames import apply_attitude_update  # noqa: E402
 from spctool.sim import montecarlo as mc  # noqa: E402
+from spctool.sim import montecarlo_report as mcr  # noqa: E402
+from spctool.sim import montecarlo_scene as mcs  # noqa: E402
 from spctool.stages.register import register  # noqa: E402
 
 # --------------------------------------------------------------------------------------------------
@@ -31,8 +33,10 @@ from spctool.stages.register import register  # noqa: E402
 @pytest.fixture(scope="module")
 def scene():
     sc = rs.scene(q=24, q_truth=80, npx=120, nln=120)
-    m = mc.Knowledge.from_maplet(sc.maplet, "LMK001")
-    return mc.Scene("P0001", sc.photo, sc.thresholds, sc.camera, sc.sun, [m], [sc.maplet.v], info={"test": 1})
+    m = mcs.Knowledge.from_maplet(sc.maplet, "LMK001")
+    return mcs.Scene(
+        "P0001", sc.photo, sc.thresholds, sc.camera, sc.sun, [m], [sc.maplet.v], info={"test": 1}
+    )
 
 
 def _owen(x, y, p):
@@ -342,7 +346,7 @@ def test_table3_statistics():
     errors[0, :3] = [[0.1, -0.2], [0.3, 0.0], [-0.1, 0.1]]
     errors[1, [0, 3, 4]] = [[0.05, 0.0], [0.05, 0.1], [0.2, -0.1]]
     rho = [[0.6, 0.7, 0.5, np.nan, 0.2], [0.9, 0.8, np.nan, 0.7, 0.6]]
-    s = mc.summarise(_fake_result(statuses, errors, rho))
+    s = mcr.summarise(_fake_result(statuses, errors, rho))
     a, b = s["landmarks"]
     assert a["sample_mean"] == pytest.approx(0.1) and a["line_mean"] == pytest.approx(-1 / 30)
     assert a["sample_std"] == pytest.approx(np.std([0.1, 0.3, -0.1], ddof=1))
@@ -376,7 +380,7 @@ def test_s16_table3_transcription_is_consistent():
     # success = (500 − not found − below threshold)/500 for every row (spc-algorithms.md §8.2)
     for name, row in mc.S16_TABLE3.items():
         assert round((500 - row[4] - row[5]) / 500, 2) == pytest.approx(row[6], abs=0.0051), name
-    agg = mc._s16_aggregate()
+    agg = mcr._s16_aggregate()
     assert agg["success_rate"] == pytest.approx(1 - (sum(r[4] + r[5] for r in mc.S16_TABLE3.values())) / 6000)
     assert agg["max_abs_sample_mean"] == 0.208 and agg["max_line_std"] == 0.113
     assert list(mc.S16_TABLE3) == list(mc.S16_LANDMARKS)
@@ -390,24 +394,24 @@ def test_report_json_and_figures(tmp_path):
     rho = rng.uniform(0.4, 0.9, (2, n))
     res = _fake_result(statuses, errors, rho)
     res.timing = {"run_s": 1.0, "per_sample_ms": 8.3, "jobs": 1, "samples": 120}
-    text = mc.format_report(res)
+    text = mcr.format_report(res)
     assert "s mean" in text and "S16 Table 3" in text and "B01980" in text
     lines = [ln for ln in text.splitlines() if ln.startswith(("A ", "B ", "all "))]
     assert len(lines) == 3 and lines[0].split()[5:7] == ["3", "2"]
-    doc = mc.report_document(res)
+    doc = mcr.report_document(res)
     json.dumps(doc, allow_nan=False)
     assert doc["command"] == "montecarlo" and len(doc["landmarks"]) == 2
     assert doc["landmarks"][0]["success_rate"] == pytest.approx(55 / 60)
     assert doc["overall"]["success_rate"] == pytest.approx(115 / 120)
     assert doc["sensitivity"] and doc["dimensions"][0]["parameter"] == "position"
-    paths = mc.write_figures(res, tmp_path / "figs")
+    paths = mcr.write_figures(res, tmp_path / "figs")
     from PIL import Image
 
     for p in paths:
         im = Image.open(p)
         assert im.format == "PNG" and im.size[0] > 500
         assert len(np.unique(np.asarray(im.convert("L")))) > 5  # something was drawn
-    csv = mc.write_samples_csv(res, tmp_path / "s.csv").read_text().splitlines()
+    csv = mcr.write_samples_csv(res, tmp_path / "s.csv").read_text().splitlines()
     assert len(csv) == 1 + 120 and csv[0].startswith("landmark,sample,status")
     assert csv[56].split(",")[2] == "not-found"
 
@@ -423,7 +427,7 @@ def test_sensitivity_recovers_a_linear_model():
     res.measured = res.truth[:, None, :] - (
         err + np.array([[[0.1, -0.2]], [[0.0, 0.3]]])
     )  # per-landmark biases
-    sens = mc.sensitivity(res)
+    sens = mcr.sensitivity(res)
     assert [r["parameter"] for r in sens] == ["position"] * 3
     assert sens[0]["sample_px_per_sigma"] == pytest.approx(0.02, abs=5e-4)
     assert sens[0]["line_px_per_sigma"] == pytest.approx(-0.01, abs=5e-4)
@@ -436,8 +440,8 @@ def test_sensitivity_recovers_a_linear_model():
 
 
 def test_scene_file_round_trip(scene, tmp_path):
-    path = mc.save_scene(scene, tmp_path / "scene.npz")
-    back = mc.load_scene(path)
+    path = mcs.save_scene(scene, tmp_path / "scene.npz")
+    back = mcs.load_scene(path)
     assert np.array_equal(back.photo, scene.photo) and np.array_equal(back.truth, scene.truth)
     assert (
         np.array_equal(back.camera.rotation, scene.camera.rotation)
@@ -450,7 +454,7 @@ def test_scene_file_round_trip(scene, tmp_path):
         assert a.scale == b.scale
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(SpcUsageError):
-        mc.load_scene(tmp_path / "bad.npz")
+        mcs.load_scene(tmp_path / "bad.npz")
     with pytest.raises(SpcUsageError):
         scene.subset(["NOPE"])
 
@@ -462,7 +466,7 @@ def test_s16_exact_maplets_control_world_is_the_photo_surface(exact):
     from spctool.formats.maplet import format_map, parse_map
     from spctool.sim.simulate import build_world, parse_spec
 
-    d = mc.s16_spec(16, exact_maplets=exact)
+    d = mcs.s16_spec(16, exact_maplets=exact)
     for key in ("names", "positions"):  # one landmark is enough
         d["maplets"][key] = d["maplets"][key][:1]
     lm = build_world(parse_spec(d), lambda msg: None).landmarks[0]
@@ -484,7 +488,7 @@ def test_s16_exact_maplets_control_world_is_the_photo_surface(exact):
 def test_s16_spec_camera_and_scene_window():
     from spctool.sim.simulate import parse_spec
 
-    spec = parse_spec(mc.s16_spec(16))
+    spec = parse_spec(mcs.s16_spec(16))
     c = spec.camera
     assert (c.npx, c.nln, c.mmfl) == (2592, 1944, 7.68)
     assert c.kmatrix == [[454.54, 0.0, 0.0], [0.0, -454.54, 0.0]]
@@ -495,7 +499,7 @@ def test_s16_spec_camera_and_scene_window():
     assert spec.maplets.scale_km == 1e-5 and spec.pictures[0].range_km == 0.05
     # window: half diagonal + 5 sigma of the a-priori error + the L = 10 search, in pixels at 50 m
     cam = rs.s16_camera(np.zeros(3), np.array([0.0, 0.0, 0.05]), npx=2592, nln=1944)
-    m = mc.Knowledge(
+    m = mcs.Knowledge(
         "X",
         np.zeros((99, 99)),
         np.ones((99, 99)),
@@ -508,4 +512,4 @@ def test_s16_spec_camera_and_scene_window():
     )
     px = 0.05 * cam.ifov
     expected = math.sqrt(2) * 49.5e-5 / px + 5 * math.hypot(1.667e-4 / px, math.radians(0.05) / cam.ifov) + 60
-    assert mc.scene_window_half(cam, m) == math.ceil(expected)
+    assert mcs.scene_window_half(cam, m) == math.ceil(expected)

@@ -219,6 +219,8 @@ def register(cli: click.Group) -> None:
         output,
     ):
         from spctool.sim import montecarlo as mc
+        from spctool.sim import montecarlo_report as mcr
+        from spctool.sim import montecarlo_scene as mcs
 
         params = _names(only) or [p.name for p in mc.PARAMETERS]
         drop = set(_names(without))
@@ -238,7 +240,7 @@ def register(cli: click.Group) -> None:
             plan=mc.default_plan(space, refine=refine),
         )
         t0 = time.perf_counter()
-        scene = _load_scene(ctx, mc, preset, scene_path, world_seed, picture)
+        scene = _load_scene(ctx, mcs, preset, scene_path, world_seed, picture)
         scene_s = time.perf_counter() - t0
         if landmarks:
             scene = scene.subset(_names(landmarks))
@@ -249,16 +251,16 @@ def register(cli: click.Group) -> None:
         with progress(ctx, f"montecarlo {space}", total) as advance:
             result = mc.run(scene, config, jobs=jobs or mc.default_jobs(), progress=advance)
         result.timing["scene_s"] = scene_s
-        summary = mc.summarise(result)
+        summary = mcr.summarise(result)
         if as_json:
-            emit(json.dumps(mc.report_document(result, summary), indent=1) + "\n", output)
+            emit(json.dumps(mcr.report_document(result, summary), indent=1) + "\n", output)
         else:
-            emit(mc.format_report(result, summary), output)
+            emit(mcr.format_report(result, summary), output)
         if figures_dir:
-            for path in mc.write_figures(result, figures_dir):
+            for path in mcr.write_figures(result, figures_dir):
                 ctx.info(f"wrote {path}")
         if samples_csv:
-            mc.write_samples_csv(result, samples_csv)
+            mcr.write_samples_csv(result, samples_csv)
             ctx.info(f"wrote {samples_csv}")
         if check:
             group = "image_targets" if space == "image" else "s16_table3"
@@ -269,10 +271,10 @@ def register(cli: click.Group) -> None:
                 )
 
 
-def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
+def _load_scene(ctx: Context, mcs, preset, scene_path, world_seed, picture):
     if scene_path and Path(scene_path).is_file():
         ctx.info(f"reading scene {scene_path}")
-        scene = mc.load_scene(scene_path)
+        scene = mcs.load_scene(scene_path)
         if preset and scene.info.get("preset") != preset:
             raise SpcUsageError(
                 f"{scene_path}: holds {scene.info.get('preset') or 'a working-directory'} scene, "
@@ -286,7 +288,7 @@ def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
             raise SpcUsageError("a preset has its own picture: drop PICTURE")
         ctx.note_once(f"building the {preset} scene (about a minute; --scene FILE keeps it)")
         # the builder names each step as it starts: 3 world steps, then one render per landmark
-        with progress(ctx, f"building {preset}", 3 + len(mc.S16_LANDMARKS)) as advance:
+        with progress(ctx, f"building {preset}", 3 + len(mcs.S16_LANDMARKS)) as advance:
             started = []
 
             def step(msg):
@@ -294,15 +296,15 @@ def _load_scene(ctx: Context, mc, preset, scene_path, world_seed, picture):
                 advance(1 if started else 0, description=f"{preset}: {msg}")
                 started.append(msg)
 
-            scene = mc.s16_scene(world_seed, progress=step)
+            scene = mcs.s16_scene(world_seed, progress=step)
     else:
         if not (Path(ctx.workdir) / "TRUTH.json").is_file():
             raise SpcUsageError(
                 f"{ctx.workdir}: no TRUTH.json; give --preset s16-50m, --scene FILE, or -C a world made by "
                 "'spctool simulate'"
             )
-        scene = mc.scene_from_workdir(str(Path(ctx.workdir).resolve()), picture)  # -C: cwd is DIR
+        scene = mcs.scene_from_workdir(str(Path(ctx.workdir).resolve()), picture)  # -C: cwd is DIR
     if scene_path:
-        mc.save_scene(scene, scene_path)
+        mcs.save_scene(scene, scene_path)
         ctx.info(f"saved scene {scene_path}")
     return scene
