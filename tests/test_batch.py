@@ -485,10 +485,10 @@ def test_options_fingerprint_and_summary_round_trip():
     s = PictureSummary(
         "P1", "ok", 3, 3, 2, 2, 1.5, 0.1, 2e-3, 1e-4, True, [1.0, 2.0, 3.0], [0.1, 0.2, 0.3], reduced_chi2=1.2
     )
-    doc = json.loads(json.dumps(batch._jsonable(s.as_dict())))
+    doc = json.loads(json.dumps(batch.inputs._jsonable(s.as_dict())))
     assert PictureSummary.from_dict(doc) == s
     nan = PictureSummary("P2", "failed: x")
-    back = PictureSummary.from_dict(json.loads(json.dumps(batch._json_clean(nan.as_dict()))))
+    back = PictureSummary.from_dict(json.loads(json.dumps(batch.inputs._json_clean(nan.as_dict()))))
     assert back.kind == "failed" and np.isnan(back.rms_after_px) and np.isnan(back.delta_position).all()
 
 
@@ -529,7 +529,7 @@ def test_worker_death_names_the_culprit_and_completes_the_rest(tmp_path):
         got[i] = s
 
     opts = BatchOptions()
-    batch._run_processes(
+    batch.driver._run_processes(
         2, tmp_path, tmp_path / "out", names, list(range(len(names))), opts, opts.fingerprint(), "t",
         record, task=_crash_on_p3,
     )
@@ -547,7 +547,7 @@ def test_worker_pool_death_closes_the_pool_and_the_batch_completes(tmp_path):
     got: dict[int, PictureSummary] = {}
     opts = BatchOptions()
     with batch.WorkerPool(2) as pool:
-        batch._run_processes(
+        batch.driver._run_processes(
             2, tmp_path, tmp_path / "out", names, list(range(len(names))), opts, opts.fingerprint(), "t",
             lambda i, s: got.__setitem__(i, s), task=_crash_on_p3, pool=pool,
         )  # fmt: skip
@@ -619,6 +619,6 @@ def _die(*args, **kwargs):
 def test_worker_pool_that_cannot_warm_up_is_an_error(world, monkeypatch):
     root, _ = world
     monkeypatch.setenv("SPCTOOL_START_METHOD", "fork")  # the forked workers inherit the patch below
-    monkeypatch.setattr(batch, "navigate_picture", _die)
+    monkeypatch.setattr(batch.driver, "navigate_picture", _die)
     with pytest.raises(SpcUsageError, match="could not start"):
         batch.WorkerPool(2, warm=(root, None))

@@ -209,7 +209,7 @@ def test_a_dying_worker_process_costs_only_its_picture(world, reference, tmp_pat
     names = ["CRASHPIC0001", picture_name(0), picture_name(1)]
     got = {}
     opts = batch.BatchOptions()
-    batch._run_processes(
+    batch.driver._run_processes(
         2, world, tmp_path / "o", names, [0, 1, 2], opts, opts.fingerprint(), "t",
         lambda i, s: got.setdefault(names[i], s), task=crash_task,
     )  # fmt: skip
