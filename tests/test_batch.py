@@ -24,6 +24,7 @@ from spctool.errors import SpcUsageError
 from spctool.formats.landmark import read_lmk
 from spctool.formats.sumfile import read_sum
 from spctool.geometry.camera import Camera
+from spctool.jsonsafe import json_safe
 from spctool.stages.pose import PoseOptions
 
 N_PICTURES = 4
@@ -488,7 +489,7 @@ def test_options_fingerprint_and_summary_round_trip():
     doc = json.loads(json.dumps(batch.inputs._jsonable(s.as_dict())))
     assert PictureSummary.from_dict(doc) == s
     nan = PictureSummary("P2", "failed: x")
-    back = PictureSummary.from_dict(json.loads(json.dumps(batch.inputs._json_clean(nan.as_dict()))))
+    back = PictureSummary.from_dict(json.loads(json.dumps(json_safe(nan.as_dict()))))
     assert back.kind == "failed" and np.isnan(back.rms_after_px) and np.isnan(back.delta_position).all()
 
 

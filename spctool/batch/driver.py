@@ -27,7 +27,6 @@ from spctool.batch.inputs import (
     WARM_TIMEOUT_S,
     BatchOptions,
     SharedData,
-    _json_clean,
     _jsonable,
     inputs_stamp,
     shared_inputs_sha256,
@@ -43,6 +42,7 @@ from spctool.batch.picture import (
 from spctool.errors import SpcUsageError
 from spctool.formats import atomic, guard
 from spctool.formats.workdir import WorkDir
+from spctool.jsonsafe import json_safe
 
 # --------------------------------------------------------------------------------------------------
 # driver
@@ -124,7 +124,7 @@ class BatchResult:
             "options_sha256": self.fingerprint,
             "options": _jsonable(self.options),
             "counts": self.counts(),
-            "pictures": [_json_clean(p.as_dict()) for p in self.pictures],
+            "pictures": [json_safe(p.as_dict()) for p in self.pictures],
         }
 
     def to_json(self) -> str:

@@ -25,6 +25,7 @@ from spctool.errors import SpcError, SpcFormatError, SpcUsageError
 from spctool.formats import guard
 from spctool.formats.workdir import WorkDir
 from spctool.geometry.shape import as_shape
+from spctool.jsonsafe import json_safe
 from spctool.stages.navigate import NavigateOptions
 from spctool.stages.pose import PoseOptions
 from spctool.stages.register import RegisterOptions
@@ -126,17 +127,6 @@ def _jsonable(v):
     if v is None or isinstance(v, (bool, int, float, str)):
         return v
     return repr(v)
-
-
-def _json_clean(v):
-    """NaN/inf → None (JSON null), recursively."""
-    if isinstance(v, dict):
-        return {k: _json_clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_clean(x) for x in v]
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
 
 
 # --------------------------------------------------------------------------------------------------
@@ -353,7 +343,7 @@ def _same_inputs(wd: WorkDir, picture: str, stored) -> bool:
         now = picture_inputs(wd, picture, photo_name, list(stored["maplets"]))
     except (SpcError, OSError, TypeError):
         return False
-    return _json_clean(now) == stored
+    return json_safe(now) == stored
 
 
 def _candidate_row(wd: WorkDir, name: str):

@@ -25,7 +25,6 @@ from spctool.batch.inputs import (
     TABLES_DIR,
     BatchOptions,
     SharedData,
-    _json_clean,
     _same_inputs,
     picture_inputs,
     shared_inputs_sha256,
@@ -34,6 +33,7 @@ from spctool.errors import SpcError, SpcFormatError
 from spctool.formats import atomic, guard
 from spctool.formats.sumfile import with_measured_landmarks, with_pose
 from spctool.formats.workdir import WorkDir
+from spctool.jsonsafe import json_safe
 from spctool.stages.pose import PoseError, PoseOptions
 
 # --------------------------------------------------------------------------------------------------
@@ -447,7 +447,7 @@ def write_outcome(out_dir, outcome: PictureOutcome, fingerprint: str) -> None:
         "spctool_version": __version__,
         "shared_inputs_sha256": outcome.inputs_sha256,
         "inputs": outcome_inputs(out_dir, outcome),
-        "summary": _json_clean(outcome.summary.as_dict()),
+        "summary": json_safe(outcome.summary.as_dict()),
     }
     atomic.write_bytes(paths["marker"], (json.dumps(marker, indent=1) + "\n").encode("utf-8"))
 
@@ -457,7 +457,7 @@ def outcome_inputs(out_dir, outcome: PictureOutcome) -> dict | None:
     wd = outcome.workdir
     if wd is None:
         return None
-    return _json_clean(picture_inputs(wd, outcome.summary.picture, outcome.photo_name, outcome.maplets))
+    return json_safe(picture_inputs(wd, outcome.summary.picture, outcome.photo_name, outcome.maplets))
 
 
 def read_marker(out_dir, picture: str) -> dict | None:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from spctool import __version__
+from spctool.jsonsafe import json_safe
 from spctool.sim.montecarlo import (
     PARAMETERS,
     S16_SAMPLES,
@@ -273,23 +274,6 @@ def format_report(result: MonteCarloResult, summary: dict | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
-def _clean(x):
-    """JSON-safe: NaN/inf → None, numpy scalars → Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(float(x)) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
-
-
 def report_document(result: MonteCarloResult, summary: dict | None = None) -> dict:
     """The JSON document (cli-contract.md shape): per-landmark Table 3 rows and success rates, the
     overall row, S16's table, checks, sensitivity, settings, timing."""
@@ -342,7 +326,7 @@ def report_document(result: MonteCarloResult, summary: dict | None = None) -> di
         "sensitivity": sensitivity(result),
         "timing": result.timing,
     }
-    return _clean(doc)
+    return json_safe(doc)
 
 
 def write_samples_csv(result: MonteCarloResult, path) -> Path:
