@@ -639,6 +639,143 @@ def solve_pose(*args, **kwargs) -> PoseResult:
         ) from None
 
 
+def _measurement_weights(opts, meas_all, names, pixel_sigmas, pixel_covariances, warnings) -> np.ndarray:
+    """(N, 2, 2) weights of the measurements: diag(1/σ²) from ``pixel_sigmas`` (default ``sigma_px``),
+    or (Cᵢ + floor²·I)⁻¹ from ``pixel_covariances`` where those are usable (the others named in
+    ``warnings``)."""
+    n_all = meas_all.shape[0]
+    sig_px = _per_landmark(
+        opts.sigma_px if pixel_sigmas is None else pixel_sigmas, n_all, "pixel_sigmas", width=2
+    )
+    if np.any(~(sig_px > 0)):
+        raise SpcUsageError("pixel sigmas must be positive")
+    wts = np.zeros((n_all, 2, 2))
+    wts[:, 0, 0] = 1.0 / (sig_px[:, 0] * sig_px[:, 0])
+    wts[:, 1, 1] = 1.0 / (sig_px[:, 1] * sig_px[:, 1])
+    if pixel_covariances is not None:
+        wts, bad = _covariance_weights(pixel_covariances, n_all, opts.sigma_floor_px, wts)
+        bad &= np.all(np.isfinite(meas_all), axis=1)
+        if bad.any():
+            fallback = "the given pixel sigmas" if pixel_sigmas is not None else f"{opts.sigma_px:g} px"
+            warnings.append(
+                f"no usable measurement covariance for {', '.join(names[i] for i in np.flatnonzero(bad))}:"
+                f" weighted with {fallback}"
+            )
+    return wts
+
+
+def _outlier_scores(problem, state, opts):
+    """(score, limit, unit, residual px) of every landmark of the fit for the outlier test: the
+    residual in px against ``reject_px``, else its weighted size ρ (with the landmark's position-prior
+    term in ``"estimate"`` mode), robustly rescaled, against ``reject_sigma``."""
+    smp, lin = state.camera.project(problem.pts(state))
+    r = problem.meas - np.stack([smp, lin], axis=-1)
+    rho2 = np.einsum("mi,mij,mj->m", r, problem.wts, r)
+    if state.dlmk is not None:  # "estimate": a landmark's cost also has its position-prior term
+        rho2 = rho2 + np.sum(problem.lmk_info * state.dlmk * state.dlmk, axis=1)
+    rho = np.sqrt(rho2)
+    rpx = np.sqrt(np.sum(r * r, axis=1))
+    if opts.reject_px is not None:
+        return rpx, float(opts.reject_px), "px", rpx
+    c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if opts.robust_scale else 1.0
+    return rho / c, float(opts.reject_sigma), "sigma", rpx
+
+
+def _final_covariance(problem, state, mode, used, pts_all, lmk_sig):
+    """The pose covariance at the solution (6 × 6), its condition number, and per mode: ``"consider"``
+    the covariance without the landmark errors; ``"estimate"`` the landmark corrections and their
+    covariances (N, 3) / (N, 3, 3), NaN-free only for used landmarks.  Also the landmark positions
+    after the fit."""
+    n_all = pts_all.shape[0]
+    n, g, extra = problem.normal(state)
+    _, cov, cond = problem.solve_scaled(n, g, int(np.count_nonzero(used)))
+    cov_plain = lmk_corr = lmk_cov = None
+    pts_after = pts_all.copy()
+    if mode == "estimate":
+        b, dinv = extra["b"], extra["dinv"]
+        bd = b @ dinv  # (M, 6, 3)
+        cov_l = dinv + np.einsum("mji,jk,mkl->mil", bd, cov, bd)
+        lmk_corr = np.zeros((n_all, 3))
+        lmk_corr[used] = state.dlmk
+        lmk_cov = np.full((n_all, 3, 3), np.nan)
+        lmk_cov[used] = cov_l
+        pts_after[used] = pts_all[used] + state.dlmk
+    elif mode == "consider":
+        b = np.einsum("mki,mkj->mij", problem.wts @ extra["hx"], extra["hl"])  # (M, 6, 3)
+        c = np.einsum("mij,mj,mkj->ik", b, lmk_sig[used] ** 2, b)
+        cov_plain = cov
+        cov = cov + cov @ c @ cov
+        cov = 0.5 * (cov + cov.T)
+    return cov, cond, cov_plain, lmk_corr, lmk_cov, pts_after
+
+
+def _usable_landmarks(camera, pts_all, meas_all, names):
+    """(usable (N,), a-priori predicted pixels (N, 2), status words, rejections): a landmark is usable
+    with a known position, a measured pixel and in front of the a-priori camera; the others are named
+    with the reason (``no-position``, ``no-measurement``, ``behind-camera``)."""
+    status = ["ok"] * pts_all.shape[0]
+    rejected: list[Rejection] = []
+    pts_finite = np.all(np.isfinite(pts_all), axis=1)
+    meas_finite = np.all(np.isfinite(meas_all), axis=1)
+    smp0, lin0, front0 = camera.project_with_mask(np.where(pts_finite[:, None], pts_all, 0.0))
+    pred0 = np.stack([smp0, lin0], axis=-1)
+    pred0[~(pts_finite & front0)] = np.nan
+    usable = pts_finite & meas_finite & front0
+    for i in np.flatnonzero(~usable):  # only the unusable few
+        i = int(i)
+        if not pts_finite[i]:
+            word, detail = "no-position", "landmark position unknown"
+        elif not meas_finite[i]:
+            word, detail = "no-measurement", "measured pixel is not a number"
+        else:
+            word, detail = "behind-camera", "landmark behind the a-priori camera"
+        status[i] = word
+        rejected.append(Rejection(names[i], i, word, detail))
+    return usable, pred0, status, rejected
+
+
+def _fit_rejecting(build, usable, opts, prior, names, status, rejected, warnings):
+    """Fit the landmarks ``usable``, then while the outlier test fails drop the worst one and fit again
+    (one at a time, at most ``max_reject_fraction`` of them, never below ``min_landmarks``); the
+    rejections go to ``status``, ``rejected`` and ``warnings``.  Returns (problem, state, iterations,
+    converged, cost history, used)."""
+    used = usable.copy()
+    max_reject = int(math.floor(opts.max_reject_fraction * int(np.count_nonzero(usable))))
+    prior_used = prior.n_equations > 0
+    while True:
+        problem = build(used)
+        state, iterations, converged, history = problem.fit()
+        if not opts.reject_outliers:
+            break
+        idx = np.flatnonzero(used)
+        m = idx.size
+        if 2 * m + prior.n_equations - 6 <= 0:  # no redundancy: nothing can be tested
+            break
+        score, limit, unit, rpx = _outlier_scores(problem, state, opts)
+        worst = int(np.argmax(score))
+        if not score[worst] > limit:
+            break
+        n_rej = int(np.count_nonzero(usable & ~used))
+        if m - 1 < max(opts.min_landmarks, 0 if prior_used else 3) or n_rej + 1 > max_reject:
+            bad = [names[idx[k]] for k in np.flatnonzero(score > limit)]
+            warnings.append(
+                f"outlier test fails for {', '.join(bad)} but no more landmarks may be rejected"
+                f" ({m} used, min_landmarks {opts.min_landmarks}, max_reject_fraction"
+                f" {opts.max_reject_fraction})"
+            )
+            break
+        k = int(idx[worst])
+        detail = (
+            f"residual {rpx[worst]:.3f} px ({score[worst]:.1f} {unit}) > {limit:g} {unit}"
+            if unit == "px"
+            else f"residual {rpx[worst]:.3f} px = {score[worst]:.1f} sigma > {limit:g} sigma"
+        )
+        rejected.append(Rejection(names[k], k, "outlier", detail, float(rpx[worst])))
+        status[k] = "rejected-outlier"
+        used[k] = False
+    return problem, state, iterations, converged, history, used
+
+
 def _solve_pose(
     camera,
     landmark_positions,
@@ -677,24 +814,8 @@ def _solve_pose(
     names = [f"#{i + 1}" for i in range(n_all)] if names is None else [str(x) for x in names]
     if len(names) != n_all:
         raise SpcUsageError(f"names has {len(names)} entries for {n_all} landmarks")
-    sig_px = _per_landmark(
-        opts.sigma_px if pixel_sigmas is None else pixel_sigmas, n_all, "pixel_sigmas", width=2
-    )
-    if np.any(~(sig_px > 0)):
-        raise SpcUsageError("pixel sigmas must be positive")
-    wts_all = np.zeros((n_all, 2, 2))
-    wts_all[:, 0, 0] = 1.0 / (sig_px[:, 0] * sig_px[:, 0])
-    wts_all[:, 1, 1] = 1.0 / (sig_px[:, 1] * sig_px[:, 1])
     warnings: list[str] = []
-    if pixel_covariances is not None:
-        wts_all, bad = _covariance_weights(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
-        bad &= np.all(np.isfinite(meas_all), axis=1)
-        if bad.any():
-            fallback = "the given pixel sigmas" if pixel_sigmas is not None else f"{opts.sigma_px:g} px"
-            warnings.append(
-                f"no usable measurement covariance for {', '.join(names[i] for i in np.flatnonzero(bad))}:"
-                f" weighted with {fallback}"
-            )
+    wts_all = _measurement_weights(opts, meas_all, names, pixel_sigmas, pixel_covariances, warnings)
     mode = opts.landmark_mode
     lmk_sig = None
     if mode != "fixed":
@@ -717,25 +838,8 @@ def _solve_pose(
     prior_used = prior.n_equations > 0
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
-    status = ["ok"] * n_all
-    rejected: list[Rejection] = []
+    usable, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
     pts_finite = np.all(np.isfinite(pts_all), axis=1)
-    meas_finite = np.all(np.isfinite(meas_all), axis=1)
-    safe_pts = np.where(pts_finite[:, None], pts_all, 0.0)
-    smp0, lin0, front0 = camera.project_with_mask(safe_pts)
-    pred0 = np.stack([smp0, lin0], axis=-1)
-    pred0[~(pts_finite & front0)] = np.nan
-    usable = pts_finite & meas_finite & front0
-    for i in np.flatnonzero(~usable):  # only the unusable few
-        i = int(i)
-        if not pts_finite[i]:
-            word, detail = "no-position", "landmark position unknown"
-        elif not meas_finite[i]:
-            word, detail = "no-measurement", "measured pixel is not a number"
-        else:
-            word, detail = "behind-camera", "landmark behind the a-priori camera"
-        status[i] = word
-        rejected.append(Rejection(names[i], i, word, detail))
     resid0 = meas_all - pred0
 
     def check_count(count):
@@ -764,83 +868,16 @@ def _solve_pose(
         )
 
     # ---- fit, reject, refit -------------------------------------------------------------------------
-    used = usable.copy()
-    n_usable = int(np.count_nonzero(usable))
-    max_reject = int(math.floor(opts.max_reject_fraction * n_usable))
-    n_unknowns = 6
-    while True:
-        problem = build(used)
-        state, iterations, converged, history = problem.fit()
-        if not opts.reject_outliers:
-            break
-        idx = np.flatnonzero(used)
-        m = idx.size
-        dof = 2 * m + prior.n_equations - n_unknowns
-        if dof <= 0:
-            break
-        smp, lin = state.camera.project(problem.pts(state))
-        r = problem.meas - np.stack([smp, lin], axis=-1)
-        rho2 = np.einsum("mi,mij,mj->m", r, problem.wts, r)
-        if state.dlmk is not None:  # "estimate": a landmark's cost also has its position-prior term
-            rho2 = rho2 + np.sum(problem.lmk_info * state.dlmk * state.dlmk, axis=1)
-        rho = np.sqrt(rho2)
-        rpx = np.sqrt(np.sum(r * r, axis=1))
-        if opts.reject_px is not None:
-            score, limit = rpx, float(opts.reject_px)
-            unit = "px"
-        else:
-            c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if opts.robust_scale else 1.0
-            score, limit = rho / c, float(opts.reject_sigma)
-            unit = "sigma"
-        worst = int(np.argmax(score))
-        if not score[worst] > limit:
-            break
-        n_rej = int(np.count_nonzero(usable & ~used))
-        if m - 1 < max(opts.min_landmarks, 0 if prior_used else 3) or n_rej + 1 > max_reject:
-            bad = [names[idx[k]] for k in np.flatnonzero(score > limit)]
-            warnings.append(
-                f"outlier test fails for {', '.join(bad)} but no more landmarks may be rejected"
-                f" ({m} used, min_landmarks {opts.min_landmarks}, max_reject_fraction"
-                f" {opts.max_reject_fraction})"
-            )
-            break
-        k = int(idx[worst])
-        detail = (
-            f"residual {rpx[worst]:.3f} px ({score[worst]:.1f} {unit}) > {limit:g} {unit}"
-            if unit == "px"
-            else f"residual {rpx[worst]:.3f} px = {score[worst]:.1f} sigma > {limit:g} sigma"
-        )
-        rejected.append(Rejection(names[k], k, "outlier", detail, float(rpx[worst])))
-        status[k] = "rejected-outlier"
-        used[k] = False
+    problem, state, iterations, converged, history, used = _fit_rejecting(
+        build, usable, opts, prior, names, status, rejected, warnings
+    )
 
     # ---- final linearisation: covariance, residuals -----------------------------------------------
     m = int(np.count_nonzero(used))
-    n, g, extra = problem.normal(state)
-    _, cov, cond = problem.solve_scaled(n, g, m)
+    cov, cond, cov_plain, lmk_corr, lmk_cov, pts_after = _final_covariance(
+        problem, state, mode, used, pts_all, lmk_sig
+    )
     cost, chi2 = problem.cost(state)
-    cov_plain = None
-    lmk_corr = None
-    lmk_cov = None
-    pts_after = pts_all.copy()
-    if mode == "estimate":
-        b, dinv = extra["b"], extra["dinv"]
-        bd = b @ dinv  # (M, 6, 3)
-        cov_l = dinv + np.einsum("mji,jk,mkl->mil", bd, cov, bd)
-        lmk_corr = np.zeros((n_all, 3))
-        lmk_corr[used] = state.dlmk
-        lmk_cov = np.full((n_all, 3, 3), np.nan)
-        lmk_cov[used] = cov_l
-        pts_after[used] = pts_all[used] + state.dlmk
-    elif mode == "consider":
-        hx = extra["hx"]
-        hl = extra["hl"]
-        b = np.einsum("mki,mkj->mij", problem.wts @ hx, hl)  # (M, 6, 3)
-        sl = lmk_sig[used] ** 2
-        c = np.einsum("mij,mj,mkj->ik", b, sl, b)
-        cov_plain = cov
-        cov = cov + cov @ c @ cov
-        cov = 0.5 * (cov + cov.T)
     # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
     dof = 2 * m + prior.n_equations - 6
     # residuals larger than sigma_px say so: the covariance is scaled by cost/dof when it exceeds 1
