@@ -13,9 +13,12 @@ import pytest
 import register_scene as rs
 
 from spctool.errors import SpcUsageError
+from spctool.stages.correlate import Correlation
 from spctool.stages.extract import ExtractOptions, extract
 from spctool.stages.register import (
+    LandmarkStep,
     RegisterOptions,
+    RegisterResult,
     Registrar,
     correlate_landmark,
     register,
@@ -730,3 +733,73 @@ def test_template_options_are_checked():
         RegisterOptions(rerender_tol_coarse=-1.0)
     with pytest.raises(SpcUsageError):
         RegisterOptions(threads=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# first_phases: the first step correlated at p × p phases (s16-50m Monte Carlo: edge peaks at L = 10)
+
+
+class _PhaseStub:
+    """A registrar whose steps are scripted by centre: records the centres asked for."""
+
+    def __init__(self, options, by_centre, jxy):
+        self.options, self.by_centre, self.jxy, self.asked = options, by_centre, jxy, []
+
+    def step(self, i, camera, center, spacing, **kw):
+        key = tuple(np.round(np.asarray(center, float), 6))
+        self.asked.append((key, spacing, kw.get("apply_criteria", False)))
+        status, peak = self.by_centre.get(key, ("low-correlation", 0.1))
+        grid, counts = np.zeros((3, 3)), np.zeros((3, 3), np.int64)
+        corr = Correlation(grid, counts, spacing, status, peak, (1, 1), (0, 0))
+        return LandmarkStep(np.asarray(center, float), np.zeros(2), corr, self.jxy, status)
+
+
+def _phase_result():
+    z = np.zeros((1, 2))
+    n = np.zeros(1, np.int64)
+    return RegisterResult(["L"], z, z.copy(), np.zeros(1), n, n.copy(), ["ok"], None)
+
+
+def test_first_phases_tries_every_phase_at_l_over_p_cells_and_keeps_the_best():
+    from spctool.stages.register import _phased_first_step
+
+    jxy = np.array([[0.0, -0.7], [0.7, 0.0]])  # px per cell, a turned maplet
+    c = np.array([100.0, 200.0])
+
+    def at(a, b):  # centre of phase (a, b) at L = 10, p = 2: (a, b)·5 cells
+        return tuple(np.round(c + jxy @ (np.array([a, b], float) * 5.0), 6))
+
+    # an edge peak with a high rho at phase (0, 0), the true peak (ok) at phase (1, 0)
+    script = {at(0, 0): ("edge-peak", 0.7), at(1, 0): ("ok", 0.55), at(1, 1): ("ok", 0.5)}
+    reg = _PhaseStub(RegisterOptions(first_phases=2), script, jxy)
+    st0 = reg.step(0, None, c, 10, apply_criteria=True)
+    res, last = _phase_result(), [None]
+    best = _phased_first_step(reg, 0, None, c, 10, st0, res, last)
+    assert [k for k, _, _ in reg.asked] == [at(0, 0), at(0, 1), at(1, 0), at(1, 1)]
+    assert all(n == 10 and crit for _, n, crit in reg.asked)  # the first step's extraction criteria too
+    assert best.status == "ok" and best.correlation.peak == 0.55
+    assert tuple(np.round(best.center, 6)) == at(1, 0)
+    # three more steps recorded; the kept one is the landmark's last step and correlation
+    assert res.iterations[0] == 3 and last[0].correlation.peak == 0.55 and res.correlation[0] == 0.55
+    # with only edge peaks the highest one wins; a tie keeps the step at the centre itself
+    edges = {at(0, 0): ("edge-peak", 0.6), at(0, 1): ("edge-peak", 0.6)}
+    reg = _PhaseStub(RegisterOptions(first_phases=2), edges, jxy)
+    st0 = reg.step(0, None, c, 10, apply_criteria=True)
+    assert _phased_first_step(reg, 0, None, c, 10, st0, _phase_result(), [None]) is st0
+
+
+def test_first_phases_on_a_rendered_scene(scene):
+    """p = 2 costs three more steps and measures the landmark as p = 1 does (the same peak, reached
+    through another phase), a pointing error of half a bin at the first spacing included."""
+    cam = rs.pointing_error(scene.camera, 3.4, -2.9)
+    out = {}
+    for p in (1, 2):
+        opts = RegisterOptions(first_phases=p, extract=ExtractOptions(criteria=None))
+        out[p] = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+        assert out[p].status == ["ok"]
+        assert np.all(_err(out[p], scene.truth_pixel) < 0.05)
+    assert out[2].iterations[0] >= out[1].iterations[0] + 3
+    np.testing.assert_allclose(out[2].measured, out[1].measured, atol=0.01)
+    for bad in (0, 5, 1.5):
+        with pytest.raises(SpcUsageError):
+            RegisterOptions(first_phases=bad)

@@ -163,6 +163,16 @@ def register(cli: click.Group) -> None:
         "by that stage.",
     )
     @click.option(
+        "--first-phases",
+        "first_phases",
+        type=click.IntRange(1, 4),
+        default=None,
+        metavar="P",
+        help="Correlate each landmark's first step at P x P half-bin phases and keep the best "
+        "(default: 2 in maplet space, 1 in image space; 1 with --refine 0 is the schedule of "
+        "Shoemaker et al. 2016).",
+    )
+    @click.option(
         "--jobs",
         "-j",
         type=click.IntRange(min=1),
@@ -211,6 +221,7 @@ def register(cli: click.Group) -> None:
         without,
         sigma_scale,
         refine,
+        first_phases,
         jobs,
         figures_dir,
         samples_csv,
@@ -237,7 +248,7 @@ def register(cli: click.Group) -> None:
             parameters=tuple(params),
             sigma_scale=sigma_scale,
             space=space,
-            plan=mc.default_plan(space, refine=refine),
+            plan=mc.default_plan(space, refine=refine, first_phases=first_phases),
         )
         t0 = time.perf_counter()
         scene = _load_scene(ctx, mcs, preset, scene_path, world_seed, picture)

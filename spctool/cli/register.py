@@ -632,6 +632,17 @@ def correlate_cmd(ctx: Context, **kw):
     "at most N times (0 = S16, which gives up).",
 )
 @click.option(
+    "--first-phases",
+    "first_phases",
+    type=click.IntRange(1, 4),
+    default=1,
+    show_default=True,
+    metavar="P",
+    help="S16 schedule: correlate each landmark's first step (spacing L >= 2) at P x P phases, its "
+    "centre moved by L/P cells, and keep the best (1 = S16). 2 samples the coarsest search at L/2 "
+    "cells: a peak between two L-cell grid points is no longer read at half its height.",
+)
+@click.option(
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
@@ -725,6 +736,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C demo register P000000001A1 --schedule autoregister --write-sum --overlay reg.png
       spctool -C demo register P000000001A1 B01980 --space image --json
       spctool -C demo register P000000001A1 --peak parabola --converge-max 0 --edge-retries 0  # S16
+      spctool -C demo register P000000001A1 --first-phases 2  # a denser first search
       spctool -C demo register P000000001A1 --converge-peak quadric  # the previous release's final stage
     """
     from spctool.stages.register import RegisterOptions, schedule_steps
@@ -739,6 +751,7 @@ def register_cmd(ctx: Context, **kw):
         "cap_spacing": not kw["no_spacing_cap"],
         "converge_tol": kw["converge_tol"],
         "edge_retries": kw["edge_retries"],
+        "first_phases": kw["first_phases"],
         "converge_max": kw["converge_max"],
         "converge_peak": kw["converge_peak"],
         "converge_draft": not kw["no_converge_draft"],

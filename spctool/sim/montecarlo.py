@@ -22,9 +22,11 @@ edge, ρ ≥ 0.3); S16 Table 3's "not found" column counts the statuses ``not-fo
 over the successful samples; the mean of the maximum ρ is over all samples with a defined peak.
 
 Registration plans (:func:`default_plan`).  Maplet space is S16's driver (``retina_s16``: L = 10 … 1,
-±5L cells, no pose update, linearised extraction) followed by ``refine`` steps at L = 1 (``refine=0``
-is S16 exactly); the extra steps re-extract at the current estimate so that the last correlation peak
-sits at a near-zero offset, where the 3-point parabola is least biased.  Image space (S16's Retina
+±5L cells, no pose update, linearised extraction) followed by ``refine`` steps at L = 1; the extra
+steps re-extract at the current estimate so that the last correlation peak sits at a near-zero offset,
+where the 3-point parabola is least biased.  Its first step (L = 10) is correlated at 2 × 2 half-bin
+phases (``first_phases``), the best kept: S16's single L-cell grid lost 0.8 % of the samples within
+reach to edge peaks.  ``refine=0, first_phases=1`` is S16 exactly.  Image space (S16's Retina
 direction, for which S16 gives no schedule) searches at L = 4, 2, 1 over ±48 px with one rendered
 template, then re-renders the template at the current estimate for each of ``refine`` steps at L = 1.
 
@@ -258,13 +260,18 @@ class MonteCarloConfig:
         return [int(n) for o in self.plan for k, n in schedule_steps(o) if k == "align"]
 
 
-def default_plan(space: str = "maplet", refine: int = 1, **changes) -> tuple[RegisterOptions, ...]:
+def default_plan(
+    space: str = "maplet", refine: int = 1, first_phases: int | None = None, **changes
+) -> tuple[RegisterOptions, ...]:
     """The registration of one landmark in the study.
 
     * ``"maplet"`` — S16's driver (``retina_s16``: L = 10 … 1, ±5L cells, ρ ≥ 0.3, no pose update) with
       S16's linearised extraction (checklist §12.3, erratum 32), then ``refine`` extra steps at L = 1: each
       re-extracts at the current estimate, so the last correlation peak sits near zero offset where the
-      3-point parabola is least biased ("pixel locking").  ``refine=0`` is S16's schedule exactly.
+      3-point parabola is least biased ("pixel locking").  ``refine=0`` with ``first_phases=1`` is
+      S16's schedule exactly.  ``first_phases`` (default 2 here, 1 in image space): the first step is
+      correlated at p × p half-bin phases (:class:`RegisterOptions`; without it 0.8 % of the samples
+      within the L = 10 reach were lost to edge peaks of a third of the overlap).
     * ``"image"`` — S16's image-space direction (Retina; S16 gives no schedule): a coarse search at
       L = 4, 2, 1 on a 25 × 25 grid (±48 px at L = 4: the search is not limited by the maplet) with the
       template rendered once (re-rendered only if its sub-pixel placement moves by more than half a bin),
@@ -278,6 +285,9 @@ def default_plan(space: str = "maplet", refine: int = 1, **changes) -> tuple[Reg
     if int(refine) != refine or refine < 0:
         raise SpcUsageError(f"refine must be an integer >= 0, got {refine!r}")
     refine = int(refine)
+    if first_phases is None:
+        first_phases = 2 if space == "maplet" else 1
+    changes = {"first_phases": first_phases, **changes}
     if space == "maplet":
         opts = dict(
             schedule="retina_s16", space="maplet", extract=ExtractOptions(linearized=True, criteria=None)
