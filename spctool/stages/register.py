@@ -1229,7 +1229,11 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
 
 
 def _phase_key(st: LandmarkStep):
-    """Order of the phases of a first step: an ``ok`` peak, then an edge peak, then the highest ρ."""
+    """Order of the phases of a first step: an ``ok`` peak, then an edge peak, then the highest ρ.
+
+    An interior peak before a higher edge peak: in the s16-50m Monte Carlo (12 × 500) this loses no
+    sample that started within 31.9 px (the reach is 35 px), where ranking by ρ alone lost six
+    (5.7–23.6 px off) to small-overlap edge peaks while rescuing five beyond the reach."""
     peak = st.correlation.peak
     return (st.status == "ok", st.status == "edge-peak", peak if np.isfinite(peak) else -np.inf)
 
