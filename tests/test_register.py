@@ -781,6 +781,11 @@ def test_first_phases_tries_every_phase_at_l_over_p_cells_and_keeps_the_best():
     assert tuple(np.round(best.center, 6)) == at(1, 0)
     # three more steps recorded; the kept one is the landmark's last step and correlation
     assert res.iterations[0] == 3 and last[0].correlation.peak == 0.55 and res.correlation[0] == 0.55
+    # a landmark the extraction criteria removed is not tried again at other phases
+    reg = _PhaseStub(RegisterOptions(first_phases=2), {at(0, 0): ("removed-emission", 0.9)}, jxy)
+    st0 = reg.step(0, None, c, 10, apply_criteria=True)
+    assert _phased_first_step(reg, 0, None, c, 10, st0, _phase_result(), [None]) is st0
+    assert len(reg.asked) == 1
     # with only edge peaks the highest one wins; a tie keeps the step at the centre itself
     edges = {at(0, 0): ("edge-peak", 0.6), at(0, 1): ("edge-peak", 0.6)}
     reg = _PhaseStub(RegisterOptions(first_phases=2), edges, jxy)

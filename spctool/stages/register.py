@@ -1245,8 +1245,8 @@ def _phased_first_step(reg: Registrar, i, camera, c, n: int, st0: LandmarkStep, 
     opts = reg.options
     p = opts.first_phases
     to_px = st0.jxy if st0.jxy is not None else np.eye(2)  # cells → pixels (maplet space)
-    if not np.all(np.isfinite(to_px)):
-        return st0
+    if st0.status.startswith("removed-") or st0.status == "outside" or not np.all(np.isfinite(to_px)):
+        return st0  # a landmark its criteria removed, or off the photo, stays so
     best = st0
     for a in range(p):
         for b in range(p):
