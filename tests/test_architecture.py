@@ -7,7 +7,7 @@ checked for two things:
 * no import circles: the module graph has no strongly connected component of
   more than one module (and no module imports itself);
 * floors: a lower floor never imports an upper one.  Bottom to top:
-  ``errors`` (and the package root) < ``formats`` < ``geometry`` <
+  ``errors``, ``jsonsafe`` (and the package root) < ``formats`` < ``geometry`` <
   ``photometry`` < ``stages`` < ``sim``, ``batch``, ``figures`` < ``cli``.
 
 Run as a script (``python tests/test_architecture.py``) to print the graph's
@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent / PACKAGE
 FLOORS = {
     "": 0,  # spctool/__init__.py (__version__)
     "errors": 0,
+    "jsonsafe": 0,  # JSON values of results (numpy only)
     "formats": 1,
     "geometry": 2,
     "photometry": 3,
