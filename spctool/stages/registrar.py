@@ -1,0 +1,753 @@
+"""Stage H's options and one correlation step of one landmark, in maplet or image space.
+
+Specification: spc-algorithms.md §9 (Stage H), §7.3/§8.3 (the shift and its sign), §13 (defaults);
+L15 §3.5.2 (Eq. 3.67); S16 "Template matching loop" (Eq. 11, 18–19) and "Future Retina development".
+The drivers that run these steps over a schedule are :mod:`spctool.stages.register`.
+
+One correlation step of one landmark (:func:`correlate_landmark`)
+-----------------------------------------------------------------
+``space="maplet"`` (SPC; S16's baseline): the prediction P (:func:`spctool.stages.predict.predict`,
+one per landmark and pose) is correlated with the photo resampled onto the maplet with its centre V
+placed at the current pixel c (:func:`spctool.stages.extract.extract` with ``center_pixel=c``).  The
+correlator (:mod:`spctool.stages.correlate`) returns Δ in maplet cells (x along UX, y along UY) with
+C(Δ) = corr(E(m), P(m − Δ)): the feature the prediction puts at cell m lies at cell m + Δ of the
+extracted image, so V appears at extracted cell Δ and
+
+    c_new = c + J_xy·Δ                 (L15 Eq. 3.67, S16 Eq. 19; spc-algorithms.md §7.3)
+
+with J_xy = ∂(sample, line)/∂(x, y) at V in pixels per cell (the extraction's a-priori Jacobian, S16
+evaluates H at x*).
+
+``space="image"`` (S16 "Future Retina development"): the maplet is *rendered into the photo* with the
+picture's camera, the Sun, per-pixel view directions and cast shadows
+(:func:`spctool.stages.render.render` of the maplet as a height patch — the renderer of the synthetic
+worlds, reused), over the pixels of its footprint; that template T is correlated with the photo itself
+over a window that extends (k + 1)·n pixels beyond the footprint on every side, so the search is not
+limited by the maplet's extent.  Offsets are whole photo pixels (binned by n); the shift is in pixels
+directly.  A template placed at displacement d (pixels, relative to the projection c₀ of V) is rendered
+with rays through p − d for its fractional part (the camera's CTR moved by frac(d)) and shifted by the
+integer part.  A template is rendered once per landmark and pose and reused: a whole-pixel move of the
+window never needs a new one, and the step's reference is where the template actually sat (its own
+phase), so reuse never biases a shift.  Steps at spacing n ≥ 2 reuse it whatever its phase
+(``rerender_tol_coarse``); a spacing-1 step re-renders it when the phase moved by more than
+``rerender_tol`` (0.0005 px), so a converging L = 1 loop always ends on a template rendered at its own
+estimate and template reuse cannot freeze it.  Templates take one thread each
+(the rays of a pixel window, the distortion inverted on a coarse grid and interpolated bicubically,
+one Newton step where that is not exact to 1e-7 px:
+:meth:`spctool.geometry.camera.Camera.pixel_to_direction_lattice`);
+:func:`spctool.stages.register.register` parallelises across landmarks instead (``threads``), with
+results identical to one thread.  ``template_shading``:
+``smooth`` (interpolated node slopes) or ``facet`` (flat triangles, two per cell; albedo bilinear).
+With ``image_shadows`` (default) shadowed pixels are *used*, dark in both images — the point of
+ray-traced shadows; photo pixels then count when 0 < DN ≤ T2 (T1 is not applied; DN 0 is SPC's
+missing data), template pixels where every sub-ray hit the maplet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spctool.errors import SpcUsageError
+from spctool.geometry import heightfield
+from spctool.stages.correlate import (
+    PEAK_METHODS,
+    CorrelateOptions,
+    Correlation,
+    correlate,
+    resampled_noise_footprint,
+)
+from spctool.stages.extract import (
+    ZENITH_EPS,
+    ExtractOptions,
+    _enhance_kernel,
+    brt0,
+    extract,
+    shadow_extension,
+    shadow_offsets,
+)
+from spctool.stages.pose import PoseOptions
+from spctool.stages.predict import (
+    PredictOptions,
+    predict,
+    resolve_shadows,
+    unit_vector,
+)
+
+__all__ = [
+    "SCHEDULES",
+    "SPACES",
+    "LandmarkStep",
+    "RegisterOptions",
+    "Registrar",
+    "correlate_landmark",
+    "schedule_steps",
+]
+
+SCHEDULES = ("retina_s16", "autoregister")
+SPACES = ("maplet", "image")
+
+
+# --------------------------------------------------------------------------------------------------
+# options
+
+
+@dataclass
+class RegisterOptions:
+    """Every constant of Stage H (spc-algorithms.md §9.3, §13).
+
+    * ``schedule`` — ``"retina_s16"`` or ``"autoregister"``; ``space`` — ``"maplet"`` or ``"image"``.
+    * ``s16_spacings`` — S16's L sequence (10 … 1); ``autoregister_steps`` — SPC's seed
+      (align 2, align 1, drop ρ < 0.5, align 1).  ``steps`` overrides either with an explicit list of
+      ``("align", n)`` / ``("drop", ρ)`` (or ints meaning align at that spacing).
+    * ``corr_min`` — peak acceptance (0.3, S16/GIANT); ``grid_half`` (5 → 11×11, search ±5n);
+      ``min_valid`` (25 binned pixels); ``strict_8`` (all 8 neighbours below the peak).
+    * ``peak`` — sub-pixel peak estimator, ``"quadric"`` (2-D least squares with the cross term) or
+      ``"parabola"`` (SPC's separable fit, for legacy runs).
+    * ``converge_tol`` (px, 0.005) / ``converge_max`` (10) — the final full-resolution stage (module
+      docstring): repeat the last spacing-1 step until the estimate moves by less than the tolerance,
+      at most this many extra steps (0: the schedule exactly, as S16/SPC run it).
+    * ``converge_peak`` — the sub-pixel estimator of that stage: ``"gradient"`` (default:
+      least-squares alignment at the grid peak, exactly zero when prediction and photo agree, so the
+      loop stops at the least-squares alignment; :func:`spctool.stages.correlate.gradient_offset`) or
+      ``"quadric"`` / ``"parabola"`` (as ``peak``; a vertex read off an asymmetric correlation surface
+      keeps a bias of up to 0.05 px that re-centring cannot remove).
+    * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (True).
+    * ``edge_retries`` — S16 driver: a step whose peak is on the border of the grid (``edge-peak``)
+      moves to that border maximum and is repeated, at most this many times per step (0: S16, which
+      gives up; 2 extends the first step's reach from ±5L to ±15L cells).
+    * ``first_phases`` — S16 driver: the first step of a landmark (at spacing L ≥ 2) is correlated at
+      this many phases per axis, its centre moved by 0, L/p, 2L/p, … cells (p = ``first_phases``), and
+      the best of the p² steps is kept (an ``ok`` peak before an edge peak, then the highest ρ).  1 (the
+      default) is S16.  Why: the L-cell grid of the coarsest step reads a true peak that falls between
+      two grid points at a fraction of its height (ρ ≈ 0.5 where it is 0.9 on the point; s16-50m
+      Monte Carlo, L = 10), and an edge peak over a third of the overlap can beat it; 2 samples the
+      surface at L/2 cells.  Costs p² − 1 more steps per landmark.
+    * ``pose_update`` — AUTOREGISTER driver: pose solve after each align pass (True);
+      ``halve_shift`` — apply ½ of every shift (False); ``min_pose_landmarks`` — accepted landmarks
+      needed for a pose solve (3).
+    * ``criteria`` — Stage E removal applied at the first extraction: ``"default"`` = ``None`` (no
+      removal) for retina_s16 and ``"autoregister"`` (0,50,.25,0,5) for autoregister; or any
+      :class:`spctool.stages.extract.Criteria` spec, or None.
+    * image space: ``supersample`` (rays per pixel axis of the template, 2; ``supersample_coarse``,
+      1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``converge_draft`` (True: the
+      converged stage's steps render at ``supersample_coarse``, a quarter of the rays, until one
+      moves the estimate by less than 0.15 px (``register._DRAFT_TOL``), then at ``supersample``;
+      it only stops on a full template, so the result is that template's zero; the draft steps only
+      bring it near first), ``image_shadows`` (use
+      shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
+      sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
+      same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
+      (``"smooth"``, the default, | ``"facet"``; chosen on the two independent worlds of issue #15
+      and the s16-50m Monte Carlo, two-pass image-space rms in px, smooth vs facet — tests' world
+      (27 landmarks): 0.029 vs 0.024 (facet truth), 0.028 vs 0.024 (smooth truth); benchmark world
+      (96): 0.019 vs 0.020 for both truths; but facet normals differentiate height noise, and with the
+      Monte Carlo's 3.33 mm height errors on 1 cm cells 10 of 12 landmarks end low-correlation —
+      README "Template shading"), ``threads`` (landmarks
+      registered in parallel by :func:`spctool.stages.register.register`: None = numba's thread
+      count; results do not depend on it), ``template_margin`` (px
+      added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
+      this fraction of its n² pixels on the maplet, 0.5: border bins that average only a sliver of
+      template are not compared with full photo bins).
+    * ``cap_spacing`` — fit the schedule to each maplet (:func:`spctool.stages.register.spacing_cap`, True).
+    * ``keep_images`` — keep each landmark's last Extraction / template Rendering in
+      :attr:`RegisterResult.last_steps` (False: only the correlation, to bound memory).
+    * ``predict``, ``extract``, ``pose`` — options of the stages called (their own defaults).
+    """
+
+    schedule: str = "retina_s16"
+    space: str = "maplet"
+    s16_spacings: tuple = (10, 9, 8, 7, 6, 5, 4, 3, 2, 1)
+    autoregister_steps: tuple = (("align", 2), ("align", 1), ("drop", 0.5), ("align", 1))
+    steps: tuple | None = None
+    corr_min: float = 0.3
+    grid_half: int = 5
+    min_valid: int = 25
+    strict_8: bool = False
+    peak: str = "quadric"
+    converge_tol: float = 0.005
+    converge_max: int = 10
+    converge_peak: str = "gradient"
+    fail_fast: bool = True
+    edge_retries: int = 2
+    first_phases: int = 1
+    pose_update: bool = True
+    halve_shift: bool = False
+    min_pose_landmarks: int = 3
+    criteria: object = "default"
+    supersample: int = 2
+    supersample_coarse: int = 1
+    converge_draft: bool = True
+    image_shadows: bool = True
+    rerender_tol: float = 0.0005
+    rerender_tol_coarse: float = 1.0
+    template_shading: str = "smooth"
+    threads: int | None = None
+    template_margin: int = 1
+    image_bin_fraction: float = 0.5
+    keep_images: bool = False
+    cap_spacing: bool = True
+    predict: PredictOptions = field(default_factory=PredictOptions)
+    extract: ExtractOptions | None = None
+    pose: PoseOptions = field(default_factory=PoseOptions)
+
+    def __post_init__(self):
+        if self.schedule not in SCHEDULES:
+            raise SpcUsageError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        if self.space not in SPACES:
+            raise SpcUsageError(f"space must be one of {', '.join(SPACES)}, got {self.space!r}")
+        if not -1.0 <= float(self.corr_min) <= 1.0:
+            raise SpcUsageError(f"corr_min must lie in [-1, 1], got {self.corr_min}")
+        if int(self.supersample) < 1:
+            raise SpcUsageError(f"supersample must be >= 1, got {self.supersample}")
+        if int(self.supersample_coarse) < 1:
+            raise SpcUsageError(f"supersample_coarse must be >= 1, got {self.supersample_coarse}")
+        if not float(self.rerender_tol) >= 0.0:
+            raise SpcUsageError(f"rerender_tol must be >= 0, got {self.rerender_tol}")
+        if not float(self.rerender_tol_coarse) >= 0.0:
+            raise SpcUsageError(f"rerender_tol_coarse must be >= 0, got {self.rerender_tol_coarse}")
+        if self.converge_peak not in PEAK_METHODS:
+            raise SpcUsageError(
+                f"converge_peak must be one of {', '.join(PEAK_METHODS)}, got {self.converge_peak!r}"
+            )
+        if self.template_shading not in ("smooth", "facet"):
+            raise SpcUsageError(f"template_shading must be smooth or facet, got {self.template_shading!r}")
+        if self.threads is not None and int(self.threads) < 1:
+            raise SpcUsageError(f"threads must be >= 1, got {self.threads}")
+        if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
+            raise SpcUsageError(f"image_bin_fraction must lie in [0, 1], got {self.image_bin_fraction}")
+        if int(self.edge_retries) != self.edge_retries or int(self.edge_retries) < 0:
+            raise SpcUsageError(f"edge_retries must be an integer >= 0, got {self.edge_retries}")
+        self.edge_retries = int(self.edge_retries)
+        if int(self.first_phases) != self.first_phases or not 1 <= int(self.first_phases) <= 4:
+            raise SpcUsageError(f"first_phases must be an integer from 1 to 4, got {self.first_phases}")
+        self.first_phases = int(self.first_phases)
+        if not float(self.converge_tol) > 0.0:
+            raise SpcUsageError(f"converge_tol must be > 0 px, got {self.converge_tol}")
+        if int(self.converge_max) != self.converge_max or int(self.converge_max) < 0:
+            raise SpcUsageError(f"converge_max must be an integer >= 0, got {self.converge_max}")
+        self.converge_max = int(self.converge_max)
+        if int(self.template_margin) < 0:
+            raise SpcUsageError(f"template_margin must be >= 0, got {self.template_margin}")
+        self.s16_spacings = tuple(int(n) for n in self.s16_spacings)
+        schedule_steps(self)  # validates the steps
+        if self.extract is None:
+            crit = self.criteria
+            if isinstance(crit, str) and crit == "default":
+                crit = "autoregister" if self.schedule == "autoregister" else None
+            self.extract = ExtractOptions(criteria=crit)
+        self.correlate_options  # validates grid_half / min_valid  # noqa: B018
+
+    @property
+    def correlate_options(self) -> CorrelateOptions:
+        return CorrelateOptions(
+            grid_half=self.grid_half,
+            min_valid=self.min_valid,
+            corr_min=self.corr_min,
+            strict_8=self.strict_8,
+            peak=self.peak,
+        )
+
+    def as_dict(self) -> dict:
+        out = {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if f.name not in ("predict", "extract", "pose")
+        }
+        out["steps"] = [list(s) for s in schedule_steps(self)]
+        out["predict"] = self.predict.as_dict()
+        out["extract"] = self.extract.as_dict()
+        out["s16_spacings"] = list(self.s16_spacings)
+        out["autoregister_steps"] = [list(s) for s in self.autoregister_steps]
+        out["criteria"] = out["extract"]["criteria"]
+        return out
+
+
+def schedule_steps(options: RegisterOptions) -> list[tuple[str, float]]:
+    """The driver's steps: ``[("align", n), …, ("drop", ρ), …]`` (validated)."""
+    if options.steps is not None:
+        raw = options.steps
+    elif options.schedule == "retina_s16":
+        raw = [("align", n) for n in options.s16_spacings]
+    else:
+        raw = options.autoregister_steps
+    steps = []
+    for s in raw:
+        if isinstance(s, (int, np.integer)):
+            s = ("align", int(s))
+        if not (isinstance(s, (tuple, list)) and len(s) == 2 and s[0] in ("align", "drop")):
+            raise SpcUsageError(f"schedule step must be ('align', n) or ('drop', rho), got {s!r}")
+        kind, value = s
+        if kind == "align":
+            if int(value) != value or int(value) < 1:
+                raise SpcUsageError(f"align spacing must be an integer >= 1, got {value!r}")
+            steps.append(("align", int(value)))
+        else:
+            if not -1.0 <= float(value) <= 1.0:
+                raise SpcUsageError(f"drop threshold must lie in [-1, 1], got {value!r}")
+            steps.append(("drop", float(value)))
+    if not any(k == "align" for k, _ in steps):
+        raise SpcUsageError("a registration schedule needs at least one align step")
+    return steps
+
+
+# --------------------------------------------------------------------------------------------------
+# one landmark, one step
+
+
+@dataclass
+class LandmarkStep:
+    """One correlation step of one landmark (:func:`correlate_landmark`)."""
+
+    center: np.ndarray  #: (2,) pixel (sample, line) where V was placed (maplet) / the template sat (image)
+    shift: np.ndarray  #: (2,) px (dsample, dline) = J_xy·Δ (maplet) or the image offset; NaN if not-found
+    correlation: Correlation  #: surface, peak, status, offset (cells or (line, sample) px)
+    jxy: np.ndarray | None  #: (2, 2) px per cell (maplet space)
+    status: str  #: correlation status, or the extraction's removed-*/outside
+    extraction: object = None  #: the Extraction (maplet space)
+    template: object = None  #: the template Rendering (image space)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def measured(self) -> np.ndarray:
+        return self.center + self.shift
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(2, 2) covariance of :attr:`measured` in px² (sample, line): J_xy·Σ·J_xyᵀ of the correlation
+        offset's covariance Σ (maplet cells), or Σ with its (line, sample) axes swapped (image space)."""
+        c = np.asarray(self.correlation.covariance, dtype=np.float64)
+        if self.jxy is not None:
+            return self.jxy @ c @ self.jxy.T
+        return c[::-1, ::-1].copy()
+
+
+class _Landmark:
+    """Per-landmark state reused across steps: slopes, prediction (per camera), template cache."""
+
+    __slots__ = (
+        "maplet",
+        "name",
+        "slopes",
+        "v",
+        "pred",
+        "pred_camera",
+        "patch",
+        "tmpl",
+        "tmpl_key",
+        "footprint",
+        "ext",
+        "ext_camera",
+        "shadow",
+        "shadow_mode",
+        "cast",
+    )
+
+    def __init__(self, maplet, name):
+        self.maplet = maplet
+        self.name = name
+        self.slopes = heightfield.slopes(maplet.heights, maplet.valid)
+        self.v = np.asarray(maplet.v, dtype=np.float64)
+        self.pred = None
+        self.pred_camera = None
+        self.shadow_mode = None  # predict's shadows="auto", resolved on the first extraction
+        self.cast = None  # the maplet's cast-shadow cells for the Registrar's Sun
+        self.patch = None
+        self.tmpl = None
+        self.tmpl_key = None
+        self.footprint = None
+        self.ext = None
+        self.ext_camera = None
+        self.shadow = None
+
+
+class Registrar:
+    """Correlation steps for the landmarks of one photo (shared by
+    :func:`spctool.stages.register.register` and the CLI).
+
+    ``photo``: array ``data[line − 1, sample − 1]`` or a Photo; ``camera``: the picture's camera;
+    ``sun``: body→Sun vector; ``maplets``: objects with heights, albedo, valid, scale, v, ux, uy, uz;
+    ``thresholds``: (T1, T2).
+    """
+
+    def __init__(
+        self, photo, sun, maplets, thresholds=None, options: RegisterOptions | None = None, names=None
+    ):
+        self.options = options if options is not None else RegisterOptions()
+        data = getattr(photo, "data", photo)
+        self.photo = np.ascontiguousarray(data, dtype=np.float64)
+        if self.photo.ndim != 2:
+            raise SpcUsageError("the photo must be a 2-D array")
+        self.sun = unit_vector(sun, "sun")
+        t = (-math.inf, math.inf) if thresholds is None else tuple(float(x) for x in thresholds)
+        self.thresholds = tuple(-math.inf if math.isnan(x) else x for x in t[:1]) + tuple(
+            math.inf if math.isnan(x) else x for x in t[1:2]
+        )
+        names = (
+            [getattr(m, "name", "") or f"#{i + 1}" for i, m in enumerate(maplets)] if names is None else names
+        )
+        self.landmarks = [_Landmark(m, str(n)) for m, n in zip(maplets, names)]
+        self._copts = self.options.correlate_options
+        #: the converged stage's correlation settings (its sub-pixel estimator)
+        self._copts_final = dataclasses.replace(self._copts, peak=self.options.converge_peak)
+
+    def __len__(self):
+        return len(self.landmarks)
+
+    # -- geometry ------------------------------------------------------------------------------
+    def release(self, i: int) -> None:
+        """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
+        lm = self.landmarks[i]
+        lm.pred = lm.pred_camera = lm.ext = lm.ext_camera = lm.tmpl = lm.tmpl_key = lm.shadow = None
+        lm.footprint = None
+
+    def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
+        """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
+        if not self.landmarks:
+            return np.zeros((0, 2)), np.zeros(0, bool)
+        v = np.stack([lm.v for lm in self.landmarks])
+        s, ln, front = camera.project_with_mask(v)
+        nln, npx = self.photo.shape
+        inside = front & (s >= 1.0) & (s <= npx) & (ln >= 1.0) & (ln <= nln)
+        return np.stack([s, ln], axis=-1), inside
+
+    def prediction(self, i: int, camera, extraction=None):
+        """The prediction of landmark ``i`` for ``camera`` (cached per camera).  With
+        ``predict.shadows="auto"`` the landmark's first ``extraction`` decides, once, whether its cast
+        shadows are predicted (:func:`spctool.stages.predict.resolve_shadows`)."""
+        lm = self.landmarks[i]
+        popts = self.options.predict
+        if popts.shadows != "spc" and lm.cast is None:  # the Sun is the Registrar's: once per landmark
+            m = lm.maplet
+            sun = self.sun / np.linalg.norm(self.sun)
+            lm.cast = heightfield.cast_shadows(
+                np.asarray(m.heights, dtype=np.float64), np.asarray(m.valid, dtype=bool), m.ux, m.uy, m.uz,
+                sun, tol=popts.shadow_tol,
+            )  # fmt: skip
+        if popts.shadows == "auto":
+            if lm.shadow_mode is None and extraction is not None:
+                valid = np.asarray(lm.maplet.valid, dtype=bool) & lm.slopes[2]
+                lm.shadow_mode = resolve_shadows(lm.cast & valid, extraction.image, valid)
+                lm.pred = None
+            popts = dataclasses.replace(popts, shadows=lm.shadow_mode or "spc")
+        if lm.pred is None or lm.pred_camera is not camera:
+            lm.pred = predict(
+                lm.maplet, camera.position, self.sun, popts, slopes=lm.slopes, cast_shadows=lm.cast
+            )
+            lm.pred_camera = camera
+        return lm.pred
+
+    def cast_shadow_landmarks(self) -> list[str]:
+        """The landmarks whose prediction ``shadows="auto"`` switched to cast shadows."""
+        return [lm.name for lm in self.landmarks if lm.shadow_mode == "cast"]
+
+    # -- one step ------------------------------------------------------------------------------
+    def step(
+        self,
+        i: int,
+        camera,
+        center,
+        spacing: int,
+        *,
+        apply_criteria: bool = False,
+        final: bool = False,
+        draft: bool = False,
+    ) -> LandmarkStep:
+        """Correlate landmark ``i`` with V placed at pixel ``center`` (sample, line), spacing n
+        (``final``: a step of the converged stage, with ``converge_peak``'s estimator; ``draft``: image
+        space, its template rendered at ``supersample_coarse``)."""
+        copts = self._copts_final if final else self._copts
+        if self.options.space == "image":
+            return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing, copts, draft)
+        return self._maplet_step(
+            i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria, copts
+        )
+
+    def _maplet_step(self, i, camera, center, spacing, apply_criteria, copts):
+        lm = self.landmarks[i]
+        ext = self.extraction(i, camera, center, apply_criteria)
+        pred = self.prediction(i, camera, ext)
+        # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
+        h_bin = spacing * math.sqrt(abs(float(np.linalg.det(ext.jxy)))) if ext.jxy is not None else 1.0
+        corr = correlate(
+            ext.image,
+            pred.image,
+            extracted_valid=ext.valid,
+            predicted_valid=pred.lit,
+            spacing=spacing,
+            options=copts,
+            noise_footprint=resampled_noise_footprint(h_bin) if h_bin > 0 else 1.0,
+        )
+        status = corr.status if ext.status == "ok" else ext.status
+        shift = ext.jxy @ corr.offset
+        del lm
+        return LandmarkStep(center, shift, corr, ext.jxy, status, extraction=ext)
+
+    def extraction(self, i: int, camera, center, apply_criteria: bool = False):
+        """The photo resampled onto landmark ``i`` with V at pixel ``center`` (Stage C–E).
+
+        The first extraction per camera is :func:`spctool.stages.extract.extract`.  Later ones at other
+        centres (the S16 loop) reuse its geometry: re-centring moves every node pixel by the same
+        amount (extract's own rule: proj(P_k) + (centre − proj(V)), or Eq. 11 with a new [s, l]_c), and
+        the emission cut and the visibility march depend on the geometry only; so only the BRT0
+        sampling and the shadow enhancement (which depends on the image) are redone.  The result is the
+        same Extraction that ``extract`` would return (the removal statistics are those of the first
+        extraction).  Sub-sampled cells (m > 1), the cast-shadow march and requested removal criteria
+        run the full ``extract``.
+        """
+        lm = self.landmarks[i]
+        eopts = self.options.extract
+        if not apply_criteria and eopts.criteria is not None:
+            eopts = dataclasses.replace(eopts, criteria=None)
+        base = lm.ext
+        if (
+            base is None
+            or lm.ext_camera is not camera
+            or base.subsample != 1
+            or eopts.cast_shadow_trace
+            or base.status == "outside"
+            or eopts.criteria is not None
+        ):
+            ext = extract(
+                self.photo,
+                lm.maplet,
+                camera,
+                self.sun,
+                self.thresholds,
+                eopts,
+                center_pixel=center,
+                slopes=lm.slopes,
+            )
+            lm.ext, lm.ext_camera = ext, camera
+            lm.shadow = None
+            return ext
+        ds, dl = float(center[0]) - base.center_sample, float(center[1]) - base.center_line
+        smp = base.sample + ds
+        lin = base.line + dl
+        nln, npx = self.photo.shape
+        node_ok = np.isfinite(base.sample)
+        covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)
+        values = brt0(
+            self.photo,
+            np.where(node_ok, smp, 0.0),
+            np.where(node_ok, lin, 0.0),
+            self.thresholds[0],
+            self.thresholds[1],
+            repair_floor=eopts.repair_floor,
+        )
+        lit = node_ok & (values > 0.0)
+        image = np.where(lit, values, 0.0)
+        removed_shadow = np.zeros(image.shape, dtype=bool)
+        if eopts.apply_filter:
+            # the extract filter's step 1 (shadow enhancement: extract_filter's own offsets and kernel,
+            # computed once per landmark and camera), then steps 2–3 from the first extraction's mask
+            if lm.shadow is None:
+                lm.shadow = self._shadow_offsets(lm, base)
+            if lm.shadow is not False:
+                checks, zeros = lm.shadow
+                zero = np.zeros(image.shape, dtype=bool)
+                edges = np.zeros(image.shape, dtype=bool)
+                nonzero = image > 0.0
+                _enhance_kernel(nonzero, checks, zeros, zero, edges)
+                removed_shadow = zero & nonzero
+                image[zero] = 0.0
+            image = np.where(base.visible, image, 0.0)
+        return dataclasses.replace(
+            base,
+            image=image,
+            valid=image > 0.0,
+            covered=covered,
+            lit=lit,
+            removed_shadow=removed_shadow,
+            sample=smp,
+            line=lin,
+            center_sample=float(center[0]),
+            center_line=float(center[1]),
+            status="ok",  # criteria were not requested (else the full path ran); "outside" never gets here
+        )
+
+    def _shadow_offsets(self, lm: _Landmark, base):
+        """(checks, zeros) of the shadow enhancement for this landmark and camera, or False when the Sun
+        is at the maplet zenith — exactly as :func:`spctool.stages.extract.extract_filter` computes them."""
+        eopts = self.options.extract
+        m = lm.maplet
+        s_m = heightfield.to_maplet_components(self.sun, m.ux, m.uy, m.uz)
+        s_xy = math.hypot(s_m[0], s_m[1])
+        if not s_xy > ZENITH_EPS * float(np.linalg.norm(s_m)):
+            return False
+        n = np.asarray(m.heights).shape[0]
+        ds = shadow_extension(base.det_j, eopts.ds_mode, eopts.ds_base, cap=2 * n)
+        return shadow_offsets(
+            (s_m[0] / s_xy, s_m[1] / s_xy),
+            ds,
+            eopts.lateral,
+            eopts.lateral_band,
+            eopts.shadow_include_edge,
+            eopts.edge_steps,
+        )
+
+    def _template(self, lm: _Landmark, camera, frac, spacing: int = 1, draft: bool = False):
+        """Rendering of the maplet for a placement whose fractional part is ``frac`` (sample, line).
+
+        Returns ``(rendering or None, fractional offset rendered, window (s0, s1, l0, l1))``; the cached
+        template is reused while the camera is the same and ``frac`` moved by ≤ ``rerender_tol`` (spacing
+        1) or ≤ ``rerender_tol_coarse``·n (spacing n ≥ 2: the correlation bins n pixels, and the shift is
+        measured from where the template sat, so its phase only matters for the final steps).
+        """
+        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, _PatchSet, render
+
+        if lm.patch is None:
+            m = lm.maplet
+            patch = HeightPatch(
+                m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
+            )
+            lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
+        patch = lm.patch.patches[0]
+        tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
+        # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
+        nss = int(self.options.supersample if spacing <= 1 and not draft else self.options.supersample_coarse)
+        if (
+            lm.tmpl is not None
+            and lm.tmpl_key[0] is camera
+            and np.max(np.abs(lm.tmpl_key[1] - frac)) <= tol
+            and lm.tmpl.options.supersample >= nss
+        ):
+            return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
+        if lm.footprint is None or lm.footprint[0] is not camera:
+            lm.footprint = (camera, self._footprint(patch, camera))
+        if lm.footprint[1] is None:
+            return None, frac, None
+        s0, s1, l0, l1 = lm.footprint[1]
+        # rays through p − frac: the same camera with its CTR moved by frac
+        shifted = camera.with_ctr(camera.ctr + frac)
+        ropts = RenderOptions(
+            photometry=self.options.predict.photometry,
+            supersample=nss,
+            shadows=bool(self.options.image_shadows),
+            shading=self.options.template_shading,
+            ray_inverse="grid",
+            threads=1,
+        )
+        shp = (l1 - l0 + 1, s1 - s0 + 1)
+        rad = np.zeros(shp)
+        cov = np.zeros(shp)
+        cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
+        if cs0 <= s1 and cl0 <= l1:
+            part = render(shifted, self.sun, None, lm.patch, ropts, window=(cs0, s1, cl0, l1))
+            rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
+            cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
+        rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
+        lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
+        return rend, frac.copy(), (s0, s1, l0, l1)
+
+    def _footprint(self, patch, camera):
+        """The template window (s0, s1, l0, l1): the projection of the maplet's border nodes, plus
+        ``template_margin``; None when a border node is behind the camera."""
+        q = patch.qsz
+        t = np.arange(-q, q + 1, dtype=np.float64)
+        edge = np.concatenate(
+            [
+                np.stack([t, np.full_like(t, -q)], 1),
+                np.stack([t, np.full_like(t, q)], 1),
+                np.stack([np.full_like(t, -q), t], 1),
+                np.stack([np.full_like(t, q), t], 1),
+            ]
+        )
+        h = patch.interpolate(edge[:, 0], edge[:, 1])[0]
+        s, ln, front = camera.project_with_mask(patch.to_body(np.column_stack([edge, h])))
+        if not np.all(front):
+            return None
+        mg = int(self.options.template_margin)
+        s0, s1 = int(math.floor(s.min())) - mg, int(math.ceil(s.max())) + mg
+        l0, l1 = int(math.floor(ln.min())) - mg, int(math.ceil(ln.max())) + mg
+        return s0, s1, l0, l1
+
+    def _image_step(self, i, camera, center, spacing, copts, draft=False):
+        lm = self.landmarks[i]
+        c0 = np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2)
+        disp = center - c0
+        frac = disp - np.round(disp)
+        rend, f_t, window = self._template(lm, camera, frac, spacing, draft)
+        g = 2 * self._copts.grid_half + 1
+        if rend is None:
+            corr = Correlation(
+                np.full((g, g), np.nan),
+                np.zeros((g, g), np.int64),
+                spacing,
+                "not-found",
+                math.nan,
+                None,
+                (math.nan, math.nan),
+            )
+            return LandmarkStep(center, np.full(2, np.nan), corr, None, "outside")
+        placement_int = np.round(disp - f_t)
+        placement = placement_int + f_t
+        s0, s1, l0, l1 = window
+        di_s, di_l = int(placement_int[0]), int(placement_int[1])
+        tmpl = rend.radiance
+        tvalid = rend.coverage >= 1.0 - 1e-12
+        if not self.options.image_shadows:
+            tvalid &= tmpl > 0.0
+        # photo crop: the template window moved by the integer placement, plus the search margin
+        marg = (self._copts.grid_half + 1) * int(spacing)
+        cl_lo, cl_hi = l0 + di_l - marg, l1 + di_l + marg
+        cs_lo, cs_hi = s0 + di_s - marg, s1 + di_s + marg
+        crop = np.zeros((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
+        nln, npx = self.photo.shape
+        a_lo, a_hi = max(cl_lo, 1), min(cl_hi, nln)
+        b_lo, b_hi = max(cs_lo, 1), min(cs_hi, npx)
+        inside = np.zeros(crop.shape, bool)
+        if a_lo <= a_hi and b_lo <= b_hi:
+            crop[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = self.photo[
+                a_lo - 1 : a_hi, b_lo - 1 : b_hi
+            ]
+            inside[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = True
+        t1, t2 = self.thresholds
+        cvalid = inside & np.isfinite(crop) & (crop > 0.0) & (crop <= t2)  # DN 0 = no data (SPC)
+        if not self.options.image_shadows:
+            cvalid &= crop >= t1
+        # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
+        a_s = int(np.clip(round(c0[0] + f_t[0]), s0, s1))
+        a_l = int(np.clip(round(c0[1] + f_t[1]), l0, l1))
+        p_anchor = (a_l - l0, a_s - s0)
+        e_anchor = (a_l + di_l - cl_lo, a_s + di_s - cs_lo)
+        copts = dataclasses.replace(
+            copts, min_value=None, bin_min_fraction=self.options.image_bin_fraction
+        )
+        corr = correlate(
+            crop,
+            tmpl,
+            extracted_valid=cvalid,
+            predicted_valid=tvalid,
+            spacing=spacing,
+            options=copts,
+            extracted_anchor=e_anchor,
+            predicted_anchor=p_anchor,
+        )
+        shift = np.array([corr.offset[1], corr.offset[0]])  # (line, sample) axes → (dsample, dline)
+        # the step's reference is where the template actually sat
+        return LandmarkStep(c0 + placement, shift, corr, None, corr.status, template=rend)
+
+
+def correlate_landmark(
+    photo,
+    camera,
+    sun,
+    maplet,
+    center=None,
+    spacing: int = 1,
+    thresholds=None,
+    options: RegisterOptions | None = None,
+) -> LandmarkStep:
+    """One correlation step of one landmark at pixel ``center`` (default: projection of V)."""
+    reg = Registrar(photo, sun, [maplet], thresholds, options)
+    if center is None:
+        center = reg.project(camera)[0][0]
+    return reg.step(0, camera, center, spacing)
+
