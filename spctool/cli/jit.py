@@ -33,7 +33,7 @@ FAMILIES = {
         ("spctool.stages.correlate", "_k_ncc"),
     ),
     "rays": (("spctool.geometry._raykernels", "trace"),),
-    "render": (("spctool.stages.render", "_fused_rays"),),
+    "render": (("spctool.geometry._patchkernels", "_fused_rays"),),
 }
 _PIPELINE = ("camera", "maplet", "rays")
 #: the kernel families each command needs (commands not listed compile nothing worth a note)

@@ -1,0 +1,389 @@
+"""Numba kernels of the height-patch renderer (:mod:`spctool.stages.render`): ray/box and sphere
+tests, the exact crossing of a patch's bilinear terrain, and the fused path for patches without a
+shape (register's image-space templates, patch-only photos).
+
+Specification: spc-formats.md §1.3 (the maplet grid), spc-algorithms.md §3.1 (node slopes); the
+arithmetic is :func:`spctool.stages.render.trace` → ``shadowed`` → ``shade``'s, checked against them
+in ``tests/test_render.py``.
+
+The fused path.  One pass per sub-ray does what trace → shadowed → shade do for patches when there is no
+shape, with the same arithmetic in the same order (sphere pre-test, slab, exact bilinear crossing,
+bilinear interpolation, normals, the shadow ray from just above the own terrain) but without the
+per-batch temporaries and fancy indexing; the photometric law itself stays in :mod:`spctool.photometry`,
+applied to the kernel's μ₀, μ, cos α.  Small windows run on the calling thread: a template of a few
+thousand rays is a couple of ms of work, less than what waking a thread pool costs on a loaded machine
+(parallel=True kernels made a 77×77 template ~8× slower on 2 busy cores).  The helpers are inlined by
+LLVM (forceinline): a call per ray with a dozen array arguments cost ~20 % of the work, and numba-level
+inlining of this much code compiles several times slower.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from spctool.geometry._heightkernels import _first_crossing, _march, borrowed, lit_from
+
+#: surface id of a ray that hits nothing / the shape (patches are numbered 0, 1, …)
+SKY = -2
+SHAPE = -1
+
+_BIG = 1e300
+
+
+@numba.njit(inline="always", cache=True)
+def _slab1(o, d, lo, hi):
+    """Entry/exit of o + t·d in [lo, hi] along one axis (±_BIG for parallel rays)."""
+    if d == 0.0:
+        if lo <= o <= hi:
+            return -_BIG, _BIG
+        return _BIG, -_BIG
+    t1 = (lo - o) / d
+    t2 = (hi - o) / d
+    if t1 > t2:
+        return t2, t1
+    return t1, t2
+
+
+@numba.njit(parallel=True, cache=True)
+def _local_slab(origins, dirs, v, rot, inv_scale, lo, hi, o_out, d_out, tn_out, tf_out):
+    """Maplet-frame rays (cells; direction per km) and their box entry (≥ 0) / exit parameters."""
+    for k in numba.prange(origins.shape[0]):
+        px = origins[k, 0] - v[0]
+        py = origins[k, 1] - v[1]
+        pz = origins[k, 2] - v[2]
+        dx = dirs[k, 0]
+        dy = dirs[k, 1]
+        dz = dirs[k, 2]
+        tn = 0.0
+        tf = _BIG
+        for a in range(3):
+            oa = (px * rot[0, a] + py * rot[1, a] + pz * rot[2, a]) * inv_scale
+            da = (dx * rot[0, a] + dy * rot[1, a] + dz * rot[2, a]) * inv_scale
+            o_out[k, a] = oa
+            d_out[k, a] = da
+            t1, t2 = _slab1(oa, da, lo[a], hi[a])
+            if t1 > tn:
+                tn = t1
+            if t2 < tf:
+                tf = t2
+        tn_out[k] = tn
+        tf_out[k] = tf
+
+
+@numba.njit(parallel=True, cache=True)
+def _near_spheres(origins, dirs, use, centres, radii2, out):
+    """out[k, p] = ray origin + t·dir (t ≥ 0, unit dir) passes within sphere p (rays with ``use``)."""
+    npatch = centres.shape[0]
+    for k in numba.prange(origins.shape[0]):
+        if not use[k]:
+            continue
+        for p in range(npatch):
+            wx = centres[p, 0] - origins[k, 0]
+            wy = centres[p, 1] - origins[k, 1]
+            wz = centres[p, 2] - origins[k, 2]
+            w2 = wx * wx + wy * wy + wz * wz
+            tc = wx * dirs[k, 0] + wy * dirs[k, 1] + wz * dirs[k, 2]
+            if tc > 0.0:
+                w2 -= tc * tc
+            out[k, p] = w2 <= radii2[p]
+
+
+@numba.njit(parallel=True, cache=True)
+def _in_boxes(points, use, centres, radii2, vs, rots, inv_scales, los, his, out):
+    """out[k] = point k (with ``use``) lies in any patch's maplet-frame box (sphere pre-test first)."""
+    npatch = centres.shape[0]
+    for k in numba.prange(points.shape[0]):
+        if not use[k]:
+            continue
+        for p in range(npatch):
+            dx = points[k, 0] - centres[p, 0]
+            dy = points[k, 1] - centres[p, 1]
+            dz = points[k, 2] - centres[p, 2]
+            if dx * dx + dy * dy + dz * dz > radii2[p]:
+                continue
+            px = points[k, 0] - vs[p, 0]
+            py = points[k, 1] - vs[p, 1]
+            pz = points[k, 2] - vs[p, 2]
+            inside = True
+            for a in range(3):
+                c = (px * rots[p, 0, a] + py * rots[p, 1, a] + pz * rots[p, 2, a]) * inv_scales[p]
+                if c < los[p, a] or c > his[p, a]:
+                    inside = False
+            if inside:
+                out[k] = True
+                break
+
+
+@numba.njit(parallel=True, cache=True)
+def _crossings(h, valid, tops, hmin, hmax, q, o, d, t_min, t_max, out):
+    """heightfield.intersect_rays for maplet-frame rays, in parallel (same exact crossing kernel)."""
+    for m in numba.prange(o.shape[0]):
+        out[m] = _first_crossing(
+            h,
+            valid,
+            tops,
+            hmin,
+            hmax,
+            o[m, 0] + q,
+            o[m, 1] + q,
+            o[m, 2],
+            d[m, 0],
+            d[m, 1],
+            d[m, 2],
+            t_min[m],
+            t_max[m],
+        )
+
+
+@numba.njit(inline="always", cache=True)
+def _sphere_miss(geo, p, x0, x1, x2, d0, d1, d2):
+    """The ray x + t·d (t ≥ 0) passes outside patch p's bounding sphere (_near_spheres)."""
+    wx = geo[p, 0] - x0
+    wy = geo[p, 1] - x1
+    wz = geo[p, 2] - x2
+    w2 = wx * wx + wy * wy + wz * wz
+    tc = wx * d0 + wy * d1 + wz * d2
+    if tc > 0.0:
+        w2 -= tc * tc
+    return not w2 <= geo[p, 3]
+
+
+@numba.njit(inline="always", cache=True)
+def _slab_local(geo, boxes, p, hi_col, x0, x1, x2, d0, d1, d2):
+    """Maplet-frame ray and box entry/exit of patch p (_local_slab); box hi from boxes[p, hi_col:]."""
+    px = x0 - geo[p, 4]
+    py = x1 - geo[p, 5]
+    pz = x2 - geo[p, 6]
+    inv = geo[p, 16]
+    tn = 0.0
+    tf = _BIG
+    oa0 = (px * geo[p, 7] + py * geo[p, 10] + pz * geo[p, 13]) * inv
+    da0 = (d0 * geo[p, 7] + d1 * geo[p, 10] + d2 * geo[p, 13]) * inv
+    t1, t2 = _slab1(oa0, da0, boxes[p, 0], boxes[p, hi_col])
+    if t1 > tn:
+        tn = t1
+    if t2 < tf:
+        tf = t2
+    oa1 = (px * geo[p, 8] + py * geo[p, 11] + pz * geo[p, 14]) * inv
+    da1 = (d0 * geo[p, 8] + d1 * geo[p, 11] + d2 * geo[p, 14]) * inv
+    t1, t2 = _slab1(oa1, da1, boxes[p, 1], boxes[p, hi_col + 1])
+    if t1 > tn:
+        tn = t1
+    if t2 < tf:
+        tf = t2
+    oa2 = (px * geo[p, 9] + py * geo[p, 12] + pz * geo[p, 15]) * inv
+    da2 = (d0 * geo[p, 9] + d1 * geo[p, 12] + d2 * geo[p, 15]) * inv
+    t1, t2 = _slab1(oa2, da2, boxes[p, 2], boxes[p, hi_col + 2])
+    if t1 > tn:
+        tn = t1
+    if t2 < tf:
+        tf = t2
+    return oa0, oa1, oa2, da0, da1, da2, tn, tf
+
+
+@numba.njit(inline="always", cache=True)
+def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
+    return (
+        w00 * maps[p, c, i, j]
+        + w10 * maps[p, c, i + 1, j]
+        + w01 * maps[p, c, i, j + 1]
+        + w11 * maps[p, c, i + 1, j + 1]
+    )
+
+
+@numba.njit(forceinline=True, cache=True)
+def _patch_ray(
+    k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
+    upmax, horizon, entry, surf, geom, sh,
+):  # fmt: skip
+    """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
+    the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
+    without ``ok`` or a finite direction are sky (geom (0, 0, 1, 0): dark).
+    ``facet``: shade with the normal of the flat triangle under the hit (two per cell,
+    split along the (i, j)–(i+1, j+1) diagonal) instead of the interpolated node slopes.  ``upmax``
+    (P, n − 1, n − 1): :func:`_upwind_max` of each patch for this Sun — the own-patch shadow march ends
+    where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
+    answer, fewer cells); ``horizon``, ``entry`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the
+    shadow march ends where the ray is above it, and ``lit_from`` declares a shadow ray lit without a march
+    where it provably clears its own cell and the entry bound of the next column (+inf: no shortcut,
+    the reference)."""
+    surf[k] = SKY
+    sh[k] = False
+    geom[k, 0] = 0.0  # sky: dark (μ₀ = μ = 0, α = 0, albedo 0), radiance exactly 0 under every law
+    geom[k, 1] = 0.0
+    geom[k, 2] = 1.0
+    geom[k, 3] = 0.0
+    d0 = dirs[k, 0]
+    d1 = dirs[k, 1]
+    d2 = dirs[k, 2]
+    if not (ok[k] and math.isfinite(d0) and math.isfinite(d1) and math.isfinite(d2)):
+        return
+    o0 = origin[0]
+    o1 = origin[1]
+    o2 = origin[2]
+    npatch = geo.shape[0]
+    t = np.inf
+    best = -1
+    lx = 0.0
+    ly = 0.0
+    for p in range(npatch):
+        if _sphere_miss(geo, p, o0, o1, o2, d0, d1, d2):
+            continue
+        a0, a1, a2, b0, b1, b2, tn, tf = _slab_local(geo, boxes, p, 3, o0, o1, o2, d0, d1, d2)
+        tmax = tf if tf < t else t
+        if tmax >= tn:
+            n = ns[p]
+            q = geo[p, 18]
+            tp = _march(
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
+            )  # fmt: skip
+            if math.isfinite(tp) and tp < t:
+                t = tp
+                best = p
+                lx = a0 + tp * b0
+                ly = a1 + tp * b1
+    if best < 0:
+        return
+    p = best
+    surf[k] = p
+    # height, slopes and albedo at the hit (HeightPatch.interpolate)
+    n = ns[p]
+    q = geo[p, 18]
+    u = min(max(lx + q, 0.0), n - 1.0)
+    w = min(max(ly + q, 0.0), n - 1.0)
+    i = min(int(math.floor(u)), n - 2)
+    j = min(int(math.floor(w)), n - 2)
+    fu = u - i
+    fw = w - j
+    w00 = (1 - fu) * (1 - fw)
+    w10 = fu * (1 - fw)
+    w01 = (1 - fu) * fw
+    w11 = fu * fw
+    z = _bilinear_at(maps, p, 0, i, j, w00, w10, w01, w11)
+    if facet:  # the flat triangle's slopes (HeightPatch.facet_slopes)
+        if fu >= fw:  # corners (i, j), (i+1, j), (i+1, j+1)
+            hx = maps[p, 0, i + 1, j] - maps[p, 0, i, j]
+            hy = maps[p, 0, i + 1, j + 1] - maps[p, 0, i + 1, j]
+        else:  # corners (i, j), (i, j+1), (i+1, j+1)
+            hx = maps[p, 0, i + 1, j + 1] - maps[p, 0, i, j + 1]
+            hy = maps[p, 0, i, j + 1] - maps[p, 0, i, j]
+    else:
+        hx = _bilinear_at(maps, p, 1, i, j, w00, w10, w01, w11)
+        hy = _bilinear_at(maps, p, 2, i, j, w00, w10, w01, w11)
+    alb = _bilinear_at(maps, p, 3, i, j, w00, w10, w01, w11)
+    # unit shading normal (heightfield.normals_body) and the shading geometry (shade)
+    a_ = -hx
+    b_ = -hy
+    n0 = a_ * geo[p, 7] + b_ * geo[p, 8] + geo[p, 9]
+    n1 = a_ * geo[p, 10] + b_ * geo[p, 11] + geo[p, 12]
+    n2 = a_ * geo[p, 13] + b_ * geo[p, 14] + geo[p, 15]
+    nin = 1.0 / math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    n0 = n0 * nin
+    n1 = n1 * nin
+    n2 = n2 * nin
+    dn = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    e0 = -d0 / dn
+    e1 = -d1 / dn
+    e2 = -d2 / dn
+    s0 = sun[0]
+    s1 = sun[1]
+    s2 = sun[2]
+    geom[k, 0] = n0 * s0 + n1 * s1 + n2 * s2
+    geom[k, 1] = n0 * e0 + n1 * e1 + n2 * e2
+    geom[k, 2] = s0 * e0 + s1 * e1 + s2 * e2
+    geom[k, 3] = alb
+    if not shadows or not (n0 * sun_lit[0] + n1 * sun_lit[1] + n2 * sun_lit[2] > 0.0):
+        return
+    # cast shadow (shadowed): first the own patch's quick answers — the ray rises above the highest cell
+    # ahead (upmax), or provably clears its own cell and its horizon (lit_from; shortcuts on where the
+    # horizon bound is finite) — with the Sun in maplet cells exactly as _slab_local computes it
+    inv = geo[p, 16]
+    b0 = (s0 * geo[p, 7] + s1 * geo[p, 10] + s2 * geo[p, 13]) * inv
+    b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
+    b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
+    own_lit = False
+    if b2 > 0.0:
+        top = upmax[p, i, j]
+        own_lit = z + offset > top
+        if not own_lit and horizon[p, i, j] < np.inf:
+            q = geo[p, 18]
+            own_lit = lit_from(hts, tops, entry, p, n, n, lx + q, ly + q, z + offset, b0, b1, b2)
+    if own_lit and npatch == 1:
+        return
+    # the ray toward the Sun from the hit's body point (HeightPatch.to_body)
+    scale = geo[p, 17]
+    x0 = geo[p, 4] + scale * (lx * geo[p, 7] + ly * geo[p, 8] + z * geo[p, 9])
+    x1 = geo[p, 5] + scale * (lx * geo[p, 10] + ly * geo[p, 11] + z * geo[p, 12])
+    x2 = geo[p, 6] + scale * (lx * geo[p, 13] + ly * geo[p, 14] + z * geo[p, 15])
+    for p in range(npatch):
+        own = p == best
+        if own and own_lit:
+            continue
+        if not own and _sphere_miss(geo, p, x0, x1, x2, s0, s1, s2):
+            continue
+        # the box raised by the relief: for the own patch its exit is where the ray leaves the column
+        a0, a1, a2, b0, b1, b2, tn, tf = _slab_local(geo, boxes, p, 6, x0, x1, x2, s0, s1, s2)
+        if own:  # start on the terrain (exact local hit), just above it
+            a0 = lx
+            a1 = ly
+            a2 = z + offset
+            tn = 0.0
+            if b2 > 0.0:  # rising: the march ends above the highest cell ahead
+                tc = (upmax[p, i, j] - a2) / b2
+                if tc < tf:
+                    tf = tc
+        if tf >= tn:
+            n = ns[p]
+            q = geo[p, 18]
+            tp = _march(
+                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                a0 + q, a1 + q, a2, b0, b1, b2, tn, tf, horizon, True,
+            )  # fmt: skip
+            if math.isfinite(tp):
+                sh[k] = True
+                return
+
+
+@numba.njit(cache=True, nogil=True)
+def _fused_rays(
+    origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
+    horizon, entry, surf, geom, sh,
+):  # fmt: skip
+    """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
+    # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
+    # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
+    origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
+    sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
+    maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
+    upmax, horizon, entry = borrowed(upmax), borrowed(horizon), borrowed(entry)
+    surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
+    hts = borrowed(maps[:, 0])
+    for k in range(dirs.shape[0]):
+        _patch_ray(
+            k,
+            origin,
+            dirs,
+            ok,
+            sun_lit,
+            sun,
+            shadows,
+            offset,
+            facet,
+            geo,
+            boxes,
+            maps,
+            hts,
+            valids,
+            tops,
+            ns,
+            upmax,
+            horizon,
+            entry,
+            surf,
+            geom,
+            sh,
+        )
