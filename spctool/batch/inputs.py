@@ -114,6 +114,8 @@ class BatchOptions:
 
 
 def _jsonable(v):
+    """The options as JSON for their fingerprint: unlike :func:`spctool.jsonsafe.json_safe`, a NaN or
+    an unknown object keeps its ``repr`` (two options that differ must never print alike)."""
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):

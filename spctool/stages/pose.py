@@ -710,9 +710,9 @@ def _final_covariance(problem, state, mode, used, pts_all, lmk_sig):
 
 
 def _usable_landmarks(camera, pts_all, meas_all, names):
-    """(usable (N,), a-priori predicted pixels (N, 2), status words, rejections): a landmark is usable
-    with a known position, a measured pixel and in front of the a-priori camera; the others are named
-    with the reason (``no-position``, ``no-measurement``, ``behind-camera``)."""
+    """(usable (N,), known position (N,), a-priori predicted pixels (N, 2), status words, rejections):
+    a landmark is usable with a known position, a measured pixel and in front of the a-priori camera;
+    the others are named with the reason (``no-position``, ``no-measurement``, ``behind-camera``)."""
     status = ["ok"] * pts_all.shape[0]
     rejected: list[Rejection] = []
     pts_finite = np.all(np.isfinite(pts_all), axis=1)
@@ -731,7 +731,7 @@ def _usable_landmarks(camera, pts_all, meas_all, names):
             word, detail = "behind-camera", "landmark behind the a-priori camera"
         status[i] = word
         rejected.append(Rejection(names[i], i, word, detail))
-    return usable, pred0, status, rejected
+    return usable, pts_finite, pred0, status, rejected
 
 
 def _fit_rejecting(build, usable, opts, prior, names, status, rejected, warnings):
@@ -838,8 +838,7 @@ def _solve_pose(
     prior_used = prior.n_equations > 0
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
-    usable, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
-    pts_finite = np.all(np.isfinite(pts_all), axis=1)
+    usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
     resid0 = meas_all - pred0
 
     def check_count(count):
