@@ -279,8 +279,15 @@ def test_default_plans():
     assert [n for _, n in o.steps] == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1]  # refine = 1, then converged
     assert o.converge_max > 0 and o.converge_peak == "gradient"
     assert o.extract.linearized and o.extract.criteria is None and o.schedule == "retina_s16"
-    (s16,) = mc.default_plan("maplet", refine=0)
+    assert o.acquire_reach == mc.S16_ACQUIRE_REACH and o.first_phases == 1  # 4 sigma, full overlap
+    (s16,) = mc.default_plan("maplet", refine=0, acquire_reach=0)
     assert s16.steps is None and s16.s16_spacings == (10, 9, 8, 7, 6, 5, 4, 3, 2, 1)
+    assert s16.acquire_reach == 0 and s16.first_phases == 1
+    # the reach follows the perturbation's size; none without perturbation
+    assert mc.MonteCarloConfig(sigma_scale=0.5).plan[0].acquire_reach == mc.S16_ACQUIRE_REACH // 2
+    assert mc.MonteCarloConfig(sigma_scale=0.0).plan[0].acquire_reach == 0
+    with pytest.raises(SpcUsageError):
+        mc.default_plan("maplet", acquire_reach=-3)
     coarse, fine = mc.default_plan("image", refine=3)
     assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
     assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]

@@ -808,3 +808,76 @@ def test_first_phases_on_a_rendered_scene(scene):
     for bad in (0, 5, 1.5):
         with pytest.raises(SpcUsageError):
             RegisterOptions(first_phases=bad)
+
+
+# --------------------------------------------------------------------------------------------------
+# acquire_reach: the first step searched on an extraction extended beyond the maplet's edge
+
+
+def test_acquisition_grid_and_margin():
+    from spctool.stages.register import _acquisition
+
+    assert _acquisition(RegisterOptions(), 10) == {}  # S16
+    acq = _acquisition(RegisterOptions(acquire_reach=72), 10)
+    assert acq == {"spacing": 10, "grid_half": 8, "margin": 90}
+    # never narrower than the schedule's own grid; whole bins of margin beyond the last offset
+    acq = _acquisition(RegisterOptions(acquire_reach=20), 10)
+    assert acq == {"spacing": 10, "grid_half": 5, "margin": 60}
+    assert _acquisition(RegisterOptions(acquire_reach=72), 1) == {}  # a spacing-1 start: nothing to widen
+    assert _acquisition(RegisterOptions(acquire_reach=72, space="image"), 10) == {}
+    for bad in (-1, 2.5):
+        with pytest.raises(SpcUsageError):
+            RegisterOptions(acquire_reach=bad)
+
+
+@pytest.mark.parametrize("linearized", [True, False])
+def test_extended_extraction_is_the_maplet_extraction_inside(scene, linearized):
+    """The extraction on the extended grid resamples the photo exactly as the maplet's own does at every
+    node away from the edge (the shadow filter looks a few cells around), V at node (q + M, q + M); its
+    re-centred copy equals a full extraction at the new centre (to rounding, as on the maplet's grid)."""
+    from spctool.stages.registrar import Registrar
+
+    eopts = ExtractOptions(criteria=None, linearized=linearized)
+    reg = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds, RegisterOptions(extract=eopts))
+    c = np.array(scene.camera.project(scene.maplet.v), float).reshape(2)
+    m, n = 30, scene.maplet.heights.shape[0]
+    own = reg.extraction(0, scene.camera, c)
+    wide = reg.extraction(0, scene.camera, c, margin=m)
+    assert wide.image.shape == (n + 2 * m, n + 2 * m)
+    inner = (slice(m + 12, m + n - 12),) * 2
+    np.testing.assert_array_equal(wide.sample[inner], own.sample[12:-12, 12:-12])
+    np.testing.assert_array_equal(wide.line[inner], own.line[12:-12, 12:-12])
+    np.testing.assert_array_equal(wide.image[inner], own.image[12:-12, 12:-12])
+    q = (n - 1) // 2
+    assert wide.sample[m + q, m + q] == own.sample[q, q] and wide.line[m + q, m + q] == own.line[q, q]
+    assert np.count_nonzero(wide.image) > 1.5 * np.count_nonzero(own.image)  # photo beyond the maplet
+    moved = c + np.array([7.3, -4.6])
+    again = reg.extraction(0, scene.camera, moved, margin=m)  # the re-centring path
+    fresh = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds, reg.options)
+    full = fresh.extraction(0, scene.camera, moved, margin=m)
+    # to rounding: the re-centred node pixels differ from a fresh projection by ~1e-13 px
+    np.testing.assert_array_equal(again.image > 0, full.image > 0)
+    np.testing.assert_allclose(again.image, full.image, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(again.sample, full.sample, rtol=0, atol=1e-9)
+
+
+def test_acquire_reach_finds_what_the_maplet_grid_loses(scene):
+    """The (40, −25) px pointing error that S16's search within the maplet loses (above) is found by the
+    first step searching ±80 cells on the extended grid; a small error measures as without it."""
+    eopts = ExtractOptions(criteria=None)
+    cam = rs.pointing_error(scene.camera, 40.0, -25.0)
+    r = register(
+        scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds,
+        RegisterOptions(extract=eopts, acquire_reach=80),
+    )  # fmt: skip
+    assert r.status == ["ok"] and np.all(_err(r, scene.truth_pixel) <= 0.05)
+    cam = rs.pointing_error(scene.camera, 6.0, 4.0)
+    out = [
+        register(
+            scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds,
+            RegisterOptions(extract=eopts, acquire_reach=a),
+        )  # fmt: skip
+        for a in (0, 80)
+    ]
+    assert out[0].status == out[1].status == ["ok"]
+    np.testing.assert_allclose(out[1].measured, out[0].measured, atol=0.005)

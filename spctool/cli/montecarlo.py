@@ -30,7 +30,9 @@ errors -- spacecraft position (0.1667 m per axis) and attitude (0.05 deg per axi
 ascension/declination (0.3 deg) -- the landmark is registered in the unchanged photo and the error truth
 - measured is recorded, truth being the projection of the true landmark with the true camera. Maplet
 space runs S16's schedule (L = 10 ... 1, search +-5L cells, acceptance rho >= 0.3, no pose update,
-linearised extraction) plus --refine steps at L = 1; image space (the direction of the Retina system,
+linearised extraction) plus --refine steps at L = 1, its first step searching --acquire-reach cells
+on the photo resampled beyond the maplet's edge (S16's search within the maplet ends near +-50
+cells, 2.8 sigma of the a-priori pixel); image space (the direction of the Retina system,
 Wright et al. 2016) searches at L = 4, 2, 1 over +-48 px with one rendered template, then re-renders it
 at the estimate for --refine steps at L = 1. Scalar perturbations are Latin-Hypercube sampled per
 landmark (--sampling lhs, S16) or plain Monte Carlo (--sampling mc); heights and albedo get an error on
@@ -169,8 +171,18 @@ def register(cli: click.Group) -> None:
         default=None,
         metavar="P",
         help="Correlate each landmark's first step at P x P half-bin phases and keep the best "
-        "(default: 2 in maplet space, 1 in image space; 1 with --refine 0 is the schedule of "
-        "Shoemaker et al. 2016).",
+        "(default: 1).",
+    )
+    @click.option(
+        "--acquire-reach",
+        "acquire_reach",
+        type=click.IntRange(min=0),
+        default=None,
+        metavar="CELLS",
+        help="Maplet space: the first step (L = 10) searches +-CELLS on the photo resampled onto the "
+        "maplet's grid extended beyond its edge, so every offset compares the whole prediction "
+        "(default: 72 x --sigma-scale, 4 sigma of the a-priori pixel; 0 with --refine 0 and "
+        "--first-phases 1 is the schedule of Shoemaker et al. 2016).",
     )
     @click.option(
         "--jobs",
@@ -222,6 +234,7 @@ def register(cli: click.Group) -> None:
         sigma_scale,
         refine,
         first_phases,
+        acquire_reach,
         jobs,
         figures_dir,
         samples_csv,
@@ -248,7 +261,14 @@ def register(cli: click.Group) -> None:
             parameters=tuple(params),
             sigma_scale=sigma_scale,
             space=space,
-            plan=mc.default_plan(space, refine=refine, first_phases=first_phases),
+            plan=mc.default_plan(
+                space,
+                refine=refine,
+                first_phases=first_phases,
+                acquire_reach=(
+                    round(mc.S16_ACQUIRE_REACH * sigma_scale) if acquire_reach is None else acquire_reach
+                ),
+            ),
         )
         t0 = time.perf_counter()
         scene = _load_scene(ctx, mcs, preset, scene_path, world_seed, picture)

@@ -643,6 +643,17 @@ def correlate_cmd(ctx: Context, **kw):
     "cells: a peak between two L-cell grid points is no longer read at half its height.",
 )
 @click.option(
+    "--acquire-reach",
+    "acquire_reach",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    metavar="CELLS",
+    help="S16 schedule, maplet space: the first step (spacing L >= 2) searches +-CELLS on the photo "
+    "resampled onto the maplet's grid extended beyond its edge, so every offset compares the whole "
+    "prediction (0 = S16: within the maplet's own grid, which reaches about half the maplet's width).",
+)
+@click.option(
     "--no-fail-fast",
     "no_fail_fast",
     is_flag=True,
@@ -737,6 +748,7 @@ def register_cmd(ctx: Context, **kw):
       spctool -C demo register P000000001A1 B01980 --space image --json
       spctool -C demo register P000000001A1 --peak parabola --converge-max 0 --edge-retries 0  # S16
       spctool -C demo register P000000001A1 --first-phases 2  # a denser first search
+      spctool -C demo register P000000001A1 --acquire-reach 80  # search +-80 cells beyond the maplet
       spctool -C demo register P000000001A1 --converge-peak quadric  # the previous release's final stage
     """
     from spctool.stages.register import RegisterOptions, schedule_steps
@@ -752,6 +764,7 @@ def register_cmd(ctx: Context, **kw):
         "converge_tol": kw["converge_tol"],
         "edge_retries": kw["edge_retries"],
         "first_phases": kw["first_phases"],
+        "acquire_reach": kw["acquire_reach"],
         "converge_max": kw["converge_max"],
         "converge_peak": kw["converge_peak"],
         "converge_draft": not kw["no_converge_draft"],

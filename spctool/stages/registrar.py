@@ -126,6 +126,14 @@ class RegisterOptions:
       two grid points at a fraction of its height (ρ ≈ 0.5 where it is 0.9 on the point; s16-50m
       Monte Carlo, L = 10), and an edge peak over a third of the overlap can beat it; 2 samples the
       surface at L/2 cells.  Costs p² − 1 more steps per landmark.
+    * ``acquire_reach`` — S16 driver, maplet space (cells): the steps at the schedule's first spacing
+      L ≥ 2 (its phases and edge retries) search ±k·L cells, k = max(``grid_half``, ⌈reach / L⌉), on
+      the photo resampled onto the maplet's grid extended by (k + 1)·L cells per side (heights continued
+      from the maplet's edge), so that the prediction lies wholly on the extraction at every offset.
+      0 (the default) is S16/SPC: the extraction is the maplet's own grid, an offset of j cells keeps
+      (N − j)/N of the overlap per axis, and the reach ends near N/2 cells (an N = 99 maplet at L = 10:
+      ±50 cells, where partial-overlap maxima on the grid's border compete with the landmark).  Set it
+      from the a-priori uncertainty (the Monte Carlo: 4σ of the a-priori pixel, in cells).
     * ``pose_update`` — AUTOREGISTER driver: pose solve after each align pass (True);
       ``halve_shift`` — apply ½ of every shift (False); ``min_pose_landmarks`` — accepted landmarks
       needed for a pose solve (3).
@@ -174,6 +182,7 @@ class RegisterOptions:
     fail_fast: bool = True
     edge_retries: int = 2
     first_phases: int = 1
+    acquire_reach: int = 0
     pose_update: bool = True
     halve_shift: bool = False
     min_pose_landmarks: int = 3
@@ -225,6 +234,9 @@ class RegisterOptions:
         if int(self.first_phases) != self.first_phases or not 1 <= int(self.first_phases) <= 4:
             raise SpcUsageError(f"first_phases must be an integer from 1 to 4, got {self.first_phases}")
         self.first_phases = int(self.first_phases)
+        if int(self.acquire_reach) != self.acquire_reach or int(self.acquire_reach) < 0:
+            raise SpcUsageError(f"acquire_reach must be an integer >= 0 (cells), got {self.acquire_reach}")
+        self.acquire_reach = int(self.acquire_reach)
         if not float(self.converge_tol) > 0.0:
             raise SpcUsageError(f"converge_tol must be > 0 px, got {self.converge_tol}")
         if int(self.converge_max) != self.converge_max or int(self.converge_max) < 0:
@@ -328,6 +340,40 @@ class LandmarkStep:
         return c[::-1, ::-1].copy()
 
 
+@dataclass(frozen=True)
+class _PaddedMaplet:
+    """A maplet's frame with its grid extended beyond its edge (``acquire_reach``): heights continued
+    from the edge, the outside nodes valid."""
+
+    heights: np.ndarray
+    valid: np.ndarray
+    scale: float
+    v: np.ndarray
+    ux: np.ndarray
+    uy: np.ndarray
+    uz: np.ndarray
+
+    @classmethod
+    def around(cls, maplet, margin: int) -> _PaddedMaplet:
+        valid = np.asarray(maplet.valid, dtype=bool)
+        h = np.where(valid, np.asarray(maplet.heights, dtype=np.float64), 0.0)
+        return cls(
+            np.pad(h, margin, mode="edge"), np.pad(valid, margin, constant_values=True), float(maplet.scale),
+            maplet.v, maplet.ux, maplet.uy, maplet.uz,
+        )  # fmt: skip
+
+
+class _Grid:
+    """The grid a landmark's photo is resampled onto, with the extraction reused at other centres:
+    the maplet's own (margin 0) or the maplet extended by ``margin`` cells per side."""
+
+    __slots__ = ("maplet", "slopes", "margin", "ext", "camera", "shadow")
+
+    def __init__(self, maplet, slopes, margin: int = 0):
+        self.maplet, self.slopes, self.margin = maplet, slopes, int(margin)
+        self.ext = self.camera = self.shadow = None
+
+
 class _Landmark:
     """Per-landmark state reused across steps: slopes, prediction (per camera), template cache."""
 
@@ -342,9 +388,8 @@ class _Landmark:
         "tmpl",
         "tmpl_key",
         "footprint",
-        "ext",
-        "ext_camera",
-        "shadow",
+        "grid",
+        "padded",
         "shadow_mode",
         "cast",
     )
@@ -362,9 +407,8 @@ class _Landmark:
         self.tmpl = None
         self.tmpl_key = None
         self.footprint = None
-        self.ext = None
-        self.ext_camera = None
-        self.shadow = None
+        self.grid = _Grid(maplet, self.slopes)  # the maplet's own grid
+        self.padded = None  # the grid extended for acquire_reach
 
 
 class Registrar:
@@ -404,8 +448,8 @@ class Registrar:
     def release(self, i: int) -> None:
         """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
         lm = self.landmarks[i]
-        lm.pred = lm.pred_camera = lm.ext = lm.ext_camera = lm.tmpl = lm.tmpl_key = lm.shadow = None
-        lm.footprint = None
+        lm.pred = lm.pred_camera = lm.tmpl = lm.tmpl_key = lm.footprint = lm.padded = None
+        lm.grid = _Grid(lm.maplet, lm.slopes)
 
     def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
@@ -458,21 +502,32 @@ class Registrar:
         apply_criteria: bool = False,
         final: bool = False,
         draft: bool = False,
+        margin: int = 0,
+        grid_half: int | None = None,
     ) -> LandmarkStep:
         """Correlate landmark ``i`` with V placed at pixel ``center`` (sample, line), spacing n
         (``final``: a step of the converged stage, with ``converge_peak``'s estimator; ``draft``: image
-        space, its template rendered at ``supersample_coarse``)."""
+        space, its template rendered at ``supersample_coarse``; ``margin``: maplet space, the extraction
+        extended by this many cells per side, and ``grid_half`` the search, ``acquire_reach``)."""
         copts = self._copts_final if final else self._copts
+        if grid_half is not None and grid_half != copts.grid_half:
+            copts = dataclasses.replace(copts, grid_half=int(grid_half))
         if self.options.space == "image":
             return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing, copts, draft)
         return self._maplet_step(
-            i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria, copts
+            i, camera, np.asarray(center, dtype=np.float64), spacing, apply_criteria, copts, int(margin)
         )
 
-    def _maplet_step(self, i, camera, center, spacing, apply_criteria, copts):
+    def _maplet_step(self, i, camera, center, spacing, apply_criteria, copts, margin=0):
         lm = self.landmarks[i]
         ext = self.extraction(i, camera, center, apply_criteria)
         pred = self.prediction(i, camera, ext)
+        anchors = {}
+        if margin > 0 and ext.status == "ok":
+            # the search image: the same resampling on the grid extended by ``margin`` cells
+            q = (pred.image.shape[0] - 1) // 2
+            anchors = dict(extracted_anchor=(q + margin, q + margin), predicted_anchor=(q, q))
+            ext = self.extraction(i, camera, center, margin=margin)
         # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
         h_bin = spacing * math.sqrt(abs(float(np.linalg.det(ext.jxy)))) if ext.jxy is not None else 1.0
         corr = correlate(
@@ -483,14 +538,17 @@ class Registrar:
             spacing=spacing,
             options=copts,
             noise_footprint=resampled_noise_footprint(h_bin) if h_bin > 0 else 1.0,
+            **anchors,
         )
         status = corr.status if ext.status == "ok" else ext.status
         shift = ext.jxy @ corr.offset
         del lm
         return LandmarkStep(center, shift, corr, ext.jxy, status, extraction=ext)
 
-    def extraction(self, i: int, camera, center, apply_criteria: bool = False):
-        """The photo resampled onto landmark ``i`` with V at pixel ``center`` (Stage C–E).
+    def extraction(self, i: int, camera, center, apply_criteria: bool = False, margin: int = 0):
+        """The photo resampled onto landmark ``i`` with V at pixel ``center`` (Stage C–E); ``margin`` > 0:
+        onto the maplet's grid extended by that many cells per side (``acquire_reach``: heights continued
+        from the maplet's edge, no removal criteria; node (q + margin, q + margin) is V).
 
         The first extraction per camera is :func:`spctool.stages.extract.extract`.  Later ones at other
         centres (the S16 loop) reuse its geometry: re-centring moves every node pixel by the same
@@ -503,12 +561,19 @@ class Registrar:
         """
         lm = self.landmarks[i]
         eopts = self.options.extract
-        if not apply_criteria and eopts.criteria is not None:
+        if (margin > 0 or not apply_criteria) and eopts.criteria is not None:
             eopts = dataclasses.replace(eopts, criteria=None)
-        base = lm.ext
+        if margin > 0:
+            if lm.padded is None or lm.padded.margin != margin:
+                grid = _PaddedMaplet.around(lm.maplet, margin)
+                lm.padded = _Grid(grid, heightfield.slopes(grid.heights, grid.valid), margin)
+            grid = lm.padded
+        else:
+            grid = lm.grid
+        base = grid.ext
         if (
             base is None
-            or lm.ext_camera is not camera
+            or grid.camera is not camera
             or base.subsample != 1
             or eopts.cast_shadow_trace
             or base.status == "outside"
@@ -516,16 +581,15 @@ class Registrar:
         ):
             ext = extract(
                 self.photo,
-                lm.maplet,
+                grid.maplet,
                 camera,
                 self.sun,
                 self.thresholds,
                 eopts,
                 center_pixel=center,
-                slopes=lm.slopes,
+                slopes=grid.slopes,
             )
-            lm.ext, lm.ext_camera = ext, camera
-            lm.shadow = None
+            grid.ext, grid.camera, grid.shadow = ext, camera, None
             return ext
         ds, dl = float(center[0]) - base.center_sample, float(center[1]) - base.center_line
         smp = base.sample + ds
@@ -547,10 +611,10 @@ class Registrar:
         if eopts.apply_filter:
             # the extract filter's step 1 (shadow enhancement: extract_filter's own offsets and kernel,
             # computed once per landmark and camera), then steps 2–3 from the first extraction's mask
-            if lm.shadow is None:
-                lm.shadow = self._shadow_offsets(lm, base)
-            if lm.shadow is not False:
-                checks, zeros = lm.shadow
+            if grid.shadow is None:
+                grid.shadow = self._shadow_offsets(grid.maplet, base)
+            if grid.shadow is not False:
+                checks, zeros = grid.shadow
                 zero = np.zeros(image.shape, dtype=bool)
                 edges = np.zeros(image.shape, dtype=bool)
                 nonzero = image > 0.0
@@ -572,11 +636,10 @@ class Registrar:
             status="ok",  # criteria were not requested (else the full path ran); "outside" never gets here
         )
 
-    def _shadow_offsets(self, lm: _Landmark, base):
-        """(checks, zeros) of the shadow enhancement for this landmark and camera, or False when the Sun
+    def _shadow_offsets(self, m, base):
+        """(checks, zeros) of the shadow enhancement for grid ``m`` and this camera, or False when the Sun
         is at the maplet zenith — exactly as :func:`spctool.stages.extract.extract_filter` computes them."""
         eopts = self.options.extract
-        m = lm.maplet
         s_m = heightfield.to_maplet_components(self.sun, m.ux, m.uy, m.uz)
         s_xy = math.hypot(s_m[0], s_m[1])
         if not s_xy > ZENITH_EPS * float(np.linalg.norm(s_m)):
