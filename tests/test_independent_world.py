@@ -266,3 +266,100 @@ def test_batch_cli_default_is_two_pass(worlds, run_cli, tmp_path):
     assert old.exit_code == 0  # a no-pose picture is a result, not a failure
     rows = _json.loads(old.stdout)["pictures"]
     assert rows[1]["status"].startswith("no-pose")
+
+
+# ------------------------------------------------------------------------------------------------
+# an a-priori error beyond the acquisition's reach (45 px, the photo 160 px across)
+
+
+@pytest.fixture(scope="session")
+def far_world(tmp_path_factory):
+    """One picture whose landmarks start 45 px from their truth pixels (faceted truth)."""
+    from spctool.sim.independent import IndependentSpec, build_world
+
+    root = tmp_path_factory.mktemp("independent_far")
+    doc = build_world(root, IndependentSpec(truth="facet", apriori_px=(45.0,)))
+    return root, doc
+
+
+def _far_navigate(far_world, space, **nav):
+    from spctool.stages.navigate import NavigateOptions, navigate
+    from spctool.stages.register import RegisterOptions
+
+    root, doc = far_world
+    pic, cam, photo, names, maplets, truth = load_picture(root, doc["pictures"][0])
+    assert 44.0 <= doc["pictures"][0]["apriori_px"] <= 46.0
+    opts = NavigateOptions(register=RegisterOptions(space=space), **nav)
+    res = navigate(
+        photo, cam, pic.sz, maplets, tuple(pic.thrsh), opts, names=names,
+        prior_sigma_position=pic.sigma_vso, prior_sigma_attitude=pic.sigma_ptg,
+    )  # fmt: skip
+    return res, truth
+
+
+@pytest.mark.parametrize("space", ["maplet", "image"])
+def test_navigate_beyond_its_reach_says_so(far_world, space):
+    """45 px beyond the ±25 px reach: landmarks lock onto other terrain.  The release before this
+    check returned ``ok`` with a pose fitted to 7 wrong landmarks (maplet space; pass 2 re-registered 1);
+    now the picture is ``no-pose``, or every landmark it keeps is right."""
+    res, truth = _far_navigate(far_world, space)
+    if res.status == "ok":
+        assert np.all(_errors(res.final.register, truth)[res.ok] < 0.1)
+    else:
+        assert res.status.startswith("no-pose")
+
+
+@pytest.mark.parametrize("space", ["maplet", "image"])
+def test_navigate_with_a_reach_beyond_the_apriori_error(far_world, space):
+    """``--reach 50``: every landmark of the 45 px picture, at the issue's accuracy."""
+    res, truth = _far_navigate(far_world, space, reach_px=50.0)
+    assert res.status == "ok" and res.ok.all()
+    err = _errors(res.final.register, truth)
+    assert np.sqrt(np.mean(err**2)) <= ISSUE_TWO_PASS_RMS + 0.01 and np.max(err) <= ISSUE_MAX
+
+
+def test_register_acquire_reach_on_the_independent_world(far_world):
+    """S16's search within the 49-cell maplets cannot reach 45 px (52 cells); the first step on the
+    extended extraction (``acquire_reach``) measures every landmark."""
+    from spctool.stages.register import RegisterOptions, register
+
+    root, doc = far_world
+    pic, cam, photo, names, maplets, truth = load_picture(root, doc["pictures"][0])
+    args = (photo, cam, pic.sz, maplets, tuple(pic.thrsh))
+    s16 = register(*args, RegisterOptions(), names=names)
+    err = _errors(s16, truth)
+    # S16's reach: landmarks lost, and 'ok' ones locked onto other terrain (27-98 px off, rho 0.4-0.5)
+    assert np.sum(s16.ok & (err < 0.1)) < 3
+    wide = register(*args, RegisterOptions(acquire_reach=70), names=names)
+    err = _errors(wide, truth)
+    # every landmark whose a-priori pixel is on the photo (one is off it: 'outside')
+    on = np.array([s != "outside" for s in wide.status])
+    assert on.sum() >= 8 and wide.ok[on].all() and np.max(err[on]) <= ISSUE_MAX
+
+
+def test_pass_2_finding_nothing_does_not_confirm_pass_1(worlds, monkeypatch, tmp_path):
+    """Pass 2 starts from pass 1's pose with a ±10-cell search: when it re-registers fewer landmarks than
+    a pose needs, pass 1's pose is not confirmed — ``no-pose`` (navigate and batch), not ``ok``."""
+    from spctool.stages import navigate as nav_mod
+
+    real = nav_mod.register
+    calls = []
+
+    def pass_2_finds_nothing(*a, **k):
+        calls.append(1)
+        r = real(*a, **k)
+        if len(calls) == 3:  # coarse, fine, then pass 2
+            r.status = ["not-found"] * len(r.status)
+            r.measured[:] = np.nan
+        return r
+
+    monkeypatch.setattr(nav_mod, "register", pass_2_finds_nothing)
+    root, doc = worlds["facet"]
+    res, _ = _navigate(root, doc["pictures"][0])
+    assert res.status.startswith("no-pose: the pass-1 pose is not confirmed")
+    assert "re-registered 0 of the 9" in res.status
+    from spctool.batch import BatchOptions, run_batch
+
+    calls.clear()
+    out = run_batch(root, [doc["pictures"][0]["name"]], BatchOptions(), out_dir=tmp_path / "out")
+    assert out.pictures[0].status.startswith("no-pose: the pass-1 pose is not confirmed")

@@ -355,7 +355,9 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         summary.plausible = pose.plausible
         summary.covariance = np.asarray(pose.covariance, dtype=float).tolist()
         out.pose_table = _pose_table(pic.name, pose, options.pose)
-        if pose.converged and not pose.plausible:
+        if nav is not None and nav.status != "ok":  # navigation could not confirm a pose
+            summary.status = nav.status
+        elif pose.converged and not pose.plausible:
             summary.status = f"no-pose: implausible fit: {pose.implausible}"
         elif pose.converged:
             new_pic = with_pose(new_pic, pose.scobj, pose.rotation, pose.sigma_position, pose.sigma_attitude)

@@ -32,8 +32,17 @@ registered again with the solved camera, starting at the projection of its posit
 landmark is in the result when pass 2 measured it (``ok``); its pass-1 pixel is kept for the report.
 
 When pass 1 yields no pose (fewer than ``min_landmarks`` found, degenerate geometry), pass 2 is not run
-and the result says why (``status`` ``no-pose``); when pass 2 cannot solve a pose the pass-1 pose and
-measurements stand (with a warning); nothing is silently dropped.  ``passes=1`` stops after
+and the result says why (``status`` ``no-pose``); when pass 2 cannot solve a pose although it
+re-registered at least ``min_landmarks`` landmarks, the pass-1 pose and measurements stand (with a
+warning); when pass 2 re-registered fewer, the pass-1 pose is not confirmed and the result is
+``no-pose`` (a right pose puts its landmarks within pass 2's small search; one fitted to landmarks
+locked onto other terrain does not — the silent wrong answer this rule removes).  Nothing is silently
+dropped.
+
+The coarse step (maplet space, L₀ ≥ 2) correlates on the photo resampled onto the maplet's grid
+extended beyond its edge (``RegisterOptions.acquire_reach`` = k₀·L₀ cells), so every offset of its grid
+compares the whole prediction: on the maplet's own grid an offset of j cells keeps (N − j)/N of the
+overlap, and near ±N/2 partial-overlap maxima compete with the landmark.  ``passes=1`` stops after
 pass 1 (the old single-pass path with the pose solve).
 """
 
@@ -315,6 +324,8 @@ def navigate(
     steps = acquisition_steps(size, per_px, opts)
     l0, k0 = steps[0]
     coarse_opts = dataclasses.replace(base, steps=(("align", l0),), grid_half=k0)
+    if base.space == "maplet" and l0 >= 2:  # the whole prediction compared at every offset of the grid
+        coarse_opts = dataclasses.replace(coarse_opts, acquire_reach=k0 * l0)
     coarse = register(photo, camera, sun, maplets, thresholds, coarse_opts, apriori=start, **kw)
     tick(n)
     found = coarse.ok
@@ -358,7 +369,19 @@ def navigate(
     passes.append(
         PassResult(reg2, pose2 if err2 is None else None, err2, ref_steps, time.perf_counter() - t0)
     )
-    if err2 is not None:  # never lose a picture pass 1 navigated
+    if err2 is not None:
+        again = int(reg2.ok.sum())
+        if again < opts.min_landmarks:
+            # a right pass-1 pose puts every landmark it measured within pass 2's small search: when
+            # almost none is found there, pass 1 measured something else (a 45 px a-priori error beyond
+            # the reach locks landmarks onto their neighbours' terrain, and they fit a pose of their own)
+            why = (
+                f"the pass-1 pose is not confirmed: pass 2 re-registered {again} of the "
+                f"{pass1.found} landmarks pass 1 found, from that pose ({err2})"
+            )
+            warnings.append(why)
+            return NavigateResult(names, passes, "no-pose: " + why, camera, warnings, opts)
+        # never lose a picture pass 1 navigated and pass 2 confirmed (its pose solve failed)
         warnings.append(f"pass 2: no pose ({err2}); the pass-1 pose and measurements stand")
         return NavigateResult(names, passes, "ok", cam1, warnings, opts)
     cam2 = camera.with_pose(scobj=pose2.scobj, rotation=pose2.rotation)
