@@ -89,3 +89,26 @@ def test_two_passes_on_the_s16_scene():
     err1 = np.linalg.norm(res.passes[0].register.measured[0] - sc.truth_pixel)
     err2 = np.linalg.norm(res.passes[1].register.measured[0] - sc.truth_pixel)
     assert err2 < 0.1, (err1, err2)
+
+
+def test_an_implausible_pose_is_no_pose(monkeypatch):
+    """A pose whose residuals are far above the measurement sigma (cost/dof > max_reduced_chi2) is not a
+    navigation result: landmarks locked onto other terrain fit one (an independent world at 60 px
+    a-priori error: cost/dof 1.4e4, benchmarks/bench_accuracy.py "beyond the reach")."""
+    import types
+
+    import numpy as np
+
+    from spctool.stages import navigate as nav_mod
+    from spctool.stages.register import RegisterResult
+
+    bad = types.SimpleNamespace(converged=True, plausible=False, implausible="cost/dof 1.4e+04 > 100")
+    good = types.SimpleNamespace(converged=True, plausible=True, implausible="")
+    z = np.zeros((4, 2))
+    reg = RegisterResult(list("ABCD"), z, z.copy(), np.zeros(4), np.zeros(4, int), np.zeros(4, int),
+                         ["ok"] * 4, None)  # fmt: skip
+    opts = NavigateOptions()
+    for pose, err in ((bad, "implausible fit: cost/dof 1.4e+04 > 100"), (good, None)):
+        monkeypatch.setattr(nav_mod, "solve_pose", lambda *a, _p=pose, **k: _p)
+        got, why = nav_mod._solve(None, np.zeros((4, 3)), reg, opts, None, None)
+        assert got is pose and why == err

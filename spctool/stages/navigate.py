@@ -24,7 +24,9 @@ Pass 1 (acquisition), for all landmarks at once (:func:`acquisition_steps`):
 3. the **fine steps**: spacings L₀/2, L₀/4, …, 1 with ±``grid_half`` bins
    (:func:`spctool.stages.register.register`, S16 driver — so its final full-resolution stage applies);
 4. **pose solve** (:func:`spctool.stages.pose.solve_pose` from the a-priori pose with the SUM sigmas as
-   prior, outlier rejection on); rejected landmarks are named.
+   prior, outlier rejection on); rejected landmarks are named.  A fit that does not converge, or is
+   implausible (cost/dof above ``PoseOptions.max_reduced_chi2``, as ``solve-pose`` and ``batch`` judge
+   it), is no pose.
 
 Pass 2 (refinement): every landmark — also those pass 1 did not find or the pose solve rejected — is
 registered again with the solved camera, starting at the projection of its position, with the
@@ -259,6 +261,8 @@ def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig
         return None, str(exc)
     if not pose.converged:
         return pose, f"pose did not converge in {options.pose.max_iter} iterations"
+    if not pose.plausible:  # as batch and solve-pose: residuals far above the measurement sigma
+        return pose, f"implausible fit: {pose.implausible}"
     return pose, None
 
 
