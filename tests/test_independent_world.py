@@ -330,7 +330,12 @@ def test_register_acquire_reach_on_the_independent_world(far_world):
     err = _errors(s16, truth)
     # S16's reach: landmarks lost, and 'ok' ones locked onto other terrain (27-98 px off, rho 0.4-0.5)
     assert np.sum(s16.ok & (err < 0.1)) < 3
+    # and says so: the wrong ones moved unlike the others
+    odd = [w for w in s16.warnings if "moved unlike the others" in w]
+    assert len(odd) == 1
+    assert all(nm in odd[0] for nm, e, ok in zip(names, err, s16.ok) if ok and e > 5.0)
     wide = register(*args, RegisterOptions(acquire_reach=70), names=names)
+    assert not any("moved unlike the others" in w for w in wide.warnings)
     err = _errors(wide, truth)
     # every landmark whose a-priori pixel is on the photo (one is off it: 'outside')
     on = np.array([s != "outside" for s in wide.status])

@@ -881,3 +881,21 @@ def test_acquire_reach_finds_what_the_maplet_grid_loses(scene):
     ]
     assert out[0].status == out[1].status == ["ok"]
     np.testing.assert_allclose(out[1].measured, out[0].measured, atol=0.005)
+
+
+def test_disagreeing_shifts_names_the_landmarks_that_moved_unlike_the_others():
+    from spctool.stages.register import disagreeing_shifts
+
+    apri = np.array([[100.0, 100.0], [400.0, 120.0], [250.0, 300.0], [120.0, 420.0], [380.0, 400.0]])
+    common = np.array([30.0, -12.0])
+    measured = apri + common + np.array([[0.0, 0.0], [0.4, -0.3], [-0.2, 0.5], [0.0, 0.0], [0.0, 0.0]])
+    z = np.zeros(5)
+    res = RegisterResult(list("ABCDE"), apri, measured, z, z.astype(int), z.astype(int), ["ok"] * 5, None)
+    assert disagreeing_shifts(res) is None  # one shift to within a pixel: nothing to say
+    res.measured[3] += [0.0, 9.5]  # 9.5 px > max(3, 0.25 * 32.3) = 8.1 px
+    res.measured[4] += [6.0, 0.0]  # 6 px: within the limit
+    msg = disagreeing_shifts(res)
+    assert msg.startswith("1 of 5 registered landmarks moved unlike the others") and ": D;" in msg
+    res.status = ["ok", "not-found", "not-found", "ok", "ok"]  # fewer than three: no consensus to judge
+    res.status[4] = "low-correlation"
+    assert disagreeing_shifts(res) is None

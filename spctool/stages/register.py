@@ -327,7 +327,43 @@ def register(
     cast = reg.cast_shadow_landmarks()
     if cast:
         result.warnings.append(cast_shadow_note(cast, reg.thresholds[0]))
+    odd = disagreeing_shifts(result)
+    if odd:
+        result.warnings.append(odd)
     return result
+
+
+#: a registered landmark whose shift from its a-priori pixel differs from the picture's median shift by
+#: more than this many pixels, or this fraction of the median shift, moved unlike the others
+DISAGREE_PX, DISAGREE_FRACTION = 3.0, 0.25
+
+
+def disagreeing_shifts(result: RegisterResult) -> str | None:
+    """A warning naming the registered landmarks that moved unlike the others, or None.
+
+    A picture's a-priori error is mostly common to its landmarks (a pointing error; range and twist
+    add a few pixels across a large photo), so right measurements share one shift to within a few
+    pixels (the independent worlds of issue #15: within 0.1 px at 6–38 px).  A landmark searched
+    beyond the reach of its schedule locks onto other terrain and reports ``ok`` with a shift of its own
+    (S16's search on 49×49 maplets at 45 px: 27–98 px off, 3–51 px from the median shift).  Needs three
+    registered landmarks; the status is not changed (solve-pose's outlier rejection and ``navigate``'s
+    pose checks decide)."""
+    ok = np.asarray(result.ok, dtype=bool) & np.all(np.isfinite(result.apriori), axis=1)
+    if int(ok.sum()) < 3:
+        return None
+    shift = result.measured[ok] - result.apriori[ok]
+    med = np.median(shift, axis=0)
+    limit = max(DISAGREE_PX, DISAGREE_FRACTION * float(np.hypot(*med)))
+    odd = np.hypot(*(shift - med).T) > limit
+    if not odd.any():
+        return None
+    names = [str(n) for n, o in zip(np.asarray(result.names, dtype=object)[ok], odd) if o]
+    return (
+        f"{len(names)} of {int(ok.sum())} registered landmarks moved unlike the others (more than "
+        f"{limit:.1f} px from the median shift ({med[0]:+.1f}, {med[1]:+.1f}) px): {', '.join(names)}; "
+        "a search beyond its reach locks onto other terrain: check them with solve-pose (outlier "
+        "rejection) or use navigate"
+    )
 
 
 def _image_workers(opts: RegisterOptions, n: int) -> int:
