@@ -368,3 +368,21 @@ def test_pass_2_finding_nothing_does_not_confirm_pass_1(worlds, monkeypatch, tmp
     calls.clear()
     out = run_batch(root, [doc["pictures"][0]["name"]], BatchOptions(), out_dir=tmp_path / "out")
     assert out.pictures[0].status.startswith("no-pose: the pass-1 pose is not confirmed")
+
+
+def test_batch_cli_reach(far_world, run_cli, tmp_path):
+    """``batch`` at the default reach: the 45 px picture is no-pose (not a wrong ok); ``--reach 50``
+    navigates it; ``--reach`` with a single-pass schedule is refused."""
+    import json as _json
+
+    root, doc = far_world
+    res = run_cli("-C", root, "batch", "--out-dir", tmp_path / "r25", "--json")
+    assert res.exit_code == 0, res.stderr
+    (row,) = _json.loads(res.stdout)["pictures"]
+    assert row["status"].startswith("no-pose")
+    res = run_cli("-C", root, "batch", "--reach", "50", "--out-dir", tmp_path / "r50", "--json")
+    assert res.exit_code == 0, res.stderr
+    (row,) = _json.loads(res.stdout)["pictures"]
+    assert row["status"] == "ok" and row["found"] >= 8
+    bad = run_cli("-C", root, "batch", "--schedule", "s16", "--reach", "50", "--out-dir", tmp_path / "x")
+    assert bad.exit_code == 2 and "--reach applies to --schedule two-pass" in bad.stderr

@@ -56,6 +56,16 @@ from spctool.errors import SpcResultError, SpcUsageError
     "pose (see 'spctool navigate --help'); autoregister or s16: the old single pass of that "
     "register schedule.",
 )
+@click.option(
+    "--reach",
+    "reach_px",
+    type=click.FloatRange(min=1.0),
+    default=None,
+    metavar="PX",
+    help="two-pass: the acquisition's coarse search reaches at least +-PX pixels (default 25); set it "
+    "beyond the pictures' a-priori error (a picture whose landmarks lie beyond it ends no-pose, see "
+    "'spctool navigate --help').",
+)
 @options.space_option
 @options.corr_min_option
 @click.option(
@@ -85,6 +95,7 @@ def batch_cmd(
     scheduler,
     force,
     schedule,
+    reach_px,
     space,
     corr_min,
     occlusion,
@@ -133,6 +144,7 @@ def batch_cmd(
     \b
       spctool -C demo batch --jobs 2
       spctool -C demo batch PICTLIST.TXT --out-dir run1 --json > run1.json
+      spctool -C demo batch --reach 50 --out-dir run50  # a-priori errors up to ~50 px
       spctool -C demo batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
     """
     from spctool.batch import BatchOptions, batch_pictures, run_batch
@@ -143,6 +155,8 @@ def batch_cmd(
     if not workdir.is_dir():
         raise SpcUsageError(f"{workdir}: no such working directory")
     target = Path(out_dir) if out_dir else workdir / "BATCH"
+    if reach_px is not None and schedule != "two-pass":
+        raise SpcUsageError(f"--reach applies to --schedule two-pass, not {schedule}")
     pose = options.pose_options(sigma_px, no_prior, min_landmarks)
     register = RegisterOptions(
         schedule="retina_s16" if schedule == "two-pass" else options.register_schedule(schedule),
@@ -154,7 +168,7 @@ def batch_cmd(
         occlusion=occlusion,
         register=register,
         pose=pose,
-        two_pass=NavigateOptions() if schedule == "two-pass" else None,
+        two_pass=NavigateOptions(reach_px=reach_px or 25.0) if schedule == "two-pass" else None,
         settings_path=ctx.settings_path,
         shape_path=shape_path,
     )
