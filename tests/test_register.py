@@ -819,10 +819,10 @@ def test_acquisition_grid_and_margin():
 
     assert _acquisition(RegisterOptions(), 10) == {}  # S16
     acq = _acquisition(RegisterOptions(acquire_reach=72), 10)
-    assert acq == {"spacing": 10, "grid_half": 8, "margin": 90}
+    assert acq == {"grid_half": 8, "margin": 90}
     # never narrower than the schedule's own grid; whole bins of margin beyond the last offset
     acq = _acquisition(RegisterOptions(acquire_reach=20), 10)
-    assert acq == {"spacing": 10, "grid_half": 5, "margin": 60}
+    assert acq == {"grid_half": 5, "margin": 60}
     assert _acquisition(RegisterOptions(acquire_reach=72), 1) == {}  # a spacing-1 start: nothing to widen
     assert _acquisition(RegisterOptions(acquire_reach=72, space="image"), 10) == {}
     for bad in (-1, 2.5):
@@ -896,6 +896,5 @@ def test_disagreeing_shifts_names_the_landmarks_that_moved_unlike_the_others():
     res.measured[4] += [6.0, 0.0]  # 6 px: within the limit
     msg = disagreeing_shifts(res)
     assert msg.startswith("1 of 5 registered landmarks moved unlike the others") and ": D;" in msg
-    res.status = ["ok", "not-found", "not-found", "ok", "ok"]  # fewer than three: no consensus to judge
-    res.status[4] = "low-correlation"
+    res.status = ["ok", "not-found", "not-found", "ok", "low-correlation"]  # fewer than three: no consensus
     assert disagreeing_shifts(res) is None

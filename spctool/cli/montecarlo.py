@@ -265,9 +265,7 @@ def register(cli: click.Group) -> None:
                 space,
                 refine=refine,
                 first_phases=first_phases,
-                acquire_reach=(
-                    round(mc.S16_ACQUIRE_REACH * sigma_scale) if acquire_reach is None else acquire_reach
-                ),
+                acquire_reach=mc.acquire_reach_for(sigma_scale) if acquire_reach is None else acquire_reach,
             ),
         )
         t0 = time.perf_counter()

@@ -227,9 +227,8 @@ class MonteCarloConfig:
         if not (math.isfinite(float(self.sigma_scale)) and float(self.sigma_scale) >= 0.0):
             raise SpcUsageError(f"sigma_scale must be a finite number >= 0, got {self.sigma_scale!r}")
         self.sigma_scale = float(self.sigma_scale)
-        if self.plan is None:  # the first step's reach follows the perturbation's size
-            reach = round(S16_ACQUIRE_REACH * self.sigma_scale) if self.space == "maplet" else None
-            self.plan = default_plan(self.space, acquire_reach=reach)
+        if self.plan is None:
+            self.plan = default_plan(self.space, acquire_reach=acquire_reach_for(self.sigma_scale))
         elif isinstance(self.plan, RegisterOptions):
             self.plan = (self.plan,)
         self.plan = tuple(self.plan)
@@ -266,6 +265,11 @@ class MonteCarloConfig:
 #: the maplet plan's first-step reach (cells): 4σ of the s16-50m a-priori pixel (12.6 px = 18 cells per
 #: axis at 0.70 px per cell, Table 2's sigmas), scaled by ``sigma_scale``
 S16_ACQUIRE_REACH = 72
+
+
+def acquire_reach_for(sigma_scale: float) -> int:
+    """The maplet plan's first-step reach (cells) for Table 2's sigmas multiplied by ``sigma_scale``."""
+    return round(S16_ACQUIRE_REACH * float(sigma_scale))
 
 
 def default_plan(

@@ -563,7 +563,7 @@ def _phase_key(st: LandmarkStep):
     return (st.status == "ok", st.status == "edge-peak", peak if np.isfinite(peak) else -np.inf)
 
 
-def _phased_first_step(reg: Registrar, i, camera, c, n: int, st0: LandmarkStep, result, last, search=None):
+def _phased_first_step(reg: Registrar, i, camera, c, n: int, st0: LandmarkStep, result, last, search=()):
     """The first step of landmark ``i`` at spacing ``n`` repeated with its centre moved by k·n/p cells
     per axis (k = 0 … p − 1, p = ``first_phases``; image space: pixels); the best step by
     :func:`_phase_key` (``st0``, the step at ``c`` itself, on ties)."""
@@ -578,7 +578,7 @@ def _phased_first_step(reg: Registrar, i, camera, c, n: int, st0: LandmarkStep, 
             if a == 0 and b == 0:
                 continue
             move = to_px @ (np.array([a, b], dtype=np.float64) * (n / p))
-            st = reg.step(i, camera, c + move, n, apply_criteria=True, **(search or {}))
+            st = reg.step(i, camera, c + move, n, apply_criteria=True, **dict(search))
             _record(result, last, i, st, opts.keep_images)
             if _phase_key(st) > _phase_key(best):
                 best = st
@@ -589,13 +589,14 @@ def _phased_first_step(reg: Registrar, i, camera, c, n: int, st0: LandmarkStep, 
 
 
 def _acquisition(opts, spacing: int) -> dict:
-    """``acquire_reach``'s search at the schedule's first spacing n (maplet space, n ≥ 2): ``{}`` when
-    off, else the grid ``grid_half`` k = max(grid_half, ⌈reach / n⌉) and the extraction's ``margin``
-    (k + 1)·n cells, so that every offset of the grid compares the whole prediction."""
+    """``acquire_reach``'s search at the schedule's first spacing n (maplet space, n ≥ 2), as keyword
+    arguments of :meth:`Registrar.step`: ``{}`` when off, else the grid ``grid_half`` k = max(grid_half,
+    ⌈reach / n⌉) and the extraction's ``margin`` (k + 1)·n cells, so that every offset of the grid
+    compares the whole prediction."""
     if opts.acquire_reach <= 0 or opts.space != "maplet" or spacing < 2:
         return {}
     k = max(int(opts.grid_half), -(-int(opts.acquire_reach) // spacing))
-    return {"spacing": spacing, "grid_half": k, "margin": (k + 1) * spacing}
+    return {"grid_half": k, "margin": (k + 1) * spacing}
 
 
 def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
@@ -617,7 +618,8 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
         final_at = aligns[-1] if converge and aligns and int(plan[aligns[-1]][1]) == 1 else -1
         seed = None  # (c, F) of the schedule's last step when the converged stage's estimator read it
         # acquire_reach: the steps at the schedule's first spacing search a full-overlap extraction
-        wide = _acquisition(opts, int(plan[aligns[0]][1])) if aligns else {}
+        first_n = int(plan[aligns[0]][1]) if aligns else 0
+        wide = _acquisition(opts, first_n)
         for at, (kind, value) in enumerate(plan):
             final = at == final_at
             if kind == "drop":
@@ -626,8 +628,7 @@ def _drive_s16(reg: Registrar, camera, steps, start, result, last, tick, caps):
                     break
                 continue
             draft = final and _drafts(opts)  # the converged stage's first step: a draft template
-            acq = wide if wide and int(value) == wide["spacing"] and not final else {}
-            search = {k: acq[k] for k in ("margin", "grid_half")} if acq else {}
+            search = wide if int(value) == first_n and not final else {}
             st = reg.step(i, camera, c, int(value), apply_criteria=first, final=final, draft=draft, **search)
             _record(result, last, i, st, opts.keep_images)
             if first and opts.first_phases > 1 and int(value) >= 2 and not final:
