@@ -278,6 +278,52 @@ def _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t):
     return z0 + t * dz - terrain
 
 
+@njit(cache=True, forceinline=True)
+def _cell_crossing(h, p, i, j, u0, w0, z0, du, dw, dz, t_a, t_b, fa):
+    """The first crossing in [t_a, t_b] of the ray with the bilinear terrain of cell (i, j) (of grid p of a
+    stack), given fa = :func:`_cell_f` at t_a ≥ 0 (the ray above the terrain there); nan if the ray
+    stays above it over the segment.  The cell step of :func:`_march`, shared with the raster path of
+    :mod:`spctool.geometry._patchkernels` (which knows the cell in advance)."""
+    # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
+    h00 = _ix(h, p, i, j)
+    a_lin = _ix(h, p, i + 1, j) - h00
+    b_lin = _ix(h, p, i, j + 1) - h00
+    twist = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
+    pa = u0 + t_a * du - i
+    qa = w0 + t_a * dw - j
+    a_coef = -twist * du * dw
+    b_coef = dz - a_lin * du - b_lin * dw - twist * (pa * dw + qa * du)
+    hi = math.nan
+    if a_coef > 0.0:
+        # convex: the minimum may lie strictly inside the segment
+        s_v = -b_coef / (2.0 * a_coef)
+        if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
+            hi = t_a + s_v
+    if math.isnan(hi) and _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
+        hi = t_b
+    if not math.isnan(hi):
+        # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
+        # there).  Numerically stable closed form of the smaller root; bisection only if
+        # rounding makes it unusable.
+        disc = b_coef * b_coef - 4.0 * a_coef * fa
+        den = -b_coef + math.sqrt(max(disc, 0.0))
+        if den > 0.0:
+            t_root = t_a + 2.0 * fa / den
+            if t_root >= t_a and t_root <= hi:
+                return t_root
+        lo = t_a
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            if mid <= lo or mid >= hi:
+                break
+            if _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
+                hi = mid
+            else:
+                lo = mid
+        return 0.5 * (lo + hi)
+    return math.nan
+
+
 @njit(cache=True)
 def cell_tops(h, valid):
     """(n0−1, n1−1): each cell's highest corner plus 1e-9·(1 + max |h|) (far above rounding), −inf for
@@ -411,43 +457,9 @@ def _march(h, valid, cmax, p, n0, n1, hmin, hmax, u0, w0, z0, du, dw, dz, t_min,
                 fa = _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_a)
                 if fa < 0.0:
                     return t_a
-                # Inside one cell f is quadratic: with s = t - t_a, f = fa + B s + A s^2.
-                h00 = _ix(h, p, i, j)
-                a_lin = _ix(h, p, i + 1, j) - h00
-                b_lin = _ix(h, p, i, j + 1) - h00
-                twist = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
-                pa = u0 + t_a * du - i
-                qa = w0 + t_a * dw - j
-                a_coef = -twist * du * dw
-                b_coef = dz - a_lin * du - b_lin * dw - twist * (pa * dw + qa * du)
-                hi = math.nan
-                if a_coef > 0.0:
-                    # convex: the minimum may lie strictly inside the segment
-                    s_v = -b_coef / (2.0 * a_coef)
-                    if 0.0 < s_v < t_b - t_a and fa - b_coef * b_coef / (4.0 * a_coef) < 0.0:
-                        hi = t_a + s_v
-                if math.isnan(hi) and _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, t_b) < 0.0:
-                    hi = t_b
-                if not math.isnan(hi):
-                    # [t_a, hi] brackets exactly one root (f(t_a) >= 0 > f(hi), f monotone or concave
-                    # there).  Numerically stable closed form of the smaller root; bisection only if
-                    # rounding makes it unusable.
-                    disc = b_coef * b_coef - 4.0 * a_coef * fa
-                    den = -b_coef + math.sqrt(max(disc, 0.0))
-                    if den > 0.0:
-                        t_root = t_a + 2.0 * fa / den
-                        if t_root >= t_a and t_root <= hi:
-                            return t_root
-                    lo = t_a
-                    for _ in range(80):
-                        mid = 0.5 * (lo + hi)
-                        if mid <= lo or mid >= hi:
-                            break
-                        if _cell_f(h, p, i, j, u0, w0, z0, du, dw, dz, mid) < 0.0:
-                            hi = mid
-                        else:
-                            lo = mid
-                    return 0.5 * (lo + hi)
+                t_root = _cell_crossing(h, p, i, j, u0, w0, z0, du, dw, dz, t_a, t_b, fa)
+                if not math.isnan(t_root):
+                    return t_root
         if t_b >= t_hi:
             return math.nan
         if tu <= t_b:

@@ -24,7 +24,14 @@ import math
 import numba
 import numpy as np
 
-from spctool.geometry._heightkernels import _first_crossing, _march, borrowed, lit_from
+from spctool.geometry._heightkernels import (
+    _cell_crossing,
+    _cell_f,
+    _first_crossing,
+    _march,
+    borrowed,
+    lit_from,
+)
 
 #: surface id of a ray that hits nothing / the shape (patches are numbered 0, 1, …)
 SKY = -2
@@ -195,9 +202,56 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 
 @numba.njit(forceinline=True, cache=True)
+def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reach):
+    """The first crossing of a grid ray (index coordinates) with the terrain when the raster says it lies
+    in cell (i, j) — what :func:`_march` returns, with the same clip (z ≤ hmax) and the same cell step
+    (:func:`_cell_crossing`) — or nan when that cannot be vouched for (the caller then marches).
+
+    Vouched for when the ray enters the cell's column above the terrain, and, from the height ``hmax``
+    of the highest node down to that column, stays within ``reach`` cells of it and descends faster than
+    any slope of the terrain there (``near`` (P, n − 1, n − 1, 2): the largest steps along x and y over
+    those cells, +inf near missing nodes): its height above the terrain then only falls on the way, so
+    no earlier cell was crossed."""
+    if not dz < 0.0:
+        return math.nan
+    if not dz < -(near[p, i, j, 0] * abs(du) + near[p, i, j, 1] * abs(dw)):
+        return math.nan
+    t_top = (hmax - z0) / dz
+    t_lo = max(t_lo, t_top)
+    if du == 0.0:
+        if u0 < i or u0 > i + 1.0:
+            return math.nan
+    else:
+        ta = (i - u0) / du
+        tb = (i + 1.0 - u0) / du
+        if ta > tb:
+            ta, tb = tb, ta
+        t_lo = max(t_lo, ta)
+        t_hi = min(t_hi, tb)
+    if dw == 0.0:
+        if w0 < j or w0 > j + 1.0:
+            return math.nan
+    else:
+        ta = (j - w0) / dw
+        tb = (j + 1.0 - w0) / dw
+        if ta > tb:
+            ta, tb = tb, ta
+        t_lo = max(t_lo, ta)
+        t_hi = min(t_hi, tb)
+    if not t_lo <= t_hi:
+        return math.nan
+    if (t_lo - t_top) * max(abs(du), abs(dw)) > reach:
+        return math.nan  # the way down is longer than the slope bound covers
+    fa = _cell_f(hts, p, i, j, u0, w0, z0, du, dw, dz, t_lo)
+    if not fa >= 0.0:
+        return math.nan
+    return _cell_crossing(hts, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, fa)
+
+
+@numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
-    upmax, horizon, entry, surf, geom, sh,
+    upmax, horizon, entry, near, cand, surf, geom, sh,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
@@ -209,18 +263,45 @@ def _patch_ray(
     answer, fewer cells); ``horizon``, ``entry`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the
     shadow march ends where the ray is above it, and ``lit_from`` declares a shadow ray lit without a march
     where it provably clears its own cell and the entry bound of the next column (+inf: no shortcut,
-    the reference)."""
+    the reference).  ``cand`` (one patch; empty: march every ray): the raster's cell under each sub-ray
+    (:func:`spctool.geometry._rasterkernels.terrain_cells`): −1 no terrain (sky), ≥ 0 the cell
+    i·(n − 1) + j whose crossing is taken (:func:`_cell_hit`) when the ray enters its column above the
+    terrain and descends more steeply than the terrain's steepest slope (then the first crossing is
+    there: the same hit as the march's), −2 or else: the march."""
+    if _sky(k, dirs, ok, surf, geom, sh):
+        return
+    c = cand[k] if cand.shape[0] > 0 else -2
+    if c == -1:
+        return
+    best, lx, ly = _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c)
+    if best < 0:
+        return
+    _patch_shade(
+        k, best, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
+        tops, ns, upmax, horizon, entry, surf, geom, sh,
+    )  # fmt: skip
+
+
+@numba.njit(forceinline=True, cache=True)
+def _sky(k, dirs, ok, surf, geom, sh):
+    """Sub-ray k's outputs as sky; True when it stays so (no ``ok`` or a direction not finite)."""
     surf[k] = SKY
     sh[k] = False
     geom[k, 0] = 0.0  # sky: dark (μ₀ = μ = 0, α = 0, albedo 0), radiance exactly 0 under every law
     geom[k, 1] = 0.0
     geom[k, 2] = 1.0
     geom[k, 3] = 0.0
+    d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+    return not (ok[k] and math.isfinite(d0) and math.isfinite(d1) and math.isfinite(d2))
+
+
+@numba.njit(forceinline=True, cache=True)
+def _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c):
+    """(patch, x, y) of sub-ray k's nearest hit (maplet-frame cells), patch −1 when none; ``c``: the
+    raster's cell (≥ 0, one patch) or −2 (march)."""
     d0 = dirs[k, 0]
     d1 = dirs[k, 1]
     d2 = dirs[k, 2]
-    if not (ok[k] and math.isfinite(d0) and math.isfinite(d1) and math.isfinite(d2)):
-        return
     o0 = origin[0]
     o1 = origin[1]
     o2 = origin[2]
@@ -237,18 +318,36 @@ def _patch_ray(
         if tmax >= tn:
             n = ns[p]
             q = geo[p, 18]
-            tp = _march(
-                hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
-                a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
-            )  # fmt: skip
+            tp = math.nan
+            if c >= 0:  # the raster's cell, where _cell_hit can vouch for it
+                tp = _cell_hit(
+                    hts, near, p, c // (n - 1), c % (n - 1), a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
+                    geo[p, 20], geo[p, 21],
+                )  # fmt: skip
+            if math.isnan(tp):
+                tp = _march(
+                    hts, valids, tops, p, n, n, geo[p, 19], geo[p, 20],
+                    a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax, tops, False,
+                )  # fmt: skip
             if math.isfinite(tp) and tp < t:
                 t = tp
                 best = p
                 lx = a0 + tp * b0
                 ly = a1 + tp * b1
-    if best < 0:
-        return
-    p = best
+    return best, lx, ly
+
+
+@numba.njit(forceinline=True, cache=True)
+def _patch_shade(
+    k, p, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops,
+    ns, upmax, horizon, entry, surf, geom, sh,
+):  # fmt: skip
+    """Shading geometry and cast shadow of sub-ray k, which hits patch p at maplet-frame (lx, ly)."""
+    d0 = dirs[k, 0]
+    d1 = dirs[k, 1]
+    d2 = dirs[k, 2]
+    best = p
+    npatch = geo.shape[0]
     surf[k] = p
     # height, slopes and albedo at the hit (HeightPatch.interpolate)
     n = ns[p]
@@ -351,39 +450,41 @@ def _patch_ray(
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, entry, surf, geom, sh,
+    horizon, entry, near, cand, surf, geom, sh,
 ):  # fmt: skip
-    """:func:`_patch_ray` for every sub-ray (releases the GIL)."""
+    """:func:`_patch_ray` for every sub-ray (releases the GIL); ``cand``: the raster's cells or empty."""
     # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
     # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
     origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
     sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
     maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
-    upmax, horizon, entry = borrowed(upmax), borrowed(horizon), borrowed(entry)
+    upmax, horizon, entry, cand = borrowed(upmax), borrowed(horizon), borrowed(entry), borrowed(cand)
+    near = borrowed(near)
     surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
     hts = borrowed(maps[:, 0])
-    for k in range(dirs.shape[0]):
-        _patch_ray(
-            k,
-            origin,
-            dirs,
-            ok,
-            sun_lit,
-            sun,
-            shadows,
-            offset,
-            facet,
-            geo,
-            boxes,
-            maps,
-            hts,
-            valids,
-            tops,
-            ns,
-            upmax,
-            horizon,
-            entry,
-            surf,
-            geom,
-            sh,
-        )
+    if cand.shape[0] == 0:
+        for k in range(dirs.shape[0]):
+            _patch_ray(
+                k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
+                tops, ns, upmax, horizon, entry, near, cand, surf, geom, sh,
+            )  # fmt: skip
+        return
+    # the raster's cells: every hit first (one quadratic per sub-ray, the march where the cell cannot
+    # vouch), then the shading and shadows of the hits — two short loops run faster than one long one
+    n = dirs.shape[0]
+    where_ = np.empty((n, 2))
+    which_ = np.full(n, -1, np.int64)
+    where, which = borrowed(where_), borrowed(which_)
+    for k in range(n):
+        if _sky(k, dirs, ok, surf, geom, sh) or cand[k] == -1:
+            continue
+        best, lx, ly = _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, cand[k])
+        which[k] = best
+        where[k, 0] = lx
+        where[k, 1] = ly
+    for k in range(n):
+        if which[k] >= 0:
+            _patch_shade(
+                k, which[k], where[k, 0], where[k, 1], origin, dirs, sun_lit, sun, shadows, offset, facet,
+                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, surf, geom, sh,
+            )  # fmt: skip

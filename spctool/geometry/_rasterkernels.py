@@ -9,13 +9,21 @@ the exact ray casting of :mod:`spctool.geometry._heightkernels` without NumPy te
   the pixels are the same to the last bit; n < 8).
 * :func:`shade_subrays` — the photometric law of :mod:`spctool.photometry` per sub-ray (times the
   albedo, 0 in shadow), on the fused kernel's (μ0, μ, cos α, albedo) without NumPy temporaries.
+* :func:`terrain_cells` — visibility by rasterisation (issue 17's "render forward"): the maplet's cells,
+  projected by the camera's forward model, drawn as two triangles each into a depth buffer on the
+  sub-ray lattice; the fused kernel then solves each sub-ray's crossing in the cell found (one quadratic)
+  instead of marching the grid from the top of the relief, and marches only where the raster cannot
+  vouch for the cell (a sub-ray beside the drawn border, or one whose cell it enters below the terrain).
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
+
+from spctool.geometry._heightkernels import borrowed
 
 
 @njit(cache=True, nogil=True)
@@ -83,3 +91,140 @@ def shade_subrays(geom, sh, law, beta, alpha0, use_albedo, out):
             else:
                 r = (1.0 - b) * mu0 + b * lommel
         out[k] = r * geom[k, 3] if use_albedo else r
+
+
+#: barycentric slack of :func:`terrain_cells`: a sub-ray on a shared edge is inside both triangles
+_EDGE_EPS = 1e-9
+
+
+@njit(cache=True, nogil=True, forceinline=True)
+def _draw(x, y, x0, y0, d0, x1, y1, d1, x2, y2, d2, inv, value, zbuf, out, inner):
+    """Lattice point (x, y) into the depth buffer when it lies in triangle (0, 1, 2) (``inv``: 1 / its
+    doubled signed area); True when it does.  ``inner`` counts the triangles the point lies strictly
+    inside (two or more: surfaces overlap there)."""
+    b0 = ((x1 - x) * (y2 - y) - (x2 - x) * (y1 - y)) * inv
+    b1 = ((x2 - x) * (y0 - y) - (x0 - x) * (y2 - y)) * inv
+    b2 = 1.0 - b0 - b1
+    if b0 >= -_EDGE_EPS and b1 >= -_EDGE_EPS and b2 >= -_EDGE_EPS:
+        if b0 > _EDGE_EPS and b1 > _EDGE_EPS and b2 > _EDGE_EPS:
+            inner[y, x] += 1
+        d = b0 * d0 + b1 * d1 + b2 * d2
+        if d < zbuf[y, x]:
+            zbuf[y, x] = d
+            out[y, x] = value
+        return True
+    return False
+
+
+@njit(cache=True, nogil=True, forceinline=True)
+def _draw_quad(xa_, ya_, da, xb_, yb_, db, xc, yc, dc, xd, yd, dd, value, zbuf, out, inner):
+    """Quad a, b, c, d (a–c its diagonal) as the triangles (a, b, c) and (a, d, c)."""
+    ny, nx = out.shape
+    lo_x = max(int(math.ceil(min(min(xa_, xb_), min(xc, xd)) - 1e-6)), 0)
+    hi_x = min(int(math.floor(max(max(xa_, xb_), max(xc, xd)) + 1e-6)), nx - 1)
+    if lo_x > hi_x:
+        return
+    lo_y = max(int(math.ceil(min(min(ya_, yb_), min(yc, yd)) - 1e-6)), 0)
+    hi_y = min(int(math.floor(max(max(ya_, yb_), max(yc, yd)) + 1e-6)), ny - 1)
+    if lo_y > hi_y:
+        return
+    area1 = (xb_ - xa_) * (yc - ya_) - (xc - xa_) * (yb_ - ya_)
+    area2 = (xd - xa_) * (yc - ya_) - (xc - xa_) * (yd - ya_)
+    ok1 = area1 != 0.0 and math.isfinite(area1)
+    ok2 = area2 != 0.0 and math.isfinite(area2)
+    inv1 = 1.0 / area1 if ok1 else 0.0
+    inv2 = 1.0 / area2 if ok2 else 0.0
+    for y in range(lo_y, hi_y + 1):
+        for x in range(lo_x, hi_x + 1):
+            inside = False
+            if ok1:
+                inside = _draw(x, y, xa_, ya_, da, xb_, yb_, db, xc, yc, dc, inv1, value, zbuf, out, inner)
+            if ok2 and not inside:
+                _draw(x, y, xa_, ya_, da, xd, yd, dd, xc, yc, dc, inv2, value, zbuf, out, inner)
+
+
+@njit(cache=True, nogil=True, forceinline=True)
+def _full_cell(usable, i, j):
+    n0, n1 = usable.shape
+    if i < 0 or j < 0 or i >= n0 - 1 or j >= n1 - 1:
+        return False
+    return usable[i, j] and usable[i + 1, j] and usable[i, j + 1] and usable[i + 1, j + 1]
+
+
+@njit(cache=True, nogil=True, forceinline=True)
+def _wall(xs, ys, depth, feet, foot, i0, j0, i1, j1, zbuf, out, inner):
+    """The wall below the edge (i0, j0)–(i1, j1), down to the box bottom (``feet[foot[i, j]]``: the
+    node (i, j) there)."""
+    a = foot[i0, j0]
+    b = foot[i1, j1]
+    _draw_quad(
+        xs[i0, j0], ys[i0, j0], depth[i0, j0],
+        xs[i1, j1], ys[i1, j1], depth[i1, j1],
+        feet[b, 0], feet[b, 1], feet[b, 2],
+        feet[a, 0], feet[a, 1], feet[a, 2],
+        -2, zbuf, out, inner,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def terrain_cells(xs, ys, depth, usable, foot, feet, out):
+    """The cell of an (n, n) height grid seen by each sub-ray of a window, by rasterisation.
+
+    ``xs``, ``ys`` (n, n): each node's projection in sub-ray lattice units (column, row of ``out``: the
+    sub-ray at out[r, c] looks through lattice point (c, r)); ``depth`` (n, n): its depth along the line
+    of sight; ``usable`` (n, n): valid and in front of the camera.  Every cell with four usable corners is
+    drawn as the two triangles of the facet shading ((i, j), (i+1, j), (i+1, j+1)) and ((i, j), (i, j+1),
+    (i+1, j+1)), depth interpolated linearly; the nearest wins.  The grid march
+    (:func:`spctool.geometry._heightkernels._march`) also stops where a ray enters a cell's column
+    through its side below the terrain — below the grid's border and around missing nodes — so those
+    walls are drawn too, down to the patch box's bottom (``feet`` (m, 3): (lattice x, lattice y, depth)
+    of the wall nodes there, node (i, j) at row ``foot[i, j]``, −1 for a node on no wall).
+
+    ``out`` (rows, cols) int64: the cell i·(n − 1) + j, where the raster vouches for it; −2 where the
+    caller must march: a wall in front; surfaces overlapping (a sub-ray strictly inside two triangles:
+    an occluding ridge, a fold, a face seen from behind — where a bilinear cell's bulge past its two
+    triangles could change the first crossing), and the sub-rays next to such a one or, uncovered, next to
+    anything drawn (the straight-edged image differs from the exact one by far less than a
+    sub-ray); −1 elsewhere (no terrain)."""
+    ny, nx = out.shape
+    n0, n1 = xs.shape
+    zbuf_ = np.full((ny, nx), np.inf)
+    inner_ = np.zeros((ny, nx), np.int32)
+    out[:, :] = -1
+    # the drawing helpers get views without reference counts (see borrowed): an array argument per
+    # call would cost atomic increments and decrements, several times the drawing itself
+    zbuf, cells, inner = borrowed(zbuf_), borrowed(out), borrowed(inner_)
+    for i in range(n0 - 1):
+        for j in range(n1 - 1):
+            if not _full_cell(usable, i, j):
+                continue
+            _draw_quad(
+                xs[i, j], ys[i, j], depth[i, j],
+                xs[i + 1, j], ys[i + 1, j], depth[i + 1, j],
+                xs[i + 1, j + 1], ys[i + 1, j + 1], depth[i + 1, j + 1],
+                xs[i, j + 1], ys[i, j + 1], depth[i, j + 1],
+                i * (n1 - 1) + j, zbuf, cells, inner,
+            )  # fmt: skip
+            if not _full_cell(usable, i - 1, j):
+                _wall(xs, ys, depth, feet, foot, i, j, i, j + 1, zbuf, cells, inner)
+            if not _full_cell(usable, i + 1, j):
+                _wall(xs, ys, depth, feet, foot, i + 1, j, i + 1, j + 1, zbuf, cells, inner)
+            if not _full_cell(usable, i, j - 1):
+                _wall(xs, ys, depth, feet, foot, i, j, i + 1, j, zbuf, cells, inner)
+            if not _full_cell(usable, i, j + 1):
+                _wall(xs, ys, depth, feet, foot, i, j + 1, i + 1, j + 1, zbuf, cells, inner)
+    for y in range(ny):
+        for x in range(nx):
+            if inner[y, x] < 2:
+                continue
+            for yy in range(max(y - 1, 0), min(y + 2, ny)):
+                for xx in range(max(x - 1, 0), min(x + 2, nx)):
+                    cells[yy, xx] = -2
+    for y in range(ny):
+        for x in range(nx):
+            if cells[y, x] != -1:
+                continue
+            for yy in range(max(y - 1, 0), min(y + 2, ny)):
+                for xx in range(max(x - 1, 0), min(x + 2, nx)):
+                    if zbuf[yy, xx] < np.inf:  # something drawn next to it
+                        cells[y, x] = -2

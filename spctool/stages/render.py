@@ -80,7 +80,7 @@ from spctool.geometry._patchkernels import (
     _local_slab,
     _near_spheres,
 )
-from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays
+from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays, terrain_cells
 from spctool.geometry.shape import PatchShape, TriangleShape
 from spctool.photometry import ALPHA0_DEG, FIXED_BETA, phase_angle_deg, reflectance
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
@@ -105,6 +105,14 @@ __all__ = [
 
 #: shading normals of height patches (:class:`RenderOptions`)
 SHADINGS = ("smooth", "facet")
+
+#: how a one-patch window finds each sub-ray's terrain (:class:`RenderOptions`)
+VISIBILITIES = ("march", "raster")
+
+#: the raster path vouches for a cell when the ray, from the height of the patch's highest node down to
+#: that cell, stays within this many cells of it and descends faster than every slope there
+#: (:attr:`HeightPatch.near_steps`)
+NEAR_CELLS = 4
 
 #: parameter margin of the ICQ cells for shadow rays (see :attr:`ShapeSurface.shadow_shape`)
 SHADOW_PATCH_EPS = 1e-7
@@ -208,6 +216,67 @@ class HeightPatch:
         """((4, n, n) heights, hx, hy, albedo; valid) as the fused renderer reads them."""
         hx, hy, _ = self.slopes
         return np.stack([self.heights, hx, hy, self.albedo]), self.valid
+
+    @cached_property
+    def node_points(self) -> np.ndarray:
+        """(n, n, 3) body positions (km) of the grid nodes (invalid nodes at height 0)."""
+        q = self.qsz
+        t = np.arange(-q, q + 1, dtype=np.float64)
+        x, y = np.meshgrid(t, t, indexing="ij")
+        local = np.stack([x, y, self.heights], axis=-1)
+        return self.v + self.scale * (local @ self.rotation.T)
+
+    @cached_property
+    def near_steps(self) -> np.ndarray:
+        """(n − 1, n − 1, 2): for each cell, the largest height step between valid neighbours along x and
+        along y (cells) over the full cells within :data:`NEAR_CELLS` cells of it (Chebyshev), +inf where
+        that block holds a cell with a missing corner — bounds of the bilinear terrain's slopes
+        |∂h/∂x|, |∂h/∂y| near the cell (the raster path's test that a ray crossed nothing before it)."""
+        from scipy.ndimage import maximum_filter
+
+        h, v = self.heights, self.valid
+        full = v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
+        dx = np.abs(np.diff(h, axis=0))  # (n − 1, n): steps along x
+        dy = np.abs(np.diff(h, axis=1))  # (n, n − 1)
+        out = np.stack([np.maximum(dx[:, :-1], dx[:, 1:]), np.maximum(dy[:-1, :], dy[1:, :])], axis=-1)
+        out[~full] = np.inf
+        size = (2 * NEAR_CELLS + 1, 2 * NEAR_CELLS + 1, 1)
+        return np.ascontiguousarray(maximum_filter(out, size=size, mode="constant", cval=0.0))
+
+    @cached_property
+    def bottom_points(self) -> np.ndarray:
+        """(n, n, 3) body positions (km) of the grid nodes at the bottom of :meth:`box`."""
+        q = self.qsz
+        t = np.arange(-q, q + 1, dtype=np.float64)
+        x, y = np.meshgrid(t, t, indexing="ij")
+        local = np.stack([x, y, np.full_like(x, self.box()[0][2])], axis=-1)
+        return self.v + self.scale * (local @ self.rotation.T)
+
+    @cached_property
+    def wall_index(self) -> np.ndarray:
+        """(n, n) int64: each node's row in the wall feet of :attr:`raster_points` (after the n² nodes),
+        −1 for a node on no wall — the nodes of an edge between a full cell and no cell (the grid's
+        border, missing nodes), where the march meets a wall below the terrain."""
+        v = self.valid
+        full = v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
+        pad = np.zeros((full.shape[0] + 2, full.shape[1] + 2), bool)
+        pad[1:-1, 1:-1] = full
+        # a full cell with a non-full neighbour across an edge: all four corners (a superset of the feet)
+        edge = full & ~(pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:])
+        nodes = np.zeros(v.shape, bool)
+        for di in (0, 1):
+            for dj in (0, 1):
+                nodes[di : di + edge.shape[0], dj : dj + edge.shape[1]] |= edge
+        index = np.full(v.shape, -1, np.int64)
+        index[nodes] = np.arange(int(nodes.sum()))
+        return index
+
+    @cached_property
+    def raster_points(self) -> np.ndarray:
+        """(n² + m, 3) body positions (km) the raster projects: the nodes (row-major), then the m wall
+        feet (:attr:`wall_index`) at the bottom of :meth:`box`."""
+        feet = self.bottom_points[self.wall_index >= 0]
+        return np.ascontiguousarray(np.concatenate([self.node_points.reshape(-1, 3), feet]))
 
     def facet_slopes(self, x, y):
         """(hx, hy): slopes of the flat triangle under maplet-frame (x, y) (two per cell, split along the
@@ -317,8 +386,10 @@ class _PatchSet:
         :func:`_upwind_max` and ``horizon_bound`` for the unit Sun direction ``sun`` (+inf, no effect,
         when None; ``fast=False``: no horizon shortcut, the reference march).
 
-        ``geo`` (P, 21): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
-        row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20);
+        ``geo`` (P, 23): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
+        row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20),
+        :data:`NEAR_CELLS` (21); ``near`` (P, n − 1, n − 1, 2): :attr:`HeightPatch.near_steps` (+inf
+        padding);
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
@@ -327,7 +398,7 @@ class _PatchSet:
         up, hor, ent = self._upmax(sun)
         if not fast:
             hor = ent = np.full_like(hor, np.inf)
-        return self._packed() + (up, hor, ent)
+        return self._packed()[:6] + (up, hor, ent, self._packed()[6])
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
@@ -354,15 +425,17 @@ class _PatchSet:
         if self._fused is None:
             npatch = len(self)
             nmax = max(p.heights.shape[0] for p in self.patches)
-            geo = np.zeros((npatch, 21))
+            geo = np.zeros((npatch, 22))
             boxes = np.zeros((npatch, 9))
             if npatch == 1:  # the common case (templates): the patch's own arrays, no copy
                 maps, valids = (a[None] for a in self.patches[0].stacked_maps)
                 tops = self.patches[0].cell_tops[None]
+                near = self.patches[0].near_steps[None]
             else:
                 maps = np.zeros((npatch, 4, nmax, nmax))
                 valids = np.zeros((npatch, nmax, nmax), bool)
                 tops = np.full((npatch, nmax - 1, nmax - 1), -np.inf)
+                near = np.full((npatch, nmax - 1, nmax - 1, 2), np.inf)
             ns = np.zeros(npatch, np.int64)
             for k, p in enumerate(self.patches):
                 n = p.heights.shape[0]
@@ -373,14 +446,16 @@ class _PatchSet:
                 geo[k, 7:16] = self.rots[k].reshape(-1)
                 geo[k, 16] = self.inv[k]
                 geo[k, 17:21] = p.scale, float(p.qsz), zlo, zhi
+                geo[k, 21] = NEAR_CELLS
                 boxes[k, 0:3] = self.los[k]
                 boxes[k, 3:6] = self.his[k]
                 boxes[k, 6:9] = p.box(top_extra=(zhi - zlo) + 1.0)[1]
                 if npatch > 1:
                     maps[k, :, :n, :n], valids[k, :n, :n] = p.stacked_maps
                     tops[k, : n - 1, : n - 1] = p.cell_tops
+                    near[k, : n - 1, : n - 1] = p.near_steps
                 ns[k] = n
-            self._fused = geo, boxes, maps, valids, tops, ns
+            self._fused = geo, boxes, maps, valids, tops, ns, near
         return self._fused
 
     def near(self, origins, dirs, use=None):
@@ -573,7 +648,12 @@ class RenderOptions:
     coarse grid, interpolated bicubically where that is exact to 1e-7 px, else one Newton step per
     sub-ray: :meth:`Camera.pixel_to_direction_lattice`, the same rays to ~1e-7 px).  ``threads``:
     Python threads a large patch-only window is split over (None: numba's count; register's templates
-    use 1 and parallelise across landmarks instead).
+    use 1 and parallelise across landmarks instead).  ``visibility`` (a window of one patch without a
+    shape): ``"march"`` steps every sub-ray through the grid from the top of the relief (the
+    reference); ``"raster"`` draws the patch's cells into a depth buffer with the camera's forward model
+    and solves each sub-ray's crossing in the cell drawn there, marching only sub-rays beside the drawn
+    border or whose cell it enters below the terrain — the same hits to rounding except where a
+    bilinear cell bulges past its two triangles at an occluding edge (``tests/test_render_raster.py``).
     """
 
     photometry: str = "spc"
@@ -587,8 +667,13 @@ class RenderOptions:
     shading: str = "smooth"
     ray_inverse: str = "newton"
     threads: int | None = None
+    visibility: str = "march"
 
     def __post_init__(self):
+        if self.visibility not in VISIBILITIES:
+            raise SpcUsageError(
+                f"visibility must be one of {', '.join(VISIBILITIES)}, got {self.visibility!r}"
+            )
         if self.shading not in SHADINGS:
             raise SpcUsageError(f"shading must be one of {', '.join(SHADINGS)}, got {self.shading!r}")
         if self.ray_inverse not in ("newton", "grid"):
@@ -847,8 +932,11 @@ def render(
     return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress)
 
 
-def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False):
-    """(surface, geom, shadow) of sub-rays by :func:`_fused_rays`; windows of at least
+def _trace_fused(
+    origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False, cand=None
+):  # fmt: skip
+    """(surface, geom, shadow) of sub-rays by :func:`_fused_rays` (``cand``: the raster's cell of each
+    sub-ray, :func:`terrain_cells`; None: march them all); windows of at least
     :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
     threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
     n = dirs.shape[0]
@@ -858,6 +946,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
     origin, dirs, ok = _c64(origin), _c64(dirs), np.ascontiguousarray(ok, dtype=bool)
     sun_lit, sun = _c64(sun_lit), _c64(sun)
     shadows, offset, facet = bool(shadows), float(offset), bool(facet)
+    cand = _NO_CELLS if cand is None else np.ascontiguousarray(cand, dtype=np.int64)
 
     def run(a, b):
         _fused_rays(
@@ -870,6 +959,7 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
             offset,
             facet,
             *arrays,
+            cand[a:b] if cand.shape[0] else cand,
             surface[a:b],
             geom[a:b],
             sh[a:b],
@@ -887,9 +977,37 @@ def _trace_fused(origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, thread
     return surface, geom, sh
 
 
-def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True):
+#: "no raster cells" for :func:`_fused_rays` (march every sub-ray)
+_NO_CELLS = np.empty(0, np.int64)
+
+
+def _raster_cells(camera, patch: HeightPatch, s0, l0, width, height, nss):
+    """(height·nss, width·nss) int64: :func:`terrain_cells` of ``patch`` on the window's sub-ray lattice
+    (sub-ray column c looks through sample s0 + (c + ½)/nss − ½, row r through line l0 + (r + ½)/nss − ½,
+    as :func:`_render` lays them out)."""
+    n = patch.heights.shape[0]
+    pts = patch.raster_points
+    smp, lin, front = camera.project_with_mask(pts)
+    xs = (smp - (s0 - 0.5)) * nss - 0.5
+    ys = (lin - (l0 - 0.5)) * nss - 0.5
+    # depth along the line of sight to V: along any one sub-ray it grows with the distance
+    axis = patch.v - camera.position
+    depth = pts @ (axis / np.linalg.norm(axis))
+    k = n * n
+    if not (front.all() and np.isfinite(xs).all() and np.isfinite(ys).all()):
+        # a node or a wall's foot behind the camera (never for a template): march the whole window
+        return np.full((height * nss, width * nss), -2, np.int64)
+    out = np.empty((height * nss, width * nss), np.int64)
+    terrain_cells(
+        xs[:k].reshape(n, n), ys[:k].reshape(n, n), depth[:k].reshape(n, n), patch.valid,
+        patch.wall_index, np.column_stack([xs[k:], ys[k:], depth[k:]]), out,
+    )  # fmt: skip
+    return out
+
+
+def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions, fast=True, cand=None):
     """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
-    without the exact shadow shortcuts, as the reference for them)."""
+    without the exact shadow shortcuts, as the reference for them; ``cand``: :func:`_trace_fused`'s)."""
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
         origin,
@@ -902,6 +1020,7 @@ def _fused_chunk(origin, dirs, ok, sun, pset: _PatchSet, options: RenderOptions,
         pset.fused_arrays(sun_shade, fast),
         threads=options.threads,
         facet=options.shading == "facet",
+        cand=cand,
     )
     hit = surface != SKY
     # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
@@ -938,6 +1057,9 @@ def _render(
     sid = np.full((height, width), SKY, dtype=np.int16)
     rays_per_line = width * nss * nss
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
+    cells = None
+    if use_fused and options.visibility == "raster" and len(plist) == 1:
+        cells = _raster_cells(camera, plist.patches[0], s0, l0, width, height, nss)
     origin = camera.position
     samples = np.arange(s0, s1 + 1, dtype=np.float64)
     sub_samples = (samples[:, None] + offs[None, :]).reshape(-1)
@@ -954,7 +1076,8 @@ def _render(
             dirs = camera.pixel_to_direction(ss.reshape(-1), ll.reshape(-1))
         if use_fused:  # the kernel makes rays without a finite direction sky
             ok = np.ones(dirs.shape[0], bool)
-            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast)
+            cand = None if cells is None else cells[a * nss : b * nss].reshape(-1)
+            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast, cand)
         else:
             ok = np.all(np.isfinite(dirs), axis=1)
             hits = trace(
