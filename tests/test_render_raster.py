@@ -205,3 +205,39 @@ def test_image_space_registration_with_raster_templates_equals_the_march(scene):
     assert got["raster"].status == got["march"].status == ["ok"]
     np.testing.assert_array_equal(got["raster"].measured, got["march"].measured)
     assert np.all(np.abs(got["raster"].measured[0] - scene.truth_pixel) < 0.05)
+
+
+@pytest.mark.parametrize("seed, reach", [(0, 0), (1, 2), (2, 4), (3, 7)])
+def test_near_steps_against_brute_force(seed, reach):
+    from spctool.geometry._heightkernels import near_steps
+
+    rng = np.random.default_rng(seed)
+    n0, n1 = 15, 11
+    h = rng.normal(size=(n0, n1)) * rng.uniform(0.1, 3.0)
+    valid = rng.uniform(size=h.shape) > 0.04
+    h = np.where(valid, h, 0.0)
+    out = np.empty((n0 - 1, n1 - 1, 2))
+    near_steps(h, valid, reach, out)
+    for i in range(n0 - 1):
+        for j in range(n1 - 1):
+            want = [0.0, 0.0]
+            for a in range(max(i - reach, 0), min(i + reach, n0 - 2) + 1):
+                for b in range(max(j - reach, 0), min(j + reach, n1 - 2) + 1):
+                    if not valid[a : a + 2, b : b + 2].all():
+                        want = [np.inf, np.inf]
+                        break
+                    want[0] = max(want[0], np.abs(h[a + 1, b : b + 2] - h[a, b : b + 2]).max())
+                    want[1] = max(want[1], np.abs(h[a : a + 2, b + 1] - h[a : a + 2, b]).max())
+                else:
+                    continue
+                break
+            np.testing.assert_array_equal(out[i, j], want)
+    # the bound holds: |∂h/∂u|, |∂h/∂w| of the bilinear terrain at random points of full cells
+    for _ in range(200):
+        i, j = rng.integers(0, n0 - 1), rng.integers(0, n1 - 1)
+        if not valid[i : i + 2, j : j + 2].all():
+            continue
+        fu, fw = rng.uniform(size=2)
+        du = (1 - fw) * (h[i + 1, j] - h[i, j]) + fw * (h[i + 1, j + 1] - h[i, j + 1])
+        dw = (1 - fu) * (h[i, j + 1] - h[i, j]) + fu * (h[i + 1, j + 1] - h[i + 1, j])
+        assert abs(du) <= out[i, j, 0] + 1e-12 and abs(dw) <= out[i, j, 1] + 1e-12

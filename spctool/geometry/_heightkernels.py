@@ -325,6 +325,44 @@ def _cell_crossing(h, p, i, j, u0, w0, z0, du, dw, dz, t_a, t_b, fa):
 
 
 @njit(cache=True)
+def near_steps(h, valid, reach, out):
+    """out (n0 − 1, n1 − 1, 2): for each cell, the largest |height step| between neighbouring nodes along
+    u (channel 0) and along w (1) over the full cells within ``reach`` cells (Chebyshev), +inf where that
+    block holds a cell with a missing corner; cells beyond the grid count 0.  Bounds of the bilinear
+    terrain's |∂h/∂u|, |∂h/∂w| there (a cell's ∂h/∂u lies between its two u-edges' steps)."""
+    n0, n1 = h.shape
+    m0, m1 = n0 - 1, n1 - 1
+    cell = np.empty((m0, m1, 2))
+    for i in range(m0):
+        for j in range(m1):
+            if valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
+                cell[i, j, 0] = max(abs(h[i + 1, j] - h[i, j]), abs(h[i + 1, j + 1] - h[i, j + 1]))
+                cell[i, j, 1] = max(abs(h[i, j + 1] - h[i, j]), abs(h[i + 1, j + 1] - h[i + 1, j]))
+            else:
+                cell[i, j, 0] = np.inf
+                cell[i, j, 1] = np.inf
+    rows = np.empty((m0, m1, 2))  # the maximum along axis 0, then along axis 1
+    for i in range(m0):
+        a = max(i - reach, 0)
+        b = min(i + reach, m0 - 1)
+        for j in range(m1):
+            for c in range(2):
+                v = 0.0
+                for k in range(a, b + 1):
+                    v = max(v, cell[k, j, c])
+                rows[i, j, c] = v
+    for i in range(m0):
+        for j in range(m1):
+            a = max(j - reach, 0)
+            b = min(j + reach, m1 - 1)
+            for c in range(2):
+                v = 0.0
+                for k in range(a, b + 1):
+                    v = max(v, rows[i, k, c])
+                out[i, j, c] = v
+
+
+@njit(cache=True)
 def cell_tops(h, valid):
     """(n0−1, n1−1): each cell's highest corner plus 1e-9·(1 + max |h|) (far above rounding), −inf for
     cells with a missing corner — no ray segment above it can cross the cell's terrain."""

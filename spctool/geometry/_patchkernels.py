@@ -278,7 +278,7 @@ def _patch_ray(
         return
     _patch_shade(
         k, best, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-        tops, ns, upmax, horizon, entry, surf, geom, sh,
+        tops, ns, upmax, horizon, entry, near, surf, geom, sh,
     )  # fmt: skip
 
 
@@ -340,7 +340,7 @@ def _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c):
 @numba.njit(forceinline=True, cache=True)
 def _patch_shade(
     k, p, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops,
-    ns, upmax, horizon, entry, surf, geom, sh,
+    ns, upmax, horizon, entry, near, surf, geom, sh,
 ):  # fmt: skip
     """Shading geometry and cast shadow of sub-ray k, which hits patch p at maplet-frame (lx, ly)."""
     d0 = dirs[k, 0]
@@ -405,6 +405,14 @@ def _patch_shade(
     b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
     b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
     own_lit = False
+    if npatch == 1 and b2 > 0.0:
+        # lit when the ray rises faster than every slope near the hit (near[p, i, j]) until it is above
+        # the highest node, within geo[p, 21] cells: its height above the terrain only grows from the
+        # offset it starts at, so it crosses nothing (the march's answer; issue 17)
+        if (geo[p, 20] - z - offset) * max(abs(b0), abs(b1)) <= geo[p, 21] * b2 and b2 > (
+            near[p, i, j, 0] * abs(b0) + near[p, i, j, 1] * abs(b1)
+        ):
+            return
     if b2 > 0.0:
         top = upmax[p, i, j]
         own_lit = z + offset > top
@@ -486,5 +494,5 @@ def _fused_rays(
         if which[k] >= 0:
             _patch_shade(
                 k, which[k], where[k, 0], where[k, 1], origin, dirs, sun_lit, sun, shadows, offset, facet,
-                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, surf, geom, sh,
+                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, near, surf, geom, sh,
             )  # fmt: skip

@@ -70,6 +70,7 @@ from spctool.geometry._heightkernels import (
     _upwind_max,
     cell_tops,
     horizon_bound,
+    near_steps,
 )
 from spctool.geometry._patchkernels import (
     SHAPE,
@@ -230,18 +231,13 @@ class HeightPatch:
     def near_steps(self) -> np.ndarray:
         """(n − 1, n − 1, 2): for each cell, the largest height step between valid neighbours along x and
         along y (cells) over the full cells within :data:`NEAR_CELLS` cells of it (Chebyshev), +inf where
-        that block holds a cell with a missing corner — bounds of the bilinear terrain's slopes
-        |∂h/∂x|, |∂h/∂y| near the cell (the raster path's test that a ray crossed nothing before it)."""
-        from scipy.ndimage import maximum_filter
-
-        h, v = self.heights, self.valid
-        full = v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
-        dx = np.abs(np.diff(h, axis=0))  # (n − 1, n): steps along x
-        dy = np.abs(np.diff(h, axis=1))  # (n, n − 1)
-        out = np.stack([np.maximum(dx[:, :-1], dx[:, 1:]), np.maximum(dy[:-1, :], dy[1:, :])], axis=-1)
-        out[~full] = np.inf
-        size = (2 * NEAR_CELLS + 1, 2 * NEAR_CELLS + 1, 1)
-        return np.ascontiguousarray(maximum_filter(out, size=size, mode="constant", cval=0.0))
+        that block holds a cell with a missing corner (:func:`spctool.geometry._heightkernels.near_steps`)
+        — bounds of the bilinear terrain's slopes |∂h/∂x|, |∂h/∂y| near the cell: the raster path's and
+        the lit shortcut's proof that a ray crossed nothing."""
+        n = self.heights.shape[0]
+        out = np.empty((n - 1, n - 1, 2))
+        near_steps(self.heights, self.valid, NEAR_CELLS, out)
+        return out
 
     @cached_property
     def bottom_points(self) -> np.ndarray:
@@ -386,7 +382,7 @@ class _PatchSet:
         :func:`_upwind_max` and ``horizon_bound`` for the unit Sun direction ``sun`` (+inf, no effect,
         when None; ``fast=False``: no horizon shortcut, the reference march).
 
-        ``geo`` (P, 23): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
+        ``geo`` (P, 22): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
         row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20),
         :data:`NEAR_CELLS` (21); ``near`` (P, n − 1, n − 1, 2): :attr:`HeightPatch.near_steps` (+inf
         padding);
@@ -396,9 +392,11 @@ class _PatchSet:
         ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon``, ``entry`` (P, n − 1, n − 1).
         """
         up, hor, ent = self._upmax(sun)
-        if not fast:
+        near = self._packed()[6]
+        if not fast:  # the reference: no shortcut, no raster vouching (near slopes unbounded)
             hor = ent = np.full_like(hor, np.inf)
-        return self._packed()[:6] + (up, hor, ent, self._packed()[6])
+            near = np.full_like(near, np.inf)
+        return self._packed()[:6] + (up, hor, ent, near)
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
