@@ -898,3 +898,30 @@ def test_disagreeing_shifts_names_the_landmarks_that_moved_unlike_the_others():
     assert msg.startswith("1 of 5 registered landmarks moved unlike the others") and ": D;" in msg
     res.status = ["ok", "not-found", "not-found", "ok", "low-correlation"]  # fewer than three: no consensus
     assert disagreeing_shifts(res) is None
+
+
+def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypatch):
+    """navigate's passes share one patch_cache: a maplet's render-ready patch (packed maps, slope bounds,
+    Sun tables) is built by the first image-space register call and reused by the next, with the same
+    measurements as without the cache."""
+    from spctool.stages import render as render_mod
+
+    built = []
+
+    class Counting(render_mod._PatchSet):
+        def __init__(self, patches):
+            built.append(1)
+            super().__init__(patches)
+
+    monkeypatch.setattr(render_mod, "_PatchSet", Counting)  # the registrar imports it at call time
+    cam = rs.pointing_error(scene.camera, 3.0, 2.0)
+    opts = RegisterOptions(space="image", threads=1)
+    args = (scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+    cache: dict = {}
+    first = register(*args, patch_cache=cache)
+    second = register(*args, patch_cache=cache)
+    assert len(built) == 1 and list(cache) == [id(scene.maplet)]
+    plain = register(*args)
+    assert len(built) == 2
+    np.testing.assert_array_equal(first.measured, plain.measured)
+    np.testing.assert_array_equal(second.measured, plain.measured)

@@ -332,34 +332,30 @@ def near_steps(h, valid, reach, out):
     terrain's |∂h/∂u|, |∂h/∂w| there (a cell's ∂h/∂u lies between its two u-edges' steps)."""
     n0, n1 = h.shape
     m0, m1 = n0 - 1, n1 - 1
-    cell = np.empty((m0, m1, 2))
+    cell = np.empty((2, m0, m1))  # one plane per axis: the loops below run along contiguous rows
     for i in range(m0):
         for j in range(m1):
-            if valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]:
-                cell[i, j, 0] = max(abs(h[i + 1, j] - h[i, j]), abs(h[i + 1, j + 1] - h[i, j + 1]))
-                cell[i, j, 1] = max(abs(h[i, j + 1] - h[i, j]), abs(h[i + 1, j + 1] - h[i + 1, j]))
-            else:
-                cell[i, j, 0] = np.inf
-                cell[i, j, 1] = np.inf
-    rows = np.empty((m0, m1, 2))  # the maximum along axis 0, then along axis 1
+            cell[0, i, j] = max(abs(h[i + 1, j] - h[i, j]), abs(h[i + 1, j + 1] - h[i, j + 1]))
+            cell[1, i, j] = max(abs(h[i, j + 1] - h[i, j]), abs(h[i + 1, j + 1] - h[i + 1, j]))
+            if not (valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]):
+                cell[0, i, j] = np.inf
+                cell[1, i, j] = np.inf
+    rows = np.zeros((2, m0, m1))  # the maximum along axis 0, then along axis 1
+    for c in range(2):
+        for i in range(m0):
+            for k in range(max(i - reach, 0), min(i + reach, m0 - 1) + 1):
+                for j in range(m1):
+                    rows[c, i, j] = max(rows[c, i, j], cell[c, k, j])
+    both = np.zeros((2, m0, m1))
+    for c in range(2):
+        for i in range(m0):
+            for d in range(-reach, reach + 1):
+                for j in range(max(0, -d), min(m1, m1 - d)):
+                    both[c, i, j] = max(both[c, i, j], rows[c, i, j + d])
     for i in range(m0):
-        a = max(i - reach, 0)
-        b = min(i + reach, m0 - 1)
         for j in range(m1):
-            for c in range(2):
-                v = 0.0
-                for k in range(a, b + 1):
-                    v = max(v, cell[k, j, c])
-                rows[i, j, c] = v
-    for i in range(m0):
-        for j in range(m1):
-            a = max(j - reach, 0)
-            b = min(j + reach, m1 - 1)
-            for c in range(2):
-                v = 0.0
-                for k in range(a, b + 1):
-                    v = max(v, rows[i, k, c])
-                out[i, j, c] = v
+            out[i, j, 0] = both[0, i, j]
+            out[i, j, 1] = both[1, i, j]
 
 
 @njit(cache=True)

@@ -309,6 +309,7 @@ def navigate(
         base = dataclasses.replace(base, extract=dataclasses.replace(base.extract, criteria=None))
     kw = dict(names=names, positions=pos, prior_sigma_position=prior_sigma_position)
     kw["prior_sigma_attitude"] = prior_sigma_attitude
+    kw["patch_cache"] = {}  # image space: each maplet's render-ready patch built once for all passes
     warnings: list[str] = []
 
     # start pixels: table pixels, else the projection of the landmark position

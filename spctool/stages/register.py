@@ -252,16 +252,19 @@ def register(
     prior_sigma_position=None,
     prior_sigma_attitude=None,
     progress=None,
+    patch_cache: dict | None = None,
 ) -> RegisterResult:
     """Stage H: measure the landmarks of ``maplets`` in ``photo`` (module docstring).
 
     ``apriori`` (N, 2): starting pixels (e.g. the lithos-select table); rows with NaN — or no array —
     start at the projection of V with ``camera``.  ``positions`` (N, 3): body-fixed landmark positions
     for the pose solve (default: each maplet's V).  ``prior_sigma_*``: SUM SIGMA_VSO (km) and SIGMA_PTG
-    (rad) for the pose solve.  ``progress(n)`` is called as landmarks are processed.
+    (rad) for the pose solve.  ``progress(n)`` is called as landmarks are processed.  ``patch_cache``:
+    a dict shared by several calls on the same maplets and Sun (navigate's passes), in which image
+    space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`).
     """
     opts = options if options is not None else RegisterOptions()
-    reg = Registrar(photo, sun, maplets, thresholds, opts, names)
+    reg = Registrar(photo, sun, maplets, thresholds, opts, names, patch_cache=patch_cache)
     n = len(reg)
     steps = schedule_steps(opts)
     proj, usable = reg.project(camera)

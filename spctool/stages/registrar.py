@@ -431,9 +431,20 @@ class Registrar:
     """
 
     def __init__(
-        self, photo, sun, maplets, thresholds=None, options: RegisterOptions | None = None, names=None
+        self,
+        photo,
+        sun,
+        maplets,
+        thresholds=None,
+        options: RegisterOptions | None = None,
+        names=None,
+        patch_cache: dict | None = None,
     ):
         self.options = options if options is not None else RegisterOptions()
+        #: image space: each maplet's render-ready patch (packed maps, slope bounds, Sun tables), kept in
+        #: this dict under id(maplet) with the maplet itself, so that Registrars of later passes over
+        #: the same maplets and Sun (navigate) build none again; None: per Registrar
+        self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)
         self.photo = np.ascontiguousarray(data, dtype=np.float64)
         if self.photo.ndim != 2:
@@ -677,10 +688,16 @@ class Registrar:
 
         if lm.patch is None:
             m = lm.maplet
-            patch = HeightPatch(
-                m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
-            )
-            lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
+            kept = None if self.patch_cache is None else self.patch_cache.get(id(m))
+            if kept is not None and kept[0] is m:
+                lm.patch = kept[1]
+            else:
+                patch = HeightPatch(
+                    m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
+                )
+                lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
+                if self.patch_cache is not None:
+                    self.patch_cache[id(m)] = (m, lm.patch)
         patch = lm.patch.patches[0]
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
