@@ -407,9 +407,9 @@ def _patch_shade(
     own_lit = False
     if npatch == 1 and b2 > 0.0:
         # lit when the ray rises faster than every slope near the hit (near[p, i, j]) until it is above
-        # the highest node, within geo[p, 21] cells: its height above the terrain only grows from the
-        # offset it starts at, so it crosses nothing (the march's answer; issue 17)
-        if (geo[p, 20] - z - offset) * max(abs(b0), abs(b1)) <= geo[p, 21] * b2 and b2 > (
+        # the highest cell ahead of it (upmax), within geo[p, 21] cells: its height above the terrain only
+        # grows from the offset it starts at, so it crosses nothing (the march's answer; issue 17)
+        if (upmax[p, i, j] - z - offset) * max(abs(b0), abs(b1)) <= geo[p, 21] * b2 and b2 > (
             near[p, i, j, 0] * abs(b0) + near[p, i, j, 1] * abs(b1)
         ):
             return
