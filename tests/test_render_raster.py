@@ -25,7 +25,7 @@ import dataclasses
 import numpy as np
 import pytest
 import register_scene as rs
-from test_render_fast import _world
+from test_render_fast import WORLDS, _world, assert_same_rendering
 
 from spctool.errors import SpcUsageError
 from spctool.geometry._rasterkernels import terrain_cells
@@ -108,13 +108,7 @@ def test_terrain_cells_against_brute_force(seed):
     assert np.all((out == -2) <= (contested | (_near(best >= 0) & (best < 0))))
 
 
-CASES = [
-    (1, 10.0, 60.0, 14, False, 2, "smooth", True),
-    (2, 65.0, 8.0, 14, True, 1, "facet", True),
-    (3, 70.0, 35.0, 10, True, 3, "smooth", True),
-    (4, 40.0, 3.0, 14, False, 2, "facet", True),
-    (5, 0.0, 85.0, 12, True, 2, "smooth", True),
-    (6, 60.0, 20.0, 14, True, 2, "smooth", False),
+CASES = WORLDS + [
     (7, 80.0, 20.0, 14, True, 2, "smooth", True),
     (8, 75.0, 30.0, 14, False, 4, "smooth", True),
     (9, 25.0, 45.0, 14, True, 2, "facet", False),
@@ -128,10 +122,7 @@ def test_raster_render_equals_the_march(seed, emission, sun_elev, q, holes, ss, 
     ref = render(cam, sun, None, patches[:1], opts)
     got = render(cam, sun, None, patches[:1], dataclasses.replace(opts, visibility="raster"))
     assert 0.1 < np.mean(ref.coverage > 0) < 0.95  # the patch fills part of the window
-    np.testing.assert_array_equal(got.coverage, ref.coverage)
-    np.testing.assert_array_equal(got.shadow, ref.shadow)
-    np.testing.assert_array_equal(got.surface, ref.surface)
-    np.testing.assert_allclose(got.radiance, ref.radiance, rtol=0, atol=1e-12)
+    assert_same_rendering(got, ref)
     # two patches: the raster applies to one-patch windows only, the march renders the rest
     both = render(cam, sun, None, patches, dataclasses.replace(opts, visibility="raster"))
     np.testing.assert_array_equal(both.radiance, render(cam, sun, None, patches, opts).radiance)

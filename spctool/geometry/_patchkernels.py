@@ -218,26 +218,12 @@ def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reac
         return math.nan
     t_top = (hmax - z0) / dz
     t_lo = max(t_lo, t_top)
-    if du == 0.0:
-        if u0 < i or u0 > i + 1.0:
-            return math.nan
-    else:
-        ta = (i - u0) / du
-        tb = (i + 1.0 - u0) / du
-        if ta > tb:
-            ta, tb = tb, ta
-        t_lo = max(t_lo, ta)
-        t_hi = min(t_hi, tb)
-    if dw == 0.0:
-        if w0 < j or w0 > j + 1.0:
-            return math.nan
-    else:
-        ta = (j - w0) / dw
-        tb = (j + 1.0 - w0) / dw
-        if ta > tb:
-            ta, tb = tb, ta
-        t_lo = max(t_lo, ta)
-        t_hi = min(t_hi, tb)
+    ta, tb = _slab1(u0, du, float(i), i + 1.0)  # the cell's column, as the march's grid-line counters
+    t_lo = max(t_lo, ta)
+    t_hi = min(t_hi, tb)
+    ta, tb = _slab1(w0, dw, float(j), j + 1.0)
+    t_lo = max(t_lo, ta)
+    t_hi = min(t_hi, tb)
     if not t_lo <= t_hi:
         return math.nan
     if (t_lo - t_top) * max(abs(du), abs(dw)) > reach:

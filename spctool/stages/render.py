@@ -50,9 +50,13 @@ Speed: scenes of patches without a shape (register's image-space templates) take
 kernel that equals the batch functions :func:`trace` → :func:`shadowed` → :func:`shade` up to rounding
 (≤ 1e-12 relative; the "fused path" section below), runs on the calling thread for small windows and
 reuses each patch's packed maps between renders (``benchmarks/bench_render.py``).  Its shadow rays
-take exact shortcuts (issue 17): a rise-aware horizon bound ends the march, and a ray that provably
-clears its own cell and that bound is lit without one (``_render(..., fast=False)`` is the plain
-march, the reference; ``tests/test_render_fast.py``).
+take exact shortcuts (issue 17): a rise-aware horizon bound ends the march, a ray that provably
+clears its own cell and that bound is lit without one, and so is a ray that rises faster than every
+slope near its hit until it is above the highest cell ahead (``_render(..., fast=False)`` is the plain
+march, the reference; ``tests/test_render_fast.py``).  With ``visibility="raster"`` a one-patch window
+finds each sub-ray's cell by drawing the patch with the camera's forward model (issue 17: "render
+forward") and solves the crossing there, where a local slope bound proves it is the first
+(:func:`_raster_cells`; the same pictures, ``tests/test_render_raster.py``).
 """
 
 from __future__ import annotations
