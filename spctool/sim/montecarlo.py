@@ -519,12 +519,16 @@ def register_sample(scene, p: Perturbed, plan) -> object:
     at the previous phase's measurement and runs only if that one succeeded.  Returns the
     :class:`spctool.stages.register.RegisterResult` of the last phase run, with the first phase's
     a-priori pixel and the iterations of all phases."""
-    res = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, plan[0])
+    cache: dict = {}  # image space: the perturbed maplet's render-ready patch, built once for all phases
+    res = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, plan[0], patch_cache=cache)
     apriori, iters = res.apriori.copy(), res.iterations.copy()
     for opts in plan[1:]:
         if res.status[0] != "ok":
             break
-        res = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, opts, apriori=res.measured)
+        res = register(
+            scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, opts, apriori=res.measured,
+            patch_cache=cache,
+        )  # fmt: skip
         iters += res.iterations
     res.apriori, res.iterations = apriori, iters
     return res
