@@ -391,13 +391,25 @@ def _patch_shade(
     b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
     b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
     own_lit = False
-    if npatch == 1 and b2 > 0.0:
-        # lit when the ray rises faster than every slope near the hit (near[p, i, j]) until it is above
-        # the highest cell ahead of it (upmax), within geo[p, 21] cells: its height above the terrain only
-        # grows from the offset it starts at, so it crosses nothing (the march's answer; issue 17)
-        if (upmax[p, i, j] - z - offset) * max(abs(b0), abs(b1)) <= geo[p, 21] * b2 and b2 > (
-            near[p, i, j, 0] * abs(b0) + near[p, i, j, 1] * abs(b1)
-        ):
+    if npatch == 1 and b2 > 0.0 and b2 > near[p, i, j, 2] * abs(b0) + near[p, i, j, 3] * abs(b1):
+        # the ray rises faster than every slope within geo[p, 22] cells of the hit (near[p, i, j]): its
+        # height above the terrain only grows from the offset it starts at while it stays there, so it
+        # crosses nothing there; it is lit (the march's answer; issue 17) when it is above the highest
+        # cell ahead (upmax) before it leaves those cells, or, where it leaves them, above the horizon
+        # bound of the cell it is in (no crossing from there on), or off the grid
+        reach = geo[p, 22]
+        lead = max(abs(b0), abs(b1))
+        if (upmax[p, i, j] - z - offset) * lead <= reach * b2:
+            return
+        t = reach / lead if lead > 0.0 else 0.0
+        q = geo[p, 18]
+        u_t = lx + q + b0 * t
+        w_t = ly + q + b1 * t
+        if u_t < 0.0 or u_t > n - 1.0 or w_t < 0.0 or w_t > n - 1.0:
+            return
+        i_t = min(int(math.floor(u_t)), n - 2)
+        j_t = min(int(math.floor(w_t)), n - 2)
+        if z + offset + b2 * t > horizon[p, i_t, j_t]:
             return
     if b2 > 0.0:
         top = upmax[p, i, j]

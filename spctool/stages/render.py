@@ -119,6 +119,11 @@ VISIBILITIES = ("march", "raster")
 #: (:attr:`HeightPatch.near_steps`)
 NEAR_CELLS = 4
 
+#: a shadow ray is lit without a march when it rises faster than every slope within this many cells of
+#: its hit and, where it leaves them, clears the terrain ahead (:attr:`HeightPatch.near_steps`; 2 cells
+#: took the shortcut for 71 % of the hits of the S16 scene, 4 cells for 51 %)
+LIT_CELLS = 2
+
 #: parameter margin of the ICQ cells for shadow rays (see :attr:`ShapeSurface.shadow_shape`)
 SHADOW_PATCH_EPS = 1e-7
 
@@ -233,14 +238,18 @@ class HeightPatch:
 
     @cached_property
     def near_steps(self) -> np.ndarray:
-        """(n − 1, n − 1, 2): for each cell, the largest height step between valid neighbours along x and
-        along y (cells) over the full cells within :data:`NEAR_CELLS` cells of it (Chebyshev), +inf where
-        that block holds a cell with a missing corner (:func:`spctool.geometry._heightkernels.near_steps`)
-        — bounds of the bilinear terrain's slopes |∂h/∂x|, |∂h/∂y| near the cell: the raster path's and
-        the lit shortcut's proof that a ray crossed nothing."""
+        """(n − 1, n − 1, 4): for each cell, the largest height step between valid neighbours along x and
+        along y (cells) over the full cells within :data:`NEAR_CELLS` (channels 0, 1) and
+        :data:`LIT_CELLS` (2, 3) cells of it (Chebyshev), +inf where that block holds a cell with a
+        missing corner (:func:`spctool.geometry._heightkernels.near_steps`) — bounds of the bilinear
+        terrain's slopes |∂h/∂x|, |∂h/∂y| near the cell: the raster path's and the lit shortcut's proof
+        that a ray crossed nothing."""
         n = self.heights.shape[0]
-        out = np.empty((n - 1, n - 1, 2))
-        near_steps(self.heights, self.valid, NEAR_CELLS, out)
+        out = np.empty((n - 1, n - 1, 4))
+        part = np.empty((n - 1, n - 1, 2))
+        for c, reach in ((0, NEAR_CELLS), (2, LIT_CELLS)):
+            near_steps(self.heights, self.valid, reach, part)
+            out[..., c : c + 2] = part
         return out
 
     @cached_property
@@ -386,10 +395,10 @@ class _PatchSet:
         :func:`_upwind_max` and ``horizon_bound`` for the unit Sun direction ``sun`` (+inf, no effect,
         when None; ``fast=False``: no horizon shortcut, the reference march).
 
-        ``geo`` (P, 22): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
+        ``geo`` (P, 23): bounding-sphere centre (0–2) and radius² (3), V (4–6), the maplet→body rotation
         row by row (7–15), 1/SCALE (16), SCALE (17), QSZ (18), lowest/highest valid height (19, 20),
-        :data:`NEAR_CELLS` (21); ``near`` (P, n − 1, n − 1, 2): :attr:`HeightPatch.near_steps` (+inf
-        padding);
+        :data:`NEAR_CELLS` (21), :data:`LIT_CELLS` (22); ``near`` (P, n − 1, n − 1, 4):
+        :attr:`HeightPatch.near_steps` (+inf padding);
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
@@ -427,7 +436,7 @@ class _PatchSet:
         if self._fused is None:
             npatch = len(self)
             nmax = max(p.heights.shape[0] for p in self.patches)
-            geo = np.zeros((npatch, 22))
+            geo = np.zeros((npatch, 23))
             boxes = np.zeros((npatch, 9))
             if npatch == 1:  # the common case (templates): the patch's own arrays, no copy
                 maps, valids = (a[None] for a in self.patches[0].stacked_maps)
@@ -437,7 +446,7 @@ class _PatchSet:
                 maps = np.zeros((npatch, 4, nmax, nmax))
                 valids = np.zeros((npatch, nmax, nmax), bool)
                 tops = np.full((npatch, nmax - 1, nmax - 1), -np.inf)
-                near = np.full((npatch, nmax - 1, nmax - 1, 2), np.inf)
+                near = np.full((npatch, nmax - 1, nmax - 1, 4), np.inf)
             ns = np.zeros(npatch, np.int64)
             for k, p in enumerate(self.patches):
                 n = p.heights.shape[0]
@@ -448,7 +457,7 @@ class _PatchSet:
                 geo[k, 7:16] = self.rots[k].reshape(-1)
                 geo[k, 16] = self.inv[k]
                 geo[k, 17:21] = p.scale, float(p.qsz), zlo, zhi
-                geo[k, 21] = NEAR_CELLS
+                geo[k, 21:23] = NEAR_CELLS, LIT_CELLS
                 boxes[k, 0:3] = self.los[k]
                 boxes[k, 3:6] = self.his[k]
                 boxes[k, 6:9] = p.box(top_extra=(zhi - zlo) + 1.0)[1]
