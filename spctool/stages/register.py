@@ -260,8 +260,8 @@ def register(
     start at the projection of V with ``camera``.  ``positions`` (N, 3): body-fixed landmark positions
     for the pose solve (default: each maplet's V).  ``prior_sigma_*``: SUM SIGMA_VSO (km) and SIGMA_PTG
     (rad) for the pose solve.  ``progress(n)`` is called as landmarks are processed.  ``patch_cache``:
-    a dict shared by several calls on the same maplets and Sun (navigate's passes), in which image
-    space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`).
+    a dict shared by several calls on the same maplets, not modified in between (navigate's passes),
+    in which image space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`).
     """
     opts = options if options is not None else RegisterOptions()
     reg = Registrar(photo, sun, maplets, thresholds, opts, names, patch_cache=patch_cache)

@@ -157,7 +157,7 @@ class RegisterOptions:
       README "Template shading"), ``template_visibility`` (``"raster"``, the default: supersampled
       templates find each sub-ray's terrain cell by rasterising the maplet with the camera's forward
       model, then solve the crossing there — the same template as ``"march"``, the grid march of
-      every sub-ray, to rounding, ~15 % less time per ss2 template: :class:`RenderOptions`
+      every sub-ray, to the last bit, 10–30 % less time per ss2 template: :class:`RenderOptions`
       ``visibility``; single-ray templates march, where the raster costs as much as it saves),
       ``threads`` (landmarks
       registered in parallel by :func:`spctool.stages.register.register`: None = numba's thread
@@ -443,7 +443,8 @@ class Registrar:
         self.options = options if options is not None else RegisterOptions()
         #: image space: each maplet's render-ready patch (packed maps, slope bounds, Sun tables), kept in
         #: this dict under id(maplet) with the maplet itself, so that Registrars of later passes over
-        #: the same maplets and Sun (navigate) build none again; None: per Registrar
+        #: the same maplets (not modified in between) build none again (navigate, the Monte Carlo's
+        #: phases; the Sun tables are kept per Sun direction); None: per Registrar
         self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)
         self.photo = np.ascontiguousarray(data, dtype=np.float64)
