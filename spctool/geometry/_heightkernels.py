@@ -240,7 +240,10 @@ def borrowed(typingctx, ary):
     Numba increments and decrements (atomically) the reference count of every array argument of every
     call, inlined or not: a per-ray helper with a dozen array arguments paid dozens of atomic operations
     per ray, more than its arithmetic.  A view without a meminfo skips them (a NULL test instead).  Only
-    valid while the caller holds ``ary``: use it inside one kernel call, never return or store it.
+    valid while the caller holds ``ary``: use it inside one kernel call, never return or store it — and
+    never on an array the kernel itself allocated: numba frees a local array after the last use of its
+    own name, so the view would outlive it (pass the scratch array in from a caller frame instead,
+    as :func:`spctool.geometry._rasterkernels.terrain_cells` does).
     """
 
     def codegen(context, builder, sig, args):

@@ -478,9 +478,8 @@ def _fused_rays(
     # the raster's cells: every hit first (one quadratic per sub-ray, the march where the cell cannot
     # vouch), then the shading and shadows of the hits — two short loops run faster than one long one
     n = dirs.shape[0]
-    where_ = np.empty((n, 2))
-    which_ = np.full(n, -1, np.int64)
-    where, which = borrowed(where_), borrowed(which_)
+    where = np.empty((n, 2))  # indexed here only: plain arrays (a borrowed view of a local array
+    which = np.full(n, -1, np.int64)  # would outlive its owner, freed after the owner's last use)
     for k in range(n):
         if _sky(k, dirs, ok, surf, geom, sh) or cand[k] == -1:
             continue

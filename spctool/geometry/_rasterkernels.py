@@ -144,6 +144,46 @@ def _draw_quad(xa_, ya_, da, xb_, yb_, db, xc, yc, dc, xd, yd, dd, value, zbuf, 
 
 
 @njit(cache=True, nogil=True, forceinline=True)
+def _convex(xa_, ya_, xb_, yb_, xc, yc, xd, yd):
+    """The quad a, b, c, d (in this order) is strictly convex: its two triangles of either diagonal
+    cover the same region, the convex hull of its corners."""
+    s1 = (xb_ - xa_) * (yc - yb_) - (yb_ - ya_) * (xc - xb_)
+    s2 = (xc - xb_) * (yd - yc) - (yc - yb_) * (xd - xc)
+    s3 = (xd - xc) * (ya_ - yd) - (yd - yc) * (xa_ - xd)
+    s4 = (xa_ - xd) * (yb_ - ya_) - (ya_ - yd) * (xb_ - xa_)
+    positive = s1 > 0.0 and s2 > 0.0 and s3 > 0.0 and s4 > 0.0
+    return positive or (s1 < 0.0 and s2 < 0.0 and s3 < 0.0 and s4 < 0.0)
+
+
+@njit(cache=True, nogil=True, forceinline=True)
+def _mark_hull(xa_, ya_, xb_, yb_, xc, yc, xd, yd, inner):
+    """Count the lattice points of the triangles (a, b, d) and (b, c, d) — the other diagonal's — twice in
+    ``inner``: with those of the facet triangles they cover the corners' convex hull, which holds the
+    image of the cell's bilinear surface; a twisted or folded cell's surface can show there although
+    neither facet triangle does, so those points go to the march."""
+    ny, nx = inner.shape
+    for t in range(2):
+        if t == 0:
+            x0, y0, x1, y1, x2, y2 = xa_, ya_, xb_, yb_, xd, yd
+        else:
+            x0, y0, x1, y1, x2, y2 = xb_, yb_, xc, yc, xd, yd
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if not (area != 0.0 and math.isfinite(area)):
+            continue
+        inv = 1.0 / area
+        lo_x = max(int(math.ceil(min(x0, min(x1, x2)) - 1e-6)), 0)
+        hi_x = min(int(math.floor(max(x0, max(x1, x2)) + 1e-6)), nx - 1)
+        lo_y = max(int(math.ceil(min(y0, min(y1, y2)) - 1e-6)), 0)
+        hi_y = min(int(math.floor(max(y0, max(y1, y2)) + 1e-6)), ny - 1)
+        for y in range(lo_y, hi_y + 1):
+            for x in range(lo_x, hi_x + 1):
+                b0 = ((x1 - x) * (y2 - y) - (x2 - x) * (y1 - y)) * inv
+                b1 = ((x2 - x) * (y0 - y) - (x0 - x) * (y2 - y)) * inv
+                if b0 >= -_EDGE_EPS and b1 >= -_EDGE_EPS and 1.0 - b0 - b1 >= -_EDGE_EPS:
+                    inner[y, x] += 2
+
+
+@njit(cache=True, nogil=True, forceinline=True)
 def _full_cell(usable, i, j):
     n0, n1 = usable.shape
     if i < 0 or j < 0 or i >= n0 - 1 or j >= n1 - 1:
@@ -183,13 +223,23 @@ def terrain_cells(xs, ys, depth, usable, foot, feet, out):
     ``out`` (rows, cols) int64: the cell i·(n − 1) + j, where the raster vouches for it; −2 where the
     caller must march: a wall in front; surfaces overlapping (a sub-ray strictly inside two triangles:
     an occluding ridge, a fold, a face seen from behind — where a bilinear cell's bulge past its two
-    triangles could change the first crossing), and the sub-rays next to such a one or, uncovered, next to
-    anything drawn (the straight-edged image differs from the exact one by far less than a
-    sub-ray); −1 elsewhere (no terrain)."""
+    triangles could change the first crossing); the image of a cell whose projected corners are not a
+    convex quad (its bilinear surface can show outside both its triangles, within the corners' hull);
+    and the sub-rays next to such a one or, uncovered, next to anything drawn (the straight-edged image
+    differs from the exact one by far less than a sub-ray); −1 elsewhere (no terrain)."""
+    ny, nx = out.shape
+    # the depth buffer and the overlap counts are owned here, for the whole call of _terrain_cells (whose
+    # views of them carry no reference count)
+    zbuf = np.full((ny, nx), np.inf)
+    inner = np.zeros((ny, nx), np.int32)
+    _terrain_cells(xs, ys, depth, usable, foot, feet, out, zbuf, inner)
+
+
+@njit(cache=True, nogil=True)
+def _terrain_cells(xs, ys, depth, usable, foot, feet, out, zbuf_, inner_):
+    """:func:`terrain_cells` with its scratch arrays (held by the caller)."""
     ny, nx = out.shape
     n0, n1 = xs.shape
-    zbuf_ = np.full((ny, nx), np.inf)
-    inner_ = np.zeros((ny, nx), np.int32)
     out[:, :] = -1
     # the drawing helpers get views without reference counts (see borrowed): an array argument per
     # call would cost atomic increments and decrements, several times the drawing itself
@@ -205,6 +255,14 @@ def terrain_cells(xs, ys, depth, usable, foot, feet, out):
                 xs[i, j + 1], ys[i, j + 1], depth[i, j + 1],
                 i * (n1 - 1) + j, zbuf, cells, inner,
             )  # fmt: skip
+            if not _convex(
+                xs[i, j], ys[i, j], xs[i + 1, j], ys[i + 1, j],
+                xs[i + 1, j + 1], ys[i + 1, j + 1], xs[i, j + 1], ys[i, j + 1],
+            ):  # fmt: skip
+                _mark_hull(
+                    xs[i, j], ys[i, j], xs[i + 1, j], ys[i + 1, j],
+                    xs[i + 1, j + 1], ys[i + 1, j + 1], xs[i, j + 1], ys[i, j + 1], inner,
+                )  # fmt: skip
             if not _full_cell(usable, i - 1, j):
                 _wall(xs, ys, depth, feet, foot, i, j, i, j + 1, zbuf, cells, inner)
             if not _full_cell(usable, i + 1, j):
