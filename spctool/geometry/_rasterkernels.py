@@ -98,13 +98,20 @@ _EDGE_EPS = 1e-9
 
 
 @njit(cache=True, nogil=True, forceinline=True)
+def _barycentric(x, y, x0, y0, x1, y1, x2, y2, inv):
+    """Barycentric coordinates of lattice point (x, y) in triangle (0, 1, 2); ``inv``: 1 / its doubled
+    signed area."""
+    b0 = ((x1 - x) * (y2 - y) - (x2 - x) * (y1 - y)) * inv
+    b1 = ((x2 - x) * (y0 - y) - (x0 - x) * (y2 - y)) * inv
+    return b0, b1, 1.0 - b0 - b1
+
+
+@njit(cache=True, nogil=True, forceinline=True)
 def _draw(x, y, x0, y0, d0, x1, y1, d1, x2, y2, d2, inv, value, zbuf, out, inner):
     """Lattice point (x, y) into the depth buffer when it lies in triangle (0, 1, 2) (``inv``: 1 / its
     doubled signed area); True when it does.  ``inner`` counts the triangles the point lies strictly
     inside (two or more: surfaces overlap there)."""
-    b0 = ((x1 - x) * (y2 - y) - (x2 - x) * (y1 - y)) * inv
-    b1 = ((x2 - x) * (y0 - y) - (x0 - x) * (y2 - y)) * inv
-    b2 = 1.0 - b0 - b1
+    b0, b1, b2 = _barycentric(x, y, x0, y0, x1, y1, x2, y2, inv)
     if b0 >= -_EDGE_EPS and b1 >= -_EDGE_EPS and b2 >= -_EDGE_EPS:
         if b0 > _EDGE_EPS and b1 > _EDGE_EPS and b2 > _EDGE_EPS:
             inner[y, x] += 1
@@ -177,9 +184,8 @@ def _mark_hull(xa_, ya_, xb_, yb_, xc, yc, xd, yd, inner):
         hi_y = min(int(math.floor(max(y0, max(y1, y2)) + 1e-6)), ny - 1)
         for y in range(lo_y, hi_y + 1):
             for x in range(lo_x, hi_x + 1):
-                b0 = ((x1 - x) * (y2 - y) - (x2 - x) * (y1 - y)) * inv
-                b1 = ((x2 - x) * (y0 - y) - (x0 - x) * (y2 - y)) * inv
-                if b0 >= -_EDGE_EPS and b1 >= -_EDGE_EPS and 1.0 - b0 - b1 >= -_EDGE_EPS:
+                b0, b1, b2 = _barycentric(x, y, x0, y0, x1, y1, x2, y2, inv)
+                if b0 >= -_EDGE_EPS and b1 >= -_EDGE_EPS and b2 >= -_EDGE_EPS:
                     inner[y, x] += 2
 
 

@@ -227,14 +227,17 @@ class HeightPatch:
         hx, hy, _ = self.slopes
         return np.stack([self.heights, hx, hy, self.albedo]), self.valid
 
-    @cached_property
-    def node_points(self) -> np.ndarray:
-        """(n, n, 3) body positions (km) of the grid nodes (invalid nodes at height 0)."""
+    def _nodes_at(self, z) -> np.ndarray:
+        """(n, n, 3) body positions (km) of the grid nodes at heights ``z`` (cells; array or scalar)."""
         q = self.qsz
         t = np.arange(-q, q + 1, dtype=np.float64)
         x, y = np.meshgrid(t, t, indexing="ij")
-        local = np.stack([x, y, self.heights], axis=-1)
-        return self.v + self.scale * (local @ self.rotation.T)
+        return self.to_body(np.stack([x, y, np.broadcast_to(z, x.shape)], axis=-1))
+
+    @cached_property
+    def node_points(self) -> np.ndarray:
+        """(n, n, 3) body positions (km) of the grid nodes (invalid nodes at height 0)."""
+        return self._nodes_at(self.heights)
 
     @cached_property
     def near_steps(self) -> np.ndarray:
@@ -255,11 +258,7 @@ class HeightPatch:
     @cached_property
     def bottom_points(self) -> np.ndarray:
         """(n, n, 3) body positions (km) of the grid nodes at the bottom of :meth:`box`."""
-        q = self.qsz
-        t = np.arange(-q, q + 1, dtype=np.float64)
-        x, y = np.meshgrid(t, t, indexing="ij")
-        local = np.stack([x, y, np.full_like(x, self.box()[0][2])], axis=-1)
-        return self.v + self.scale * (local @ self.rotation.T)
+        return self._nodes_at(self.box()[0][2])
 
     @cached_property
     def wall_index(self) -> np.ndarray:
@@ -405,11 +404,11 @@ class _PatchSet:
         ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon``, ``entry`` (P, n − 1, n − 1).
         """
         up, hor, ent = self._upmax(sun)
-        near = self._packed()[6]
+        *packed, near = self._packed()
         if not fast:  # the reference: no shortcut, no raster vouching (near slopes unbounded)
             hor = ent = np.full_like(hor, np.inf)
             near = np.full_like(near, np.inf)
-        return self._packed()[:6] + (up, hor, ent, near)
+        return (*packed, up, hor, ent, near)
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
@@ -662,9 +661,9 @@ class RenderOptions:
     use 1 and parallelise across landmarks instead).  ``visibility`` (a window of one patch without a
     shape): ``"march"`` steps every sub-ray through the grid from the top of the relief (the
     reference); ``"raster"`` draws the patch's cells into a depth buffer with the camera's forward model
-    and solves each sub-ray's crossing in the cell drawn there, marching only sub-rays beside the drawn
-    border or whose cell it enters below the terrain — the same hits to rounding except where a
-    bilinear cell bulges past its two triangles at an occluding edge (``tests/test_render_raster.py``).
+    and solves each sub-ray's crossing in the cell drawn there where a local slope bound proves it is
+    the first, marching the others (walls, overlaps, twisted cells, the drawn border) — the same
+    pictures as the march (:func:`_raster_cells`, ``tests/test_render_raster.py``).
     """
 
     photometry: str = "spc"
