@@ -56,15 +56,11 @@ from spctool.errors import SpcResultError, SpcUsageError
     "pose (see 'spctool navigate --help'); autoregister or s16: the old single pass of that "
     "register schedule.",
 )
-@click.option(
-    "--reach",
-    "reach_px",
-    type=click.FloatRange(min=1.0),
-    default=None,
-    metavar="PX",
-    help="two-pass: the acquisition's coarse search reaches at least +-PX pixels (default 25); set it "
+@options.reach_option(
+    "two-pass: the acquisition's coarse search reaches at least +-PX pixels (default 25); set it "
     "beyond the pictures' a-priori error (a picture whose landmarks lie beyond it ends no-pose, see "
     "'spctool navigate --help').",
+    default=None,
 )
 @options.space_option
 @options.corr_min_option

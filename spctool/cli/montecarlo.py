@@ -164,25 +164,17 @@ def register(cli: click.Group) -> None:
         "moves < 0.005 px); maplet space with 0 is the schedule of Shoemaker et al. 2016 followed "
         "by that stage.",
     )
-    @click.option(
-        "--first-phases",
-        "first_phases",
-        type=click.IntRange(1, 4),
-        default=None,
-        metavar="P",
-        help="Correlate each landmark's first step at P x P half-bin phases and keep the best "
+    @options.first_phases_option(
+        "Correlate each landmark's first step at P x P half-bin phases and keep the best "
         "(default: 1).",
-    )
-    @click.option(
-        "--acquire-reach",
-        "acquire_reach",
-        type=click.IntRange(min=0),
         default=None,
-        metavar="CELLS",
-        help="Maplet space: the first step (L = 10) searches +-CELLS on the photo resampled onto the "
+    )
+    @options.acquire_reach_option(
+        "Maplet space: the first step (L = 10) searches +-CELLS on the photo resampled onto the "
         "maplet's grid extended beyond its edge, so every offset compares the whole prediction "
         "(default: 72 x --sigma-scale, 4 sigma of the a-priori pixel; 0 with --refine 0 and "
         "--first-phases 1 is the schedule of Shoemaker et al. 2016).",
+        default=None,
     )
     @click.option(
         "--jobs",

@@ -49,15 +49,10 @@ def _spacings(text: str) -> tuple:
 @options.corr_min_option
 @options.photometry_option
 @options.thresholds_option
-@click.option(
-    "--reach",
-    "reach_px",
-    type=click.FloatRange(min=1.0),
-    default=25.0,
-    show_default=True,
-    metavar="PX",
-    help="Pass 1's coarse search reaches at least +-PX pixels (S16's L = 10 reach), with the spacing "
+@options.reach_option(
+    "Pass 1's coarse search reaches at least +-PX pixels (S16's L = 10 reach), with the spacing "
     "adapted to the maplet size.",
+    default=25.0,
 )
 @click.option(
     "--refine-spacings",

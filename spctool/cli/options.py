@@ -90,6 +90,31 @@ def overlay_option(help: str):
     )
 
 
+def acquire_reach_option(help: str, default: int | None):
+    """``--acquire-reach CELLS`` (RegisterOptions.acquire_reach): the first step's search on the photo
+    resampled beyond the maplet's edge."""
+    return click.option(
+        "--acquire-reach", "acquire_reach", type=click.IntRange(min=0), default=default,
+        show_default=default is not None, metavar="CELLS", help=help,
+    )  # fmt: skip
+
+
+def first_phases_option(help: str, default: int | None):
+    """``--first-phases P`` (RegisterOptions.first_phases): the first step at P × P phases."""
+    return click.option(
+        "--first-phases", "first_phases", type=click.IntRange(1, 4), default=default,
+        show_default=default is not None, metavar="P", help=help,
+    )  # fmt: skip
+
+
+def reach_option(help: str, default: float | None):
+    """``--reach PX`` (NavigateOptions.reach_px): how far two-pass navigation's acquisition reaches."""
+    return click.option(
+        "--reach", "reach_px", type=click.FloatRange(min=1.0), default=default,
+        show_default=default is not None, metavar="PX", help=help,
+    )  # fmt: skip
+
+
 def require_option(help: str):
     """``--require N``: exit 1 (SpcResultError) when the command found fewer than N."""
     return click.option(

@@ -631,27 +631,17 @@ def correlate_cmd(ctx: Context, **kw):
     help="S16 schedule: a peak on the border of the search grid moves there and repeats the step, "
     "at most N times (0 = S16, which gives up).",
 )
-@click.option(
-    "--first-phases",
-    "first_phases",
-    type=click.IntRange(1, 4),
-    default=1,
-    show_default=True,
-    metavar="P",
-    help="S16 schedule: correlate each landmark's first step (spacing L >= 2) at P x P phases, its "
+@options.first_phases_option(
+    "S16 schedule: correlate each landmark's first step (spacing L >= 2) at P x P phases, its "
     "centre moved by L/P cells, and keep the best (1 = S16). 2 samples the coarsest search at L/2 "
     "cells: a peak between two L-cell grid points is no longer read at half its height.",
+    default=1,
 )
-@click.option(
-    "--acquire-reach",
-    "acquire_reach",
-    type=click.IntRange(min=0),
-    default=0,
-    show_default=True,
-    metavar="CELLS",
-    help="S16 schedule, maplet space: the first step (spacing L >= 2) searches +-CELLS on the photo "
+@options.acquire_reach_option(
+    "S16 schedule, maplet space: the first step (spacing L >= 2) searches +-CELLS on the photo "
     "resampled onto the maplet's grid extended beyond its edge, so every offset compares the whole "
     "prediction (0 = S16: within the maplet's own grid, which reaches about half the maplet's width).",
+    default=0,
 )
 @click.option(
     "--no-fail-fast",
