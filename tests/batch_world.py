@@ -26,8 +26,9 @@ from spctool.formats.photo import write_photo
 from spctool.formats.sumfile import Picture, write_sum
 from spctool.geometry import frames
 from spctool.geometry.camera import Camera
+from spctool.geometry.surfaces import HeightPatch
 from spctool.sim.maplets import new_landmark
-from spctool.stages.render import HeightPatch, RenderOptions, render
+from spctool.stages.render import RenderOptions, render
 
 SCALE = 1e-5  # km per cell (1 cm)
 Q = 24  # maplet QSZ

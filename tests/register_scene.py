@@ -19,7 +19,8 @@ import numpy as np
 
 from spctool.geometry import frames
 from spctool.geometry.camera import Camera
-from spctool.stages.render import HeightPatch, RenderOptions, render
+from spctool.geometry.surfaces import HeightPatch
+from spctool.stages.render import RenderOptions, render
 
 
 class Terrain:

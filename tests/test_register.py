@@ -904,16 +904,16 @@ def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypat
     """navigate's passes share one patch_cache: a maplet's render-ready patch (packed maps, slope bounds,
     Sun tables) is built by the first image-space register call and reused by the next, with the same
     measurements as without the cache."""
-    from spctool.stages import render as render_mod
+    from spctool.geometry import surfaces
 
     built = []
 
-    class Counting(render_mod._PatchSet):
+    class Counting(surfaces.PatchSet):
         def __init__(self, patches):
             built.append(1)
             super().__init__(patches)
 
-    monkeypatch.setattr(render_mod, "_PatchSet", Counting)  # the registrar imports it at call time
+    monkeypatch.setattr(surfaces, "PatchSet", Counting)  # the registrar imports it at call time
     cam = rs.pointing_error(scene.camera, 3.0, 2.0)
     opts = RegisterOptions(space="image", threads=1)
     args = (scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)

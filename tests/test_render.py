@@ -12,18 +12,10 @@ from spctool.errors import SpcUsageError
 from spctool.formats.icq import IcqShape, icq_cube_grid
 from spctool.geometry.camera import Camera
 from spctool.geometry.frames import orient_frame
+from spctool.geometry.surfaces import HeightPatch, PatchSet, ShapeSurface
 from spctool.photometry import phase_angle_deg, reflectance
 from spctool.sim.simulate import look_rotation
-from spctool.stages.render import (
-    SHAPE,
-    SKY,
-    HeightPatch,
-    RenderOptions,
-    ShapeSurface,
-    cull_patches,
-    render,
-    trace,
-)
+from spctool.stages.render import SHAPE, SKY, RenderOptions, cull_patches, render, trace
 
 
 def _camera(position, target, npx=200, nln=200, mmfl=10.0, k=100.0, roll=0.0, model="NONE", coef=()):
@@ -319,7 +311,7 @@ def test_fused_threads_equal_one_thread_and_bad_rays_are_sky(monkeypatch):
     d[::97] = np.nan  # rays without a preimage (a folding distortion) are sky
     ok = np.all(np.isfinite(d), axis=1)
     s = sun / np.linalg.norm(sun)
-    pset = rmod._PatchSet(patches)
+    pset = PatchSet(patches)
     args = (cam.position, d, ok, s, s, True, 1e-3, pset.fused_arrays())
     one = rmod._trace_fused(*args, threads=1)
     monkeypatch.setattr(rmod, "PARALLEL_MIN_RAYS", 1000)
@@ -455,7 +447,7 @@ def test_upwind_max_bounds_every_cell_a_ray_passes(angle):
     """_upwind_max (the shadow march's early end) is a true bound: rays from random points of a cell,
     sampled finely along their horizontal path to the grid edge, never pass over a cell whose top
     exceeds the cell's value."""
-    from spctool.stages.render import _upwind_max
+    from spctool.geometry._heightkernels import _upwind_max
 
     rng = np.random.default_rng(int(angle))
     tops = rng.normal(size=(23, 19)) + 3.0 * (rng.uniform(size=(23, 19)) > 0.95)

@@ -20,8 +20,9 @@ import pytest
 from spctool.geometry._heightkernels import cell_tops, horizon_bound, intersect_rays, lit_from
 from spctool.geometry.camera import Camera
 from spctool.geometry.frames import orient_frame
+from spctool.geometry.surfaces import HeightPatch
 from spctool.sim.simulate import look_rotation
-from spctool.stages.render import HeightPatch, RenderOptions, _render, render
+from spctool.stages.render import RenderOptions, _render, render
 
 
 def _direction(azimuth_deg, elevation_deg):

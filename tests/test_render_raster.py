@@ -29,6 +29,7 @@ from test_render_fast import WORLDS, _world, assert_same_rendering
 
 from spctool.errors import SpcUsageError
 from spctool.geometry._rasterkernels import terrain_cells
+from spctool.geometry.surfaces import PatchSet
 from spctool.stages import render as rmod
 from spctool.stages.register import RegisterOptions, register
 from spctool.stages.render import RenderOptions, render
@@ -180,7 +181,7 @@ def test_the_walls_the_march_meets_are_drawn(seed, emission, holes):
     terrain_cells(xs, ys, depth, p.valid, foot, feet, bare)
     bare = bare.reshape(-1)
     sunn = sun / np.linalg.norm(sun)
-    arrays = rmod._PatchSet([p]).fused_arrays(sunn)
+    arrays = PatchSet([p]).fused_arrays(sunn)
     ok = np.ones(len(dirs), bool)
 
     def geom(cand):

@@ -21,9 +21,10 @@ from spctool.formats.sumfile import read_nom, read_sum
 from spctool.formats.table import LandmarkTable
 from spctool.formats.workdir import WorkDir
 from spctool.geometry.camera import Camera
+from spctool.geometry.surfaces import HeightPatch
 from spctool.sim.demo import copy_demo, demo_files, demo_path
 from spctool.sim.simulate import Detector, expose, load_spec, parse_spec, simulate
-from spctool.stages.render import HeightPatch, RenderOptions, render
+from spctool.stages.render import RenderOptions, render
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -177,8 +177,8 @@ def warmup_cmd(ctx: Context):
             import numpy as np
 
             from spctool.formats.workdir import WorkDir
+            from spctool.geometry.surfaces import ShapeSurface
             from spctool.sim.maplets import make_maplets
-            from spctool.stages.render import ShapeSurface
 
             wd = WorkDir(root)
             lmk = wd.read_landmark(wd.landmark_names()[0])

@@ -273,8 +273,8 @@ def make_maplets_cmd(
     from spctool.formats.landmark import read_lmk, write_lmk
     from spctool.formats.lists import LandmarkList, read_lmrklist, write_lmrklist
     from spctool.formats.maplet import write_map
+    from spctool.geometry.surfaces import ShapeSurface
     from spctool.sim.maplets import landmark_names, make_maplets, surface_points, tile_count, tile_directions
-    from spctool.stages.render import ShapeSurface
 
     wd = ctx.wd
     model = wd.read_shape(shape_path)
@@ -454,8 +454,9 @@ def render_cmd(
       spctool -C demo render P000000001A1 B01980 --no-shape --float -o b01980.fits
     """
     from spctool.formats.photo import Photo, write_photo
+    from spctool.geometry.surfaces import HeightPatch
     from spctool.sim.simulate import Detector, expose
-    from spctool.stages.render import HeightPatch, RenderOptions, cull_patches, render
+    from spctool.stages.render import RenderOptions, cull_patches, render
 
     wd = ctx.wd
     _, pic, _, camera = load_picture(ctx, picture)

@@ -79,10 +79,10 @@ def _grid(heights, valid=None):
             raise ValueError(f"valid mask shape {mask.shape} differs from heights shape {h.shape}")
     if not mask.all():
         h = np.where(mask, h, 0.0)
-    return _kernel_array(h, np.float64), _kernel_array(mask, np.bool_)
+    return kernel_array(h, np.float64), kernel_array(mask, np.bool_)
 
 
-def _kernel_array(a, dtype):
+def kernel_array(a, dtype=np.float64):
     """C-contiguous, writeable array of ``dtype`` (one numba signature per kernel; copies if needed)."""
     return np.require(a, dtype=dtype, requirements=["C", "W"])
 
@@ -162,11 +162,11 @@ def normals_body(hx, hy, ux, uy, uz) -> np.ndarray:
     hx, hy = np.broadcast_arrays(np.asarray(hx, dtype=np.float64), np.asarray(hy, dtype=np.float64))
     out = np.empty(hx.shape + (3,))
     _k.normals(
-        _kernel_array(hx, np.float64).reshape(-1),
-        _kernel_array(hy, np.float64).reshape(-1),
-        _kernel_array(_vec3(ux, "ux"), np.float64),
-        _kernel_array(_vec3(uy, "uy"), np.float64),
-        _kernel_array(_vec3(uz, "uz"), np.float64),
+        kernel_array(hx, np.float64).reshape(-1),
+        kernel_array(hy, np.float64).reshape(-1),
+        kernel_array(_vec3(ux, "ux"), np.float64),
+        kernel_array(_vec3(uy, "uy"), np.float64),
+        kernel_array(_vec3(uz, "uz"), np.float64),
         out.reshape(-1, 3),
     )
     return out
@@ -259,7 +259,7 @@ def march(heights, valid, direction, tol: float = VIS_TOL, nodes=None) -> np.nda
     if norm == 0.0 or dxy <= NADIR_EPS * norm:
         return out
     _k.march_blocked(
-        h, mask, _kernel_array(sel, np.bool_), d[0] / dxy, d[1] / dxy, d[2] / dxy, float(tol), out
+        h, mask, kernel_array(sel, np.bool_), d[0] / dxy, d[1] / dxy, d[2] / dxy, float(tol), out
     )
     return out
 
@@ -321,12 +321,12 @@ def intersect_rays(heights, valid, origins, directions, t_min=0.0, t_max=np.inf)
         raise ValueError("origins and directions must have a last axis of length 3")
     shape = np.broadcast_shapes(o.shape, d.shape)[:-1]
     o = np.broadcast_to(o, shape + (3,)).reshape(-1, 3) + np.array([q, q, 0.0])
-    d = _kernel_array(np.broadcast_to(d, shape + (3,)).reshape(-1, 3), np.float64)
+    d = kernel_array(np.broadcast_to(d, shape + (3,)).reshape(-1, 3), np.float64)
     m = o.shape[0]
-    tmin = _kernel_array(np.broadcast_to(np.asarray(t_min, dtype=np.float64), shape).reshape(m), np.float64)
-    tmax = _kernel_array(np.broadcast_to(np.asarray(t_max, dtype=np.float64), shape).reshape(m), np.float64)
+    tmin = kernel_array(np.broadcast_to(np.asarray(t_min, dtype=np.float64), shape).reshape(m), np.float64)
+    tmax = kernel_array(np.broadcast_to(np.asarray(t_max, dtype=np.float64), shape).reshape(m), np.float64)
     out = np.empty(m)
-    _k.intersect_rays(h, mask, _kernel_array(o, np.float64), d, tmin, tmax, out)
+    _k.intersect_rays(h, mask, kernel_array(o, np.float64), d, tmin, tmax, out)
     return out.reshape(shape)
 
 

@@ -333,8 +333,8 @@ def build_world(root, spec: IndependentSpec | None = None) -> dict:
     from spctool.formats.mesh import TriangleMesh
     from spctool.formats.photo import write_photo
     from spctool.formats.sumfile import Picture, write_sum
+    from spctool.geometry.surfaces import ShapeSurface
     from spctool.sim.maplets import make_maplets
-    from spctool.stages.render import ShapeSurface
 
     spec = spec if spec is not None else IndependentSpec()
     root = Path(root)

@@ -30,7 +30,7 @@ from spctool.errors import SpcUsageError
 from spctool.formats.landmark import Landmark
 from spctool.formats.maplet import Maplet
 from spctool.geometry.frames import orient_frame
-from spctool.stages.render import ShapeSurface
+from spctool.geometry.surfaces import ShapeSurface
 
 __all__ = [
     "ProjectedHeights",

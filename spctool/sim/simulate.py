@@ -79,11 +79,12 @@ from spctool.formats.photo import Photo, write_photo
 from spctool.formats.sumfile import Nominal, Picture, format_sum, parse_sum, write_nom
 from spctool.geometry.camera import Camera
 from spctool.geometry.frames import apply_attitude_update, rot_from_rotvec
+from spctool.geometry.surfaces import HeightPatch, ShapeSurface
 from spctool.photometry import phase_angle_deg
 from spctool.sim.maplets import landmark_frames, landmark_names, new_landmark, project_heights, surface_points
 from spctool.sim.spec_keys import DEFAULT_PICTURES, PHOTO_SUFFIX, PICTURE_KEYS, SPEC_KEYS, spec_help
 from spctool.sim.terrain import AlbedoField, Boulders, Craters, Roughness, Terrain
-from spctool.stages.render import HeightPatch, RenderOptions, ShapeSurface, render, shadowed, trace
+from spctool.stages.render import RenderOptions, render, shadowed, trace
 
 __all__ = [
     "SPEC_KEYS",

@@ -685,7 +685,8 @@ class Registrar:
         1) or ≤ ``rerender_tol_coarse``·n (spacing n ≥ 2: the correlation bins n pixels, and the shift is
         measured from where the template sat, so its phase only matters for the final steps).
         """
-        from spctool.stages.render import HeightPatch, Rendering, RenderOptions, _PatchSet, render
+        from spctool.geometry.surfaces import HeightPatch, PatchSet
+        from spctool.stages.render import Rendering, RenderOptions, render
 
         if lm.patch is None:
             m = lm.maplet
@@ -696,7 +697,7 @@ class Registrar:
                 patch = HeightPatch(
                     m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
                 )
-                lm.patch = _PatchSet([patch])  # packed once per landmark, reused by every render
+                lm.patch = PatchSet([patch])  # packed once per landmark, reused by every render
                 if self.patch_cache is not None:
                     self.patch_cache[id(m)] = (m, lm.patch)
         patch = lm.patch.patches[0]
