@@ -506,6 +506,15 @@ def test_measurement_covariance_matches_noise_trials(scene):
     assert np.all(np.sqrt(np.diag(pred)) >= np.sqrt(np.diag(emp)))
 
 
+def _stage_result(jacobian=None):
+    """The fields of a RegisterResult that the converged stage (register._converge) reads and writes,
+    for one landmark; ``jacobian``: the secant Jacobian it starts from (None: −I)."""
+    jac = np.full((1, 2, 2), np.nan) if jacobian is None else np.asarray(jacobian, float).reshape(1, 2, 2)
+    return SimpleNamespace(
+        iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1), converge_jacobian=jac
+    )
+
+
 def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
     """A step that sends the estimate back and forth between two places (0.02 px apart: a template
     re-rendered at each sub-pixel placement) converges to the midpoint, a small 3-cycle to its
@@ -525,7 +534,7 @@ def test_final_stage_resolves_a_small_two_cycle_and_flags_a_large_one():
 
         return SimpleNamespace(options=RegisterOptions(), step=step)
 
-    result = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
+    result = _stage_result()
     status, c, _ = reg_mod._converge(fake(0.02), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0)
     assert status == "ok" and c == pytest.approx([10.01, 20.0])
     # a 3-cycle (an equilateral triangle of side 0.02 px) converges to its centre
@@ -564,7 +573,7 @@ def test_final_stage_secant_steps_converge_whatever_the_estimator_gain(gain):
         return reg_mod.LandmarkStep(np.array(c, float), gain @ (target - c), corr, None, "ok")
 
     opts = RegisterOptions()
-    result = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
+    result = _stage_result()
     status, c, _ = reg_mod._converge(
         SimpleNamespace(options=opts, step=step), 0, None, np.array([10.0, 20.0]), 1.0, result, [None], 1.0
     )
@@ -574,12 +583,52 @@ def test_final_stage_secant_steps_converge_whatever_the_estimator_gain(gain):
     start = np.array([10.0, 20.0])
     before = start - np.array([0.21, -0.13])
     seed = (before, gain @ (target - before))
-    seeded = SimpleNamespace(iterations=np.zeros(1, np.int64), spacing=np.zeros(1), correlation=np.zeros(1))
+    seeded = _stage_result()
     status, c2, _ = reg_mod._converge(
         SimpleNamespace(options=opts, step=step), 0, None, start, 1.0, seeded, [None], 1.0, seed
     )
     assert status == "ok" and np.hypot(*(c2 - target)) < opts.converge_tol
     assert seeded.iterations[0] <= 6
+
+
+@pytest.mark.parametrize(
+    "gain", [np.diag([1.5, 1.5]), np.array([[1.6, 0.4], [0.3, 1.1]]), np.diag([0.6, 2.4])]
+)
+def test_final_stage_started_from_a_jacobian(gain):
+    """A converged stage started from a Jacobian (RegisterResult.converge_jacobian: navigate hands pass
+    1's to pass 2) moves by it: started from the estimator's true gain it lands on the zero in its first
+    move and stops after the step that confirms it (2 steps); started from the Jacobian a previous stage
+    left (rank-one secant updates: exact along the directions it moved) it needs no more steps than
+    from −I, fewer on these diagonal gains; the zero is the same.  A start outside the secant's
+    sanity bounds (a gain of 10) is not used: plain steps, as from −I."""
+    from spctool.stages import register as reg_mod
+    from spctool.stages.correlate import Correlation
+
+    target = np.array([10.37, 19.81])
+
+    def step(i, camera, c, spacing, final=False, draft=False):
+        corr = Correlation(np.zeros((3, 3)), np.zeros((3, 3), np.int64), 1, "ok", 0.9, (1, 1), (0.0, 0.0))
+        return reg_mod.LandmarkStep(np.array(c, float), gain @ (target - c), corr, None, "ok")
+
+    opts = RegisterOptions()
+    reg = SimpleNamespace(options=opts, step=step)
+    start = np.array([10.0, 20.0])
+
+    def run(jacobian):
+        res = _stage_result(jacobian)
+        status, c, _ = reg_mod._converge(reg, 0, None, start.copy(), 1.0, res, [None], 1.0)
+        assert status == "ok" and np.hypot(*(c - target)) < opts.converge_tol
+        return res
+
+    plain = run(None)
+    learned = plain.converge_jacobian[0]
+    assert np.all(np.isfinite(learned)) and not np.allclose(learned, -np.eye(2))
+    assert run(-gain).iterations[0] == 2 < plain.iterations[0]  # F(c) = G·(c* − c): dF/dc = −G
+    again = run(learned)
+    assert again.iterations[0] <= plain.iterations[0]
+    if np.count_nonzero(gain - np.diag(np.diag(gain))) == 0:
+        assert again.iterations[0] < plain.iterations[0]
+    assert run(-10.0 * np.eye(2)).iterations[0] == plain.iterations[0]
 
 
 @pytest.mark.parametrize("azimuth", [200.0, 60.0, 300.0])

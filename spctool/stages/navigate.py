@@ -30,7 +30,10 @@ Pass 1 (acquisition), for all landmarks at once (:func:`acquisition_steps`):
 
 Pass 2 (refinement): every landmark — also those pass 1 did not find or the pose solve rejected — is
 registered again with the solved camera, starting at the projection of its position, with the
-``refine_spacings`` (2, 1: ±10 cells); then the pose is solved again from the a-priori pose.  A
+``refine_spacings`` (2, 1: ±10 cells), its converged stage starting from the secant Jacobian pass 1's
+left (:attr:`RegisterResult.converge_jacobian`: the estimator's gain, ~1.5 on sharp image-space
+templates, is not learned twice; the measurements do not depend on it); then the pose is solved again
+from the a-priori pose.  A
 landmark is in the result when pass 2 measured it (``ok``); its pass-1 pixel is kept for the report.
 
 When pass 1 yields no pose (fewer than ``min_landmarks`` found, degenerate geometry), pass 2 is not run
@@ -367,6 +370,9 @@ def navigate(
     ref_opts = dataclasses.replace(
         base, steps=tuple(("align", s) for s, _ in ref_steps), grid_half=opts.grid_half
     )
+    # the converged stage starts from the gain pass 1 measured for each landmark (its template and the
+    # photo's sharpness are the same): no step spent learning it again
+    kw["converge_jacobian"] = reg1.converge_jacobian
     reg2 = register(photo, cam1, sun, maplets, thresholds, ref_opts, apriori=start2, **kw)
     tick(n)
     reg2.apriori = start.copy()  # the table's a-priori pixel stays the input one

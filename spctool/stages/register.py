@@ -182,6 +182,9 @@ class RegisterResult:
     options: RegisterOptions | None = None
     #: (N, 2, 2) measurement covariance of ``measured`` in px² (sample, line); NaN unless ok
     covariance: np.ndarray | None = None
+    #: (N, 2, 2) the converged stage's secant Jacobian of each landmark as its steps left it (its start:
+    #: register's ``converge_jacobian``; NaN where the stage ran no step and had no start)
+    converge_jacobian: np.ndarray | None = None
 
     def __len__(self):
         return len(self.names)
@@ -253,6 +256,7 @@ def register(
     prior_sigma_attitude=None,
     progress=None,
     patch_cache: dict | None = None,
+    converge_jacobian=None,
 ) -> RegisterResult:
     """Stage H: measure the landmarks of ``maplets`` in ``photo`` (module docstring).
 
@@ -262,6 +266,9 @@ def register(
     (rad) for the pose solve.  ``progress(n)`` is called as landmarks are processed.  ``patch_cache``:
     a dict shared by several calls on the same maplets, not modified in between (navigate's passes),
     in which image space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`).
+    ``converge_jacobian`` (N, 2, 2): where the converged stage's secant Jacobians start (a previous
+    pass's :attr:`RegisterResult.converge_jacobian` on the same maplets; NaN rows or None: −I); the
+    stage's zero, and so the result, does not depend on it, only the number of steps does (:func:`_converge`).
     """
     opts = options if options is not None else RegisterOptions()
     reg = Registrar(photo, sun, maplets, thresholds, opts, names, patch_cache=patch_cache)
@@ -292,6 +299,11 @@ def register(
         camera,
         options=opts,
         covariance=np.full((n, 2, 2), np.nan),
+        converge_jacobian=(
+            np.full((n, 2, 2), np.nan)
+            if converge_jacobian is None
+            else np.array(converge_jacobian, dtype=np.float64).reshape(n, 2, 2)
+        ),
     )
     top = max(int(v) for k, v in steps if k == "align")
     caps = np.array(
@@ -411,6 +423,7 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             camera,
             options=result.options,
             covariance=result.covariance[i : i + 1].copy(),
+            converge_jacobian=result.converge_jacobian[i : i + 1].copy(),
         )
         sub_last = [None]
         _drive_s16(sub, camera, steps, start[i : i + 1], part, sub_last, locked_tick, caps[i : i + 1])
@@ -424,6 +437,7 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             result.spacing[i] = part.spacing[0]
             result.status[i] = part.status[0]
             result.covariance[i] = part.covariance[0]
+            result.converge_jacobian[i] = part.converge_jacobian[0]
             result.warnings.extend(part.warnings)
             last[i] = st
 
@@ -488,12 +502,13 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
     ``converge_max`` extra steps (``c`` is then the last estimate).  ``step`` is the last ok step.
 
     The moves are secant (Broyden) steps on F(c) = (where the step puts V) − c, whose zero is the
-    converged estimate: the first is the plain step F (or, with a ``seed``, already a secant step),
-    later ones divide by the gain the previous
-    steps measured (a least-squares alignment whose central-difference gradients underestimate a sharp
-    template's slope overshoots by up to 1.7×, which plain steps would turn into a slow oscillation).
-    The zero, and so the result, does not depend on the steps taken; ``halve_shift`` keeps plain
-    half steps.
+    converged estimate: the first divides F by the starting Jacobian (−I: the plain step F, unless
+    ``result.converge_jacobian[i]`` holds one, e.g. the previous pass's; with a ``seed``, already a
+    secant step), later ones by the gain the previous steps measured (a least-squares alignment whose
+    central-difference gradients underestimate a sharp template's slope overshoots by up to 1.7×,
+    which plain steps would turn into a slow oscillation).  The Jacobian each step leaves is kept in
+    ``result.converge_jacobian[i]``.  The zero, and so the result, does not depend on the steps
+    taken; ``halve_shift`` keeps plain half steps.
 
     A cycle — the estimate goes round two, three or four places, as an image-space template
     re-rendered at each sub-pixel placement can make it (0.01–0.09 px in the s16-50m Monte Carlo) —
@@ -512,7 +527,8 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
         moved = math.inf  # at least one step reads the estimate with the stage's own estimator
     st_ok = None
     hist = [np.asarray(c, dtype=np.float64)]
-    jac = -np.eye(2)
+    jac = result.converge_jacobian[i]
+    jac = jac.copy() if np.all(np.isfinite(jac)) else -np.eye(2)  # a start from a previous pass, else −I
     prev = seed  # (c, F) of the previous step (``seed``: the schedule's last step, read the same way)
     if draft and moved < _DRAFT_TOL:  # the seed's draft already came close: full templates now
         draft, prev, moved = False, None, math.inf
@@ -531,6 +547,7 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
         else:
             dc, df = (None, None) if prev is None else (c - prev[0], f - prev[1])
             jac, move = _broyden_step(jac, f, dc, df)
+            result.converge_jacobian[i] = jac
             scale = float(np.hypot(*move))
             if scale > 1.0:  # never more than a pixel per step (the linear range of the estimator)
                 move = move / scale
