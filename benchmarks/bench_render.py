@@ -26,10 +26,9 @@ import numpy as np
 
 from spctool.formats.icq import IcqShape, icq_cube_grid
 from spctool.geometry.camera import Camera
-from spctool.geometry.frames import orient_frame
+from spctool.geometry.frames import look_rotation, orient_frame
 from spctool.geometry.surfaces import HeightPatch, ShapeSurface
 from spctool.sim.maplets import make_maplets, surface_points
-from spctool.sim.simulate import look_rotation
 from spctool.stages.render import RenderOptions, render
 
 

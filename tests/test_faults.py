@@ -451,7 +451,7 @@ def test_simulate_refuses_worlds_too_big_before_allocating(tmp_path, body, words
 
 
 def test_max_memory_option(tmp_path):
-    from spctool.sim.simulate import memory_estimate, parse_spec
+    from spctool.sim.spec import memory_estimate, parse_spec
 
     spec = tmp_path / "spec.toml"
     spec.write_text("[maplets]\ncount = 2\n")

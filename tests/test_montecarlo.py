@@ -471,7 +471,8 @@ def test_s16_exact_maplets_control_world_is_the_photo_surface(exact):
     """``exact_maplets``: the onboard maplet is the surface that renders the photo (to the MAP encoding's
     quantisation); the preset's own maplets differ from it by the 3.33 mm → 1 cm smoothing."""
     from spctool.formats.maplet import format_map, parse_map
-    from spctool.sim.simulate import build_world, parse_spec
+    from spctool.sim.simulate import build_world
+    from spctool.sim.spec import parse_spec
 
     d = mcs.s16_spec(16, exact_maplets=exact)
     for key in ("names", "positions"):  # one landmark is enough
@@ -493,7 +494,7 @@ def test_s16_exact_maplets_control_world_is_the_photo_surface(exact):
 
 
 def test_s16_spec_camera_and_scene_window():
-    from spctool.sim.simulate import parse_spec
+    from spctool.sim.spec import parse_spec
 
     spec = parse_spec(mcs.s16_spec(16))
     c = spec.camera

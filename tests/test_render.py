@@ -11,10 +11,9 @@ from hypothesis import strategies as st
 from spctool.errors import SpcUsageError
 from spctool.formats.icq import IcqShape, icq_cube_grid
 from spctool.geometry.camera import Camera
-from spctool.geometry.frames import orient_frame
+from spctool.geometry.frames import look_rotation, orient_frame
 from spctool.geometry.surfaces import HeightPatch, PatchSet, ShapeSurface
 from spctool.photometry import phase_angle_deg, reflectance
-from spctool.sim.simulate import look_rotation
 from spctool.stages.render import SHAPE, SKY, RenderOptions, cull_patches, render, trace
 
 

@@ -19,9 +19,8 @@ import pytest
 
 from spctool.geometry._heightkernels import cell_tops, horizon_bound, intersect_rays, lit_from
 from spctool.geometry.camera import Camera
-from spctool.geometry.frames import orient_frame
+from spctool.geometry.frames import look_rotation, orient_frame
 from spctool.geometry.surfaces import HeightPatch
-from spctool.sim.simulate import look_rotation
 from spctool.stages.render import RenderOptions, _render, render
 
 

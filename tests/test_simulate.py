@@ -23,7 +23,8 @@ from spctool.formats.workdir import WorkDir
 from spctool.geometry.camera import Camera
 from spctool.geometry.surfaces import HeightPatch
 from spctool.sim.demo import copy_demo, demo_files, demo_path
-from spctool.sim.simulate import Detector, expose, load_spec, parse_spec, simulate
+from spctool.sim.simulate import Detector, expose, simulate
+from spctool.sim.spec import load_spec, parse_spec
 from spctool.stages.render import RenderOptions, render
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -78,7 +78,8 @@ SPEC keys (every key is optional):
 @options.output_option
 @pass_context
 def simulate_cmd(ctx: Context, spec, outdir, overwrite, seed, example, max_memory, as_json, output):
-    from spctool.sim.simulate import load_spec, parse_spec, simulate
+    from spctool.sim.simulate import simulate
+    from spctool.sim.spec import load_spec, parse_spec
 
     if example:
         emit(example_spec(), output)

@@ -26,6 +26,8 @@ What is here (all vectorised over leading ``...`` axes):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -39,6 +41,7 @@ __all__ = [
     "apply_attitude_update",
     "orthonormalize",
     "orient_frame",
+    "look_rotation",
     "map_to_body_matrix",
     "maplet_to_body",
     "body_to_maplet",
@@ -190,6 +193,23 @@ def orient_frame(uz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     uy = normalize(east)
     ux = np.cross(uy, uz)
     return ux, uy, uz
+
+
+def look_rotation(position, target, roll_deg: float = 0.0) -> np.ndarray:
+    """Body→camera rotation (rows CX, CY, CZ) of a camera at ``position`` looking at ``target``.
+
+    CZ = boresight; CX = normalise(ẑ × CZ) (x̂ × CZ when CZ ∥ ẑ), rotated by ``roll_deg`` about CZ;
+    CY = CZ × CX, so CX × CY = CZ.
+    """
+    cz = np.asarray(target, float) - np.asarray(position, float)
+    cz = cz / np.linalg.norm(cz)
+    ref = np.array([0.0, 0.0, 1.0]) if abs(cz[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
+    cx = np.cross(ref, cz)
+    cx /= np.linalg.norm(cx)
+    cy = np.cross(cz, cx)
+    a = math.radians(roll_deg)
+    cx, cy = math.cos(a) * cx + math.sin(a) * cy, -math.sin(a) * cx + math.cos(a) * cy
+    return np.vstack([cx, cy, cz])
 
 
 def map_to_body_matrix(ux, uy, uz) -> np.ndarray:

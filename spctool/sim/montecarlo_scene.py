@@ -142,7 +142,7 @@ S16_PICTURE = "S16A0050M001"
 
 
 def s16_spec(seed: int = 16, *, exact_maplets: bool = False) -> dict:
-    """The SPEC (:func:`spctool.sim.simulate.parse_spec` mapping) of the ``s16-50m`` world.
+    """The SPEC (:func:`spctool.sim.spec.parse_spec` mapping) of the ``s16-50m`` world.
 
     Camera: S16 Table 1 with a zero OWEN model (nominal ε = 0, checklist §12.1).  Body: a 0.42 × 0.40 ×
     0.37 km ellipsoid (2008 EV5's size), ICQ Q = 64.  Terrain at the maplet scale (the fine band, only
@@ -254,7 +254,8 @@ def s16_scene(
     noise from the world's seed, onboard maplets as written to MAP files (``exact_maplets``: the
     control world of :func:`s16_spec`)."""
     from spctool.formats.maplet import format_map, parse_map
-    from spctool.sim.simulate import build_world, expose, parse_spec
+    from spctool.sim.simulate import build_world, expose
+    from spctool.sim.spec import parse_spec
 
     say = progress or (lambda msg: None)
     spec = parse_spec(s16_spec(seed, exact_maplets=exact_maplets), where="preset s16-50m")

@@ -58,9 +58,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -69,7 +67,6 @@ import numpy as np
 from spctool import __version__
 from spctool.errors import SpcUsageError
 from spctool.formats.atomic import write_text
-from spctool.formats.guard import check_allocation, check_name
 from spctool.formats.icq import IcqShape, format_icq, icq_cube_grid, parse_icq
 from spctool.formats.landmark import write_lmk
 from spctool.formats.lists import LandmarkList, PictureList, PictureListEntry, write_lmrklist, write_pictlist
@@ -78,21 +75,16 @@ from spctool.formats.maplet import Maplet, write_map
 from spctool.formats.photo import Photo, write_photo
 from spctool.formats.sumfile import Nominal, Picture, format_sum, parse_sum, write_nom
 from spctool.geometry.camera import Camera
-from spctool.geometry.frames import apply_attitude_update, rot_from_rotvec
+from spctool.geometry.frames import apply_attitude_update, look_rotation, rot_from_rotvec
 from spctool.geometry.surfaces import HeightPatch, ShapeSurface
 from spctool.photometry import phase_angle_deg
 from spctool.sim.maplets import landmark_frames, landmark_names, new_landmark, project_heights, surface_points
-from spctool.sim.spec_keys import DEFAULT_PICTURES, PHOTO_SUFFIX, PICTURE_KEYS, SPEC_KEYS, spec_help
+from spctool.sim.spec import Spec, check_memory, load_spec
+from spctool.sim.spec_keys import PHOTO_SUFFIX, spec_help
 from spctool.sim.terrain import AlbedoField, Boulders, Craters, Roughness, Terrain
 from spctool.stages.render import RenderOptions, render, shadowed, trace
 
 __all__ = [
-    "SPEC_KEYS",
-    "PICTURE_KEYS",
-    "Spec",
-    "load_spec",
-    "parse_spec",
-    "spec_help",
     "Detector",
     "expose",
     "World",
@@ -100,323 +92,12 @@ __all__ = [
     "PictureTruth",
     "build_world",
     "landmark_geometry",
-    "look_rotation",
     "simulate",
     "SimulationResult",
-    "DEFAULT_PICTURES",
 ]
 
-# ------------------------------------------------------------------------------------------------
-# the specification: one table (spctool.sim.spec_keys) drives validation, defaults, the docstring
-# and --help
-# ------------------------------------------------------------------------------------------------
-
+# the SPEC keys (one table, spctool.sim.spec_keys; read by spctool.sim.spec) in the docstring and --help
 __doc__ = (__doc__ or "") + "\n::\n\n" + "\n".join("    " + ln for ln in spec_help(96).splitlines()) + "\n"
-
-
-def _convert(kind: str, value, where: str):
-    def bad(expected):
-        return SpcUsageError(f"SPEC {where}: expected {expected}, got {value!r}")
-
-    try:
-        if kind == "int":
-            if isinstance(value, bool) or not float(value).is_integer():
-                raise bad("an integer")
-            return int(value)
-        if kind == "float":
-            if isinstance(value, bool):
-                raise bad("a number")
-            return float(value)
-        if kind == "bool":
-            if not isinstance(value, bool):
-                raise bad("true or false")
-            return value
-        if kind == "str":
-            if not isinstance(value, str):
-                raise bad("a string")
-            return value
-        if kind == "vec3":
-            out = [float(v) for v in value]
-            if len(out) != 3:
-                raise bad("3 numbers")
-            return out
-        if kind == "floats":
-            return [float(v) for v in value]
-        if kind == "strs":
-            return [str(v) for v in value]
-        if kind == "latlons":
-            out = [[float(a), float(b)] for a, b in value]
-            return out
-        if kind == "kmatrix":
-            out = [[float(v) for v in row] for row in value]
-            if len(out) != 2 or any(len(r) != 3 for r in out):
-                raise bad("a 2x3 matrix [[K11, K12, K13], [K21, K22, K23]]")
-            return out
-        if kind == "exposure":
-            if isinstance(value, str):
-                if value != "auto":
-                    raise bad("'auto' or a number")
-                return value
-            return float(value)
-    except (TypeError, ValueError):
-        raise bad(kind) from None
-    raise AssertionError(kind)
-
-
-@dataclass
-class Spec:
-    """A resolved SPEC: ``sections[name]`` namespaces (``"" ``, ``"body"``, ``"terrain.craters"`` …),
-    ``pictures`` (list of namespaces) and the directory relative paths are resolved against."""
-
-    sections: dict[str, SimpleNamespace]
-    pictures: list[SimpleNamespace]
-    base: Path = field(default_factory=lambda: Path("."))
-
-    def __getattr__(self, name):
-        secs = self.__dict__.get("sections", {})
-        if name in secs:
-            return secs[name]
-        raise AttributeError(name)
-
-    @property
-    def seed(self) -> int:
-        return self.sections[""].seed
-
-    def to_dict(self) -> dict:
-        """The resolved specification as plain data (TOML-like nesting)."""
-        out: dict = {}
-        for sec, ns in self.sections.items():
-            target = out
-            if sec:
-                for part in sec.split("."):
-                    target = target.setdefault(part, {})
-            target.update(vars(ns))
-        out["pictures"] = [dict(vars(p)) for p in self.pictures]
-        return out
-
-
-def parse_spec(data: dict, base=".", where: str = "SPEC") -> Spec:
-    """Validate a SPEC mapping (as read from TOML), fill defaults, derive names; see :data:`SPEC_KEYS`."""
-    data = dict(data or {})
-    known_sections = list(dict.fromkeys(s for s, *_ in SPEC_KEYS))  # ordered: TRUTH.json is byte-stable
-    flat: dict[str, dict] = {s: {} for s in known_sections}
-    pictures_raw = data.pop("pictures", None)
-
-    def walk(prefix, mapping):
-        for k, v in mapping.items():
-            name = f"{prefix}.{k}" if prefix else k
-            if isinstance(v, dict):
-                if name not in known_sections and not any(s.startswith(name + ".") for s in known_sections):
-                    raise SpcUsageError(f"{where}: unknown section [{name}]")
-                walk(name, v)
-            else:
-                if prefix not in known_sections:
-                    raise SpcUsageError(f"{where}: unknown key {name!r}")
-                flat[prefix][k] = v
-
-    walk("", data)
-    sections: dict[str, SimpleNamespace] = {}
-    keys_by_section: dict[str, dict] = {}
-    for section, key, default, kind, _ in SPEC_KEYS:
-        keys_by_section.setdefault(section, {})[key] = (default, kind)
-    for section, given in flat.items():
-        known = keys_by_section[section]
-        for k in given:
-            if k not in known:
-                label = f"[{section}] {k}" if section else k
-                raise SpcUsageError(f"{where}: unknown key {label!r} (see 'spctool simulate --help')")
-        values = {}
-        for k, (default, kind) in known.items():
-            label = f"[{section}] {k}" if section else k
-            values[k] = (
-                _convert(kind, given[k], f"{where} {label}")
-                if k in given
-                else json.loads(json.dumps(default))
-            )
-        sections[section] = SimpleNamespace(**values)
-    # pictures
-    if pictures_raw is None:
-        pictures_raw = [dict(p) for p in DEFAULT_PICTURES]
-    if not isinstance(pictures_raw, list) or not pictures_raw:
-        raise SpcUsageError(f"{where}: [[pictures]] must list at least one picture")
-    pk = {k: (d, kind) for k, d, kind, _ in PICTURE_KEYS}
-    pictures = []
-    for i, raw in enumerate(pictures_raw):
-        if not isinstance(raw, dict):
-            raise SpcUsageError(f"{where}: pictures[{i}] must be a table")
-        for k in raw:
-            if k not in pk:
-                raise SpcUsageError(f"{where}: unknown key {k!r} in pictures[{i}]")
-        vals = {}
-        for k, (default, kind) in pk.items():
-            if k in raw:
-                vals[k] = _convert(kind, raw[k], f"{where} pictures[{i}].{k}")
-            else:
-                vals[k] = default
-        if not vals["name"]:
-            vals["name"] = f"P{i + 1:09d}A1"
-        if len(vals["name"]) > 12 or not vals["name"].strip():
-            raise SpcUsageError(f"{where}: picture name {vals['name']!r} must have 1 to 12 characters")
-        _plain(vals["name"], f"{where}: pictures[{i}].name")
-        if vals["view_lat_deg"] is None:
-            vals["view_lat_deg"] = vals["aim_lat_deg"]
-        if vals["view_lon_deg"] is None:
-            vals["view_lon_deg"] = vals["aim_lon_deg"]
-        if not vals["utc"]:
-            t0 = 10 * i
-            vals["utc"] = f"2024 JAN 01 {t0 // 60:02d}:{t0 % 60:02d}:00.000"
-        vals["format"] = vals["format"].lower()
-        if vals["format"] not in PHOTO_SUFFIX:
-            raise SpcUsageError(f"{where}: pictures[{i}].format must be one of {', '.join(PHOTO_SUFFIX)}")
-        if vals["bits"] == 0:
-            vals["bits"] = sections["detector"].bits
-        if vals["bits"] not in (8, 16):
-            raise SpcUsageError(f"{where}: pictures[{i}].bits must be 8 or 16")
-        if vals["format"] == "dat" and vals["bits"] == 8:
-            pass  # 8-bit DAT is legal (NPX*NLN bytes)
-        if not vals["range_km"] > 0:
-            raise SpcUsageError(f"{where}: pictures[{i}].range_km must be > 0")
-        pictures.append(SimpleNamespace(**vals))
-    names = [p.name for p in pictures]
-    if len(set(names)) != len(names):
-        raise SpcUsageError(f"{where}: picture names must be unique")
-    spec = Spec(sections, pictures, Path(base))
-    _check(spec, where)
-    return spec
-
-
-def _check(spec: Spec, where: str):
-    b, m, c, d = spec.body, spec.maplets, spec.camera, spec.detector
-    if b.q < 2 or b.q & (b.q - 1):
-        raise SpcUsageError(f"{where}: [body] q must be a power of 2 >= 2, got {b.q}")
-    if not b.shape and min(b.radii_km) <= 0:
-        raise SpcUsageError(f"{where}: [body] radii_km must be positive")
-    if m.count < 0:
-        raise SpcUsageError(f"{where}: [maplets] count must be >= 0")
-    if m.qsz < 2 or m.truth_factor < 1 or m.margin < 0 or not m.scale_km > 0:
-        raise SpcUsageError(
-            f"{where}: [maplets] needs qsz >= 2, truth_factor >= 1, margin >= 0, scale_km > 0"
-        )
-    if m.names and m.positions and len(m.names) != len(m.positions):
-        raise SpcUsageError(f"{where}: [maplets] names and positions must have the same length")
-    for n in m.names:
-        if not 1 <= len(n) <= 6:
-            raise SpcUsageError(f"{where}: landmark name {n!r} must have 1 to 6 characters")
-        _plain(n, f"{where}: [maplets] names")
-    if m.prefix:
-        _plain(m.prefix, f"{where}: [maplets] prefix")
-    if len(set(m.names)) != len(m.names):
-        raise SpcUsageError(f"{where}: landmark names must be unique")
-    if c.npx < 2 or c.nln < 2 or not c.mmfl > 0:
-        raise SpcUsageError(f"{where}: [camera] needs npx, nln >= 2 and mmfl > 0")
-    if c.ctr and len(c.ctr) != 2:
-        raise SpcUsageError(f"{where}: [camera] ctr must be [sample, line]")
-    if d.bits not in (8, 16):
-        raise SpcUsageError(f"{where}: [detector] bits must be 8 or 16")
-    if not 1 <= d.supersample <= 16:
-        raise SpcUsageError(f"{where}: [detector] supersample must be 1 ... 16")
-    RenderOptions(photometry=d.photometry)  # validates the model name
-    if spec.sections[""].seed < 0:
-        raise SpcUsageError(f"{where}: seed must be >= 0")
-
-
-def _plain(name: str, where: str) -> None:
-    """A picture or landmark name becomes a file name: a plain identifier only (guard.check_name)."""
-    try:
-        check_name(name, "name")
-    except SpcUsageError as exc:
-        raise SpcUsageError(f"{where}: {exc}") from None
-
-
-#: largest SPEC.toml read (bytes): a SPEC is a few hundred lines
-MAX_SPEC_BYTES = 1 << 20
-
-
-def load_spec(path) -> Spec:
-    """Read and validate a SPEC.toml (UTF-8, at most :data:`MAX_SPEC_BYTES`)."""
-    from spctool.errors import SpcFormatError
-    from spctool.formats.guard import read_bytes
-
-    path = Path(path)
-    try:
-        raw = read_bytes(path, "a SPEC file", max_bytes=MAX_SPEC_BYTES)
-    except SpcFormatError as exc:
-        raise SpcUsageError(str(exc)) from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise SpcUsageError(
-            f"{path}: byte {exc.start}: expected UTF-8 text (TOML), found byte 0x{raw[exc.start]:02x}"
-        ) from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SpcUsageError(f"{path}: not valid TOML: {exc}") from None
-    except RecursionError:
-        raise SpcUsageError(f"{path}: not valid TOML: nested too deeply") from None
-    except ValueError:  # tomllib refuses integers of more than 4300 digits
-        raise SpcUsageError(f"{path}: not valid TOML: numbers of at most 4300 digits expected") from None
-    return parse_spec(data, base=path.parent, where=str(path))
-
-
-# ------------------------------------------------------------------------------------------------
-# memory: sizes checked before anything is allocated
-# ------------------------------------------------------------------------------------------------
-
-#: bytes per node of the truth patches (all landmarks at once: positions, heights, albedo, terrain
-#: temporaries), per ICQ vertex of the global shape (vertices, triangles, ray-tracing hierarchy), per
-#: photo pixel (DN, radiance, coverage of every picture) and per ray of one render; measured peak
-#: resident sizes (`/usr/bin/time -f %M`) of worlds scaled in each size, rounded up
-_BYTES_PER_TRUTH_NODE = 320
-_BYTES_PER_VERTEX = 480
-_BYTES_PER_PIXEL = 64
-_BYTES_PER_RAY = 48
-_BASE_BYTES = 400 * 1024**2
-
-
-def default_max_memory() -> int:
-    """Half the physical memory (the default ``--max-memory``), 4 GiB when it cannot be known."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2)
-    except (AttributeError, ValueError, OSError):  # pragma: no cover - not POSIX
-        return 4 * 1024**3
-
-
-def memory_estimate(spec: Spec) -> dict[str, float]:
-    """Peak memory (bytes) of each part of :func:`build_world` / :func:`simulate` for ``spec``,
-    from the sizes alone (nothing allocated): ``shape``, ``truth``, ``photos``, ``total``."""
-    b, m, c, d = spec.body, spec.maplets, spec.camera, spec.detector
-    if m.positions:
-        count = len(m.positions)
-    elif m.names:
-        count = len(m.names)
-    else:
-        count = m.count
-    n_truth = 2 * m.truth_factor * (m.qsz + m.margin) + 1
-    shape = 6.0 * (float(b.q) + 1) ** 2 * _BYTES_PER_VERTEX
-    truth = float(count) * float(n_truth) ** 2 * _BYTES_PER_TRUTH_NODE
-    pixels = float(c.npx) * float(c.nln)
-    photos = pixels * len(spec.pictures) * _BYTES_PER_PIXEL + pixels * d.supersample**2 * _BYTES_PER_RAY
-    return {"shape": shape, "truth": truth, "photos": photos, "total": _BASE_BYTES + shape + truth + photos}
-
-
-def check_memory(spec: Spec, limit: int | None = None, where: str = "SPEC") -> None:
-    """SpcUsageError naming the largest part when :func:`memory_estimate` exceeds ``limit`` bytes
-    (default :func:`default_max_memory`)."""
-    limit = default_max_memory() if limit is None else int(limit)
-    est = memory_estimate(spec)
-    part = max(("shape", "truth", "photos"), key=lambda k: est[k])
-    what = {
-        "shape": "[body] q",
-        "truth": "the truth patches ([maplets] count, qsz, margin, truth_factor)",
-        "photos": "the photos ([camera] npx, nln, [detector] supersample, pictures)",
-    }[part]
-    check_allocation(
-        est["total"],
-        f"the world of {where}",
-        limit,
-        hint=f" (--max-memory); most of it for {what}",
-    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -491,23 +172,6 @@ def _latlon_dir(lat_deg, lon_deg) -> np.ndarray:
     lat = np.radians(np.asarray(lat_deg, float))
     lon = np.radians(np.asarray(lon_deg, float))
     return np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=-1)
-
-
-def look_rotation(position, target, roll_deg: float = 0.0) -> np.ndarray:
-    """Body→camera rotation (rows CX, CY, CZ) of a camera at ``position`` looking at ``target``.
-
-    CZ = boresight; CX = normalise(ẑ × CZ) (x̂ × CZ when CZ ∥ ẑ), rotated by ``roll_deg`` about CZ;
-    CY = CZ × CX, so CX × CY = CZ.
-    """
-    cz = np.asarray(target, float) - np.asarray(position, float)
-    cz = cz / np.linalg.norm(cz)
-    ref = np.array([0.0, 0.0, 1.0]) if abs(cz[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
-    cx = np.cross(ref, cz)
-    cx /= np.linalg.norm(cx)
-    cy = np.cross(cz, cx)
-    a = math.radians(roll_deg)
-    cx, cy = math.cos(a) * cx + math.sin(a) * cy, -math.sin(a) * cx + math.cos(a) * cy
-    return np.vstack([cx, cy, cz])
 
 
 def _rng(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
@@ -820,7 +484,7 @@ def _truth_and_maplets(
 
 def build_world(spec: Spec, progress=None, max_memory: int | None = None) -> World:
     """Build a world in memory (no files): shape, cameras, landmarks, truth patches, maplets.
-    Refused before anything is allocated when :func:`memory_estimate` exceeds ``max_memory``
+    Refused before anything is allocated when :func:`spctool.sim.spec.memory_estimate` exceeds ``max_memory``
     (default: half the physical memory)."""
     check_memory(spec, max_memory)
     say = progress or (lambda msg: None)
@@ -1035,8 +699,9 @@ def simulate(
 ) -> SimulationResult:
     """Build the world of ``spec`` and write the SPC working directory ``outdir`` (module docstring).
 
-    Refuses a non-empty ``outdir`` unless ``overwrite``, and a world whose :func:`memory_estimate`
-    exceeds ``max_memory`` bytes (default: half the physical memory) before allocating anything.
+    Refuses a non-empty ``outdir`` unless ``overwrite``, and a world whose
+    :func:`spctool.sim.spec.memory_estimate` exceeds ``max_memory`` bytes (default: half the physical
+    memory) before allocating anything.
     """
     if not isinstance(spec, Spec):
         spec = load_spec(spec)
