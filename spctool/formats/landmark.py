@@ -21,27 +21,27 @@ import numpy as np
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
 from spctool.formats.fortran import Records
-from spctool.formats.sumfile import (
-    _check_tag,
-    _dvec,
-    _emit_rows,
-    _fields_equal,
-    _fixed,
-    _floats,
-    _int_field,
-    _join_lines,
-    _letter_of,
-    _majority_padded,
-    _pad,
-    _parse_limb,
-    _row_text,
-    _scan_row,
-    _Slot,
-    _split_lines,
-    _src_path,
-    _tag_line,
-    _vector,
+from spctool.formats.rows import (
+    Slot,
+    as_shaped,
+    check_tag,
+    d_fields,
+    emit_rows,
+    exponent_letter,
+    fields_equal,
+    fixed_field,
+    float_tuple,
+    int_field,
+    join_lines,
+    majority_padded,
+    pad80,
+    row_text,
+    scan_row,
+    source_path,
+    split_lines,
+    tag_line,
 )
+from spctool.formats.sumfile import parse_limb_row
 
 __all__ = [
     "LandmarkPicture",
@@ -82,7 +82,7 @@ class MapOverlap:
     offset: np.ndarray
 
     def __post_init__(self):
-        self.offset = _vector(self.offset, (3,), "offset")
+        self.offset = as_shaped(self.offset, (3,), "offset")
 
     def __eq__(self, other):
         if not isinstance(other, MapOverlap):
@@ -92,7 +92,7 @@ class MapOverlap:
     __hash__ = None  # type: ignore[assignment]
 
     def _key(self) -> tuple:
-        return (self.name,) + _floats(self.offset)
+        return (self.name,) + float_tuple(self.offset)
 
 
 @dataclass
@@ -110,7 +110,7 @@ class LandmarkLimb:
 
 @dataclass
 class _LmkSource:
-    header: list[_Slot]
+    header: list[Slot]
     section_order: list[str]
     section_text: dict[str, str]
     rows: dict[str, list[tuple[tuple, str]]]
@@ -193,7 +193,7 @@ class Landmark:
             a, b = self.bigmap_extra
             self.bigmap_extra = (float(a), float(b))
         for name in ("vlm", "ux", "uy", "uz", "sigma_lmk"):
-            setattr(self, name, _vector(getattr(self, name), (3,), name))
+            setattr(self, name, as_shaped(getattr(self, name), (3,), name))
         self.pictures = list(self.pictures)
         self.overlaps = list(self.overlaps)
         self.limb_fits = list(self.limb_fits)
@@ -201,7 +201,7 @@ class Landmark:
     def __eq__(self, other):
         if not isinstance(other, Landmark):
             return NotImplemented
-        return _fields_equal(self, other, _LANDMARK_FIELDS)
+        return fields_equal(self, other, _LANDMARK_FIELDS)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -220,7 +220,7 @@ def _landmark_values(lmk: Landmark, key: str) -> tuple:
         return tuple(lmk.horizon)
     if key == "sig":
         return (float(lmk.sigkm), float(lmk.rmslmk))
-    return _floats(getattr(lmk, key))
+    return float_tuple(getattr(lmk, key))
 
 
 def _section_of(line: str) -> str | None:
@@ -239,8 +239,8 @@ def parse_lmk(text: str, path=None) -> Landmark:
     """Parse the text of an LMK file (spc-formats.md §4).  Bad input raises :class:`SpcFormatError`."""
     # mirrors: lines 2-9 READ(unit,*) by position (LITHOS); sections READ(27,FMT='(A80)') LINE with
     # LINE(1:8)='PICTURES', (1:12)='MAP OVERLAPS', (1:9)='LIMB FITS', (1:8)='END FILE' (KOUNT)
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     n = len(lines)
     whats = {
         "size": "QSZ, SCALE",
@@ -260,7 +260,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
             raise SpcFormatError(path, n, f"expected {what} on line {i + 1}, found end of file")
         return lines[i]
 
-    header: list[_Slot] = []
+    header: list[Slot] = []
     # line 1: (A6,3X,A1) or the bigmap variant (A6,3X,A1,4X,2F8.4)
     line = need(0, "the landmark name and HFLAG")
     name = line[:6].strip()
@@ -274,9 +274,9 @@ def parse_lmk(text: str, path=None) -> Landmark:
     extra_text = line[6:].split(hflag, 1)[1]
     bigmap_extra = None
     if extra_text.strip():
-        vals, _ = _scan_row(extra_text, 2, 8, path=path, lineno=1, what="numbers (bigmap line-1 values)")
+        vals, _ = scan_row(extra_text, 2, 8, path=path, lineno=1, what="numbers (bigmap line-1 values)")
         bigmap_extra = (vals[0], vals[1])
-    header.append(_Slot("name", line, (name, hflag, bigmap_extra)))
+    header.append(Slot("name", line, (name, hflag, bigmap_extra)))
 
     # lines 2-9 by position, each a list-directed READ(unit,*) (LITHOS/bigmap write them with the LMK
     # formats of spc-formats.md §4.1); a tag that names another header line is a swapped/duplicated line
@@ -298,9 +298,9 @@ def parse_lmk(text: str, path=None) -> Landmark:
         if key == "size" and v[0] < 0:
             raise SpcFormatError(path, first + 1, f"expected an integer QSZ >= 0, found {v[0]!r}")
         tag = res.rest.strip()
-        _check_tag(tag, key, _LMK_TAGS, path, res.last + 1)
+        check_tag(tag, key, _LMK_TAGS, path, res.last + 1)
         values[key] = v
-        header.append(_Slot(key, "\n".join(lines[first : res.last + 1]), tuple(v), tag))
+        header.append(Slot(key, "\n".join(lines[first : res.last + 1]), tuple(v), tag))
 
     section_order: list[str] = []
     section_text: dict[str, str] = {}
@@ -325,7 +325,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
             pname = ln[:12].strip()
             if not pname:
                 raise SpcFormatError(path, i + 1, "expected a picture name in columns 1-12")
-            v, r = _scan_row(ln[12:], 2, 10, path=path, lineno=i + 1, what="numbers (picture sample, line)")
+            v, r = scan_row(ln[12:], 2, 10, path=path, lineno=i + 1, what="numbers (picture sample, line)")
             flag = r.strip()
             if len(flag) > 1:
                 raise SpcFormatError(path, i + 1, f"expected at most a 1-character flag, found {flag!r}")
@@ -336,14 +336,14 @@ def parse_lmk(text: str, path=None) -> Landmark:
             oname = ln[:6].strip()
             if not oname:
                 raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
-            v, r = _scan_row(ln[8:], 3, 12, path=path, lineno=i + 1, what="numbers (map overlap offset)")
+            v, r = scan_row(ln[8:], 3, 12, path=path, lineno=i + 1, what="numbers (map overlap offset)")
             if r.strip() or ln[6:8].strip():
                 raise SpcFormatError(path, i + 1, "expected a name and 3 numbers (map overlap)")
             ov = MapOverlap(oname, np.array(v))
             overlaps.append(ov)
             rows["overlaps"].append((ov._key(), ln))
         elif state == "limbs":
-            lf = _parse_limb(ln, path, i + 1, name_width=12)
+            lf = parse_limb_row(ln, path, i + 1, name_width=12)
             limb = LandmarkLimb(lf.name, lf.sample, lf.line, lf.value)
             limbs.append(limb)
             rows["limbs"].append((limb._key(), ln))
@@ -361,8 +361,8 @@ def parse_lmk(text: str, path=None) -> Landmark:
         end_line=lines[i],
         after_end=lines[i + 1 :],
         final_newline=final,
-        pad_header=_majority_padded(lines[1:9], True),
-        pad_body=_majority_padded([lines[0]] + lines[9 : i + 1], False),
+        pad_header=majority_padded(lines[1:9], True),
+        pad_body=majority_padded([lines[0]] + lines[9 : i + 1], False),
     )
     missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
     if missing:
@@ -396,7 +396,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
     )
 
 
-def _lmk_line(lmk: Landmark, slot: _Slot, pad_header: bool, pad_body: bool) -> str:
+def _lmk_line(lmk: Landmark, slot: Slot, pad_header: bool, pad_body: bool) -> str:
     """Regenerate one of lines 1-9 with the LITHOS formats of spc-formats.md §4.1."""
     key = slot.key
     if key == "name":
@@ -406,37 +406,38 @@ def _lmk_line(lmk: Landmark, slot: _Slot, pad_header: bool, pad_body: bool) -> s
             raise ValueError(f"HFLAG must be 'T' or 'F', got {lmk.hflag!r}")
         text = lmk.name.ljust(6) + "   " + lmk.hflag
         if lmk.bigmap_extra is not None:
-            text += "    " + "".join(_fixed(v, 8, 4) for v in lmk.bigmap_extra)
+            text += "    " + "".join(fixed_field(v, 8, 4) for v in lmk.bigmap_extra)
         padded = slot.padded if slot.padded is not None else pad_body
-        return _pad(text, padded)
+        return pad80(text, padded)
     padded = slot.padded if slot.padded is not None else pad_header
     tag = slot.tag or _LMK_TAGS[key]
-    letter = _letter_of(slot.text)
+    letter = exponent_letter(slot.text)
     if key == "size":
-        nums = _int_field(lmk.qsz, 8) + _fixed(lmk.scale, 12, 7)
+        nums = int_field(lmk.qsz, 8) + fixed_field(lmk.scale, 12, 7)
     elif key == "horizon":
-        nums = "".join(_int_field(h, 10) for h in lmk.horizon)
+        nums = "".join(int_field(h, 10) for h in lmk.horizon)
     elif key == "sig":
-        nums = _dvec([lmk.sigkm, lmk.rmslmk], letter)
+        nums = d_fields([lmk.sigkm, lmk.rmslmk], letter)
     else:
-        nums = _dvec(getattr(lmk, key), letter)
-    return _tag_line(nums, tag, padded)
+        nums = d_fields(getattr(lmk, key), letter)
+    return tag_line(nums, tag, padded)
 
 
 def _row(kind: str, item) -> str:
     """A new section row: ``(A12,2F10.2[,1X,A1])``, ``(A6,2X,3F12.3)`` or ``(A12,3F10.2)``."""
     if kind == "pictures":
-        return _row_text(item.name, 12, (item.sample, item.line), (10, 2), item.flag)
+        return row_text(item.name, 12, (item.sample, item.line), (10, 2), item.flag)
     if kind == "overlaps":
-        return _row_text(item.name, 6, (), (12, 3)) + "  " + "".join(_fixed(v, 12, 3) for v in item.offset)
-    return _row_text(item.name, 12, (item.sample, item.line, item.value), (10, 2))
+        offsets = "".join(fixed_field(v, 12, 3) for v in item.offset)
+        return row_text(item.name, 6, (), (12, 3)) + "  " + offsets
+    return row_text(item.name, 12, (item.sample, item.line, item.value), (10, 2))
 
 
 def format_lmk(lmk: Landmark) -> str:
     """LMK file text; unchanged lines of a parsed file are reproduced byte for byte."""
     src = lmk._source
     if src is None:
-        slots = [_Slot(k) for k in _LMK_ORDER]
+        slots = [Slot(k) for k in _LMK_ORDER]
         pad_header, pad_body = True, False
         order = ["pictures", "overlaps", "limbs"]
         section_text: dict[str, str] = {}
@@ -459,16 +460,16 @@ def format_lmk(lmk: Landmark) -> str:
         if kind not in order and content[kind]:
             order.append(kind)
     for kind in order:
-        out.append(section_text.get(kind, _pad(_SECTIONS[kind], pad_body)))
+        out.append(section_text.get(kind, pad80(_SECTIONS[kind], pad_body)))
         out.extend(
-            _emit_rows(rows[kind], content[kind], lambda item, kind=kind: _pad(_row(kind, item), pad_body))
+            emit_rows(rows[kind], content[kind], lambda item, kind=kind: pad80(_row(kind, item), pad_body))
         )
     if src is not None:
         out.append(src.end_line)
         out.extend(src.after_end)
     else:
         out.append("END FILE")
-    return _join_lines(out, src.final_newline if src is not None else True)
+    return join_lines(out, src.final_newline if src is not None else True)
 
 
 def read_lmk(path) -> Landmark:

@@ -19,15 +19,15 @@ import numpy as np
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
 from spctool.formats.fortran import format_d
-from spctool.formats.sumfile import (
-    _floats,
-    _is_integral,
-    _join_lines,
-    _RowPool,
-    _scan_numbers,
-    _split_lines,
-    _src_path,
-    _vector,
+from spctool.formats.rows import (
+    RowPool,
+    as_shaped,
+    float_tuple,
+    is_integral,
+    join_lines,
+    scan_numbers,
+    source_path,
+    split_lines,
 )
 
 __all__ = [
@@ -71,14 +71,14 @@ def _emit(layout_src: _ListSource | None, keys: list[tuple], make_text) -> str:
     if layout_src is None:
         out = [make_text(i) for i in range(len(keys))]
         out.append("END")
-        return _join_lines(out, True)
+        return join_lines(out, True)
     original = [k for kind, k, _ in layout_src.layout if kind == "entry"]
     if original == keys:  # unchanged: the original lines
         out = [t for _, _, t in layout_src.layout]
         out.append(layout_src.end_line)
         out.extend(layout_src.after_end)
-        return _join_lines(out, layout_src.final_newline)
-    pool = _RowPool([(k, t) for kind, k, t in layout_src.layout if kind == "entry"])
+        return join_lines(out, layout_src.final_newline)
+    pool = RowPool([(k, t) for kind, k, t in layout_src.layout if kind == "entry"])
     nxt = 0
     for kind, _, text in layout_src.layout:
         if kind == "other":
@@ -92,7 +92,7 @@ def _emit(layout_src: _ListSource | None, keys: list[tuple], make_text) -> str:
         out.append(found if found is not None else make_text(i))
     out.append(layout_src.end_line)
     out.extend(layout_src.after_end)
-    return _join_lines(out, layout_src.final_newline)
+    return join_lines(out, layout_src.final_newline)
 
 
 def _read(path, what: str) -> str:
@@ -147,8 +147,8 @@ class PictureList:
 
 def parse_pictlist(text: str, path=None) -> PictureList:
     """Parse PICTLIST text: ``(A13)`` lines up to the required ``END`` line (columns 1-3)."""
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     entries: list[PictureListEntry] = []
     warnings: list[tuple[int, str]] = []
@@ -239,8 +239,8 @@ class LandmarkList:
 
 def parse_lmrklist(text: str, path=None) -> LandmarkList:
     """Parse LMRKLIST text: one ``(A6)`` name a line up to the required ``END`` line."""
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     names: list[str] = []
     # globalCoverage: read(15,fmt='(A6)') NAME; '#' in column 1 skips; NAME(1:3).ne.'END' is a landmark
@@ -291,7 +291,7 @@ class LandmarkListXEntry:
     def __post_init__(self):
         self.qsz = int(self.qsz)
         self.npictures = int(self.npictures)
-        self.vlm = _vector(self.vlm, (3,), "vlm")
+        self.vlm = as_shaped(self.vlm, (3,), "vlm")
         self.scale = float(self.scale)
 
     def __eq__(self, other):
@@ -302,7 +302,7 @@ class LandmarkListXEntry:
     __hash__ = None  # type: ignore[assignment]
 
     def _key(self) -> tuple:
-        return (self.name, self.qsz, self.npictures) + _floats(self.vlm) + (float(self.scale),)
+        return (self.name, self.qsz, self.npictures) + float_tuple(self.vlm) + (float(self.scale),)
 
 
 @dataclass
@@ -329,8 +329,8 @@ class LandmarkListX:
 def parse_lmrklistx(text: str, path=None) -> LandmarkListX:
     """Parse LMRKLISTX text up to the required ``END`` line."""
     # mirrors bigmap (LMKLX=): (A6) name then a list-directed READ of the rest; NAME(1:3)='END' ends
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     entries: list[LandmarkListXEntry] = []
     for i, line in enumerate(lines):
@@ -342,10 +342,10 @@ def parse_lmrklistx(text: str, path=None) -> LandmarkListX:
             continue
         if not name:
             raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
-        vals, _ = _scan_numbers(
+        vals, _ = scan_numbers(
             line[6:], 6, path=path, lineno=i + 1, what="numbers (QSZ, pictures, VLM(3), SCALE)"
         )
-        if not (_is_integral(vals[0]) and _is_integral(vals[1])):
+        if not (is_integral(vals[0]) and is_integral(vals[1])):
             raise SpcFormatError(
                 path, i + 1, f"expected integers QSZ and picture count, found {vals[0]!r}, {vals[1]!r}"
             )

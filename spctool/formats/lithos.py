@@ -26,7 +26,7 @@ import numpy as np
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
 from spctool.formats.fortran import list_read, parse_number, read_internal
-from spctool.formats.sumfile import _join_lines, _split_lines, _src_path
+from spctool.formats.rows import join_lines, source_path, split_lines
 
 __all__ = [
     "DistortModel",
@@ -398,8 +398,8 @@ def _group_of(key: str) -> str | None:
 def parse_lithos(text: str, path=None) -> Settings:
     # mirrors getmm (xCommon.f): READ(25,FMT='(A80)') LINE until LINE(1:3)='END'; keys LINE(1:n)='KEY='
     """Parse ``INIT_LITHOS.TXT`` text (spc-formats.md §6); a missing ``END`` line is an error."""
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     n = len(lines)
     items: list[_Item] = []
     keys: dict[str, str] = {}
@@ -570,7 +570,7 @@ def format_lithos(settings: Settings) -> str:
         for group in _GROUPS:
             out.extend(emit_group(group, None))
         out.append("END")
-        return _join_lines(out, True)
+        return join_lines(out, True)
 
     original = {"pcks": src.pcks, "blemishes": src.blemishes, "distortions": src.distortions}
     changed = {g: list(current[g]) != list(original[g]) for g in _GROUPS}
@@ -612,7 +612,7 @@ def format_lithos(settings: Settings) -> str:
                     out.extend(emit_group(group, pools[group]))
                     emitted.add(group)
             out.extend(item.lines)
-    return _join_lines(out, src.final_newline)
+    return join_lines(out, src.final_newline)
 
 
 def read_lithos(path) -> Settings:

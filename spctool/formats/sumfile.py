@@ -10,7 +10,7 @@ and 64 both occur).  Writing is byte-exact: every parsed line keeps its original
 of the line it replaces) only when its values differ from what was parsed.  New files use the canonical layout
 of §2.6 / §3.
 
-The small text helpers at the bottom of the module (``_split_lines``, ``_scan_numbers``, ``_RowPool`` ...) are
+The small text helpers at the bottom of the module (``split_lines``, ``scan_numbers``, ``RowPool`` ...) are
 shared with :mod:`spctool.formats.landmark` and :mod:`spctool.formats.lithos`.
 """
 
@@ -27,13 +27,31 @@ from spctool.errors import SpcFormatError
 from spctool.formats import atomic
 from spctool.formats.fortran import (
     Records,
-    format_d,
-    format_f,
-    format_i,
-    is_number,
-    parse_number,
     parse_real,
     read_internal,
+)
+from spctool.formats.rows import (
+    TOKEN,
+    Slot,
+    as_shaped,
+    check_tag,
+    d_fields,
+    decimals_of,
+    emit_rows,
+    exponent_letter,
+    fields_equal,
+    fixed_field,
+    float_tuple,
+    int_field,
+    is_integral,
+    join_lines,
+    majority_padded,
+    pad80,
+    row_text,
+    scan_row,
+    source_path,
+    split_lines,
+    tag_line,
 )
 
 __all__ = [
@@ -54,12 +72,9 @@ __all__ = [
 
 
 # ==================================================================================================
-# shared text helpers (also used by landmark.py and lithos.py / lists.py)
+# list-directed reals and the DISTORTION line
 
-_TOKEN = re.compile(r"[^\s,]+")
 _DIGIT = re.compile(r"\d")
-_FIXED = re.compile(r"^[+-]?\d*\.\d*$")
-_EXP_LETTER = re.compile(r"\d([EeDdQq])[+-]?\d")
 
 
 def _is_real(token: str) -> bool:
@@ -78,7 +93,7 @@ def _d_like(line: str) -> bool:
     """The record after K-MATRIX that is a DISTORTION line: the tag at 64-73, or 4 untagged numbers."""
     if line[63:73] == "DISTORTION":
         return True
-    toks = _TOKEN.findall(line)
+    toks = TOKEN.findall(line)
     return len(toks) == 4 and all(_is_real(t) for t in toks)
 
 
@@ -92,226 +107,50 @@ def _refuse_bom(line: str, path, what: str) -> None:
         )
 
 
-def _check_tag(tag: str, key: str, tags: dict, path, lineno: int) -> None:
-    """A tag naming another header line: the line is swapped or duplicated (SPC reads by position)."""
-    if not tag:
-        return
-    t = " ".join(tag.upper().split())
-    for other, name in tags.items():
-        if other != key and t == name:
-            raise SpcFormatError(
-                path,
-                lineno,
-                f"expected the {tags[key]} line here (SPC reads this line by position as {tags[key]}), "
-                f"found the tag {name}: a swapped or duplicated line",
-            )
 
 
-def _split_lines(text: str) -> tuple[list[str], bool]:
-    """Split file text into lines (no terminators) and whether the last line ended with a newline."""
-    text = text.replace("\r\n", "\n").replace("\r", "\n")
-    if text == "":
-        return [], False
-    final = text.endswith("\n")
-    body = text[:-1] if final else text
-    return body.split("\n"), final
 
 
-def _join_lines(lines: list[str], final_newline: bool) -> str:
-    if not lines:
-        return ""
-    return "\n".join(lines) + ("\n" if final_newline else "")
 
 
-def _is_padded(line: str) -> bool:
-    """True for a line blank-padded to exactly 80 columns (the Hayabusa / ``A20`` style)."""
-    return len(line) == 80 and line.endswith(" ")
 
 
-def _majority_padded(lines: list[str], default: bool) -> bool:
-    lines = [ln for ln in lines if ln.strip()]
-    if not lines:
-        return default
-    return 2 * sum(_is_padded(ln) for ln in lines) > len(lines)
 
 
-def _pad(text: str, padded: bool) -> str:
-    return text.ljust(80) if padded else text
 
 
-def _letter_of(line: str | None, default: str = "D") -> str:
-    """Exponent letter (``D`` or ``E``) used by the numbers of an original line."""
-    if not line:
-        return default
-    m = _EXP_LETTER.search(line)
-    if m is None:
-        return default
-    letter = m.group(1).upper()
-    return "E" if letter == "E" else "D"
 
 
-def _scan_numbers(
-    text: str,
-    count: int,
-    *,
-    path,
-    lineno: int,
-    what: str,
-    strict: bool = True,
-) -> tuple[list[float], str]:
-    """List-directed read of ``count`` numbers from ``text``; return them and the raw text after them.
-
-    With ``strict`` a further number after the ``count`` values is an error (a wrong number count), which
-    SPC's own reader would silently accept; trailing non-numeric text (the tag) is returned.
-    """
-    values: list[float] = []
-    end = 0
-    for m in _TOKEN.finditer(text):
-        tok = m.group()
-        if len(values) == count:
-            if strict and is_number(tok):
-                raise SpcFormatError(
-                    path, lineno, f"expected {count} {what}, found more than {count} numbers"
-                )
-            break
-        try:
-            values.append(parse_number(tok))
-        except ValueError:
-            found = f"found {len(values)} then {tok!r}" if values else f"found {tok!r}"
-            raise SpcFormatError(path, lineno, f"expected {count} {what}, {found}") from None
-        end = m.end()
-    if len(values) < count:
-        raise SpcFormatError(path, lineno, f"expected {count} {what}, found {len(values)}")
-    return values, text[end:]
 
 
-def _scan_fixed(text: str, count: int, width: int) -> tuple[list[float], str] | None:
-    """Fixed-width fallback (``countFwidth.d``) for fields that abut (e.g. ``-100000.00-100000.00``)."""
-    if len(text) < count * width:
-        return None
-    values = []
-    for k in range(count):
-        field_text = text[k * width : (k + 1) * width]
-        try:
-            values.append(parse_number(field_text))
-        except ValueError:
-            return None
-    return values, text[count * width :]
 
 
-_PLAIN = r"([+-]?(?:\d+(?:\.\d*)?|\.\d+))"  # unambiguous: no quadratic backtracking on long digit runs
-_FAST_ROW = {n: re.compile(r"\s*" + r"\s+".join([_PLAIN] * n) + r"(?=\s|\Z)(.*)\Z", re.S) for n in (2, 3)}
 
 
-def _scan_row(text: str, count: int, width: int, *, path, lineno: int, what: str) -> tuple[list[float], str]:
-    """Numbers of a section row: list-directed, falling back to fixed ``Fwidth`` columns."""
-    fast = _FAST_ROW.get(count)
-    if fast is not None:  # plain blank-separated decimals (every SPC-written row): one regex, no tokenising
-        m = fast.match(text)
-        if m is not None:
-            rest = m.group(count + 1)
-            first = rest.split(None, 1)
-            if not first or not is_number(first[0]):
-                return [float(m.group(k)) for k in range(1, count + 1)], rest
-    try:
-        return _scan_numbers(text, count, path=path, lineno=lineno, what=what)
-    except SpcFormatError:
-        fixed = _scan_fixed(text, count, width)
-        if fixed is None:
-            raise
-        return fixed
 
 
-def _is_integral(value: float) -> bool:
-    return float(value).is_integer()
 
 
-def _decimals_of(line: str | None, default: int) -> int:
-    """Number of decimals of the first fixed-point token of a line (``37.0371`` -> 4)."""
-    if not line:
-        return default
-    for tok in _TOKEN.findall(line):
-        if _FIXED.match(tok):
-            return len(tok.split(".", 1)[1])
-    return default
 
 
-def _tag_line(numbers: str, tag: str, padded: bool) -> str:
-    """``numbers`` (60 columns) + 3 blanks + tag at column 64, optionally padded to 80 columns."""
-    return _pad(numbers.ljust(60) + "   " + tag, padded)
 
 
-def _dvec(values, letter: str = "D", width: int = 20, decimals: int = 10) -> str:
-    return "".join(format_d(float(v), width, decimals, letter) for v in values)
 
 
-def _floats(values) -> tuple[float, ...]:
-    return tuple(float(v) for v in np.asarray(values, dtype=float).ravel())
 
 
-def _vector(value, shape: tuple[int, ...], name: str) -> np.ndarray:
-    arr = np.array(value, dtype=float)
-    if arr.size != int(np.prod(shape)):
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
-    return arr.reshape(shape)
 
 
-def _same(a, b) -> bool:
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        if a is None or b is None:
-            return False
-        return np.array_equal(np.asarray(a), np.asarray(b))
-    return a == b
 
 
-def _fields_equal(a, b, names: tuple[str, ...]) -> bool:
-    return all(_same(getattr(a, n), getattr(b, n)) for n in names)
 
 
-def _emit_rows(rows: list[tuple[tuple, str]], items, make) -> list[str]:
-    """Texts for section rows: the original texts when nothing changed, else unchanged rows keep theirs."""
-    keys = [item._key() for item in items]
-    if len(keys) == len(rows) and all(k == r[0] for k, r in zip(keys, rows)):
-        return [r[1] for r in rows]
-    pool = _RowPool(rows)
-    out = []
-    for item, key in zip(items, keys):
-        text = pool.take(key)
-        out.append(text if text is not None else make(item))
-    return out
 
 
-class _RowPool:
-    """Original row texts keyed by their parsed values; a row whose values are unchanged reuses its text."""
-
-    def __init__(self, rows: list[tuple[tuple, str]]):
-        self._pool: dict[tuple, list[str]] = {}
-        for key, text in rows:
-            self._pool.setdefault(key, []).append(text)
-
-    def take(self, key: tuple) -> str | None:
-        texts = self._pool.get(key)
-        if texts:
-            return texts.pop(0)
-        return None
 
 
-@dataclass
-class _Slot:
-    """One parsed header line: its key, original text and the values parsed from it."""
-
-    key: str
-    text: str | None = None
-    values: tuple | None = None
-    tag: str = ""
-
-    @property
-    def padded(self) -> bool | None:
-        return None if self.text is None else _is_padded(self.text)
 
 
-def _src_path(path):
-    return os.fspath(path) if path is not None else None
 
 
 # ==================================================================================================
@@ -353,7 +192,7 @@ class LimbFit:
 class _SumSource:
     """What a parsed SUM file looked like, for the byte-exact rewrite."""
 
-    header: list[_Slot]
+    header: list[Slot]
     section_text: dict[str, str]  # 'landmarks' / 'limbs' / 'end' -> original header line
     landmark_rows: list[tuple[tuple, str]]
     limb_rows: list[tuple[tuple, str]]
@@ -449,20 +288,20 @@ class Picture:
         self.npx = int(self.npx)
         self.nln = int(self.nln)
         self.mmfl = float(self.mmfl)
-        self.thrsh = _vector(self.thrsh, (2,), "thrsh")
-        self.ctr = _vector(self.ctr, (2,), "ctr")
+        self.thrsh = as_shaped(self.thrsh, (2,), "thrsh")
+        self.ctr = as_shaped(self.ctr, (2,), "ctr")
         for name in ("scobj", "cx", "cy", "cz", "sz", "sigma_vso", "sigma_ptg"):
-            setattr(self, name, _vector(getattr(self, name), (3,), name))
-        self.kmatrix = _vector(self.kmatrix, (2, 3), "kmatrix")
+            setattr(self, name, as_shaped(getattr(self, name), (3,), name))
+        self.kmatrix = as_shaped(self.kmatrix, (2, 3), "kmatrix")
         if self.distortion is not None:
-            self.distortion = _vector(self.distortion, (4,), "distortion")
+            self.distortion = as_shaped(self.distortion, (4,), "distortion")
         self.landmarks = list(self.landmarks)
         self.limb_fits = list(self.limb_fits)
 
     def __eq__(self, other):
         if not isinstance(other, Picture):
             return NotImplemented
-        return _fields_equal(self, other, _PICTURE_FIELDS)
+        return fields_equal(self, other, _PICTURE_FIELDS)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -545,15 +384,15 @@ def _picture_values(pic: Picture, key: str) -> tuple | None:
     if key == "utc":
         return (pic.utc,)
     if key == "npx":
-        return (pic.npx, pic.nln) + _floats(pic.thrsh)
+        return (pic.npx, pic.nln) + float_tuple(pic.thrsh)
     if key == "mmfl":
-        return (float(pic.mmfl),) + _floats(pic.ctr)
+        return (float(pic.mmfl),) + float_tuple(pic.ctr)
     if key == "kmatrix":
-        return _floats(pic.kmatrix)
+        return float_tuple(pic.kmatrix)
     if key == "distortion":
-        return None if pic.distortion is None else _floats(pic.distortion)
+        return None if pic.distortion is None else float_tuple(pic.distortion)
     attr = {"vso": "sigma_vso", "ptg": "sigma_ptg"}.get(key, key)
-    return _floats(getattr(pic, attr))
+    return float_tuple(getattr(pic, attr))
 
 
 def _section_kind(line: str) -> str | None:
@@ -581,8 +420,8 @@ def _classify_tag(tag: str) -> str | None:
 
 def parse_sum(text: str, path=None) -> Picture:
     """Parse the text of a SUM file (spc-formats.md §2).  Bad input raises :class:`SpcFormatError`."""
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     n = len(lines)
 
     def need(i: int, what: str) -> str:
@@ -592,7 +431,7 @@ def parse_sum(text: str, path=None) -> Picture:
             raise SpcFormatError(path, n, f"expected {what} on line {i + 1}, found end of file")
         return lines[i]
 
-    header: list[_Slot] = []
+    header: list[Slot] = []
     warnings: list[tuple[int, str]] = []
     rec = Records(lines, path)
 
@@ -607,13 +446,13 @@ def parse_sum(text: str, path=None) -> Picture:
         warnings.append(
             (1, f"blank picture-name line (SPC skips it: READ(10,*)); name {name!r} taken from the file name")
         )
-    header.append(_Slot("name", line, (name,)))
+    header.append(Slot("name", line, (name,)))
 
     # line 2: the UTC, skipped by READ(10,*) (globalStat): any text, even blank, is accepted
     line = need(1, "the UTC line")
     rec.skip()
     utc = line.strip()
-    header.append(_Slot("utc", line, (utc,)))
+    header.append(Slot("utc", line, (utc,)))
 
     def field(key: str, kinds: str, what: str):
         """One header READ(10,*) (globalStat / map_coverage_p_low), its tag checked against its place."""
@@ -630,7 +469,7 @@ def parse_sum(text: str, path=None) -> Picture:
                 "(SPC would keep the previous picture's value)",
             )
         tag = res.rest.strip()
-        _check_tag(tag, key, _SUM_TAGS, path, res.last + 1)
+        check_tag(tag, key, _SUM_TAGS, path, res.last + 1)
         more = tag.split(None, 1)[:1]
         if more and _is_real(more[0].rstrip(",")):
             warnings.append(
@@ -652,11 +491,11 @@ def parse_sum(text: str, path=None) -> Picture:
         raise SpcFormatError(path, 3, f"expected positive integers NPX, NLN, found {vals[0]!r}, {vals[1]!r}")
     npx, nln = int(vals[0]), int(vals[1])
     thrsh = np.array(vals[2:4], dtype=float)
-    header.append(_Slot("npx", text, (npx, nln, float(vals[2]), float(vals[3])), tag))
+    header.append(Slot("npx", text, (npx, nln, float(vals[2]), float(vals[3])), tag))
 
     def vec_line(key: str, count: int, what: str) -> list[float]:
         v, text, tag = field(key, "r" * count, what)
-        header.append(_Slot(key, text, tuple(float(x) for x in v), tag))
+        header.append(Slot(key, text, tuple(float(x) for x in v), tag))
         return v
 
     v = vec_line("mmfl", 3, "MMFL, CTR")
@@ -676,7 +515,7 @@ def parse_sum(text: str, path=None) -> Picture:
     rest: list[tuple[int, str, str | None]] = []
     while i < n and _section_kind(lines[i]) is None:
         ln = lines[i]
-        toks = _TOKEN.findall(ln)
+        toks = TOKEN.findall(ln)
         k = 0
         while k < len(toks) and _is_real(toks[k]):
             k += 1
@@ -704,7 +543,7 @@ def parse_sum(text: str, path=None) -> Picture:
                     ln[:80], "rrrr", [0.0] * 4, path=path, line=idx + 1, what="numbers (DISTORTION)"
                 )
                 v = [float(x) for x in res.values]
-                header.append(_Slot("distortion", ln, tuple(v), ln[63:].strip()))
+                header.append(Slot("distortion", ln, tuple(v), ln[63:].strip()))
                 distortion = np.array(v)
                 seen.add("distortion")
                 if len(ln) > 80 and ln[80:].strip():
@@ -716,7 +555,7 @@ def parse_sum(text: str, path=None) -> Picture:
             warnings.append(
                 (idx + 1, f"the DISTORTION tag {where}: SPC takes D = 0 (IF(LINE(64:73).EQ.'DISTORTION'))")
             )
-            header.append(_Slot("extra", ln))
+            header.append(Slot("extra", ln))
             continue
         if kind is None and idx == d_line and _d_like(ln):
             warnings.append(
@@ -729,7 +568,7 @@ def parse_sum(text: str, path=None) -> Picture:
         if kind in seen:
             kind = None  # a repeated role: keep verbatim
         if kind is None or kind == "other":
-            header.append(_Slot("extra", ln))
+            header.append(Slot("extra", ln))
             continue
         seen.add(kind)
         res = read_internal(ln, "rrr", path=path, line=idx + 1, what=f"numbers ({_SUM_TAGS[kind]})")
@@ -738,7 +577,7 @@ def parse_sum(text: str, path=None) -> Picture:
                 path, idx + 1, f"expected 3 numbers ({_SUM_TAGS[kind]}), found a null item or '/'"
             )
         v = [float(x) for x in res.values]
-        header.append(_Slot(kind, ln, tuple(v), res.rest.strip()))
+        header.append(Slot(kind, ln, tuple(v), res.rest.strip()))
         if kind == "vso":
             sigma_vso = np.array(v)
         else:
@@ -810,7 +649,7 @@ def parse_sum(text: str, path=None) -> Picture:
                     i + 1,
                     f"expected a limb row or END FILE in columns 1-8 (LMCOUNT), found {ln.strip()[:20]!r}",
                 )
-            lf = _parse_limb(ln, path, i + 1, name_width=6)
+            lf = parse_limb_row(ln, path, i + 1, name_width=6)
             limbs.append(lf)
             limb_rows.append((lf._key(), ln))
         else:  # pragma: no cover - header loop stops only at a section line
@@ -830,8 +669,8 @@ def parse_sum(text: str, path=None) -> Picture:
         linescan=linescan,
         after_end=lines[end_index + 1 :],
         final_newline=final,
-        pad_header=_majority_padded(lines[:header_end], False),
-        pad_body=_majority_padded(lines[header_end : end_index + 1], False),
+        pad_header=majority_padded(lines[:header_end], False),
+        pad_body=majority_padded(lines[header_end : end_index + 1], False),
         name_line=lines[0],
     )
     return Picture(
@@ -862,7 +701,7 @@ def _parse_sum_landmark(line: str, path, lineno: int) -> SumLandmark:
     name = line[:6].strip()
     if not name:
         raise SpcFormatError(path, lineno, "expected a landmark name in columns 1-6")
-    vals, rest = _scan_row(line[6:], 2, 10, path=path, lineno=lineno, what="numbers (landmark sample, line)")
+    vals, rest = scan_row(line[6:], 2, 10, path=path, lineno=lineno, what="numbers (landmark sample, line)")
     flag = rest.strip()
     if len(flag) > 1:
         raise SpcFormatError(
@@ -871,91 +710,70 @@ def _parse_sum_landmark(line: str, path, lineno: int) -> SumLandmark:
     return SumLandmark(name, vals[0], vals[1], flag)
 
 
-def _parse_limb(line: str, path, lineno: int, name_width: int):
+def parse_limb_row(line: str, path, lineno: int, name_width: int):
     """``(A6,3F10.2)`` (SUM) or ``(A12,3F10.2)`` (LMK): name, sample, line, value."""
     name = line[:name_width].strip()
     if not name:
         raise SpcFormatError(path, lineno, f"expected a name in columns 1-{name_width}")
-    vals, rest = _scan_row(line[name_width:], 3, 10, path=path, lineno=lineno, what="numbers (limb fit)")
+    vals, rest = scan_row(line[name_width:], 3, 10, path=path, lineno=lineno, what="numbers (limb fit)")
     if rest.strip():
         raise SpcFormatError(path, lineno, f"expected 3 numbers (limb fit), found trailing {rest.strip()!r}")
     return LimbFit(name, vals[0], vals[1], vals[2])
 
 
-def _row_text(name: str, width: int, values, decimals_width: tuple[int, int], flag: str = "") -> str:
-    if len(name) > width:
-        raise ValueError(f"name {name!r} is longer than {width} characters")
-    w, d = decimals_width
-    text = name.ljust(width) + "".join(_fixed(v, w, d) for v in values)
-    if flag:
-        text += " " + flag
-    return text
 
 
-def _int_field(value: int, width: int) -> str:
-    """gfortran ``Iw``, one column wider when the number would fill (abut) or overflow the field."""
-    text = format_i(int(value), width)
-    if not text.startswith(" "):
-        text = " " + str(int(value))
-    return text
 
 
 def _int_or_repr(value: float, width: int) -> str:
-    if _is_integral(value):
-        return _int_field(int(value), width)
+    if is_integral(value):
+        return int_field(int(value), width)
     return " " + repr(float(value))
 
 
-def _fixed(value: float, width: int, decimals: int) -> str:
-    """gfortran ``Fw.d``, except that a value filling all ``w`` columns (it would abut the previous field, or
-    overflow into asterisks) is written one column wider, so that a list-directed read still separates it."""
-    text = format_f(float(value), width, decimals)
-    if not text.startswith(" "):
-        text = " " + f"{float(value):.{decimals}f}"
-    return text
 
 
 def _k_text(values, decimals: int) -> str:
     """``6F10.d`` K-matrix numbers (d = 5 canonical, or the decimals of the line being replaced)."""
-    return "".join(_fixed(v, 10, decimals) for v in values)
+    return "".join(fixed_field(v, 10, decimals) for v in values)
 
 
-def _sum_line(pic: Picture, slot: _Slot, padded: bool) -> str:
+def _sum_line(pic: Picture, slot: Slot, padded: bool) -> str:
     """Regenerate one SUM header line (spc-formats.md §2.3 canonical / LITHOS formats)."""
     key = slot.key
     if key == "name":
         rest = slot.text[12:] if slot.text else ""
         text = pic.name.ljust(12) + rest if rest.strip() else pic.name
-        return _pad(text, padded)
+        return pad80(text, padded)
     if key == "utc":
-        return _pad(pic.utc, padded)
+        return pad80(pic.utc, padded)
     tag = slot.tag or _SUM_TAGS[key]
-    letter = _letter_of(slot.text)
+    letter = exponent_letter(slot.text)
     if key == "npx":
         nums = "".join(_int_or_repr(v, 6) for v in (pic.npx, pic.nln, *pic.thrsh))
     elif key == "mmfl":
-        nums = _dvec([pic.mmfl, *pic.ctr], letter)
+        nums = d_fields([pic.mmfl, *pic.ctr], letter)
     elif key == "kmatrix":
-        nums = _k_text(_floats(pic.kmatrix), _decimals_of(slot.text, 5))
+        nums = _k_text(float_tuple(pic.kmatrix), decimals_of(slot.text, 5))
     elif key == "distortion":
-        nums = _dvec(pic.distortion, letter, 15, 5)
+        nums = d_fields(pic.distortion, letter, 15, 5)
     else:
-        nums = _dvec(_picture_values(pic, key), letter)
-    return _tag_line(nums, tag, padded)
+        nums = d_fields(_picture_values(pic, key), letter)
+    return tag_line(nums, tag, padded)
 
 
 def format_sum(pic: Picture) -> str:
     """SUM file text.  Unchanged lines of a parsed file are reproduced byte for byte."""
     src = pic._source
     if src is None:
-        slots = [_Slot(k) for k in _SUM_ORDER]
+        slots = [Slot(k) for k in _SUM_ORDER]
         pad_header = pad_body = False
     else:
         slots = list(src.header)
         pad_header, pad_body = src.pad_header, src.pad_body
         if pic.distortion is not None and not any(s.key == "distortion" for s in slots):
             at = next(j for j, s in enumerate(slots) if s.key == "kmatrix") + 1
-            slots.insert(at, _Slot("distortion"))
+            slots.insert(at, Slot("distortion"))
     out: list[str] = []
     for slot in slots:
         if slot.key == "extra":
@@ -973,17 +791,17 @@ def format_sum(pic: Picture) -> str:
     linescan = src.linescan if src is not None else None
 
     def header_line(kind: str, text: str) -> str:
-        return sections.get(kind, _pad(text, pad_body))
+        return sections.get(kind, pad80(text, pad_body))
 
     if linescan is not None and linescan[0] == "header":
         out.extend(linescan[1])
     if src is None or "landmarks" in sections or pic.landmarks:
         out.append(header_line("landmarks", "LANDMARKS"))
     out.extend(
-        _emit_rows(
+        emit_rows(
             src.landmark_rows if src is not None else [],
             pic.landmarks,
-            lambda lm: _pad(_row_text(lm.name, 6, (lm.sample, lm.line), (10, 2), lm.flag), pad_body),
+            lambda lm: pad80(row_text(lm.name, 6, (lm.sample, lm.line), (10, 2), lm.flag), pad_body),
         )
     )
     if linescan is not None and linescan[0] == "landmarks":
@@ -991,10 +809,10 @@ def format_sum(pic: Picture) -> str:
     if src is None or "limbs" in sections or pic.limb_fits:
         out.append(header_line("limbs", "LIMB FITS"))
     out.extend(
-        _emit_rows(
+        emit_rows(
             src.limb_rows if src is not None else [],
             pic.limb_fits,
-            lambda lf: _pad(_row_text(lf.name, 6, (lf.sample, lf.line, lf.value), (10, 2)), pad_body),
+            lambda lf: pad80(row_text(lf.name, 6, (lf.sample, lf.line, lf.value), (10, 2)), pad_body),
         )
     )
     if linescan is not None and linescan[0] == "limbs":
@@ -1002,7 +820,7 @@ def format_sum(pic: Picture) -> str:
     out.append(header_line("end", "END FILE"))
     if src is not None:
         out.extend(src.after_end)
-    return _join_lines(out, src.final_newline if src is not None else True)
+    return join_lines(out, src.final_newline if src is not None else True)
 
 
 def read_sum(path) -> Picture:
@@ -1025,7 +843,7 @@ def write_sum(path, pic: Picture, *, overwrite: bool = True, backup: bool = Fals
 
 @dataclass
 class _NomSource:
-    header: list[_Slot]
+    header: list[Slot]
     end_line: str
     after_end: list[str]
     final_newline: bool
@@ -1070,13 +888,13 @@ class Nominal:
 
     def __post_init__(self):
         for name in ("frame_vector", "scobj", "sigma_vso", "cx", "cy", "cz", "sigma_ptg"):
-            setattr(self, name, _vector(getattr(self, name), (3,), name))
+            setattr(self, name, as_shaped(getattr(self, name), (3,), name))
         self.extra_lines = list(self.extra_lines)
 
     def __eq__(self, other):
         if not isinstance(other, Nominal):
             return NotImplemented
-        return _fields_equal(self, other, _NOMINAL_FIELDS)
+        return fields_equal(self, other, _NOMINAL_FIELDS)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -1090,23 +908,23 @@ def _nominal_values(nom: Nominal, key: str) -> tuple:
     if key == "name":
         return (nom.name,)
     if key == "frame":
-        return _floats(nom.frame_vector) + (nom.frame_tag,)
+        return float_tuple(nom.frame_vector) + (nom.frame_tag,)
     attr = {"vso": "sigma_vso", "ptg": "sigma_ptg"}.get(key, key)
-    return _floats(getattr(nom, attr))
+    return float_tuple(getattr(nom, attr))
 
 
 def parse_nom(text: str, path=None) -> Nominal:
     """Parse the text of a NOM file (spc-formats.md §3); lines are read by position."""
-    path = _src_path(path)
-    lines, final = _split_lines(text)
+    path = source_path(path)
+    lines, final = split_lines(text)
     n = len(lines)
     if n == 0:
         raise SpcFormatError(path, 1, "expected the picture name, found an empty file")
-    header: list[_Slot] = []
+    header: list[Slot] = []
     name = lines[0][:12].strip()
     if not name:
         raise SpcFormatError(path, 1, "expected the picture name in columns 1-12")
-    header.append(_Slot("name", lines[0], (name,)))
+    header.append(Slot("name", lines[0], (name,)))
     values: dict[str, list[float]] = {}
     frame_tag = ""
     whats = {"frame": "frame vector", **_NOM_TAGS}
@@ -1127,10 +945,10 @@ def parse_nom(text: str, path=None) -> Nominal:
         values[key] = v
         if key == "frame":
             frame_tag = t
-            header.append(_Slot(key, ln, tuple(v) + (frame_tag,), frame_tag))
+            header.append(Slot(key, ln, tuple(v) + (frame_tag,), frame_tag))
         else:
-            _check_tag(t, key, _NOM_TAGS, path, res.last + 1)
-            header.append(_Slot(key, ln, tuple(v), t))
+            check_tag(t, key, _NOM_TAGS, path, res.last + 1)
+            header.append(Slot(key, ln, tuple(v), t))
     i = rec.pos
     extra: list[str] = []
     while i < n and not lines[i].startswith("END FILE"):
@@ -1143,7 +961,7 @@ def parse_nom(text: str, path=None) -> Nominal:
         end_line=lines[i],
         after_end=lines[i + 1 :],
         final_newline=final,
-        pad=_majority_padded(lines[: i + 1], False),
+        pad=majority_padded(lines[: i + 1], False),
     )
     return Nominal(
         name=name,
@@ -1163,7 +981,7 @@ def parse_nom(text: str, path=None) -> Nominal:
 def format_nom(nom: Nominal) -> str:
     """NOM file text; unchanged lines of a parsed file are reproduced byte for byte."""
     src = nom._source
-    slots = src.header if src is not None else [_Slot(k) for k in _NOM_ORDER]
+    slots = src.header if src is not None else [Slot(k) for k in _NOM_ORDER]
     pad = src.pad if src is not None else False
     out: list[str] = []
     for slot in slots:
@@ -1172,17 +990,19 @@ def format_nom(nom: Nominal) -> str:
             continue
         padded = slot.padded if slot.padded is not None else pad
         if slot.key == "name":
-            out.append(_pad(nom.name, padded))
+            out.append(pad80(nom.name, padded))
         elif slot.key == "frame":
-            out.append(_tag_line(_dvec(nom.frame_vector, _letter_of(slot.text)), nom.frame_tag, padded))
+            numbers = d_fields(nom.frame_vector, exponent_letter(slot.text))
+            out.append(tag_line(numbers, nom.frame_tag, padded))
         else:
             vals = _nominal_values(nom, slot.key)
-            out.append(_tag_line(_dvec(vals, _letter_of(slot.text)), slot.tag or _NOM_TAGS[slot.key], padded))
+            numbers = d_fields(vals, exponent_letter(slot.text))
+            out.append(tag_line(numbers, slot.tag or _NOM_TAGS[slot.key], padded))
     out.extend(nom.extra_lines)
     out.append(src.end_line if src is not None else "END FILE")
     if src is not None:
         out.extend(src.after_end)
-    return _join_lines(out, src.final_newline if src is not None else True)
+    return join_lines(out, src.final_newline if src is not None else True)
 
 
 def read_nom(path) -> Nominal:
