@@ -214,17 +214,23 @@ class HeightPatch:
         feet = self.bottom_points[self.wall_index >= 0]
         return np.ascontiguousarray(np.concatenate([self.node_points.reshape(-1, 3), feet]))
 
-    def facet_slopes(self, x, y):
-        """(hx, hy): slopes of the flat triangle under maplet-frame (x, y) (two per cell, split along the
-        (i, j)–(i+1, j+1) diagonal), the shading of ``shading="facet"``."""
+    def _cells(self, x, y):
+        """(i, j, fu, fw): the cell under maplet-frame (x, y) cells (clamped to the grid) and the fractions
+        of the way across it along axes 0 and 1."""
         n = self.heights.shape[0]
         q = self.qsz
         u = np.clip(np.asarray(x, dtype=np.float64) + q, 0.0, n - 1.0)
         w = np.clip(np.asarray(y, dtype=np.float64) + q, 0.0, n - 1.0)
         i = np.minimum(np.floor(u).astype(np.intp), n - 2)
         j = np.minimum(np.floor(w).astype(np.intp), n - 2)
+        return i, j, u - i, w - j
+
+    def facet_slopes(self, x, y):
+        """(hx, hy): slopes of the flat triangle under maplet-frame (x, y) (two per cell, split along the
+        (i, j)–(i+1, j+1) diagonal), the shading of ``shading="facet"``."""
+        i, j, fu, fw = self._cells(x, y)
         h = self.heights
-        lower = (u - i) >= (w - j)
+        lower = fu >= fw
         hx = np.where(lower, h[i + 1, j] - h[i, j], h[i + 1, j + 1] - h[i, j + 1])
         hy = np.where(lower, h[i + 1, j + 1] - h[i + 1, j], h[i, j + 1] - h[i, j])
         return hx, hy
@@ -243,14 +249,7 @@ class HeightPatch:
 
     def interpolate(self, x, y):
         """Bilinear (height, hx, hy, albedo) at maplet-frame (x, y) cells; x along UX, y along UY."""
-        n = self.heights.shape[0]
-        q = self.qsz
-        u = np.clip(np.asarray(x, dtype=np.float64) + q, 0.0, n - 1.0)
-        w = np.clip(np.asarray(y, dtype=np.float64) + q, 0.0, n - 1.0)
-        i = np.minimum(np.floor(u).astype(np.intp), n - 2)
-        j = np.minimum(np.floor(w).astype(np.intp), n - 2)
-        fu = u - i
-        fw = w - j
+        i, j, fu, fw = self._cells(x, y)
         w00 = (1 - fu) * (1 - fw)
         w10 = fu * (1 - fw)
         w01 = (1 - fu) * fw

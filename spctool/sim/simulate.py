@@ -543,12 +543,7 @@ def build_world(spec: Spec, progress=None, max_memory: int | None = None) -> Wor
         suns.append(sun)
     # landmarks
     m = spec.maplets
-    if m.positions:
-        count = len(m.positions)
-    elif m.names:
-        count = len(m.names)
-    else:
-        count = m.count
+    count = spec.landmark_count
     names = list(m.names) if m.names else landmark_names(m.prefix, count)
     if len(names) != count:
         raise SpcUsageError(f"[maplets] names gives {len(names)} names for {count} landmarks")

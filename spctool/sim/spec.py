@@ -107,6 +107,16 @@ class Spec:
     def seed(self) -> int:
         return self.sections[""].seed
 
+    @property
+    def landmark_count(self) -> int:
+        """Landmarks of the world: one per ``[maplets] positions`` entry, else per name, else ``count``."""
+        m = self.sections["maplets"]
+        if m.positions:
+            return len(m.positions)
+        if m.names:
+            return len(m.names)
+        return int(m.count)
+
     def to_dict(self) -> dict:
         """The resolved specification as plain data (TOML-like nesting)."""
         out: dict = {}
@@ -312,12 +322,7 @@ def memory_estimate(spec: Spec) -> dict[str, float]:
     """Peak memory (bytes) of each part of :func:`build_world` / :func:`simulate` for ``spec``,
     from the sizes alone (nothing allocated): ``shape``, ``truth``, ``photos``, ``total``."""
     b, m, c, d = spec.body, spec.maplets, spec.camera, spec.detector
-    if m.positions:
-        count = len(m.positions)
-    elif m.names:
-        count = len(m.names)
-    else:
-        count = m.count
+    count = spec.landmark_count
     n_truth = 2 * m.truth_factor * (m.qsz + m.margin) + 1
     shape = 6.0 * (float(b.q) + 1) ** 2 * _BYTES_PER_VERTEX
     truth = float(count) * float(n_truth) ** 2 * _BYTES_PER_TRUTH_NODE
