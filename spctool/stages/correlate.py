@@ -566,44 +566,52 @@ def _k_usable(me, mp, o0, o1, i, j):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True)
 def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: no cover - compiled
-    """:func:`gradient_offset`'s least squares in two passes over P rows i0 ≤ i < i1, columns
+    """:func:`gradient_offset`'s least squares in two passes, over P rows i0 ≤ i < i1, columns
     j0 ≤ j < j1 (E at + (o0, o1)), over the pixels valid in both whose four axis neighbours are valid
-    in P: the means of P, E and the central differences (g_r, g_c), then the normal matrix of the
-    centred regressors (P, g_r, g_c) and its right-hand side with the centred E.  Returns the count."""
+    in P: the first finds those pixels, keeps their regressors (P, g_r, g_c) and E in scan order and
+    sums them for the means; the second forms the normal matrix of the centred regressors and its
+    right-hand side with the centred E from the kept values (the same sums in the same order as
+    recomputing them from the images, without a second pass over the masks).  Returns the count."""
+    kept = np.empty((max(0, (i1 - i0) * (j1 - j0)), 4))
     n = 0
     sp = se = sr = sc = 0.0
     for i in range(i0, i1):
         for j in range(j0, j1):
             if not _k_usable(me, mp, o0, o1, i, j):
                 continue
+            x0 = p[i, j]
+            x1 = 0.5 * (p[i + 1, j] - p[i - 1, j])
+            x2 = 0.5 * (p[i, j + 1] - p[i, j - 1])
+            y = e[i + o0, j + o1]
+            kept[n, 0] = x0
+            kept[n, 1] = x1
+            kept[n, 2] = x2
+            kept[n, 3] = y
             n += 1
-            sp += p[i, j]
-            se += e[i + o0, j + o1]
-            sr += 0.5 * (p[i + 1, j] - p[i - 1, j])
-            sc += 0.5 * (p[i, j + 1] - p[i, j - 1])
+            sp += x0
+            se += y
+            sr += x1
+            sc += x2
     if n == 0:
         return 0
     mp_ = sp / n
     me_ = se / n
     mr = sr / n
     mc = sc / n
-    for i in range(i0, i1):
-        for j in range(j0, j1):
-            if not _k_usable(me, mp, o0, o1, i, j):
-                continue
-            x0 = p[i, j] - mp_
-            x1 = 0.5 * (p[i + 1, j] - p[i - 1, j]) - mr
-            x2 = 0.5 * (p[i, j + 1] - p[i, j - 1]) - mc
-            y = e[i + o0, j + o1] - me_
-            normal[0, 0] += x0 * x0
-            normal[0, 1] += x0 * x1
-            normal[0, 2] += x0 * x2
-            normal[1, 1] += x1 * x1
-            normal[1, 2] += x1 * x2
-            normal[2, 2] += x2 * x2
-            rhs[0] += x0 * y
-            rhs[1] += x1 * y
-            rhs[2] += x2 * y
+    for k in range(n):
+        x0 = kept[k, 0] - mp_
+        x1 = kept[k, 1] - mr
+        x2 = kept[k, 2] - mc
+        y = kept[k, 3] - me_
+        normal[0, 0] += x0 * x0
+        normal[0, 1] += x0 * x1
+        normal[0, 2] += x0 * x2
+        normal[1, 1] += x1 * x1
+        normal[1, 2] += x1 * x2
+        normal[2, 2] += x2 * x2
+        rhs[0] += x0 * y
+        rhs[1] += x1 * y
+        rhs[2] += x2 * y
     normal[1, 0] = normal[0, 1]
     normal[2, 0] = normal[0, 2]
     normal[2, 1] = normal[1, 2]
