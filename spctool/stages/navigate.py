@@ -32,8 +32,8 @@ Pass 2 (refinement): every landmark — also those pass 1 did not find or the po
 registered again with the solved camera, starting at the projection of its position, with the
 ``refine_spacings`` (2, 1: ±10 cells), its converged stage starting from the secant Jacobian pass 1's
 left (:attr:`RegisterResult.converge_jacobian`: the estimator's gain, ~1.5 on sharp image-space
-templates, is not learned twice; the measurements do not depend on it); then the pose is solved again
-from the a-priori pose.  A
+templates, is not learned twice; the measurements move by no more than the stage's tolerance allows);
+then the pose is solved again from the a-priori pose.  A
 landmark is in the result when pass 2 measured it (``ok``); its pass-1 pixel is kept for the report.
 
 When pass 1 yields no pose (fewer than ``min_landmarks`` found, degenerate geometry), pass 2 is not run

@@ -267,8 +267,10 @@ def register(
     a dict shared by several calls on the same maplets, not modified in between (navigate's passes),
     in which image space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`).
     ``converge_jacobian`` (N, 2, 2): where the converged stage's secant Jacobians start (a previous
-    pass's :attr:`RegisterResult.converge_jacobian` on the same maplets; NaN rows or None: −I); the
-    stage's zero, and so the result, does not depend on it, only the number of steps does (:func:`_converge`).
+    pass's :attr:`RegisterResult.converge_jacobian` on the same maplets; NaN rows or None: −I).  The
+    stage's zero does not depend on it; the number of steps does, and so where within ``converge_tol``
+    of the zero the stage stops (:func:`_converge`; navigate's pass 2 measured ≤ 0.0005 px apart on the
+    independent worlds, ≤ 0.0025 px on the 16-landmark benchmark picture).
     """
     opts = options if options is not None else RegisterOptions()
     reg = Registrar(photo, sun, maplets, thresholds, opts, names, patch_cache=patch_cache)
