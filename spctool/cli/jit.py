@@ -32,7 +32,7 @@ FAMILIES = {
         ("spctool.stages.extract", "_brt0_kernel"),
         ("spctool.stages.correlate", "_k_ncc"),
     ),
-    "rays": (("spctool.geometry._raykernels", "trace"),),
+    "rays": (("spctool.geometry._raykernels", "trace"), ("spctool.geometry._bvhkernels", "build_patch_tree")),
     "render": (("spctool.geometry._patchkernels", "_fused_rays"),),
 }
 _PIPELINE = ("camera", "maplet", "rays")

@@ -32,7 +32,8 @@ Two representations share one contract (:class:`HitResult`, ``first_hit``, ``any
   faster on 3 M triangles) though ~2× slower for incoherent shadow rays, and gives the same answer
   whether or not ``embreex`` is installed, so ``backend="auto"`` means numba; Embree is opt-in.
 
-Both traversals are numba kernels (:mod:`spctool.geometry._raykernels`): a stack-based, nearest-child-
+Both traversals are numba kernels (:mod:`spctool.geometry._raykernels`; the trees are built by
+:mod:`spctool.geometry._bvhkernels`): a stack-based, nearest-child-
 first walk with t-pruning for first hits and early exit for any-hit queries over a packed 4-wide
 hierarchy (float32 boxes rounded outward), parallel over rays.  Batches of ≥ 4096 rays are traced in
 a coherent order (rays sorted by direction, then origin, by an O(n) radix sort) and the results
@@ -60,6 +61,7 @@ from functools import cached_property
 
 import numpy as np
 
+from spctool.geometry import _bvhkernels as _bvh
 from spctool.geometry import _raykernels as _rk
 
 __all__ = [
@@ -262,7 +264,7 @@ class _Shape:
         bounds, first, count, leaf, prims = tree
         if leaf.any() and count[leaf.astype(bool)].max() > 7:
             raise AssertionError("BVH leaves must hold at most 7 primitives")
-        root, nb, nc = _rk.pack4(bounds, first, count, leaf)
+        root, nb, nc = _bvh.pack4(bounds, first, count, leaf)
         self.bvh_root_box = root
         self.bvh_boxes = _outward_f32(nb)
         self.bvh_refs = nc
@@ -478,7 +480,7 @@ class PatchShape(_Shape):
         self._eps = float(eps)
         self.eps = float(eps)
         self._faces = np.zeros((0, 3), np.int64)
-        self._set_tree(_rk.build_patch_tree(self._verts, self.q, int(leaf_side), self._eps,
+        self._set_tree(_bvh.build_patch_tree(self._verts, self.q, int(leaf_side), self._eps,
                                             _pad_for(self._verts)))
 
     @property
@@ -625,7 +627,7 @@ class TriangleShape(_Shape):
         hi = tri.max(axis=1) + pad
         if not 1 <= leaf_size <= 7:
             raise ValueError("leaf_size must be 1…7")
-        self._set_tree(_rk.build_sah_tree(np.ascontiguousarray(lo), np.ascontiguousarray(hi),
+        self._set_tree(_bvh.build_sah_tree(np.ascontiguousarray(lo), np.ascontiguousarray(hi),
                                           int(leaf_size), 16))
         self._scene = None
         if backend == "embree":
