@@ -32,6 +32,7 @@ import numpy as np
 
 from spctool.errors import SpcFormatError
 from spctool.formats.atomic import read_text, write_bytes, write_text
+from spctool.formats.icq import parse_icq
 
 __all__ = [
     "TriangleMesh",
@@ -733,8 +734,6 @@ def read_shape(path):
             raise SpcFormatError(
                 path, 1, f"expected the ICQ resolution Q, found a {len(first.strip())}-digit number"
             )
-        from spctool.formats.icq import parse_icq  # lazily: icq starts numba
-
         return parse_icq(text, path)
     if re.search(r"(?m)^\s*v\s", text):
         return parse_obj(text, path)
