@@ -228,12 +228,13 @@ class RegisterOptions:
             raise SpcUsageError(
                 f"converge_peak must be one of {', '.join(PEAK_METHODS)}, got {self.converge_peak!r}"
             )
-        if self.template_shading not in ("smooth", "facet"):
-            raise SpcUsageError(f"template_shading must be smooth or facet, got {self.template_shading!r}")
-        if self.template_visibility not in ("raster", "march"):
-            raise SpcUsageError(
-                f"template_visibility must be raster or march, got {self.template_visibility!r}"
-            )
+        from spctool.stages.render import SHADINGS, VISIBILITIES  # the renderer's own lists
+
+        for name, allowed in (("template_shading", SHADINGS), ("template_visibility", VISIBILITIES)):
+            if getattr(self, name) not in allowed:
+                raise SpcUsageError(
+                    f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
+                )
         if self.threads is not None and int(self.threads) < 1:
             raise SpcUsageError(f"threads must be >= 1, got {self.threads}")
         if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
@@ -694,10 +695,8 @@ class Registrar:
             if kept is not None and kept[0] is m:
                 lm.patch = kept[1]
             else:
-                patch = HeightPatch(
-                    m.heights, m.scale, m.v, m.ux, m.uy, m.uz, albedo=m.albedo, valid=m.valid, name=lm.name
-                )
-                lm.patch = PatchSet([patch])  # packed once per landmark, reused by every render
+                # packed once per landmark, reused by every render
+                lm.patch = PatchSet([HeightPatch.from_maplet(m, name=lm.name)])
                 if self.patch_cache is not None:
                     self.patch_cache[id(m)] = (m, lm.patch)
         patch = lm.patch.patches[0]
