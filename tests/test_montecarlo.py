@@ -292,6 +292,9 @@ def test_default_plans():
     assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
     assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]
     assert coarse.converge_max == 0 and fine.converge_max > 0  # the fine phase ends converged
+    # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then
+    assert coarse.acquire_reach == mc.IMAGE_ACQUIRE_REACH == 48 and coarse.steps[0] == 4
+    assert coarse.grid_half == fine.grid_half == mc.IMAGE_GRID_HALF == 3
     assert len(mc.default_plan("image", refine=0)) == 1
     with pytest.raises(SpcUsageError):
         mc.default_plan("pixel")

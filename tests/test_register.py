@@ -873,7 +873,11 @@ def test_acquisition_grid_and_margin():
     acq = _acquisition(RegisterOptions(acquire_reach=20), 10)
     assert acq == {"grid_half": 5, "margin": 60}
     assert _acquisition(RegisterOptions(acquire_reach=72), 1) == {}  # a spacing-1 start: nothing to widen
-    assert _acquisition(RegisterOptions(acquire_reach=72, space="image"), 10) == {}
+    # image space (px): the photo is cropped around the template for any grid, at any spacing
+    assert _acquisition(RegisterOptions(acquire_reach=72, space="image"), 10) == {"grid_half": 8}
+    assert _acquisition(RegisterOptions(acquire_reach=48, space="image", grid_half=3), 4) == {"grid_half": 12}
+    assert _acquisition(RegisterOptions(acquire_reach=7, space="image"), 1) == {"grid_half": 7}
+    assert _acquisition(RegisterOptions(space="image"), 4) == {}
     for bad in (-1, 2.5):
         with pytest.raises(SpcUsageError):
             RegisterOptions(acquire_reach=bad)
@@ -930,6 +934,28 @@ def test_acquire_reach_finds_what_the_maplet_grid_loses(scene):
     ]
     assert out[0].status == out[1].status == ["ok"]
     np.testing.assert_allclose(out[1].measured, out[0].measured, atol=0.005)
+
+
+def test_image_space_acquire_reach_widens_only_the_first_spacing(scene):
+    """Image space: a (30, −20) px pointing error is beyond ±3 bins at L = 4 (±12 px) but within
+    acquire_reach = 48 px; with the reach only the L = 4 step searches 25 × 25 bins, the later steps
+    keep the ±3 grid, and the measurement is the one a ±12 grid at every step gives (to the last
+    bits: the peaks all sit within ±3 bins after the acquisition)."""
+
+    def run(**kw):
+        opts = RegisterOptions(space="image", supersample=1, steps=(4, 2, 1), keep_images=True, **kw)
+        return register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+
+    cam = rs.pointing_error(scene.camera, 30.0, -20.0)
+    narrow = run(grid_half=3)
+    assert narrow.status[0] != "ok"  # ±12 px at L = 4: the landmark is beyond the search
+    reach = run(grid_half=3, acquire_reach=48)
+    wide = run(grid_half=12)
+    assert reach.status == wide.status == ["ok"]
+    assert np.all(_err(reach, scene.truth_pixel) <= 0.05)
+    assert reach.last_steps[0].correlation.surface.shape == (7, 7)  # the converged stage's grid
+    assert wide.last_steps[0].correlation.surface.shape == (25, 25)
+    np.testing.assert_allclose(reach.measured, wide.measured, rtol=0, atol=1e-9)
 
 
 def test_disagreeing_shifts_names_the_landmarks_that_moved_unlike_the_others():

@@ -267,6 +267,14 @@ class MonteCarloConfig:
 S16_ACQUIRE_REACH = 72
 
 
+#: the image plan's search: ±IMAGE_ACQUIRE_REACH px at its first spacing (L = 4: a 25 × 25 grid, 3.8σ
+#: of the a-priori pixel), then ±IMAGE_GRID_HALF bins at L = 2 and 1 and in the fine phase, where the
+#: estimate is already within a bin or two (the same measurements as ±12 throughout on the s16-50m
+#: preset, to 1e-13 px, for a tenth of the correlations' cost)
+IMAGE_ACQUIRE_REACH = 48
+IMAGE_GRID_HALF = 3
+
+
 def acquire_reach_for(sigma_scale: float) -> int:
     """The maplet plan's first-step reach (cells) for Table 2's sigmas multiplied by ``sigma_scale``."""
     return round(S16_ACQUIRE_REACH * float(sigma_scale))
@@ -290,8 +298,9 @@ def default_plan(
       99.0 % with 2 × 2 phases, 99.8 % with the reach).  ``first_phases`` (default 1): the first step
       at p × p phases.  ``refine=0, acquire_reach=0, first_phases=1`` is S16's schedule exactly.
     * ``"image"`` — S16's image-space direction (Retina; S16 gives no schedule): a coarse search at
-      L = 4, 2, 1 on a 25 × 25 grid (±48 px at L = 4: the search is not limited by the maplet) with the
-      template rendered once (re-rendered only if its sub-pixel placement moves by more than half a bin),
+      L = 4, 2, 1, ±48 px at L = 4 (a 25 × 25 grid: the search is not limited by the maplet; the
+      image-space ``acquire_reach``), then ±3 bins (:data:`IMAGE_GRID_HALF`), with the template
+      rendered once (re-rendered only if its sub-pixel placement moves by more than half a bin),
       then ``refine`` steps at L = 1 that re-render the template at the current estimate every time,
       ending with register's converged stage (the coarse phase then runs its schedule only).
 
@@ -324,7 +333,8 @@ def default_plan(
             space="image",
             supersample=1,
             steps=(4, 2, 1),
-            grid_half=12,
+            grid_half=IMAGE_GRID_HALF,
+            acquire_reach=IMAGE_ACQUIRE_REACH,
             rerender_tol=0.5,
         )
         if refine:  # the fine phase ends converged; the coarse one only acquires
@@ -332,7 +342,13 @@ def default_plan(
         coarse.update(changes)
         plan = [RegisterOptions(**coarse)]
         if refine:
-            fine = dict(schedule="retina_s16", space="image", supersample=1, grid_half=5, rerender_tol=0.0)
+            fine = dict(
+                schedule="retina_s16",
+                space="image",
+                supersample=1,
+                grid_half=IMAGE_GRID_HALF,
+                rerender_tol=0.0,
+            )
             fine.update({k: v for k, v in changes.items() if k not in ("steps", "grid_half")})
             fine["steps"] = (1,) * refine
             plan.append(RegisterOptions(**fine))

@@ -611,13 +611,16 @@ def _phased_first_step(reg: Registrar, i, camera, c, n: int, st0: LandmarkStep, 
 
 
 def _acquisition(opts, spacing: int) -> dict:
-    """``acquire_reach``'s search at the schedule's first spacing n (maplet space, n ≥ 2), as keyword
-    arguments of :meth:`Registrar.step`: ``{}`` when off, else the grid ``grid_half`` k = max(grid_half,
-    ⌈reach / n⌉) and the extraction's ``margin`` (k + 1)·n cells, so that every offset of the grid
-    compares the whole prediction."""
-    if opts.acquire_reach <= 0 or opts.space != "maplet" or spacing < 2:
+    """``acquire_reach``'s search at the schedule's first spacing n, as keyword arguments of
+    :meth:`Registrar.step`: ``{}`` when off, else the grid ``grid_half`` k = max(grid_half,
+    ⌈reach / n⌉) and, in maplet space (n ≥ 2), the extraction's ``margin`` (k + 1)·n cells, so that
+    every offset of the grid compares the whole prediction (image space crops the photo around the
+    template by (k + 1)·n px itself)."""
+    if opts.acquire_reach <= 0 or (opts.space == "maplet" and spacing < 2):
         return {}
     k = max(int(opts.grid_half), -(-int(opts.acquire_reach) // spacing))
+    if opts.space == "image":
+        return {"grid_half": k}
     return {"grid_half": k, "margin": (k + 1) * spacing}
 
 

@@ -133,7 +133,9 @@ class RegisterOptions:
       0 (the default) is S16/SPC: the extraction is the maplet's own grid, an offset of j cells keeps
       (N − j)/N of the overlap per axis, and the reach ends near N/2 cells (an N = 99 maplet at L = 10:
       ±50 cells, where partial-overlap maxima on the grid's border compete with the landmark).  Set it
-      from the a-priori uncertainty (the Monte Carlo: 4σ of the a-priori pixel, in cells).
+      from the a-priori uncertainty (the Monte Carlo: 4σ of the a-priori pixel, in cells).  Image
+      space (px): the steps at the first spacing L search ±k·L px (the photo is cropped around the
+      template for any grid), so a wide acquisition need not make every later step as wide.
     * ``pose_update`` — AUTOREGISTER driver: pose solve after each align pass (True);
       ``halve_shift`` — apply ½ of every shift (False); ``min_pose_landmarks`` — accepted landmarks
       needed for a pose solve (3).
@@ -246,7 +248,9 @@ class RegisterOptions:
             raise SpcUsageError(f"first_phases must be an integer from 1 to 4, got {self.first_phases}")
         self.first_phases = int(self.first_phases)
         if int(self.acquire_reach) != self.acquire_reach or int(self.acquire_reach) < 0:
-            raise SpcUsageError(f"acquire_reach must be an integer >= 0 (cells), got {self.acquire_reach}")
+            raise SpcUsageError(
+                f"acquire_reach must be an integer >= 0 (cells; px in image space), got {self.acquire_reach}"
+            )
         self.acquire_reach = int(self.acquire_reach)
         if not float(self.converge_tol) > 0.0:
             raise SpcUsageError(f"converge_tol must be > 0 px, got {self.converge_tol}")
@@ -766,7 +770,7 @@ class Registrar:
         disp = center - c0
         frac = disp - np.round(disp)
         rend, f_t, window = self._template(lm, camera, frac, spacing, draft)
-        g = 2 * self._copts.grid_half + 1
+        g = 2 * copts.grid_half + 1
         if rend is None:
             corr = Correlation(
                 np.full((g, g), np.nan),
@@ -787,7 +791,7 @@ class Registrar:
         if not self.options.image_shadows:
             tvalid &= tmpl > 0.0
         # photo crop: the template window moved by the integer placement, plus the search margin
-        marg = (self._copts.grid_half + 1) * int(spacing)
+        marg = (copts.grid_half + 1) * int(spacing)
         cl_lo, cl_hi = l0 + di_l - marg, l1 + di_l + marg
         cs_lo, cs_hi = s0 + di_s - marg, s1 + di_s + marg
         crop = np.zeros((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
