@@ -4,6 +4,8 @@ first-use compile note appears exactly when a command's kernels are missing from
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from click.testing import CliRunner
 from test_render import _camera, sphere  # noqa: F401  (sphere is a fixture)
@@ -93,3 +95,26 @@ def test_every_command_with_kernels_is_known_to_the_note():
 def test_warmup_help_runs():
     res = CliRunner().invoke(cli, ["warmup", "--help"])
     assert res.exit_code == 0 and "Compile and cache" in res.output
+
+
+def test_compile_bytecode_writes_what_is_stale_and_says_what_it_could_not(tmp_path, monkeypatch):
+    import compileall
+    import importlib.util
+    import os
+
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    for f in (pkg / "__init__.py", pkg / "a.py", pkg / "sub" / "b.py"):
+        f.write_text("X = 1\n")
+    assert jit.compile_bytecode(pkg) == (3, "")
+    for f in (pkg / "a.py", pkg / "sub" / "b.py"):
+        assert Path(importlib.util.cache_from_source(str(f))).is_file()
+    assert jit.compile_bytecode(pkg) == (0, "")  # current: left alone
+    src = pkg / "a.py"
+    src.write_text("X = 2\n")
+    st = src.stat()
+    os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 5_000_000_000))  # edited later
+    assert jit.compile_bytecode(pkg) == (1, "")
+    monkeypatch.setattr(compileall, "compile_file", lambda *a, **k: False)  # e.g. a read-only install
+    done, note = jit.compile_bytecode(pkg)
+    assert done == 0 and note.startswith("3 module(s) under ") and str(pkg) in note
