@@ -640,7 +640,9 @@ def correlate_cmd(ctx: Context, **kw):
 @options.acquire_reach_option(
     "S16 schedule, maplet space: the first step (spacing L >= 2) searches +-CELLS on the photo "
     "resampled onto the maplet's grid extended beyond its edge, so every offset compares the whole "
-    "prediction (0 = S16: within the maplet's own grid, which reaches about half the maplet's width).",
+    "prediction (0 = S16: within the maplet's own grid, which reaches about half the maplet's width). "
+    "Image space: pixels; the steps at the first spacing search +-max(K, CELLS/L) bins, the later ones "
+    "keep --grid-half K.",
     default=0,
 )
 @click.option(
