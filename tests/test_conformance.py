@@ -195,7 +195,7 @@ def test_corpus_case(case):
         for key in ("vlm", "ux", "uy", "uz", "sigma_lmk"):
             _same(getattr(lmk, key), want[key])
     elif kind == "nom":
-        from spctool.formats.sumfile import read_nom
+        from spctool.formats.nominal import read_nom
 
         nom = read_nom(path)
         for key, value in want.items():

@@ -16,8 +16,9 @@ from spctool.formats.landmark import read_lmk
 from spctool.formats.lists import read_lmrklist, read_pictlist
 from spctool.formats.lithos import read_lithos
 from spctool.formats.maplet import read_map
+from spctool.formats.nominal import read_nom
 from spctool.formats.photo import read_photo
-from spctool.formats.sumfile import read_nom, read_sum
+from spctool.formats.sumfile import read_sum
 from spctool.formats.table import LandmarkTable
 from spctool.formats.workdir import WorkDir
 from spctool.geometry.camera import Camera

@@ -14,18 +14,14 @@ from hypothesis import strategies as st
 from spctool.errors import SpcFormatError, SpcUsageError
 from spctool.formats.fortran import format_d, format_f, parse_number
 from spctool.formats.landmark import read_lmk
+from spctool.formats.nominal import Nominal, format_nom, parse_nom, read_nom, write_nom
 from spctool.formats.sumfile import (
     LimbFit,
-    Nominal,
     Picture,
     SumLandmark,
-    format_nom,
     format_sum,
-    parse_nom,
     parse_sum,
-    read_nom,
     read_sum,
-    write_nom,
     write_sum,
 )
 

@@ -28,7 +28,7 @@ def read_any(path, kind: str, *, npx=None, nln=None, byte_order="auto", flip_row
 
         return read_sum(path)
     if kind == "nom":
-        from spctool.formats.sumfile import read_nom
+        from spctool.formats.nominal import read_nom
 
         return read_nom(path)
     if kind == "lmk":
@@ -607,7 +607,7 @@ def _rewrite_text(kind, obj, dst, **kw):
     if kind == "sum":
         from spctool.formats.sumfile import write_sum as w
     elif kind == "nom":
-        from spctool.formats.sumfile import write_nom as w
+        from spctool.formats.nominal import write_nom as w
     elif kind == "lmk":
         from spctool.formats.landmark import write_lmk as w
     elif kind == "lithos":

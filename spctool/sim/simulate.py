@@ -72,8 +72,9 @@ from spctool.formats.landmark import write_lmk
 from spctool.formats.lists import LandmarkList, PictureList, PictureListEntry, write_lmrklist, write_pictlist
 from spctool.formats.lithos import DistortModel, Settings, format_lithos, parse_lithos
 from spctool.formats.maplet import Maplet, write_map
+from spctool.formats.nominal import Nominal, write_nom
 from spctool.formats.photo import Photo, write_photo
-from spctool.formats.sumfile import Nominal, Picture, format_sum, parse_sum, write_nom
+from spctool.formats.sumfile import Picture, format_sum, parse_sum
 from spctool.geometry.camera import Camera
 from spctool.geometry.frames import apply_attitude_update, look_rotation, rot_from_rotvec
 from spctool.geometry.surfaces import HeightPatch, ShapeSurface
