@@ -382,20 +382,28 @@ class _Grid:
     """The grid a landmark's photo is resampled onto, with the extraction reused at other centres:
     the maplet's own (margin 0) or the maplet extended by ``margin`` cells per side."""
 
-    __slots__ = ("maplet", "slopes", "margin", "ext", "camera", "shadow")
+    __slots__ = ("maplet", "_slopes", "margin", "ext", "camera", "shadow")
 
     def __init__(self, maplet, slopes, margin: int = 0):
-        self.maplet, self.slopes, self.margin = maplet, slopes, int(margin)
+        """``slopes``: the grid's :func:`heightfield.slopes`, or a function giving them on first use."""
+        self.maplet, self._slopes, self.margin = maplet, slopes, int(margin)
         self.ext = self.camera = self.shadow = None
+
+    @property
+    def slopes(self):
+        if callable(self._slopes):
+            self._slopes = self._slopes()
+        return self._slopes
 
 
 class _Landmark:
-    """Per-landmark state reused across steps: slopes, prediction (per camera), template cache."""
+    """Per-landmark state reused across steps: slopes (maplet space and predictions; computed on first
+    use, which an image-space template never makes), prediction (per camera), template cache."""
 
     __slots__ = (
         "maplet",
         "name",
-        "slopes",
+        "_slopes",
         "v",
         "pred",
         "pred_camera",
@@ -412,7 +420,7 @@ class _Landmark:
     def __init__(self, maplet, name):
         self.maplet = maplet
         self.name = name
-        self.slopes = heightfield.slopes(maplet.heights, maplet.valid)
+        self._slopes = None
         self.v = np.asarray(maplet.v, dtype=np.float64)
         self.pred = None
         self.pred_camera = None
@@ -422,8 +430,15 @@ class _Landmark:
         self.tmpl = None
         self.tmpl_key = None
         self.footprint = None
-        self.grid = _Grid(maplet, self.slopes)  # the maplet's own grid
+        self.grid = _Grid(maplet, lambda: self.slopes)  # the maplet's own grid
         self.padded = None  # the grid extended for acquire_reach
+
+    @property
+    def slopes(self):
+        """:func:`heightfield.slopes` of the maplet (hx, hy, usable)."""
+        if self._slopes is None:
+            self._slopes = heightfield.slopes(self.maplet.heights, self.maplet.valid)
+        return self._slopes
 
 
 class Registrar:
@@ -476,7 +491,7 @@ class Registrar:
         """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
         lm = self.landmarks[i]
         lm.pred = lm.pred_camera = lm.tmpl = lm.tmpl_key = lm.footprint = lm.padded = None
-        lm.grid = _Grid(lm.maplet, lm.slopes)
+        lm.grid = _Grid(lm.maplet, lambda: lm.slopes)
 
     def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
