@@ -78,6 +78,11 @@ def test_image_space_reproducible_across_jobs(run_cli, scene_file):
     assert _strip_timing(one) == _strip_timing(two)  # bit for bit, whatever --jobs
     assert one["config"]["space"] == "image" and len(one["config"]["plan"]) == 2
     assert one["landmarks"][0]["ok"] == 2
+    assert [p["supersample"] for p in one["config"]["plan"]] == [1, 1]  # the study's single-ray default
+    ss2 = _doc(run_cli(*args, "--jobs", 1, "--supersample", 2))
+    assert [p["supersample"] for p in ss2["config"]["plan"]] == [2, 2]  # register's templates
+    assert ss2["landmarks"][0]["ok"] == 2
+    assert ss2["landmarks"][0]["sample_mean"] != one["landmarks"][0]["sample_mean"]
 
 
 def test_text_report_figures_and_csv(run_cli, scene_file, tmp_path):
@@ -153,6 +158,8 @@ def test_usage_errors(run_cli, scene_file, tmp_path):
     assert res.exit_code == 2 and "not preset s16-50m" in res.stderr
     res = run_cli("montecarlo", "--preset", "s16-50m", "P0001")
     assert res.exit_code == 2 and "drop PICTURE" in res.stderr
+    res = run_cli("montecarlo", "--scene", scene_file, "--supersample", 2)  # maplet space
+    assert res.exit_code == 2 and "use it with --space image" in res.stderr and "Traceback" not in res.stderr
     (tmp_path / "bad.npz").write_bytes(b"junk")
     res = run_cli("montecarlo", "--scene", tmp_path / "bad.npz")
     assert res.exit_code == 2 and "cannot read the scene" in res.stderr

@@ -61,6 +61,7 @@ Examples:
   spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --space image --json > image.json
   spctool montecarlo --preset s16-50m --scene s16.npz --samples 20 --only position,attitude --sigma-scale 2
   spctool -C demo montecarlo P000000001A1 --samples 20
+  spctool -C demo montecarlo P000000001A1 --samples 5 --space image --supersample 2  # register's templates
 """
 
 
@@ -177,6 +178,16 @@ def register(cli: click.Group) -> None:
         default=None,
     )
     @click.option(
+        "--supersample",
+        type=click.IntRange(1, 4),
+        default=None,
+        metavar="N",
+        help="Image space: N x N rays per pixel of the templates at L = 1 (default: 1, a quarter of "
+        "the rays; register's own default is 2, with one-ray drafts until the converged stage is "
+        "near: on the s16-50m preset 2 gives a worst landmark's 1 sigma of about 0.042 px instead "
+        "of 0.049, for about 1.7 times the time).",
+    )
+    @click.option(
         "--jobs",
         "-j",
         type=click.IntRange(min=1),
@@ -227,6 +238,7 @@ def register(cli: click.Group) -> None:
         refine,
         first_phases,
         acquire_reach,
+        supersample,
         jobs,
         figures_dir,
         samples_csv,
@@ -245,6 +257,11 @@ def register(cli: click.Group) -> None:
         if bad:
             raise SpcUsageError(f"unknown perturbation {', '.join(bad)} (known: {', '.join(sorted(known))})")
         params = [p for p in params if p not in drop]
+        if supersample is not None and space != "image":
+            raise SpcUsageError(
+                "--supersample sets the image-space templates' rays: use it with --space image"
+            )
+        changes = {} if supersample is None else {"supersample": supersample}
         config = mc.MonteCarloConfig(
             samples=samples,
             seed=seed,
@@ -258,6 +275,7 @@ def register(cli: click.Group) -> None:
                 refine=refine,
                 first_phases=first_phases,
                 acquire_reach=mc.acquire_reach_for(sigma_scale) if acquire_reach is None else acquire_reach,
+                **changes,
             ),
         )
         t0 = time.perf_counter()
