@@ -404,14 +404,24 @@ def approximate_diameter(points, n_directions: int = 1024, refine: int = 8) -> f
     dirs = dirs[dirs[:, 2] >= 0.0]  # a direction and its opposite give the same extent
     lo, hi, ilo, ihi = _rk.directional_extremes(np.ascontiguousarray(p), np.ascontiguousarray(dirs), 16)
     best = float(np.max(hi - lo))
+    sq = np.einsum("ij,ij->i", p, p)
+
+    def farthest(i: int) -> int:  # argmax |p − p_i|² = |p|² − 2 p·p_i + const: no (N, 3) temporary
+        return int(np.argmax(sq - 2.0 * (p @ p[i])))
+
+    polished: set = set()
     for d in np.argsort(lo - hi)[:refine]:
-        a, b = ilo[d], ihi[d]
+        a, b = int(ilo[d]), int(ihi[d])
         for _ in range(4):
-            b_new = int(np.argmax(np.sum((p - p[a]) ** 2, axis=1)))
-            a_new = int(np.argmax(np.sum((p - p[b_new]) ** 2, axis=1)))
+            if (a, b) in polished:  # another direction's pair already went this way
+                break
+            polished.add((a, b))
+            b_new = farthest(a)
+            a_new = farthest(b_new)
             if (a_new, b_new) == (a, b):
                 break
             a, b = a_new, b_new
+        # a true pair distance: a lower bound of the diameter whatever the rounding of the search
         best = max(best, float(np.linalg.norm(p[a] - p[b])))
     return best
 
