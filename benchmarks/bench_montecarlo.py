@@ -83,8 +83,7 @@ def _run(study):
     if study not in _RUNS:
         space, changes = _STUDIES[study]
         scene = _scene()
-        plan = mc.default_plan(space, **changes) if changes else None
-        cfg = mc.MonteCarloConfig(samples=500, seed=0, space=space, plan=plan)
+        cfg = mc.MonteCarloConfig(samples=500, seed=0, space=space, plan=mc.default_plan(space, **changes))
         res = mc.run(scene, cfg, jobs=mc.default_jobs())
         _RUNS[study] = (res, mcr.summarise(res))
     return _RUNS[study]
