@@ -83,6 +83,11 @@ def test_image_space_reproducible_across_jobs(run_cli, scene_file):
     assert [p["supersample"] for p in ss2["config"]["plan"]] == [2, 2]  # register's templates
     assert ss2["landmarks"][0]["ok"] == 2
     assert ss2["landmarks"][0]["sample_mean"] != one["landmarks"][0]["sample_mean"]
+    # the study's converged stage stops at 0.01 px; --converge-tol sets it (0.005: register's own)
+    assert [p["converge_tol"] for p in one["config"]["plan"]] == [0.01, 0.01]
+    tight = _doc(run_cli(*args, "--jobs", 1, "--converge-tol", 0.005))
+    assert [p["converge_tol"] for p in tight["config"]["plan"]] == [0.005, 0.005]
+    assert tight["landmarks"][0]["ok"] == 2
 
 
 def test_text_report_figures_and_csv(run_cli, scene_file, tmp_path):
@@ -158,6 +163,8 @@ def test_usage_errors(run_cli, scene_file, tmp_path):
     assert res.exit_code == 2 and "not preset s16-50m" in res.stderr
     res = run_cli("montecarlo", "--preset", "s16-50m", "P0001")
     assert res.exit_code == 2 and "drop PICTURE" in res.stderr
+    res = run_cli("montecarlo", "--scene", scene_file, "--converge-tol", 0)
+    assert res.exit_code == 2 and "--converge-tol" in res.stderr and "Traceback" not in res.stderr
     res = run_cli("montecarlo", "--scene", scene_file, "--supersample", 2)  # maplet space
     assert res.exit_code == 2 and "use it with --space image" in res.stderr and "Traceback" not in res.stderr
     (tmp_path / "bad.npz").write_bytes(b"junk")

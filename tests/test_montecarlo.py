@@ -24,7 +24,7 @@ from spctool.geometry.frames import apply_attitude_update  # noqa: E402
 from spctool.sim import montecarlo as mc  # noqa: E402
 from spctool.sim import montecarlo_report as mcr  # noqa: E402
 from spctool.sim import montecarlo_scene as mcs  # noqa: E402
-from spctool.stages.register import register  # noqa: E402
+from spctool.stages.register import RegisterOptions, register  # noqa: E402
 
 # --------------------------------------------------------------------------------------------------
 # a small rendered scene (S16 optics at 50 m, 1 cm maplet cells), shared by the module
@@ -295,6 +295,10 @@ def test_default_plans():
     # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then
     assert coarse.acquire_reach == mc.IMAGE_ACQUIRE_REACH == 48 and coarse.steps[0] == 4
     assert coarse.grid_half == fine.grid_half == mc.IMAGE_GRID_HALF == 3
+    # image space converges to 0.01 px (every step re-renders); maplet space keeps register's 0.005
+    assert coarse.converge_tol == fine.converge_tol == mc.IMAGE_CONVERGE_TOL == 0.01
+    assert o.converge_tol == RegisterOptions().converge_tol == 0.005
+    assert mc.default_plan("image", converge_tol=0.005)[1].converge_tol == 0.005
     assert len(mc.default_plan("image", refine=0)) == 1
     with pytest.raises(SpcUsageError):
         mc.default_plan("pixel")
