@@ -461,10 +461,12 @@ class Registrar:
         patch_cache: dict | None = None,
     ):
         self.options = options if options is not None else RegisterOptions()
-        #: image space: each maplet's render-ready patch (packed maps, slope bounds, Sun tables), kept in
-        #: this dict under id(maplet) with the maplet itself, so that Registrars of later passes over
-        #: the same maplets (not modified in between) build none again (navigate, the Monte Carlo's
-        #: phases; the Sun tables are kept per Sun direction); None: per Registrar
+        #: image space: each maplet's render-ready patch (packed maps, slope bounds, Sun tables) and its
+        #: last template window (with the camera and margin it was made with), kept in this dict under
+        #: id(maplet) as [maplet, patch, (camera, window, margin) or None], so that Registrars of later passes
+        #: over the same maplets (not modified in between) build none again (navigate, the Monte Carlo's
+        #: phases; the Sun tables are kept per Sun direction, the window per camera object); None: per
+        #: Registrar
         self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)
         self.photo = np.ascontiguousarray(data, dtype=np.float64)
@@ -713,11 +715,14 @@ class Registrar:
             kept = None if self.patch_cache is None else self.patch_cache.get(id(m))
             if kept is not None and kept[0] is m:
                 lm.patch = kept[1]
+                mg = int(self.options.template_margin)
+                if lm.footprint is None and kept[2] is not None and kept[2][2] == mg:
+                    lm.footprint = kept[2][:2]
             else:
                 # packed once per landmark, reused by every render
                 lm.patch = PatchSet([HeightPatch.from_maplet(m, name=lm.name)])
                 if self.patch_cache is not None:
-                    self.patch_cache[id(m)] = (m, lm.patch)
+                    self.patch_cache[id(m)] = [m, lm.patch, None]
         patch = lm.patch.patches[0]
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
@@ -731,6 +736,9 @@ class Registrar:
             return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
         if lm.footprint is None or lm.footprint[0] is not camera:
             lm.footprint = (camera, self._footprint(patch, camera))
+            kept = None if self.patch_cache is None else self.patch_cache.get(id(lm.maplet))
+            if kept is not None and kept[0] is lm.maplet:
+                kept[2] = (*lm.footprint, int(self.options.template_margin))
         if lm.footprint[1] is None:
             return None, frac, None
         s0, s1, l0, l1 = lm.footprint[1]
@@ -770,7 +778,8 @@ class Registrar:
                 np.stack([np.full_like(t, q), t], 1),
             ]
         )
-        h = patch.interpolate(edge[:, 0], edge[:, 1])[0]
+        hts = patch.heights  # the border nodes' own heights (the bilinear surface there, exactly)
+        h = np.concatenate([hts[:, 0], hts[:, -1], hts[0, :], hts[-1, :]])
         s, ln, front = camera.project_with_mask(patch.to_body(np.column_stack([edge, h])))
         if not np.all(front):
             return None
