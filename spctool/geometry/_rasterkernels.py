@@ -194,7 +194,9 @@ def _full_cell(usable, i, j):
     n0, n1 = usable.shape
     if i < 0 or j < 0 or i >= n0 - 1 or j >= n1 - 1:
         return False
-    return usable[i, j] and usable[i + 1, j] and usable[i, j + 1] and usable[i + 1, j + 1]
+    # bitwise: a returned chain of `and` over array elements compiled to slow branchy code (the raster
+    # of a 99 × 99 maplet took 30 % longer with it)
+    return usable[i, j] & usable[i + 1, j] & usable[i, j + 1] & usable[i + 1, j + 1]
 
 
 @njit(cache=True, nogil=True, forceinline=True)

@@ -558,9 +558,11 @@ def quadric_vertex(z3, max_move: float = 1.0):
 
 @numba.njit(cache=True, inline="always")
 def _k_usable(me, mp, o0, o1, i, j):  # pragma: no cover - compiled
-    """P pixel (i, j) valid with its four axis neighbours, and its E pixel valid."""
+    """P pixel (i, j) valid with its four axis neighbours, and its E pixel valid (every index is inside
+    both images: the caller's ranges).  Bitwise ``&``: a chain of ``and`` over array elements compiled to
+    a branch per element, which made the alignment's first pass ~6× slower."""
     return (
-        mp[i, j] and me[i + o0, j + o1] and mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]
+        mp[i, j] & me[i + o0, j + o1] & mp[i - 1, j] & mp[i + 1, j] & mp[i, j - 1] & mp[i, j + 1]
     )
 
 
