@@ -381,7 +381,8 @@ def test_image_space_templates_equal_the_general_renderer(scene, monkeypatch):
     opts = RegisterOptions(space="image", supersample=1, keep_images=True)
     fast = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
 
-    def general(camera, sun, shape=None, patches=(), options=None, *, window=None, albedo_fn=None):
+    def general(camera, sun, shape=None, patches=(), options=None, *, window=None, albedo_fn=None, **_):
+        # the general path has no hit-cell hint (its Rendering carries no cells, so none is passed on)
         return rmod._render(camera, sun, shape, patches, options, window, albedo_fn, fused=False)
 
     monkeypatch.setattr(rmod, "render", general)

@@ -196,6 +196,86 @@ def test_the_walls_the_march_meets_are_drawn(seed, emission, holes):
     assert np.all(cells[wrong] == -2)
 
 
+@pytest.mark.parametrize("seed, emission, sun_elev, q, holes, ss, shading, shadows", CASES)
+def test_a_render_hinted_with_other_cells_equals_the_march(
+    seed, emission, sun_elev, q, holes, ss, shading, shadows
+):
+    """``render(..., cells=)``: the cells an earlier render hit (at another sub-pixel phase, another
+    supersampling repeated, or plain junk) only say where each sub-ray's search starts; the render is
+    the march's to the last bit, and its own ``cells`` are the same whatever the hint."""
+    patches, sun, cam = _world(seed, emission, sun_elev, q, holes)
+    opts = RenderOptions(supersample=ss, shading=shading, shadows=shadows, ray_inverse="grid", threads=1)
+    ref = render(cam, sun, None, patches[:1], opts)
+    n = patches[0].heights.shape[0]
+    assert ref.cells.shape == (ref.radiance.shape[0] * ss, ref.radiance.shape[1] * ss)
+    hit = ref.cells >= 0
+    assert np.all(ref.cells[~hit] == -2) and np.all(ref.cells[hit] < (n - 1) ** 2)
+    assert hit.mean() > 0.05  # the patch fills part of the window
+    rng = np.random.default_rng(seed)
+    hints = {
+        "own": ref.cells,
+        "another phase": render(cam.with_ctr(cam.ctr + [0.3, -0.2]), sun, None, patches[:1], opts).cells,
+        "junk": rng.integers(-5, (n - 1) ** 2 + 5, ref.cells.shape),
+        "wrong shape (ignored)": ref.cells[1:],
+    }
+    for name, hint in hints.items():
+        got = render(cam, sun, None, patches[:1], opts, cells=hint)
+        assert_same_rendering(got, ref)
+        np.testing.assert_array_equal(got.cells, ref.cells, err_msg=name)
+    # two patches or a shape: no cells (the hint is one patch's)
+    assert render(cam, sun, None, patches, opts).cells is None
+
+
+def test_registration_with_hinted_templates_equals_unhinted(scene, monkeypatch):
+    """register's image-space templates start each sub-ray at the cell the landmark's last render hit
+    (within a quarter pixel of its phase): the measurements equal those without the hint, bit for bit,
+    for one-ray drafts and 2 × 2 templates, and the hint is used."""
+    from spctool.stages import registrar as regmod
+
+    cam = rs.pointing_error(scene.camera, 6.0, -4.0)
+    used = []
+    real = regmod._cells_hint
+
+    def spy(*args):
+        out = real(*args)
+        used.append(out is not None)
+        return out
+
+    monkeypatch.setattr(regmod, "_cells_hint", spy)
+    got = {}
+    for name, reach in (("hinted", regmod._HINT_REACH), ("plain", -1.0)):  # -1: never hinted
+        monkeypatch.setattr(regmod, "_HINT_REACH", reach)
+        used.clear()
+        opts = RegisterOptions(space="image", threads=1)
+        got[name] = (register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts), any(used))
+    (hinted, was_used), (plain, never) = got["hinted"], got["plain"]
+    assert was_used and not never
+    assert hinted.status == plain.status == ["ok"]
+    np.testing.assert_array_equal(hinted.measured, plain.measured)
+    np.testing.assert_array_equal(hinted.correlation, plain.correlation)
+
+
+def test_cells_hint_rules():
+    """A hint is the last render's cells for the same camera object and window within reach of its
+    phase; a one-ray render's cells are repeated for a finer supersampling, a finer one's are not used
+    for a coarser."""
+    from spctool.stages.registrar import _HINT_REACH, _cells_hint
+
+    cam, other = object(), object()
+    cells = np.arange(6).reshape(2, 3)
+    win = (1, 3, 1, 2)
+    hits = (cam, np.array([0.1, -0.1]), 1, win, cells)
+    near = np.array([0.1 + 0.9 * _HINT_REACH, -0.1])
+    assert _cells_hint(hits, cam, near, 1, win) is cells
+    assert _cells_hint(None, cam, near, 1, win) is None
+    assert _cells_hint(hits, other, near, 1, win) is None
+    assert _cells_hint(hits, cam, near, 1, (1, 3, 1, 3)) is None
+    assert _cells_hint(hits, cam, np.array([0.1 + 1.1 * _HINT_REACH, -0.1]), 1, win) is None
+    up = _cells_hint(hits, cam, near, 2, win)
+    np.testing.assert_array_equal(up, np.repeat(np.repeat(cells, 2, 0), 2, 1))
+    assert _cells_hint((cam, near, 2, win, up), cam, near, 1, win) is None
+
+
 def test_visibility_option_is_checked():
     with pytest.raises(SpcUsageError, match="visibility"):
         RenderOptions(visibility="zbuffer")

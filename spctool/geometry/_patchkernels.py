@@ -237,7 +237,7 @@ def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reac
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
-    upmax, horizon, entry, near, cand, surf, geom, sh,
+    upmax, horizon, entry, near, cand, surf, geom, sh, cells,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
@@ -253,7 +253,9 @@ def _patch_ray(
     (:func:`spctool.geometry._rasterkernels.terrain_cells`): −1 no terrain (sky), ≥ 0 the cell
     i·(n − 1) + j whose crossing is taken (:func:`_cell_hit`) when the ray enters its column above the
     terrain and descends more steeply than the terrain's steepest slope (then the first crossing is
-    there: the same hit as the march's), −2 or else: the march."""
+    there: the same hit as the march's), −2 or else: the march.  ``cells`` (empty: not wanted) gets
+    the cell i·(n − 1) + j of the hit (one patch; left as it is for a ray that hits nothing), which a
+    later render of the same patch can pass as its ``cand``."""
     if _sky(k, dirs, ok, surf, geom, sh):
         return
     c = cand[k] if cand.shape[0] > 0 else -2
@@ -264,7 +266,7 @@ def _patch_ray(
         return
     _patch_shade(
         k, best, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-        tops, ns, upmax, horizon, entry, near, surf, geom, sh,
+        tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells,
     )  # fmt: skip
 
 
@@ -326,9 +328,10 @@ def _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c):
 @numba.njit(forceinline=True, cache=True)
 def _patch_shade(
     k, p, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops,
-    ns, upmax, horizon, entry, near, surf, geom, sh,
+    ns, upmax, horizon, entry, near, surf, geom, sh, cells,
 ):  # fmt: skip
-    """Shading geometry and cast shadow of sub-ray k, which hits patch p at maplet-frame (lx, ly)."""
+    """Shading geometry and cast shadow of sub-ray k, which hits patch p at maplet-frame (lx, ly) (and
+    its cell in ``cells`` unless that is empty)."""
     d0 = dirs[k, 0]
     d1 = dirs[k, 1]
     d2 = dirs[k, 2]
@@ -348,6 +351,8 @@ def _patch_shade(
     w10 = fu * (1 - fw)
     w01 = (1 - fu) * fw
     w11 = fu * fw
+    if cells.shape[0] > 0:
+        cells[k] = i * (n - 1) + j
     z = _bilinear_at(maps, p, 0, i, j, w00, w10, w01, w11)
     if facet:  # the flat triangle's slopes (HeightPatch.facet_slopes)
         if fu >= fw:  # corners (i, j), (i+1, j), (i+1, j+1)
@@ -456,9 +461,10 @@ def _patch_shade(
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, entry, near, cand, surf, geom, sh,
+    horizon, entry, near, cand, surf, geom, sh, cells,
 ):  # fmt: skip
-    """:func:`_patch_ray` for every sub-ray (releases the GIL); ``cand``: the raster's cells or empty."""
+    """:func:`_patch_ray` for every sub-ray (releases the GIL); ``cand``: the raster's (or an earlier
+    render's) cells or empty; ``cells``: where to write each hit's cell, or empty."""
     # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
     # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
     origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
@@ -466,13 +472,13 @@ def _fused_rays(
     maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
     upmax, horizon, entry, cand = borrowed(upmax), borrowed(horizon), borrowed(entry), borrowed(cand)
     near = borrowed(near)
-    surf, geom, sh = borrowed(surf), borrowed(geom), borrowed(sh)
+    surf, geom, sh, cells = borrowed(surf), borrowed(geom), borrowed(sh), borrowed(cells)
     hts = borrowed(maps[:, 0])
     if cand.shape[0] == 0:
         for k in range(dirs.shape[0]):
             _patch_ray(
                 k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-                tops, ns, upmax, horizon, entry, near, cand, surf, geom, sh,
+                tops, ns, upmax, horizon, entry, near, cand, surf, geom, sh, cells,
             )  # fmt: skip
         return
     # the raster's cells: every hit first (one quadratic per sub-ray, the march where the cell cannot
@@ -491,5 +497,5 @@ def _fused_rays(
         if which[k] >= 0:
             _patch_shade(
                 k, which[k], where[k, 0], where[k, 1], origin, dirs, sun_lit, sun, shadows, offset, facet,
-                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, near, surf, geom, sh,
+                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells,
             )  # fmt: skip

@@ -31,7 +31,9 @@ window never needs a new one, and the step's reference is where the template act
 phase), so reuse never biases a shift.  Steps at spacing n ≥ 2 reuse it whatever its phase
 (``rerender_tol_coarse``); a spacing-1 step re-renders it when the phase moved by more than
 ``rerender_tol`` (0.0005 px), so a converging L = 1 loop always ends on a template rendered at its own
-estimate and template reuse cannot freeze it.  Templates take one thread each
+estimate and template reuse cannot freeze it.  A re-render within :data:`_HINT_REACH` px of the last
+one's phase starts each sub-ray at the terrain cell its predecessor hit (``render(..., cells=)``: the
+same template to the last bit, about 20 % less time).  Templates take one thread each
 (the rays of a pixel window, the distortion inverted on a coarse grid and interpolated bicubically,
 one Newton step where that is not exact to 1e-7 px:
 :meth:`spctool.geometry.camera.Camera.pixel_to_direction_lattice`);
@@ -410,6 +412,7 @@ class _Landmark:
         "patch",
         "tmpl",
         "tmpl_key",
+        "hits",
         "footprint",
         "grid",
         "padded",
@@ -429,6 +432,7 @@ class _Landmark:
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
+        self.hits = None  # (camera, frac, supersample, render window, Rendering.cells) of the last render
         self.footprint = None
         self.grid = _Grid(maplet, lambda: self.slopes)  # the maplet's own grid
         self.padded = None  # the grid extended for acquire_reach
@@ -492,7 +496,7 @@ class Registrar:
     def release(self, i: int) -> None:
         """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
         lm = self.landmarks[i]
-        lm.pred = lm.pred_camera = lm.tmpl = lm.tmpl_key = lm.footprint = lm.padded = None
+        lm.pred = lm.pred_camera = lm.tmpl = lm.tmpl_key = lm.hits = lm.footprint = lm.padded = None
         lm.grid = _Grid(lm.maplet, lambda: lm.slopes)
 
     def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
@@ -758,7 +762,10 @@ class Registrar:
         cov = np.zeros(shp)
         cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
         if cs0 <= s1 and cl0 <= l1:
-            part = render(shifted, self.sun, None, lm.patch, ropts, window=(cs0, s1, cl0, l1))
+            win = (cs0, s1, cl0, l1)
+            hint = _cells_hint(lm.hits, camera, frac, nss, win)
+            part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint)
+            lm.hits = (camera, frac.copy(), nss, win, part.cells)
             rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
             cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
         rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
@@ -853,6 +860,30 @@ class Registrar:
         shift = np.array([corr.offset[1], corr.offset[0]])  # (line, sample) axes → (dsample, dline)
         # the step's reference is where the template actually sat
         return LandmarkStep(c0 + placement, shift, corr, None, corr.status, template=rend)
+
+
+#: a template re-rendered within this many pixels (per axis) of the phase of the landmark's last render
+#: starts each sub-ray's search in the cell its predecessor hit (:func:`spctool.stages.render.render`'s
+#: ``cells``; the same template to the last bit): most rays hit the same cell there, 20 % less time
+#: per render at 0.01–0.1 px on the s16-50m maplets, where at 0.45 px the misses cost more than the
+#: hits save
+_HINT_REACH = 0.25
+
+
+def _cells_hint(hits, camera, frac, nss: int, window):
+    """The last render's hit cells as a hint for the next (:data:`_HINT_REACH`), or None: same camera
+    object and window, a phase within reach, and its supersampling (a one-ray render's cells repeated
+    over the sub-rays of each pixel for a finer one)."""
+    if hits is None:
+        return None
+    cam, f, n, win, cells = hits
+    if cells is None or cam is not camera or win != window or np.max(np.abs(f - frac)) > _HINT_REACH:
+        return None
+    if n == nss:
+        return cells
+    if n == 1:
+        return np.repeat(np.repeat(cells, nss, axis=0), nss, axis=1)
+    return None
 
 
 def correlate_landmark(

@@ -202,6 +202,9 @@ class Rendering:
     surface: np.ndarray
     window: tuple[int, int, int, int]
     options: RenderOptions = field(default_factory=RenderOptions)
+    #: renders of one patch without a shape: (lines·nss, samples·nss) int64, the terrain cell
+    #: i·(n − 1) + j each sub-ray hit (−2: none) — a later render's ``cells`` hint; else None
+    cells: np.ndarray | None = None
 
     @property
     def mask(self) -> np.ndarray:
@@ -386,6 +389,7 @@ def render(
     window=None,
     albedo_fn=None,
     progress=None,
+    cells=None,
 ) -> Rendering:
     """Render the pixels of ``window`` = (s0, s1, l0, l1) (1-based, inclusive; default the whole photo).
 
@@ -397,8 +401,17 @@ def render(
     :data:`PARALLEL_MIN_RAYS` rays) that equals :func:`trace` → :func:`shadowed` → :func:`shade` up to
     rounding (≤ 1e-12 relative, ``tests/test_render.py``).  ``progress(n)`` is called with the number
     of lines done after each batch of rays.
+
+    ``cells``: the :attr:`Rendering.cells` of an earlier render of the same single patch over the same
+    window and supersampling, with any camera (register's templates at another sub-pixel phase): each
+    sub-ray's crossing is first sought in the cell its predecessor hit, and taken there only where a
+    local slope bound proves the ray crossed nothing before (as with the raster's cells, ``visibility``);
+    elsewhere the march.  The rendering is the same to the last bit with or without it
+    (``tests/test_render_raster.py``); a hint of another shape is ignored.
     """
-    return _render(camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress)
+    return _render(
+        camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress, hint=cells
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -411,10 +424,12 @@ PARALLEL_MIN_RAYS = 1 << 15
 
 
 def _trace_fused(
-    origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False, cand=None
+    origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False, cand=None,
+    cells=None,
 ):  # fmt: skip
     """(surface, geom, shadow) of sub-rays by :func:`_fused_rays` (``cand``: the raster's cell of each
-    sub-ray, :func:`terrain_cells`; None: march them all); windows of at least
+    sub-ray, :func:`terrain_cells`, or an earlier render's; None: march them all; ``cells``: an int64
+    array that gets each hit's cell, or None); windows of at least
     :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
     threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
     n = dirs.shape[0]
@@ -425,6 +440,7 @@ def _trace_fused(
     sun_lit, sun = kernel_array(sun_lit), kernel_array(sun)
     shadows, offset, facet = bool(shadows), float(offset), bool(facet)
     cand = _NO_CELLS if cand is None else np.ascontiguousarray(cand, dtype=np.int64)
+    cells = _NO_CELLS if cells is None else cells
 
     def run(a, b):
         _fused_rays(
@@ -441,6 +457,7 @@ def _trace_fused(
             surface[a:b],
             geom[a:b],
             sh[a:b],
+            cells[a:b] if cells.shape[0] else cells,
         )
 
     threads = numba.get_num_threads() if threads is None else int(threads)
@@ -483,9 +500,12 @@ def _raster_cells(camera, patch: HeightPatch, s0, l0, width, height, nss):
     return out
 
 
-def _fused_chunk(origin, dirs, ok, sun, pset: PatchSet, options: RenderOptions, fast=True, cand=None):
+def _fused_chunk(
+    origin, dirs, ok, sun, pset: PatchSet, options: RenderOptions, fast=True, cand=None, cells=None
+):  # fmt: skip
     """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
-    without the exact shadow shortcuts, as the reference for them; ``cand``: :func:`_trace_fused`'s)."""
+    without the exact shadow shortcuts, as the reference for them; ``cand``, ``cells``:
+    :func:`_trace_fused`'s)."""
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
     surface, geom, sh = _trace_fused(
         origin,
@@ -499,6 +519,7 @@ def _fused_chunk(origin, dirs, ok, sun, pset: PatchSet, options: RenderOptions, 
         threads=options.threads,
         facet=options.shading == "facet",
         cand=cand,
+        cells=cells,
     )
     hit = surface != SKY
     # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
@@ -510,8 +531,9 @@ def _fused_chunk(origin, dirs, ok, sun, pset: PatchSet, options: RenderOptions, 
 
 
 def _render(
-    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None, fast=True
-) -> Rendering:
+    camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None, fast=True,
+    hint=None,
+) -> Rendering:  # fmt: skip
     """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path),
     ``fast=False`` the fused path without its exact shortcuts (the reference for them)."""
     options = options or RenderOptions()
@@ -531,8 +553,12 @@ def _render(
     sid = np.full((height, width), SKY, dtype=np.int16)
     rays_per_line = width * nss * nss
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
+    one = use_fused and len(plist) == 1
+    out_cells = np.full((height * nss, width * nss), -2, np.int64) if one else None
     cells = None
-    if use_fused and options.visibility == "raster" and len(plist) == 1:
+    if one and hint is not None and np.shape(hint) == out_cells.shape:
+        cells = _usable_hint(hint, plist.patches[0].heights.shape[0])
+    elif one and options.visibility == "raster":
         cells = _raster_cells(camera, plist.patches[0], s0, l0, width, height, nss)
     origin = camera.position
     samples = np.arange(s0, s1 + 1, dtype=np.float64)
@@ -551,7 +577,8 @@ def _render(
         if use_fused:  # the kernel makes rays without a finite direction sky
             ok = np.ones(dirs.shape[0], bool)
             cand = None if cells is None else cells[a * nss : b * nss].reshape(-1)
-            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast, cand)
+            got = None if out_cells is None else out_cells[a * nss : b * nss].reshape(-1)
+            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast, cand, got)
         else:
             ok = np.all(np.isfinite(dirs), axis=1)
             hits = trace(
@@ -582,7 +609,15 @@ def _render(
         rad[a:b] = r.reshape(shape4).mean(axis=(1, 3))
         cov[a:b] = hit.reshape(shape4).sum(axis=(1, 3)) / k
         shd[a:b] = sh.reshape(shape4).sum(axis=(1, 3)) / k
-    return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options)
+    return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options, out_cells)
+
+
+def _usable_hint(hint, n: int) -> np.ndarray:
+    """An earlier render's cells as ``cand`` for :func:`_fused_rays`: a cell index of this grid where it
+    is one, else −2 (march; never −1, the raster's "no terrain here", which only the raster of this very
+    camera can claim)."""
+    h = np.asarray(hint, dtype=np.int64)
+    return np.where((h >= 0) & (h < (n - 1) * (n - 1)), h, -2)
 
 
 def cull_patches(camera, patches, window=None, margin_px: float = 4.0) -> list:
