@@ -205,7 +205,7 @@ def test_a_render_hinted_with_other_cells_equals_the_march(
     the march's to the last bit, and its own ``cells`` are the same whatever the hint."""
     patches, sun, cam = _world(seed, emission, sun_elev, q, holes)
     opts = RenderOptions(supersample=ss, shading=shading, shadows=shadows, ray_inverse="grid", threads=1)
-    ref = render(cam, sun, None, patches[:1], opts)
+    ref = render(cam, sun, None, patches[:1], opts, return_cells=True)
     n = patches[0].heights.shape[0]
     assert ref.cells.shape == (ref.radiance.shape[0] * ss, ref.radiance.shape[1] * ss)
     hit = ref.cells >= 0
@@ -214,16 +214,19 @@ def test_a_render_hinted_with_other_cells_equals_the_march(
     rng = np.random.default_rng(seed)
     hints = {
         "own": ref.cells,
-        "another phase": render(cam.with_ctr(cam.ctr + [0.3, -0.2]), sun, None, patches[:1], opts).cells,
+        "another phase": render(
+            cam.with_ctr(cam.ctr + [0.3, -0.2]), sun, None, patches[:1], opts, return_cells=True
+        ).cells,
         "junk": rng.integers(-5, (n - 1) ** 2 + 5, ref.cells.shape),
         "wrong shape (ignored)": ref.cells[1:],
     }
     for name, hint in hints.items():
-        got = render(cam, sun, None, patches[:1], opts, cells=hint)
+        got = render(cam, sun, None, patches[:1], opts, cells=hint, return_cells=True)
         assert_same_rendering(got, ref)
         np.testing.assert_array_equal(got.cells, ref.cells, err_msg=name)
-    # two patches or a shape: no cells (the hint is one patch's)
-    assert render(cam, sun, None, patches, opts).cells is None
+    # not asked for, or two patches: no cells (the hint is one patch's)
+    assert render(cam, sun, None, patches[:1], opts).cells is None
+    assert render(cam, sun, None, patches, opts, return_cells=True).cells is None
 
 
 def test_registration_with_hinted_templates_equals_unhinted(scene, monkeypatch):

@@ -764,7 +764,7 @@ class Registrar:
         if cs0 <= s1 and cl0 <= l1:
             win = (cs0, s1, cl0, l1)
             hint = _cells_hint(lm.hits, camera, frac, nss, win)
-            part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint)
+            part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint, return_cells=True)
             lm.hits = (camera, frac.copy(), nss, win, part.cells)
             rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
             cov[cl0 - l0 :, cs0 - s0 :] = part.coverage

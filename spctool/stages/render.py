@@ -202,8 +202,8 @@ class Rendering:
     surface: np.ndarray
     window: tuple[int, int, int, int]
     options: RenderOptions = field(default_factory=RenderOptions)
-    #: renders of one patch without a shape: (lines·nss, samples·nss) int64, the terrain cell
-    #: i·(n − 1) + j each sub-ray hit (−2: none) — a later render's ``cells`` hint; else None
+    #: ``render(..., return_cells=True)`` of one patch without a shape: (lines·nss, samples·nss) int64,
+    #: the terrain cell i·(n − 1) + j each sub-ray hit (−2: none) — a later render's ``cells``; else None
     cells: np.ndarray | None = None
 
     @property
@@ -390,6 +390,7 @@ def render(
     albedo_fn=None,
     progress=None,
     cells=None,
+    return_cells: bool = False,
 ) -> Rendering:
     """Render the pixels of ``window`` = (s0, s1, l0, l1) (1-based, inclusive; default the whole photo).
 
@@ -407,11 +408,14 @@ def render(
     sub-ray's crossing is first sought in the cell its predecessor hit, and taken there only where a
     local slope bound proves the ray crossed nothing before (as with the raster's cells, ``visibility``);
     elsewhere the march.  The rendering is the same to the last bit with or without it
-    (``tests/test_render_raster.py``); a hint of another shape is ignored.
+    (``tests/test_render_raster.py``); a hint of another shape is ignored.  ``return_cells``: keep each
+    sub-ray's hit cell in :attr:`Rendering.cells` (one patch without a shape; 8 bytes per sub-ray, so
+    asked for, not kept for every photo).
     """
     return _render(
-        camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress, hint=cells
-    )
+        camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress, hint=cells,
+        keep_cells=return_cells,
+    )  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------
@@ -532,7 +536,7 @@ def _fused_chunk(
 
 def _render(
     camera, sun, shape, patches, options, window, albedo_fn, *, fused: bool, progress=None, fast=True,
-    hint=None,
+    hint=None, keep_cells=False,
 ) -> Rendering:  # fmt: skip
     """:func:`render`; ``fused=False`` forces trace → shadowed → shade (the reference for the fused path),
     ``fast=False`` the fused path without its exact shortcuts (the reference for them)."""
@@ -554,9 +558,9 @@ def _render(
     rays_per_line = width * nss * nss
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
     one = use_fused and len(plist) == 1
-    out_cells = np.full((height * nss, width * nss), -2, np.int64) if one else None
+    out_cells = np.full((height * nss, width * nss), -2, np.int64) if one and keep_cells else None
     cells = None
-    if one and hint is not None and np.shape(hint) == out_cells.shape:
+    if one and hint is not None and np.shape(hint) == (height * nss, width * nss):
         cells = _usable_hint(hint, plist.patches[0].heights.shape[0])
     elif one and options.visibility == "raster":
         cells = _raster_cells(camera, plist.patches[0], s0, l0, width, height, nss)
