@@ -5,6 +5,7 @@ maplets are the same terrain, so the true landmark pixel is the projection of V 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from types import SimpleNamespace
 
@@ -979,17 +980,26 @@ def test_disagreeing_shifts_names_the_landmarks_that_moved_unlike_the_others():
 def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypatch):
     """navigate's passes share one patch_cache: a maplet's render-ready patch (packed maps, slope bounds,
     Sun tables) is built by the first image-space register call and reused by the next, with the same
-    measurements as without the cache."""
+    measurements as without the cache; so is its template window, for the same camera object and
+    margin (the Monte Carlo's phases), and only for those."""
     from spctool.geometry import surfaces
+    from spctool.stages.registrar import Registrar
 
-    built = []
+    built, projected = [], []
 
     class Counting(surfaces.PatchSet):
         def __init__(self, patches):
             built.append(1)
             super().__init__(patches)
 
+    footprint = Registrar._footprint
+
+    def counting_footprint(self, patch, camera):
+        projected.append(camera)
+        return footprint(self, patch, camera)
+
     monkeypatch.setattr(surfaces, "PatchSet", Counting)  # the registrar imports it at call time
+    monkeypatch.setattr(Registrar, "_footprint", counting_footprint)
     cam = rs.pointing_error(scene.camera, 3.0, 2.0)
     opts = RegisterOptions(space="image", threads=1)
     args = (scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
@@ -997,7 +1007,14 @@ def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypat
     first = register(*args, patch_cache=cache)
     second = register(*args, patch_cache=cache)
     assert len(built) == 1 and list(cache) == [id(scene.maplet)]
+    assert projected == [cam]  # the second call reused the window
     plain = register(*args)
-    assert len(built) == 2
+    assert len(built) == 2 and len(projected) == 2
     np.testing.assert_array_equal(first.measured, plain.measured)
     np.testing.assert_array_equal(second.measured, plain.measured)
+    # another camera object, or another margin: the window is projected again
+    other = rs.pointing_error(scene.camera, 3.0, 2.0)
+    register(scene.photo, other, scene.sun, [scene.maplet], scene.thresholds, opts, patch_cache=cache)
+    wider = dataclasses.replace(opts, template_margin=3)
+    register(scene.photo, other, scene.sun, [scene.maplet], scene.thresholds, wider, patch_cache=cache)
+    assert projected[2:] == [other, other] and len(built) == 2
