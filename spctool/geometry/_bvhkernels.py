@@ -101,6 +101,22 @@ def pack4(bounds, first, count, leaf):
     return root_box, nb[:npk].copy(), nc[:npk].copy()
 
 
+@njit(cache=True, inline="always")
+def _halves(a0, a1, lo, hi):
+    """Split the index range [a0, a1) at its midpoint into lo[k] … hi[k] (two parts; one when it holds
+    a single index); returns the number of parts."""
+    if a1 - a0 > 1:
+        am = a0 + (a1 - a0) // 2
+        lo[0] = a0
+        hi[0] = am
+        lo[1] = am
+        hi[1] = a1
+        return 2
+    lo[0] = a0
+    hi[0] = a1
+    return 1
+
+
 @njit(cache=True)
 def build_patch_tree(verts, q, leaf_side, eps, pad):
     """O(n) BVH over the ICQ grid: six face quadtrees under one root.
@@ -166,28 +182,8 @@ def build_patch_tree(verts, q, leaf_side, eps, pad):
                     prims[npr] = f * q * q + j * q + i
                     npr += 1
             continue
-        if ni > 1:
-            nsi = 2
-            im = i0 + ni // 2
-            i_lo[0] = i0
-            i_hi[0] = im
-            i_lo[1] = im
-            i_hi[1] = i1
-        else:
-            nsi = 1
-            i_lo[0] = i0
-            i_hi[0] = i1
-        if nj > 1:
-            nsj = 2
-            jm = j0 + nj // 2
-            j_lo[0] = j0
-            j_hi[0] = jm
-            j_lo[1] = jm
-            j_hi[1] = j1
-        else:
-            nsj = 1
-            j_lo[0] = j0
-            j_hi[0] = j1
+        nsi = _halves(i0, i1, i_lo, i_hi)
+        nsj = _halves(j0, j1, j_lo, j_hi)
         first[n] = nn
         count[n] = nsi * nsj
         c = nn
