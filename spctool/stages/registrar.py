@@ -418,6 +418,7 @@ class _Landmark:
         "padded",
         "shadow_mode",
         "cast",
+        "proj",
     )
 
     def __init__(self, maplet, name):
@@ -436,6 +437,7 @@ class _Landmark:
         self.footprint = None
         self.grid = _Grid(maplet, lambda: self.slopes)  # the maplet's own grid
         self.padded = None  # the grid extended for acquire_reach
+        self.proj = None  # (camera, V's pixel with it): image space projects V once per camera object
 
     @property
     def slopes(self):
@@ -488,6 +490,7 @@ class Registrar:
         self._copts = self.options.correlate_options
         #: the converged stage's correlation settings (its sub-pixel estimator)
         self._copts_final = dataclasses.replace(self._copts, peak=self.options.converge_peak)
+        self._image_copts: dict = {}  # id(copts) → (copts, its image-space form): made once, not per step
 
     def __len__(self):
         return len(self.landmarks)
@@ -496,7 +499,7 @@ class Registrar:
     def release(self, i: int) -> None:
         """Drop landmark ``i``'s cached prediction, extraction and template (memory)."""
         lm = self.landmarks[i]
-        lm.pred = lm.pred_camera = lm.tmpl = lm.tmpl_key = lm.hits = lm.footprint = lm.padded = None
+        lm.pred = lm.pred_camera = lm.tmpl = lm.tmpl_key = lm.hits = lm.footprint = lm.padded = lm.proj = None
         lm.grid = _Grid(lm.maplet, lambda: lm.slopes)
 
     def project(self, camera) -> tuple[np.ndarray, np.ndarray]:
@@ -797,7 +800,9 @@ class Registrar:
 
     def _image_step(self, i, camera, center, spacing, copts, draft=False):
         lm = self.landmarks[i]
-        c0 = np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2)
+        if lm.proj is None or lm.proj[0] is not camera:
+            lm.proj = (camera, np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2))
+        c0 = lm.proj[1]
         disp = center - c0
         frac = disp - np.round(disp)
         rend, f_t, window = self._template(lm, camera, frac, spacing, draft)
@@ -829,31 +834,32 @@ class Registrar:
         nln, npx = self.photo.shape
         a_lo, a_hi = max(cl_lo, 1), min(cl_hi, nln)
         b_lo, b_hi = max(cs_lo, 1), min(cs_hi, npx)
-        inside = np.zeros(crop.shape, bool)
         if a_lo <= a_hi and b_lo <= b_hi:
             crop[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = self.photo[
                 a_lo - 1 : a_hi, b_lo - 1 : b_hi
             ]
-            inside[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = True
         t1, t2 = self.thresholds
-        cvalid = inside & np.isfinite(crop) & (crop > 0.0) & (crop <= t2)  # DN 0 = no data (SPC)
+        # DN 0 = no data (SPC); the crop beyond the photo stays 0, so "> 0" also keeps it out
+        cvalid = (crop > 0.0) & (crop <= t2) & np.isfinite(crop)
         if not self.options.image_shadows:
             cvalid &= crop >= t1
         # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
-        a_s = int(np.clip(round(c0[0] + f_t[0]), s0, s1))
-        a_l = int(np.clip(round(c0[1] + f_t[1]), l0, l1))
+        a_s = min(max(int(round(c0[0] + f_t[0])), s0), s1)
+        a_l = min(max(int(round(c0[1] + f_t[1])), l0), l1)
         p_anchor = (a_l - l0, a_s - s0)
         e_anchor = (a_l + di_l - cl_lo, a_s + di_s - cs_lo)
-        copts = dataclasses.replace(
-            copts, min_value=None, bin_min_fraction=self.options.image_bin_fraction
-        )
+        made = self._image_copts.get(id(copts))
+        if made is None or made[0] is not copts:
+            frac_min = self.options.image_bin_fraction
+            made = (copts, dataclasses.replace(copts, min_value=None, bin_min_fraction=frac_min))
+            self._image_copts[id(copts)] = made
         corr = correlate(
             crop,
             tmpl,
             extracted_valid=cvalid,
             predicted_valid=tvalid,
             spacing=spacing,
-            options=copts,
+            options=made[1],
             extracted_anchor=e_anchor,
             predicted_anchor=p_anchor,
         )
