@@ -746,3 +746,22 @@ def test_intersect_rays_broadcasting():
     t = hf.intersect_rays(h, None, origins, [0.0, 0.0, -1.0])
     assert t.shape == (2, 4)
     np.testing.assert_allclose(t, 5.0 - 0.2 * origins[..., 0], atol=1e-12)
+
+
+def test_kernel_array_passes_fit_arrays_through_and_copies_the_rest():
+    from spctool.geometry.heightfield import kernel_array
+
+    a = np.zeros((3, 4))
+    assert kernel_array(a) is a  # already C-contiguous, writeable float64: no copy
+    b = np.zeros((4, 3)).T  # Fortran order
+    got = kernel_array(b)
+    assert got is not b and got.flags.c_contiguous and np.array_equal(got, b)
+    r = np.arange(4.0)
+    r.flags.writeable = False
+    got = kernel_array(r)
+    assert got is not r and got.flags.writeable and np.array_equal(got, r)
+    f = np.arange(4, dtype=np.float32)
+    assert kernel_array(f).dtype == np.float64
+    m = np.ones(3, bool)
+    assert kernel_array(m, np.bool_) is m
+    assert kernel_array([1.0, 2.0]).dtype == np.float64  # a list becomes an array

@@ -302,7 +302,7 @@ def test_image_space_registration_with_raster_templates_equals_the_march(scene):
     assert np.all(np.abs(got["raster"].measured[0] - scene.truth_pixel) < 0.05)
 
 
-@pytest.mark.parametrize("seed, reach", [(0, 0), (1, 2), (2, 4), (3, 7)])
+@pytest.mark.parametrize("seed, reach", [(0, 0), (1, 2), (2, 4), (3, 7), (4, 1), (5, 30)])
 def test_near_steps_against_brute_force(seed, reach):
     from spctool.geometry._heightkernels import near_steps
 
