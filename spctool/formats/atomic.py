@@ -22,7 +22,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from spctool.errors import SpcEnvironmentError, SpcUsageError
+from spctool.errors import SpcEnvironmentError, SpcFormatError, SpcUsageError
 
 #: suffix of the temporary files written beside their target
 TMP_SUFFIX = ".tmp"
@@ -146,3 +146,12 @@ def read_text(path) -> str:
 
     data = read_bytes(path)
     return data.decode("latin-1").replace("\r\n", "\n").replace("\r", "\n")
+
+
+def read_spc_file(path, what: str) -> str:
+    """:func:`read_text` of an SPC file of kind ``what`` (``"SUM"``, ``"LMK"`` ...); an unreadable file is
+    one :class:`~spctool.errors.SpcFormatError` naming the path: "expected a readable <what> file"."""
+    try:
+        return read_text(path)
+    except OSError as exc:
+        raise SpcFormatError(path, None, f"expected a readable {what} file ({exc.strerror})") from None

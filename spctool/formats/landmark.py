@@ -474,10 +474,7 @@ def format_lmk(lmk: Landmark) -> str:
 
 def read_lmk(path) -> Landmark:
     """Read ``LMKFILES/<NAME>.LMK``."""
-    try:
-        text = atomic.read_text(path)
-    except OSError as exc:
-        raise SpcFormatError(path, None, f"expected a readable LMK file ({exc.strerror})") from None
+    text = atomic.read_spc_file(path, "LMK")
     return parse_lmk(text, path)
 
 

@@ -95,13 +95,6 @@ def _emit(layout_src: _ListSource | None, keys: list[tuple], make_text) -> str:
     return join_lines(out, layout_src.final_newline)
 
 
-def _read(path, what: str) -> str:
-    try:
-        return atomic.read_text(path)
-    except OSError as exc:
-        raise SpcFormatError(path, None, f"expected a readable {what} file ({exc.strerror})") from None
-
-
 def _missing_end(path, n: int) -> SpcFormatError:
     if n == 0:
         return SpcFormatError(path, 1, "expected END line, found an empty file")
@@ -202,7 +195,7 @@ def format_pictlist(plist: PictureList) -> str:
 
 
 def read_pictlist(path) -> PictureList:
-    return parse_pictlist(_read(path, "PICTLIST"), path)
+    return parse_pictlist(atomic.read_spc_file(path, "PICTLIST"), path)
 
 
 def write_pictlist(path, plist: PictureList, *, overwrite: bool = True, backup: bool = False):
@@ -267,7 +260,7 @@ def format_lmrklist(llist: LandmarkList) -> str:
 
 
 def read_lmrklist(path) -> LandmarkList:
-    return parse_lmrklist(_read(path, "LMRKLIST"), path)
+    return parse_lmrklist(atomic.read_spc_file(path, "LMRKLIST"), path)
 
 
 def write_lmrklist(path, llist: LandmarkList, *, overwrite: bool = True, backup: bool = False):
@@ -370,7 +363,7 @@ def format_lmrklistx(xlist: LandmarkListX) -> str:
 
 
 def read_lmrklistx(path) -> LandmarkListX:
-    return parse_lmrklistx(_read(path, "LMRKLISTX"), path)
+    return parse_lmrklistx(atomic.read_spc_file(path, "LMRKLISTX"), path)
 
 
 def write_lmrklistx(path, xlist: LandmarkListX, *, overwrite: bool = True, backup: bool = False):

@@ -617,10 +617,7 @@ def format_lithos(settings: Settings) -> str:
 
 def read_lithos(path) -> Settings:
     """Read ``INIT_LITHOS.TXT``."""
-    try:
-        text = atomic.read_text(path)
-    except OSError as exc:
-        raise SpcFormatError(path, None, f"expected a readable INIT_LITHOS file ({exc.strerror})") from None
+    text = atomic.read_spc_file(path, "INIT_LITHOS")
     return parse_lithos(text, path)
 
 

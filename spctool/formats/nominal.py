@@ -203,10 +203,7 @@ def format_nom(nom: Nominal) -> str:
 
 def read_nom(path) -> Nominal:
     """Read ``NOMINALS/<PICNM>.NOM``."""
-    try:
-        text = atomic.read_text(path)
-    except OSError as exc:
-        raise SpcFormatError(path, None, f"expected a readable NOM file ({exc.strerror})") from None
+    text = atomic.read_spc_file(path, "NOM")
     return parse_nom(text, path)
 
 

@@ -768,10 +768,7 @@ def format_sum(pic: Picture) -> str:
 
 def read_sum(path) -> Picture:
     """Read ``SUMFILES/<PICNM>.SUM``."""
-    try:
-        text = atomic.read_text(path)
-    except OSError as exc:
-        raise SpcFormatError(path, None, f"expected a readable SUM file ({exc.strerror})") from None
+    text = atomic.read_spc_file(path, "SUM")
     return parse_sum(text, path)
 
 
