@@ -1,5 +1,6 @@
 """The command group: the static command table matches what the command modules register, and a
-command imports only its own module (``spctool --version`` and ``spctool info`` never load numba)."""
+command imports only its own module (``spctool --version`` and ``spctool info`` never load numba), and
+importing the command line keeps OpenBLAS to one thread unless the environment says otherwise."""
 
 from __future__ import annotations
 
@@ -59,3 +60,24 @@ def test_commands_import_only_what_they_need(tmp_path):
     sum_file = tmp_path / "X.SUM"
     sum_file.write_text("not a sum file\n")
     assert "numba" not in _loaded("info", str(sum_file))
+
+
+_BLAS_PROBE = """
+import os, sys
+import spctool.cli.main
+print("numpy" in sys.modules, os.environ.get("OPENBLAS_NUM_THREADS"))
+"""
+
+
+def test_the_command_line_keeps_openblas_to_one_thread_unless_told():
+    """Importing the CLI sets OPENBLAS_NUM_THREADS=1 before numpy (and its OpenBLAS) can load, and leaves a
+    value the user set alone (spctool.cli's docstring: the pool only spun, ~0.3 s CPU per command)."""
+    import os
+
+    def probe(env):
+        run = subprocess.run([sys.executable, "-c", _BLAS_PROBE], capture_output=True, text=True, env=env)
+        return run.stdout.split()
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    assert probe(env) == ["False", "1"]
+    assert probe({**env, "OPENBLAS_NUM_THREADS": "4"}) == ["False", "4"]
