@@ -122,6 +122,10 @@ ENVIRONMENT = (
     ("SPCTOOL_START_METHOD", "batch: force the local worker start method (fork, spawn, forkserver)"),
     ("NUMBA_NUM_THREADS", "threads of the compiled kernels (one per batch worker)"),
     ("NUMBA_CACHE_DIR", "where numba caches its compiled kernels"),
+    (
+        "OPENBLAS_NUM_THREADS",
+        "threads of NumPy/SciPy's OpenBLAS: 1 unless set (spctool parallelises its own work)",
+    ),
 )
 
 
