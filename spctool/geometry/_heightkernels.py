@@ -359,7 +359,7 @@ def near_steps(h, valid, reach, out):
         for j in range(m1):
             cell[0, i, j] = max(abs(h[i + 1, j] - h[i, j]), abs(h[i + 1, j + 1] - h[i, j + 1]))
             cell[1, i, j] = max(abs(h[i, j + 1] - h[i, j]), abs(h[i + 1, j + 1] - h[i + 1, j]))
-            if not (valid[i, j] and valid[i + 1, j] and valid[i, j + 1] and valid[i + 1, j + 1]):
+            if not (valid[i, j] & valid[i + 1, j] & valid[i, j + 1] & valid[i + 1, j + 1]):
                 cell[0, i, j] = np.inf
                 cell[1, i, j] = np.inf
     along0 = np.empty((m0, m1))

@@ -398,6 +398,18 @@ class _Grid:
         return self._slopes
 
 
+class _KeptPatch:
+    """A maplet's entry in :attr:`Registrar.patch_cache`: the maplet itself (the key is its id), its
+    render-ready patch, and its last template window as (camera, window, template_margin) or None."""
+
+    __slots__ = ("maplet", "patch", "window")
+
+    def __init__(self, maplet, patch):
+        self.maplet = maplet
+        self.patch = patch
+        self.window = None
+
+
 class _Landmark:
     """Per-landmark state reused across steps: slopes (maplet space and predictions; computed on first
     use, which an image-space template never makes), prediction (per camera), template cache."""
@@ -468,11 +480,10 @@ class Registrar:
     ):
         self.options = options if options is not None else RegisterOptions()
         #: image space: each maplet's render-ready patch (packed maps, slope bounds, Sun tables) and its
-        #: last template window (with the camera and margin it was made with), kept in this dict under
-        #: id(maplet) as [maplet, patch, (camera, window, margin) or None], so that Registrars of later passes
-        #: over the same maplets (not modified in between) build none again (navigate, the Monte Carlo's
-        #: phases; the Sun tables are kept per Sun direction, the window per camera object); None: per
-        #: Registrar
+        #: last template window, kept in this dict under id(maplet) as a :class:`_KeptPatch`, so that
+        #: Registrars of later passes over the same maplets (not modified in between) build none again
+        #: (navigate, the Monte Carlo's phases; the Sun tables are kept per Sun direction, the window per
+        #: camera object); None: per Registrar
         self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)
         self.photo = np.ascontiguousarray(data, dtype=np.float64)
@@ -717,19 +728,18 @@ class Registrar:
         from spctool.geometry.surfaces import HeightPatch, PatchSet
         from spctool.stages.render import Rendering, RenderOptions, render
 
+        mg = int(self.options.template_margin)
         if lm.patch is None:
-            m = lm.maplet
-            kept = None if self.patch_cache is None else self.patch_cache.get(id(m))
-            if kept is not None and kept[0] is m:
-                lm.patch = kept[1]
-                mg = int(self.options.template_margin)
-                if lm.footprint is None and kept[2] is not None and kept[2][2] == mg:
-                    lm.footprint = kept[2][:2]
+            kept = self._kept(lm.maplet)
+            if kept is not None:
+                lm.patch = kept.patch
+                if lm.footprint is None and kept.window is not None and kept.window[2] == mg:
+                    lm.footprint = kept.window[:2]
             else:
                 # packed once per landmark, reused by every render
-                lm.patch = PatchSet([HeightPatch.from_maplet(m, name=lm.name)])
+                lm.patch = PatchSet([HeightPatch.from_maplet(lm.maplet, name=lm.name)])
                 if self.patch_cache is not None:
-                    self.patch_cache[id(m)] = [m, lm.patch, None]
+                    self.patch_cache[id(lm.maplet)] = _KeptPatch(lm.maplet, lm.patch)
         patch = lm.patch.patches[0]
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
@@ -743,9 +753,9 @@ class Registrar:
             return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
         if lm.footprint is None or lm.footprint[0] is not camera:
             lm.footprint = (camera, self._footprint(patch, camera))
-            kept = None if self.patch_cache is None else self.patch_cache.get(id(lm.maplet))
-            if kept is not None and kept[0] is lm.maplet:
-                kept[2] = (*lm.footprint, int(self.options.template_margin))
+            kept = self._kept(lm.maplet)
+            if kept is not None:
+                kept.window = (*lm.footprint, mg)
         if lm.footprint[1] is None:
             return None, frac, None
         s0, s1, l0, l1 = lm.footprint[1]
@@ -774,6 +784,11 @@ class Registrar:
         rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
         lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
         return rend, frac.copy(), (s0, s1, l0, l1)
+
+    def _kept(self, maplet) -> _KeptPatch | None:
+        """This maplet's entry in :attr:`patch_cache` (None: no cache, or none for this very object)."""
+        kept = None if self.patch_cache is None else self.patch_cache.get(id(maplet))
+        return kept if kept is not None and kept.maplet is maplet else None
 
     def _footprint(self, patch, camera):
         """The template window (s0, s1, l0, l1): the projection of the maplet's border nodes, plus
@@ -907,4 +922,3 @@ def correlate_landmark(
     if center is None:
         center = reg.project(camera)[0][0]
     return reg.step(0, camera, center, spacing)
-
