@@ -211,12 +211,20 @@ def test_a_render_hinted_with_other_cells_equals_the_march(
     hit = ref.cells >= 0
     assert np.all(ref.cells[~hit] == -2) and np.all(ref.cells[hit] < (n - 1) ** 2)
     assert hit.mean() > 0.05  # the patch fills part of the window
+    # the hit positions: NaN exactly where nothing was hit, on the grid, and in the cell reported
+    pos = ref.positions
+    assert pos.shape == ref.cells.shape + (2,)
+    assert np.all(np.isnan(pos[~hit])) and np.all(np.isfinite(pos[hit]))
+    assert np.all((pos[hit] >= 0.0) & (pos[hit] <= n - 1.0))
+    cell_of = np.minimum(np.floor(pos[hit]).astype(int), n - 2)
+    np.testing.assert_array_equal(cell_of[:, 0] * (n - 1) + cell_of[:, 1], ref.cells[hit])
     rng = np.random.default_rng(seed)
+    other = render(cam.with_ctr(cam.ctr + [0.3, -0.2]), sun, None, patches[:1], opts, return_cells=True)
     hints = {
         "own": ref.cells,
-        "another phase": render(
-            cam.with_ctr(cam.ctr + [0.3, -0.2]), sun, None, patches[:1], opts, return_cells=True
-        ).cells,
+        "another phase": other.cells,
+        # its rays sat 0.3 px along the samples and −0.2 px along the lines from ref's: moved back
+        "another phase, predicted": rmod.predicted_cells(other, [-0.3, 0.2], n),
         "junk": rng.integers(-5, (n - 1) ** 2 + 5, ref.cells.shape),
         "wrong shape (ignored)": ref.cells[1:],
     }
@@ -230,24 +238,27 @@ def test_a_render_hinted_with_other_cells_equals_the_march(
 
 
 def test_registration_with_hinted_templates_equals_unhinted(scene, monkeypatch):
-    """register's image-space templates start each sub-ray at the cell the landmark's last render hit
-    (within a quarter pixel of its phase): the measurements equal those without the hint, bit for bit,
-    for one-ray drafts and 2 × 2 templates, and the hint is used."""
+    """register's image-space templates start each sub-ray at the cell where the landmark's last render
+    says it will hit (its hit positions moved by the change of phase, or a one-ray draft's cells within
+    a quarter pixel): the measurements equal those without the hint, bit for bit, for one-ray drafts
+    and 2 × 2 templates, and the hint is used."""
     from spctool.stages import registrar as regmod
 
     cam = rs.pointing_error(scene.camera, 6.0, -4.0)
     used = []
     real = regmod._cells_hint
 
+    mode = {"hint": True}
+
     def spy(*args):
-        out = real(*args)
+        out = real(*args) if mode["hint"] else None
         used.append(out is not None)
         return out
 
     monkeypatch.setattr(regmod, "_cells_hint", spy)
     got = {}
-    for name, reach in (("hinted", regmod._HINT_REACH), ("plain", -1.0)):  # -1: never hinted
-        monkeypatch.setattr(regmod, "_HINT_REACH", reach)
+    for name in ("hinted", "plain"):
+        mode["hint"] = name == "hinted"
         used.clear()
         opts = RegisterOptions(space="image", threads=1)
         got[name] = (register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts), any(used))
@@ -259,24 +270,92 @@ def test_registration_with_hinted_templates_equals_unhinted(scene, monkeypatch):
 
 
 def test_cells_hint_rules():
-    """A hint is the last render's cells for the same camera object and window within reach of its
-    phase; a one-ray render's cells are repeated for a finer supersampling, a finer one's are not used
-    for a coarser."""
+    """A hint comes from the last render of the same camera object and window: at its supersampling,
+    its hit positions moved by the change of phase (any phase); a one-ray render's cells repeated for a
+    finer supersampling within reach of its phase; a finer one's are not used for a coarser."""
     from spctool.stages.registrar import _HINT_REACH, _cells_hint
 
     cam, other = object(), object()
-    cells = np.arange(6).reshape(2, 3)
+    n = 5  # nodes per side: cells i·4 + j
+    # a 2 × 3 one-ray lattice whose rays hit (u, w) = (1.5 + column, 0.5 + 2·row): cells 4 + 4c + 2r
+    u, w = np.meshgrid(1.5 + np.arange(3.0), 0.5 + 2.0 * np.arange(2.0))
+    pos = np.stack([u, w], axis=-1)
+    cells = (np.floor(u) * (n - 1) + np.floor(w)).astype(np.int64)
+    prev = rmod.Rendering(*(np.zeros((2, 3)),) * 4, (1, 3, 1, 2), RenderOptions(), cells, pos)
     win = (1, 3, 1, 2)
-    hits = (cam, np.array([0.1, -0.1]), 1, win, cells)
-    near = np.array([0.1 + 0.9 * _HINT_REACH, -0.1])
-    assert _cells_hint(hits, cam, near, 1, win) is cells
-    assert _cells_hint(None, cam, near, 1, win) is None
-    assert _cells_hint(hits, other, near, 1, win) is None
-    assert _cells_hint(hits, cam, near, 1, (1, 3, 1, 3)) is None
-    assert _cells_hint(hits, cam, np.array([0.1 + 1.1 * _HINT_REACH, -0.1]), 1, win) is None
-    up = _cells_hint(hits, cam, near, 2, win)
+    f0 = np.array([0.1, -0.1])
+    hits = (cam, f0, 1, win, prev)
+    np.testing.assert_array_equal(_cells_hint(hits, cam, f0, 1, win, n), cells)
+    # cells 4 + 4c + 2r; the phase 0.6 px back along the samples: each ray where the earlier one 0.6 px
+    # further on hit, u + 0.6 (the next cell along u), nothing known beyond the last column (march)
+    moved = _cells_hint(hits, cam, f0 - [0.6, 0.0], 1, win, n)
+    np.testing.assert_array_equal(moved, [[8, 12, -2], [10, 14, -2]])
+    assert _cells_hint(None, cam, f0, 1, win, n) is None
+    assert _cells_hint(hits, other, f0, 1, win, n) is None
+    assert _cells_hint(hits, cam, f0, 1, (1, 3, 1, 3), n) is None
+    near = f0 + [0.9 * _HINT_REACH, 0.0]
+    up = _cells_hint(hits, cam, near, 2, win, n)
     np.testing.assert_array_equal(up, np.repeat(np.repeat(cells, 2, 0), 2, 1))
-    assert _cells_hint((cam, near, 2, win, up), cam, near, 1, win) is None
+    assert _cells_hint(hits, cam, f0 + [1.1 * _HINT_REACH, 0.0], 2, win, n) is None
+    fine = rmod.Rendering(*(np.zeros((2, 3)),) * 4, (1, 3, 1, 2), RenderOptions(supersample=2), up, None)
+    assert _cells_hint((cam, near, 2, win, fine), cam, near, 1, win, n) is None
+
+
+def _predict_brute(pos, ds, dl, n):
+    """:func:`predict_cells` by NumPy: bilinear positions where all four neighbours hit, else the
+    nearest lattice point's, else −2."""
+    nl, ns = pos.shape[:2]
+    out = np.full((nl, ns), -2, np.int64)
+    for r in range(nl):
+        for c in range(ns):
+            y, x = r + dl, c + ds
+            b, a = min(int(np.floor(y)), nl - 2), min(int(np.floor(x)), ns - 2)
+            uw = None
+            if 0 <= b and 0 <= a and 0 <= y - b <= 1 and 0 <= x - a <= 1:
+                quad = pos[b : b + 2, a : a + 2]
+                if not np.isnan(quad).any():
+                    fy, fx = y - b, x - a
+                    g = np.array([[(1 - fx) * (1 - fy), fx * (1 - fy)], [(1 - fx) * fy, fx * fy]])
+                    uw = np.einsum("ij,ijk->k", g, quad)
+            if uw is None:
+                rn, cn = int(np.floor(y + 0.5)), int(np.floor(x + 0.5))
+                if 0 <= rn < nl and 0 <= cn < ns and not np.isnan(pos[rn, cn]).any():
+                    uw = pos[rn, cn]
+            if uw is not None:
+                i, j = (min(max(int(np.floor(v)), 0), n - 2) for v in uw)
+                out[r, c] = i * (n - 1) + j
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_predict_cells_against_numpy(seed):
+    from spctool.geometry._patchkernels import predict_cells
+
+    rng = np.random.default_rng(seed)
+    n = 9
+    pos = rng.uniform(-0.2, n - 0.8, (7, 6, 2)).clip(0.0, n - 1.0)
+    pos[rng.random((7, 6)) < 0.2] = np.nan  # rays that hit nothing
+    for ds, dl in ((0.0, 0.0), (0.37, -0.81), (-1.5, 2.25), (6.2, 0.1), (-0.5, 0.5), (0.0, 0.4)):
+        out = np.empty((7, 6), np.int64)
+        predict_cells(pos, ds, dl, n, out)
+        np.testing.assert_array_equal(out, _predict_brute(pos, ds, dl, n), err_msg=f"{ds}, {dl}")
+
+
+@pytest.mark.parametrize("shift", [0.05, 0.25, 0.5])
+def test_predicted_cells_find_most_hits_at_another_phase(shift):
+    """The point of the prediction: at another phase of the same camera most rays are expected in the
+    cell they hit (the earlier render's own cells, the shift rounded, find about half at a quarter
+    pixel), so most re-rendered rays solve one cell instead of marching."""
+    patches, sun, cam = _world(*WORLDS[0][:5])
+    opts = RenderOptions(supersample=1, ray_inverse="grid", threads=1)
+    n = patches[0].heights.shape[0]
+    prev = render(cam, sun, None, patches[:1], opts, return_cells=True)
+    f = np.array([shift, -0.6 * shift])
+    now = render(cam.with_ctr(cam.ctr + f), sun, None, patches[:1], opts, return_cells=True)
+    pred = rmod.predicted_cells(prev, -f, n)
+    hit = now.cells >= 0
+    assert np.mean(pred[hit] == now.cells[hit]) > 0.85
+    assert np.mean(pred[hit] == now.cells[hit]) > np.mean(prev.cells[hit] == now.cells[hit]) - 1e-9
 
 
 def test_visibility_option_is_checked():

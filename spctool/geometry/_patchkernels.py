@@ -237,7 +237,7 @@ def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reac
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
-    upmax, horizon, entry, near, cand, surf, geom, sh, cells,
+    upmax, horizon, entry, near, cand, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
@@ -266,7 +266,7 @@ def _patch_ray(
         return
     _patch_shade(
         k, best, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-        tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells,
+        tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells, pos,
     )  # fmt: skip
 
 
@@ -328,10 +328,10 @@ def _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c):
 @numba.njit(forceinline=True, cache=True)
 def _patch_shade(
     k, p, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops,
-    ns, upmax, horizon, entry, near, surf, geom, sh, cells,
+    ns, upmax, horizon, entry, near, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """Shading geometry and cast shadow of sub-ray k, which hits patch p at maplet-frame (lx, ly) (and
-    its cell in ``cells`` unless that is empty)."""
+    its cell in ``cells`` and its grid position (u, w) in ``pos`` unless they are empty)."""
     d0 = dirs[k, 0]
     d1 = dirs[k, 1]
     d2 = dirs[k, 2]
@@ -353,6 +353,9 @@ def _patch_shade(
     w11 = fu * fw
     if cells.shape[0] > 0:
         cells[k] = i * (n - 1) + j
+    if pos.shape[0] > 0:
+        pos[k, 0] = u
+        pos[k, 1] = w
     z = _bilinear_at(maps, p, 0, i, j, w00, w10, w01, w11)
     if facet:  # the flat triangle's slopes (HeightPatch.facet_slopes)
         if fu >= fw:  # corners (i, j), (i+1, j), (i+1, j+1)
@@ -461,10 +464,11 @@ def _patch_shade(
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, entry, near, cand, surf, geom, sh, cells,
+    horizon, entry, near, cand, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL); ``cand``: the raster's (or an earlier
-    render's) cells or empty; ``cells``: where to write each hit's cell, or empty."""
+    render's) cells or empty; ``cells``: where to write each hit's cell, or empty; ``pos`` (n, 2): where to
+    write each hit's grid position (u, w) (index coordinates, clamped to the grid), or empty."""
     # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
     # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
     origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
@@ -473,12 +477,13 @@ def _fused_rays(
     upmax, horizon, entry, cand = borrowed(upmax), borrowed(horizon), borrowed(entry), borrowed(cand)
     near = borrowed(near)
     surf, geom, sh, cells = borrowed(surf), borrowed(geom), borrowed(sh), borrowed(cells)
+    pos = borrowed(pos)
     hts = borrowed(maps[:, 0])
     if cand.shape[0] == 0:
         for k in range(dirs.shape[0]):
             _patch_ray(
                 k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-                tops, ns, upmax, horizon, entry, near, cand, surf, geom, sh, cells,
+                tops, ns, upmax, horizon, entry, near, cand, surf, geom, sh, cells, pos,
             )  # fmt: skip
         return
     # the raster's cells: every hit first (one quadratic per sub-ray, the march where the cell cannot
@@ -498,4 +503,50 @@ def _fused_rays(
             _patch_shade(
                 k, which[k], where[k, 0], where[k, 1], origin, dirs, sun_lit, sun, shadows, offset, facet,
                 geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells,
+                pos,
             )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def predict_cells(pos, ds, dl, n, out):
+    """out (H, W) int64: the terrain cell i·(n − 1) + j (n nodes per side) where each sub-ray of a render
+    is expected to hit, from ``pos`` (H, W, 2), an earlier render's hit positions (u, w) on the same
+    lattice (NaN: no hit), whose rays sat ``ds`` sub-rays along the samples and ``dl`` along the lines
+    from this one's: the positions interpolated there (bilinear where all four neighbours hit, else the
+    nearest lattice point's), −2 (march) where none is known.  A hint for :func:`_fused_rays`' ``cand``: a
+    wrong cell costs a march, never a different hit (:func:`_cell_hit`)."""
+    nl, ns = pos.shape[0], pos.shape[1]
+    last = n - 2
+    for r in range(nl):
+        y = r + dl
+        b = min(int(math.floor(y)), nl - 2)  # the last line itself interpolates with weight 1
+        fy = y - b
+        for c in range(ns):
+            out[r, c] = -2
+            x = c + ds
+            a = min(int(math.floor(x)), ns - 2)
+            fx = x - a
+            u = math.nan
+            w = math.nan
+            if 0 <= b and 0 <= a and 0.0 <= fy <= 1.0 and 0.0 <= fx <= 1.0:
+                u00, w00 = pos[b, a, 0], pos[b, a, 1]
+                u01, w01 = pos[b, a + 1, 0], pos[b, a + 1, 1]
+                u10, w10 = pos[b + 1, a, 0], pos[b + 1, a, 1]
+                u11, w11 = pos[b + 1, a + 1, 0], pos[b + 1, a + 1, 1]
+                if not (math.isnan(u00) or math.isnan(u01) or math.isnan(u10) or math.isnan(u11)):
+                    g00 = (1.0 - fx) * (1.0 - fy)
+                    g01 = fx * (1.0 - fy)
+                    g10 = (1.0 - fx) * fy
+                    g11 = fx * fy
+                    u = g00 * u00 + g01 * u01 + g10 * u10 + g11 * u11
+                    w = g00 * w00 + g01 * w01 + g10 * w10 + g11 * w11
+            if math.isnan(u):  # an edge of the hits (or of the lattice): the nearest sub-ray's
+                rn = int(math.floor(y + 0.5))
+                cn = int(math.floor(x + 0.5))
+                if 0 <= rn < nl and 0 <= cn < ns:
+                    u = pos[rn, cn, 0]
+                    w = pos[rn, cn, 1]
+            if not (math.isnan(u) or math.isnan(w)):
+                i = min(max(int(math.floor(u)), 0), last)
+                j = min(max(int(math.floor(w)), 0), last)
+                out[r, c] = i * (n - 1) + j

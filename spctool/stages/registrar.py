@@ -400,14 +400,16 @@ class _Grid:
 
 class _KeptPatch:
     """A maplet's entry in :attr:`Registrar.patch_cache`: the maplet itself (the key is its id), its
-    render-ready patch, and its last template window as (camera, window, template_margin) or None."""
+    render-ready patch, its last template window as (camera, window, template_margin) or None, and its
+    last template's hits (:attr:`_Landmark.hits`, a later call's hint) or None."""
 
-    __slots__ = ("maplet", "patch", "window")
+    __slots__ = ("maplet", "patch", "window", "hits")
 
     def __init__(self, maplet, patch):
         self.maplet = maplet
         self.patch = patch
         self.window = None
+        self.hits = None
 
 
 class _Landmark:
@@ -445,7 +447,7 @@ class _Landmark:
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
-        self.hits = None  # (camera, frac, supersample, render window, Rendering.cells) of the last render
+        self.hits = None  # (camera, frac, supersample, render window, Rendering) of the last render
         self.footprint = None
         self.grid = _Grid(maplet, lambda: self.slopes)  # the maplet's own grid
         self.padded = None  # the grid extended for acquire_reach
@@ -735,6 +737,8 @@ class Registrar:
                 lm.patch = kept.patch
                 if lm.footprint is None and kept.window is not None and kept.window[2] == mg:
                     lm.footprint = kept.window[:2]
+                if lm.hits is None:
+                    lm.hits = kept.hits
             else:
                 # packed once per landmark, reused by every render
                 lm.patch = PatchSet([HeightPatch.from_maplet(lm.maplet, name=lm.name)])
@@ -776,9 +780,12 @@ class Registrar:
         cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
         if cs0 <= s1 and cl0 <= l1:
             win = (cs0, s1, cl0, l1)
-            hint = _cells_hint(lm.hits, camera, frac, nss, win)
+            hint = _cells_hint(lm.hits, camera, frac, nss, win, patch.heights.shape[0])
             part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint, return_cells=True)
-            lm.hits = (camera, frac.copy(), nss, win, part.cells)
+            lm.hits = (camera, frac.copy(), nss, win, part)
+            kept = self._kept(lm.maplet)
+            if kept is not None:
+                kept.hits = lm.hits
             rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
             cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
         rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
@@ -883,27 +890,31 @@ class Registrar:
         return LandmarkStep(c0 + placement, shift, corr, None, corr.status, template=rend)
 
 
-#: a template re-rendered within this many pixels (per axis) of the phase of the landmark's last render
-#: starts each sub-ray's search in the cell its predecessor hit (:func:`spctool.stages.render.render`'s
-#: ``cells``; the same template to the last bit): most rays hit the same cell there, 20 % less time
-#: per render at 0.01–0.1 px on the s16-50m maplets, where at 0.45 px the misses cost more than the
-#: hits save
+#: a template re-rendered at a finer supersampling within this many pixels (per axis) of the phase of
+#: the landmark's last one-ray render starts each sub-ray's search in the cell its predecessor hit
+#: (:func:`spctool.stages.render.render`'s ``cells``; the same template to the last bit): most rays hit
+#: the same cell there, where at 0.45 px the misses cost more than the hits save
 _HINT_REACH = 0.25
 
 
-def _cells_hint(hits, camera, frac, nss: int, window):
-    """The last render's hit cells as a hint for the next (:data:`_HINT_REACH`), or None: same camera
-    object and window, a phase within reach, and its supersampling (a one-ray render's cells repeated
-    over the sub-rays of each pixel for a finer one)."""
+def _cells_hint(hits, camera, frac, nss: int, window, n: int):
+    """The cells a template at phase ``frac`` is expected to hit, from the landmark's last render (same
+    camera object and window), or None: at the same supersampling its hit positions moved by the
+    change of phase (:func:`spctool.stages.render.predicted_cells`: any phase; on the s16-50m maplets
+    a re-render costs 0.4 ms where a march costs 0.7); from a one-ray render, its cells repeated over
+    the sub-rays of each pixel when the phase is within :data:`_HINT_REACH`.  ``n``: the patch's nodes
+    per side."""
     if hits is None:
         return None
-    cam, f, n, win, cells = hits
-    if cells is None or cam is not camera or win != window or np.max(np.abs(f - frac)) > _HINT_REACH:
+    cam, f, k, win, prev = hits
+    if prev.cells is None or cam is not camera or win != window:
         return None
-    if n == nss:
-        return cells
-    if n == 1:
-        return np.repeat(np.repeat(cells, nss, axis=0), nss, axis=1)
+    if k == nss:
+        from spctool.stages.render import predicted_cells
+
+        return predicted_cells(prev, f - frac, n)
+    if k == 1 and np.max(np.abs(f - frac)) <= _HINT_REACH:
+        return np.repeat(np.repeat(prev.cells, nss, axis=0), nss, axis=1)
     return None
 
 

@@ -68,7 +68,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._patchkernels import SHAPE, SKY, _fused_rays
+from spctool.geometry._patchkernels import SHAPE, SKY, _fused_rays, predict_cells
 from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays, terrain_cells
 from spctool.geometry.heightfield import kernel_array
 from spctool.geometry.surfaces import (
@@ -87,6 +87,7 @@ __all__ = [
     "Rendering",
     "SurfaceHits",
     "render",
+    "predicted_cells",
     "trace",
     "shade",
     "shadowed",
@@ -205,6 +206,9 @@ class Rendering:
     #: ``render(..., return_cells=True)`` of one patch without a shape: (lines·nss, samples·nss) int64,
     #: the terrain cell i·(n − 1) + j each sub-ray hit (−2: none) — a later render's ``cells``; else None
     cells: np.ndarray | None = None
+    #: with ``cells``: (lines·nss, samples·nss, 2) float64, the grid position (u, w) of each sub-ray's hit
+    #: (index coordinates, NaN: none), from which :func:`predicted_cells` places a later render's rays
+    positions: np.ndarray | None = None
 
     @property
     def mask(self) -> np.ndarray:
@@ -403,14 +407,15 @@ def render(
     rounding (≤ 1e-12 relative, ``tests/test_render.py``).  ``progress(n)`` is called with the number
     of lines done after each batch of rays.
 
-    ``cells``: the :attr:`Rendering.cells` of an earlier render of the same single patch over the same
-    window and supersampling, with any camera (register's templates at another sub-pixel phase): each
-    sub-ray's crossing is first sought in the cell its predecessor hit, and taken there only where a
-    local slope bound proves the ray crossed nothing before (as with the raster's cells, ``visibility``);
-    elsewhere the march.  The rendering is the same to the last bit with or without it
-    (``tests/test_render_raster.py``); a hint of another shape is ignored.  ``return_cells``: keep each
-    sub-ray's hit cell in :attr:`Rendering.cells` (one patch without a shape; 8 bytes per sub-ray, so
-    asked for, not kept for every photo).
+    ``cells``: where each sub-ray is expected to hit the single patch — the :attr:`Rendering.cells` of an
+    earlier render over the same window and supersampling, with any camera, or, better,
+    :func:`predicted_cells` from it (register's templates at another sub-pixel phase): each sub-ray's
+    crossing is first sought in that cell, and taken from there only where a local slope bound proves
+    the ray crossed nothing before (as with the raster's cells, ``visibility``); elsewhere the march.
+    The rendering is the same to the last bit with or without it (``tests/test_render_raster.py``); a
+    hint of another shape is ignored.  ``return_cells``: keep each sub-ray's hit cell in
+    :attr:`Rendering.cells` and its grid position in :attr:`Rendering.positions` (one patch without a
+    shape; 24 bytes per sub-ray, so asked for, not kept for every photo).
     """
     return _render(
         camera, sun, shape, patches, options, window, albedo_fn, fused=True, progress=progress, hint=cells,
@@ -429,11 +434,12 @@ PARALLEL_MIN_RAYS = 1 << 15
 
 def _trace_fused(
     origin, dirs, ok, sun_lit, sun, shadows, offset, arrays, threads=None, facet=False, cand=None,
-    cells=None,
+    cells=None, pos=None,
 ):  # fmt: skip
     """(surface, geom, shadow) of sub-rays by :func:`_fused_rays` (``cand``: the raster's cell of each
     sub-ray, :func:`terrain_cells`, or an earlier render's; None: march them all; ``cells``: an int64
-    array that gets each hit's cell, or None); windows of at least
+    array that gets each hit's cell, or None; ``pos``: an (n, 2) float64 array that gets each hit's grid
+    position, or None); windows of at least
     :data:`PARALLEL_MIN_RAYS` rays are split over ``threads`` (default: numba's thread count) Python
     threads (the kernel releases the GIL; no parallel compilation, no thread pool for small windows)."""
     n = dirs.shape[0]
@@ -445,6 +451,7 @@ def _trace_fused(
     shadows, offset, facet = bool(shadows), float(offset), bool(facet)
     cand = _NO_CELLS if cand is None else np.ascontiguousarray(cand, dtype=np.int64)
     cells = _NO_CELLS if cells is None else cells
+    pos = _NO_POS if pos is None else pos
 
     def run(a, b):
         _fused_rays(
@@ -462,6 +469,7 @@ def _trace_fused(
             geom[a:b],
             sh[a:b],
             cells[a:b] if cells.shape[0] else cells,
+            pos[a:b] if pos.shape[0] else pos,
         )
 
     threads = numba.get_num_threads() if threads is None else int(threads)
@@ -478,6 +486,8 @@ def _trace_fused(
 
 #: "no raster cells" for :func:`_fused_rays` (march every sub-ray)
 _NO_CELLS = np.empty(0, np.int64)
+#: "no hit positions wanted" for :func:`_fused_rays`
+_NO_POS = np.empty((0, 2))
 
 
 def _raster_cells(camera, patch: HeightPatch, s0, l0, width, height, nss):
@@ -505,7 +515,8 @@ def _raster_cells(camera, patch: HeightPatch, s0, l0, width, height, nss):
 
 
 def _fused_chunk(
-    origin, dirs, ok, sun, pset: PatchSet, options: RenderOptions, fast=True, cand=None, cells=None
+    origin, dirs, ok, sun, pset: PatchSet, options: RenderOptions, fast=True, cand=None, cells=None,
+    pos=None,
 ):  # fmt: skip
     """(hit, radiance, shadow, surface) of sub-rays through patches only, by the fused kernel (``fast=False``:
     without the exact shadow shortcuts, as the reference for them; ``cand``, ``cells``:
@@ -524,6 +535,7 @@ def _fused_chunk(
         facet=options.shading == "facet",
         cand=cand,
         cells=cells,
+        pos=pos,
     )
     hit = surface != SKY
     # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
@@ -559,6 +571,7 @@ def _render(
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
     one = use_fused and len(plist) == 1
     out_cells = np.full((height * nss, width * nss), -2, np.int64) if one and keep_cells else None
+    out_pos = np.full((height * nss, width * nss, 2), np.nan) if one and keep_cells else None
     cells = None
     if one and hint is not None and np.shape(hint) == (height * nss, width * nss):
         cells = _usable_hint(hint, plist.patches[0].heights.shape[0])
@@ -582,7 +595,10 @@ def _render(
             ok = np.ones(dirs.shape[0], bool)
             cand = None if cells is None else cells[a * nss : b * nss].reshape(-1)
             got = None if out_cells is None else out_cells[a * nss : b * nss].reshape(-1)
-            hit, r, sh, surface = _fused_chunk(origin, dirs, ok, sun, plist, options, fast, cand, got)
+            got_pos = None if out_pos is None else out_pos[a * nss : b * nss].reshape(-1, 2)
+            hit, r, sh, surface = _fused_chunk(
+                origin, dirs, ok, sun, plist, options, fast, cand, got, got_pos
+            )  # fmt: skip
         else:
             ok = np.all(np.isfinite(dirs), axis=1)
             hits = trace(
@@ -613,7 +629,25 @@ def _render(
         rad[a:b] = r.reshape(shape4).mean(axis=(1, 3))
         cov[a:b] = hit.reshape(shape4).sum(axis=(1, 3)) / k
         shd[a:b] = sh.reshape(shape4).sum(axis=(1, 3)) / k
-    return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options, out_cells)
+    return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options, out_cells, out_pos)
+
+
+def predicted_cells(previous: Rendering, shift, n: int) -> np.ndarray | None:
+    """The cells a render of the same single patch over the same window and supersampling is expected to
+    hit (its ``cells`` hint), from ``previous`` (a ``return_cells`` render) whose rays sat ``shift`` =
+    (samples, lines) pixels from this one's — e.g. a template at another sub-pixel phase f of the same
+    camera: its rays through p − f are the earlier ones' through p + (f_prev − f), shift f_prev − f.
+    ``n``: the patch's nodes per side.  The hit positions interpolated there (:func:`predict_cells`)
+    find the right cell for most rays whatever the shift, where the earlier render's own cells (the
+    same shift rounded) miss about half of them at a quarter pixel (each miss costs a march; the
+    rendering is the same either way).  None when ``previous`` kept no positions."""
+    pos = previous.positions
+    if pos is None:
+        return None
+    nss = int(previous.options.supersample)
+    out = np.empty(pos.shape[:2], np.int64)
+    predict_cells(pos, float(shift[0]) * nss, float(shift[1]) * nss, int(n), out)
+    return out
 
 
 def _usable_hint(hint, n: int) -> np.ndarray:
