@@ -323,6 +323,45 @@ def test_phases_chain_from_the_previous_measurement(scene):
     assert np.abs(both.measured - first.measured).max() < 0.2
 
 
+def test_a_sample_carries_its_templates_to_the_next(scene, monkeypatch):
+    """Image space: each sample hands its last template (where its rays hit) to the landmark's next
+    sample, whose first template starts each ray in the cell predicted from it
+    (:meth:`Registrar._carried_hint`); the measurements are those without the carry, bit for bit,
+    and the hint is used and mostly right."""
+    from spctool.stages import registrar as regmod
+    from spctool.stages import render as rmod
+
+    cfg = _cfg(samples=3, seed=5, sigma_scale=0.3, space="image")
+    real_hint, real_render = regmod.Registrar._carried_hint, rmod.render
+    carried, agree = [], []
+
+    def hint(self, *args):
+        out = real_hint(self, *args)
+        carried.append(out)
+        return out
+
+    def render(*args, **kw):
+        out = real_render(*args, **kw)
+        if carried and carried[-1] is not None and kw.get("cells") is carried[-1]:
+            hit = out.cells >= 0
+            agree.append(np.mean(carried[-1][hit] == out.cells[hit]))
+        return out
+
+    monkeypatch.setattr(regmod.Registrar, "_carried_hint", hint)
+    monkeypatch.setattr(rmod, "render", render)
+    carry: dict = {}
+    for j in range(3):
+        p = mc.perturb(scene, 0, mc.design(cfg, 0)[j], j, cfg)
+        with_carry = mc.register_sample(scene, p, cfg.plan, carry)
+        assert list(carry) == [("template", "LMK001")]  # the templates only, not the sample's patch
+        plain = mc.register_sample(scene, p, cfg.plan)
+        assert with_carry.status == plain.status == ["ok"]
+        assert _same(with_carry.measured, plain.measured)
+        assert _same(with_carry.correlation, plain.correlation)
+    assert sum(h is not None for h in carried) == 2  # the first template of samples 1 and 2
+    assert len(agree) == 2 and min(agree) > 0.5
+
+
 # --------------------------------------------------------------------------------------------------
 # statistics and report
 

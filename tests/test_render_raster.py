@@ -301,13 +301,13 @@ def test_cells_hint_rules():
     assert _cells_hint((cam, near, 2, win, fine), cam, near, 1, win, n) is None
 
 
-def _predict_brute(pos, ds, dl, n):
+def _predict_brute(pos, ds, dl, n, shape=None):
     """:func:`predict_cells` by NumPy: bilinear positions where all four neighbours hit, else the
-    nearest lattice point's, else −2."""
+    nearest lattice point's, else −2 (``shape``: the output's, default ``pos``'s lattice)."""
     nl, ns = pos.shape[:2]
-    out = np.full((nl, ns), -2, np.int64)
-    for r in range(nl):
-        for c in range(ns):
+    out = np.full(pos.shape[:2] if shape is None else shape, -2, np.int64)
+    for r in range(out.shape[0]):
+        for c in range(out.shape[1]):
             y, x = r + dl, c + ds
             b, a = min(int(np.floor(y)), nl - 2), min(int(np.floor(x)), ns - 2)
             uw = None
@@ -339,6 +339,12 @@ def test_predict_cells_against_numpy(seed):
         out = np.empty((7, 6), np.int64)
         predict_cells(pos, ds, dl, n, out)
         np.testing.assert_array_equal(out, _predict_brute(pos, ds, dl, n), err_msg=f"{ds}, {dl}")
+    # a lattice of another size (another window): the same rule, positions read where they exist
+    for shape in ((5, 9), (9, 4)):
+        out = np.empty(shape, np.int64)
+        predict_cells(pos, 1.25, -0.5, n, out)
+        np.testing.assert_array_equal(out, _predict_brute(pos, 1.25, -0.5, n, shape), err_msg=str(shape))
+        assert np.all(out[:, 6:] == -2)  # more than half a lattice step beyond the earlier lattice
 
 
 @pytest.mark.parametrize("shift", [0.05, 0.25, 0.5])

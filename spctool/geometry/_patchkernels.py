@@ -510,18 +510,18 @@ def _fused_rays(
 @numba.njit(cache=True, nogil=True)
 def predict_cells(pos, ds, dl, n, out):
     """out (H, W) int64: the terrain cell i·(n − 1) + j (n nodes per side) where each sub-ray of a render
-    is expected to hit, from ``pos`` (H, W, 2), an earlier render's hit positions (u, w) on the same
-    lattice (NaN: no hit), whose rays sat ``ds`` sub-rays along the samples and ``dl`` along the lines
-    from this one's: the positions interpolated there (bilinear where all four neighbours hit, else the
-    nearest lattice point's), −2 (march) where none is known.  A hint for :func:`_fused_rays`' ``cand``: a
-    wrong cell costs a march, never a different hit (:func:`_cell_hit`)."""
+    is expected to hit, from ``pos`` (H', W', 2), an earlier render's hit positions (u, w) on a lattice
+    of the same spacing (NaN: no hit): sub-ray (r, c) of this render sits where the earlier one's
+    (r + ``dl``, c + ``ds``) sat.  The positions interpolated there (bilinear where all four neighbours
+    hit, else the nearest lattice point's), −2 (march) where none is known.  A hint for
+    :func:`_fused_rays`' ``cand``: a wrong cell costs a march, never a different hit (:func:`_cell_hit`)."""
     nl, ns = pos.shape[0], pos.shape[1]
     last = n - 2
-    for r in range(nl):
+    for r in range(out.shape[0]):
         y = r + dl
         b = min(int(math.floor(y)), nl - 2)  # the last line itself interpolates with weight 1
         fy = y - b
-        for c in range(ns):
+        for c in range(out.shape[1]):
             out[r, c] = -2
             x = c + ds
             a = min(int(math.floor(x)), ns - 2)

@@ -71,8 +71,10 @@ layout (statistics, text, JSON, CSV and figures) is :mod:`spctool.sim.montecarlo
 Speed.  Everything that does not change per sample (the photo as float64, the truth pixels, the
 designs) is computed once; samples run in chunks on ``jobs`` worker processes (``spawn``: the
 renderer's OpenMP threads are not fork-safe), each capped at one numba thread.  Maplet space costs one
-registration with 12 extraction/correlation steps per sample; image space about three template
-renders (:mod:`spctool.stages.render`, ray-traced with cast shadows), which dominate its cost.
+registration with 12 extraction/correlation steps per sample; image space about four template
+renders (:mod:`spctool.stages.render`, ray-traced with cast shadows), which dominate its cost; each
+sample hands its last template to the landmark's next one (``register_sample``'s ``carry``), whose
+first template starts most rays in the cell they hit (a hint only: the same results).
 """
 
 from __future__ import annotations
@@ -542,12 +544,16 @@ class MonteCarloResult:
         return self.status == "ok"
 
 
-def register_sample(scene, p: Perturbed, plan) -> object:
+def register_sample(scene, p: Perturbed, plan, carry: dict | None = None) -> object:
     """Register one perturbed landmark with every phase of ``plan``; each phase after the first starts
     at the previous phase's measurement and runs only if that one succeeded.  Returns the
     :class:`spctool.stages.register.RegisterResult` of the last phase run, with the first phase's
-    a-priori pixel and the iterations of all phases."""
-    cache: dict = {}  # image space: the perturbed maplet's render-ready patch, built once for all phases
+    a-priori pixel and the iterations of all phases.  ``carry``: a dict kept by the caller across the
+    samples of a landmark, through which image space hands each sample's last template to the next
+    one's first (:meth:`spctool.stages.registrar.Registrar._carried_hint`: where its rays hit; the
+    results do not depend on it)."""
+    # image space: the perturbed maplet's render-ready patch, built once for all phases, and the templates
+    cache: dict = {} if carry is None else dict(carry)
     res = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, plan[0], patch_cache=cache)
     apriori, iters = res.apriori.copy(), res.iterations.copy()
     for opts in plan[1:]:
@@ -559,6 +565,9 @@ def register_sample(scene, p: Perturbed, plan) -> object:
         )  # fmt: skip
         iters += res.iterations
     res.apriori, res.iterations = apriori, iters
+    if carry is not None:  # the templates only: the patches are this sample's
+        carry.clear()
+        carry.update((k, v) for k, v in cache.items() if isinstance(k, tuple))
     return res
 
 
@@ -586,9 +595,10 @@ def _run_chunk(landmark: int, start: int, stop: int):
     rho = np.full(n, np.nan)
     iters = np.zeros(n, np.int64)
     status = []
+    carry: dict = {}
     for k, j in enumerate(range(start, stop)):
         p = perturb(scene, landmark, designs[landmark][j], j, config)
-        res = register_sample(scene, p, config.plan)
+        res = register_sample(scene, p, config.plan, carry)
         apriori[k], measured[k], rho[k], iters[k] = (
             res.apriori[0],
             res.measured[0],
@@ -686,7 +696,6 @@ def run(
             "samples": total,
         },
     )
-
 
 
 def default_jobs() -> int:

@@ -485,7 +485,10 @@ class Registrar:
         #: last template window, kept in this dict under id(maplet) as a :class:`_KeptPatch`, so that
         #: Registrars of later passes over the same maplets (not modified in between) build none again
         #: (navigate, the Monte Carlo's phases; the Sun tables are kept per Sun direction, the window per
-        #: camera object); None: per Registrar
+        #: camera object); under ("template", name) each landmark's last template with V's pixel, whose
+        #: hit positions place the rays of the first template of a later call with another camera or
+        #: maplet of the landmark (the Monte Carlo's next sample: :meth:`_carried_hint`); None: per
+        #: Registrar
         self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)
         self.photo = np.ascontiguousarray(data, dtype=np.float64)
@@ -780,17 +783,48 @@ class Registrar:
         cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
         if cs0 <= s1 and cl0 <= l1:
             win = (cs0, s1, cl0, l1)
-            hint = _cells_hint(lm.hits, camera, frac, nss, win, patch.heights.shape[0])
+            n = patch.heights.shape[0]
+            hint = _cells_hint(lm.hits, camera, frac, nss, win, n)
+            if hint is None:
+                hint = self._carried_hint(lm, camera, frac, nss, win, n)
             part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint, return_cells=True)
             lm.hits = (camera, frac.copy(), nss, win, part)
             kept = self._kept(lm.maplet)
             if kept is not None:
                 kept.hits = lm.hits
+            if self.patch_cache is not None and lm.proj is not None and lm.proj[0] is camera:
+                self.patch_cache[("template", lm.name)] = (lm.proj[1], lm.hits)
             rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
             cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
         rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
         lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
         return rend, frac.copy(), (s0, s1, l0, l1)
+
+    def _carried_hint(self, lm: _Landmark, camera, frac, nss: int, window, n: int):
+        """The cells a first template of ``lm`` is expected to hit, from the last template of a landmark
+        of the same name kept in :attr:`patch_cache` by a call with another camera (its knowledge
+        perturbed: the Monte Carlo's previous sample), or None.  The same terrain appears at the same
+        offset from V's pixel, so this template's pixel p (phase ``frac``) sits where the earlier
+        one's p − P + P' − f + f' sat (P, P': V's pixels, f, f': the phases, windows apart by their
+        origins); the maplet frame moves with V, so the hit positions carry over (a hint: a miss costs
+        a march, never a different template)."""
+        if self.patch_cache is None or lm.proj is None or lm.proj[0] is not camera:
+            return None
+        carried = self.patch_cache.get(("template", lm.name))
+        if carried is None:
+            return None
+        v_old, (cam_old, f_old, k, win_old, prev) = carried
+        if k != nss or cam_old is camera:  # the same camera: _cells_hint's rules
+            return None
+        from spctool.stages.render import predicted_cells
+
+        v_new = lm.proj[1]
+        shift = (
+            window[0] - win_old[0] + v_old[0] - v_new[0] + f_old[0] - frac[0],
+            window[2] - win_old[2] + v_old[1] - v_new[1] + f_old[1] - frac[1],
+        )
+        shape = ((window[3] - window[2] + 1) * nss, (window[1] - window[0] + 1) * nss)
+        return predicted_cells(prev, shift, n, shape)
 
     def _kept(self, maplet) -> _KeptPatch | None:
         """This maplet's entry in :attr:`patch_cache` (None: no cache, or none for this very object)."""

@@ -632,20 +632,22 @@ def _render(
     return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options, out_cells, out_pos)
 
 
-def predicted_cells(previous: Rendering, shift, n: int) -> np.ndarray | None:
-    """The cells a render of the same single patch over the same window and supersampling is expected to
-    hit (its ``cells`` hint), from ``previous`` (a ``return_cells`` render) whose rays sat ``shift`` =
-    (samples, lines) pixels from this one's — e.g. a template at another sub-pixel phase f of the same
-    camera: its rays through p − f are the earlier ones' through p + (f_prev − f), shift f_prev − f.
-    ``n``: the patch's nodes per side.  The hit positions interpolated there (:func:`predict_cells`)
-    find the right cell for most rays whatever the shift, where the earlier render's own cells (the
-    same shift rounded) miss about half of them at a quarter pixel (each miss costs a march; the
-    rendering is the same either way).  None when ``previous`` kept no positions."""
+def predicted_cells(previous: Rendering, shift, n: int, shape=None) -> np.ndarray | None:
+    """The cells a render of the same single patch at the same supersampling is expected to hit (its
+    ``cells`` hint), from ``previous`` (a ``return_cells`` render): this render's pixel (sample, line) of
+    its window sits where ``previous``'s window pixel + ``shift`` (samples, lines; fractional) sat — e.g.
+    a template at another sub-pixel phase f of the same camera and window: its rays through p − f are
+    the earlier ones' through p + (f_prev − f), shift f_prev − f.  ``n``: the patch's nodes per side;
+    ``shape``: this render's (lines·nss, samples·nss) when its window differs (default ``previous``'s).
+    The hit positions interpolated there (:func:`predict_cells`) find the right cell for most rays
+    whatever the shift, where the earlier render's own cells (the shift rounded) miss about half of
+    them at a quarter pixel (each miss costs a march; the rendering is the same either way).  None
+    when ``previous`` kept no positions."""
     pos = previous.positions
     if pos is None:
         return None
     nss = int(previous.options.supersample)
-    out = np.empty(pos.shape[:2], np.int64)
+    out = np.empty(pos.shape[:2] if shape is None else tuple(int(v) for v in shape), np.int64)
     predict_cells(pos, float(shift[0]) * nss, float(shift[1]) * nss, int(n), out)
     return out
 
