@@ -308,11 +308,13 @@ def register(
         ),
     )
     top = max(int(v) for k, v in steps if k == "align")
+    # a cap is at least 1: a schedule at spacing 1 only (a refinement phase) has nothing to cap
+    capped = opts.cap_spacing and top > 1
     caps = np.array(
-        [spacing_cap(lm.maplet, opts, camera) if opts.cap_spacing else top for lm in reg.landmarks],
-        dtype=np.int64,
+        [spacing_cap(lm.maplet, opts, camera) if capped else top for lm in reg.landmarks], dtype=np.int64
     )
-    _cap_warnings(reg, caps, top, result)
+    if capped:
+        _cap_warnings(reg, caps, top, result)
     if opts.schedule == "retina_s16":
         workers = _image_workers(opts, n)
         if workers > 1:
