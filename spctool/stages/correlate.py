@@ -209,15 +209,24 @@ def _block_range(size: int, anchor: int, n: int) -> tuple[int, int]:
 
 
 @numba.njit(cache=True, nogil=True)
-def _k_bin(v, m, n, s0, s1, sums, cnts):  # pragma: no cover - compiled
-    """sums/cnts[b0, b1] += value/1 of valid pixel (i, j) in block ((i − s0)//n, (j − s1)//n)."""
+def _k_bin(v, m, n, s0, s1, need, out, ok):  # pragma: no cover - compiled
+    """Block means of the valid pixels: pixel (i, j) belongs to block ((i − s0)//n, (j − s1)//n); a block
+    is valid (``ok``) with at least one valid pixel and at least ``need`` of them.  ``out`` (zeros on
+    entry) receives Σvalue/count of each valid block and stays 0 elsewhere."""
+    cnts = np.zeros(out.shape)
     for i in range(v.shape[0]):
         bi = (i - s0) // n
         for j in range(v.shape[1]):
             if m[i, j]:
                 bj = (j - s1) // n
-                sums[bi, bj] += v[i, j]
+                out[bi, bj] += v[i, j]
                 cnts[bi, bj] += 1.0
+    for bi in range(out.shape[0]):
+        for bj in range(out.shape[1]):
+            c = cnts[bi, bj]
+            good = (c > 0.0) & (c >= need)
+            ok[bi, bj] = good
+            out[bi, bj] = out[bi, bj] / c if good else 0.0
 
 
 def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
@@ -248,12 +257,11 @@ def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
     # input index of the first cell of the first block (≤ 0): block of pixel i = (i − s0)//n
     s0 = a0 - h + b0[0] * n
     s1 = a1 - h + b1[0] * n
-    sums = np.zeros((b0[1] - b0[0] + 1, b1[1] - b1[0] + 1))
-    cnts = np.zeros_like(sums)
-    _k_bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, s0, s1, sums, cnts)
-    ok = (cnts > 0) & (cnts >= min_fraction * n * n - 1e-9)
-    out = np.zeros_like(sums)
-    np.divide(sums, cnts, out=out, where=ok)
+    shape = (b0[1] - b0[0] + 1, b1[1] - b1[0] + 1)
+    out = np.zeros(shape)
+    ok = np.empty(shape, dtype=np.bool_)
+    need = min_fraction * n * n - 1e-9
+    _k_bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, s0, s1, need, out, ok)
     return out, ok, (-b0[0], -b1[0])
 
 
@@ -435,7 +443,7 @@ def _k_ncc(e, me, p, mp, o0, o1, half, min_valid, surf, cnts):  # pragma: no cov
             see = acc[a, b, 2]
             sp = acc[a, b, 3]
             spp = acc[a, b, 4]
-            cnts[a, b] = n
+            cnts[a, b] = int(n)
             if n < min_valid:
                 surf[a, b] = np.nan
                 continue
@@ -463,22 +471,24 @@ def ncc_surface(e, e_valid, p, p_valid, grid_half: int = 5, min_valid: int = 25,
     mp = np.asarray(p_valid, dtype=bool)
     if e.ndim != 2 or p.ndim != 2 or me.shape != e.shape or mp.shape != p.shape:
         raise SpcUsageError("ncc_surface needs 2-D images with masks of the same shapes")
-    g = 2 * int(grid_half) + 1
-    surf = np.empty((g, g))
-    cnts = np.empty((g, g))
-    _k_ncc(
+    return _ncc(
         np.ascontiguousarray(e),
         np.ascontiguousarray(me),
         np.ascontiguousarray(p),
         np.ascontiguousarray(mp),
-        int(origin[0]),
-        int(origin[1]),
         int(grid_half),
-        float(min_valid),
-        surf,
-        cnts,
+        min_valid,
+        (int(origin[0]), int(origin[1])),
     )
-    return surf, np.rint(cnts).astype(np.int64)
+
+
+def _ncc(e, me, p, mp, half: int, min_valid, origin):
+    """:func:`ncc_surface` on C-contiguous float64 images and bool masks (no checks)."""
+    g = 2 * half + 1
+    surf = np.empty((g, g))
+    cnts = np.empty((g, g), dtype=np.int64)
+    _k_ncc(e, me, p, mp, origin[0], origin[1], half, float(min_valid), surf, cnts)
+    return surf, cnts
 
 
 # --------------------------------------------------------------------------------------------------
@@ -544,7 +554,13 @@ def quadric_vertex(z3, max_move: float = 1.0):
     off by (e/2f)·δ_r along v (and by (e/2d)·δ_c along u).  For a peak with correlation ρ between the
     axes that is ρ·(σ_v/σ_u)·δ_r — half the other axis's offset at ρ = 0.5.
     """
-    _, b, c, d, e, f = quadric_fit(z3)
+    return _quadric_vertex(quadric_fit(z3).tolist(), max_move)
+
+
+def _quadric_vertex(coef, max_move: float = 1.0):
+    """:func:`quadric_vertex` from the fit's coefficients (a, b, c, d, e, f), as Python floats (the same
+    IEEE operations as on NumPy scalars, without their overhead)."""
+    _, b, c, d, e, f = coef
     h = np.array([[2.0 * d, e], [e, 2.0 * f]])
     det = 4.0 * d * f - e * e
     if not (d < 0.0 and det > 0.0):
@@ -553,7 +569,7 @@ def quadric_vertex(z3, max_move: float = 1.0):
     dc = -(2.0 * d * c - e * b) / det
     if not (abs(dr) <= max_move and abs(dc) <= max_move):
         return math.nan, math.nan, h, False
-    return float(dr), float(dc), h, True
+    return dr, dc, h, True
 
 
 @numba.njit(cache=True, inline="always")
@@ -561,9 +577,7 @@ def _k_usable(me, mp, o0, o1, i, j):  # pragma: no cover - compiled
     """P pixel (i, j) valid with its four axis neighbours, and its E pixel valid (every index is inside
     both images: the caller's ranges).  Bitwise ``&``: a chain of ``and`` over array elements compiled to
     a branch per element, which made the alignment's first pass ~6× slower."""
-    return (
-        mp[i, j] & me[i + o0, j + o1] & mp[i - 1, j] & mp[i + 1, j] & mp[i, j - 1] & mp[i, j + 1]
-    )
+    return mp[i, j] & me[i + o0, j + o1] & mp[i - 1, j] & mp[i + 1, j] & mp[i, j - 1] & mp[i, j + 1]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -642,8 +656,16 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
     alignment.  ``ok`` is False (δ NaN) with fewer than 8 usable pixels, a singular system, a
     non-positive gain a, or |δ| > ``max_move`` along an axis (outside the linear range).
     """
+    return _gradient_offset(
+        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
+        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
+        int(origin[0]), int(origin[1]), max_move,
+    )  # fmt: skip
+
+
+def _gradient_offset(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
+    """:func:`gradient_offset` on C-contiguous float64 images and bool masks, P placed at (o0, o1)."""
     nan = (math.nan, math.nan, False)
-    o0, o1 = int(origin[0]), int(origin[1])
     hp, wp = p.shape
     he, we = e.shape
     # P rows i with 1 ≤ i ≤ hp − 2 (central differences) whose E row i + o0 is inside E
@@ -653,18 +675,14 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
         return nan
     normal = np.zeros((3, 3))
     rhs = np.zeros(3)
-    count = _k_alignment(
-        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
-        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
-        o0, o1, i0, i1, j0, j1, normal, rhs,
-    )  # fmt: skip
+    count = _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs)
     if count < 8 or not normal[0, 0] > 0.0:
         return nan
     try:
         coef = np.linalg.solve(normal, rhs)
     except np.linalg.LinAlgError:
         return nan
-    a, cr, cc = (float(x) for x in coef)
+    a, cr, cc = coef.tolist()
     if not (a > 0.0 and math.isfinite(cr) and math.isfinite(cc)):
         return nan
     dr, dc = -cr / a, -cc / a
@@ -698,51 +716,97 @@ def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0) -
     (item 7).  NaN when H is not negative definite or ρ ∉ (0, 1].
     """
     h = np.asarray(hessian, dtype=np.float64)
-    nan = np.full((2, 2), np.nan)
-    if not (np.all(np.isfinite(h)) and 0.0 < rho <= 1.0 and count > 0 and footprint > 0):
-        return nan
-    det = h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]
-    if not (h[0, 0] < 0.0 and det > 0.0):
-        return nan
-    inv_neg = np.array([[-h[1, 1], h[0, 1]], [h[1, 0], -h[0, 0]]]) / det  # (−H)⁻¹
-    cov = (1.0 - rho * rho) / (rho * count / footprint) * inv_neg
-    return 0.5 * (cov + cov.T)
+    if h.shape != (2, 2):
+        raise SpcUsageError(f"peak_covariance needs a 2×2 Hessian, got shape {h.shape}")
+    (h00, h01), (h10, h11) = h.tolist()
+    finite = math.isfinite(h00) and math.isfinite(h01) and math.isfinite(h10) and math.isfinite(h11)
+    if not (finite and 0.0 < rho <= 1.0 and count > 0 and footprint > 0):
+        return np.full((2, 2), np.nan)
+    det = h00 * h11 - h01 * h10
+    if not (h00 < 0.0 and det > 0.0):
+        return np.full((2, 2), np.nan)
+    # scale·(−H)⁻¹ and its symmetric part, element by element (the same operations as on the arrays)
+    scale = (1.0 - rho * rho) / (rho * count / footprint)
+    c00 = scale * (-h11 / det)
+    c01 = scale * (h01 / det)
+    c10 = scale * (h10 / det)
+    c11 = scale * (-h00 / det)
+    return np.array([[0.5 * (c00 + c00), 0.5 * (c01 + c10)], [0.5 * (c10 + c01), 0.5 * (c11 + c11)]])
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_grid_peak(s, strict_8):  # pragma: no cover - compiled
+    """Stage G's checks on the grid (:func:`_find_peak`): ``(code, r0, c0, all9)``.
+
+    (r0, c0) is the first maximum of the finite entries in scan order (NumPy's argmax of the surface
+    with −inf for the undefined ones); ``code`` 1: no finite entry, 2: the maximum is attained more
+    than once, 3: it lies on the border, 4: a neighbour (the four along the axes, with ``strict_8`` all
+    eight) is undefined or not below it, 0: a strict interior maximum; ``all9``: its 3×3 neighbourhood
+    is finite."""
+    g0, g1 = s.shape
+    r0 = -1
+    c0 = -1
+    pk = -np.inf
+    for i in range(g0):
+        for j in range(g1):
+            v = s[i, j]
+            if math.isfinite(v) and (r0 < 0 or v > pk):
+                pk = v
+                r0 = i
+                c0 = j
+    if r0 < 0:
+        return 1, 0, 0, False
+    ties = 0
+    for i in range(g0):
+        for j in range(g1):
+            ties += s[i, j] == pk
+    if ties > 1:
+        return 2, r0, c0, False
+    if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
+        return 3, r0, c0, False
+    below = s[r0 - 1, c0] < pk and s[r0 + 1, c0] < pk and s[r0, c0 - 1] < pk and s[r0, c0 + 1] < pk
+    if strict_8:
+        below = (
+            below
+            and s[r0 - 1, c0 - 1] < pk
+            and s[r0 - 1, c0 + 1] < pk
+            and s[r0 + 1, c0 - 1] < pk
+            and s[r0 + 1, c0 + 1] < pk
+        )
+    if not below:
+        return 4, r0, c0, False
+    all9 = True
+    for i in range(r0 - 1, r0 + 2):
+        for j in range(c0 - 1, c0 + 2):
+            all9 = all9 and math.isfinite(s[i, j])
+    return 0, r0, c0, all9
 
 
 def _find_peak(s, corr_min, strict_8, peak):
     """find_peak plus the Hessian at the grid peak (NaN when there is no 3×3 neighbourhood) and the
     estimate used ("quadric", "parabola", "parabola-fallback" or "").  The Hessian is the quadric's,
-    or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas."""
-    nan_h = np.full((2, 2), np.nan)
-    finite = np.isfinite(s)
-    if not finite.any():
-        return "not-found", math.nan, None, (math.nan, math.nan), nan_h, ""
-    flat = np.where(finite, s, -np.inf)
-    r0, c0 = divmod(int(np.argmax(flat)), s.shape[1])
+    or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas.
+    ``s``: a C-contiguous float64 surface (the checks run in :func:`_k_grid_peak`)."""
+    code, r0, c0, all9 = _k_grid_peak(s, bool(strict_8))
+    if code == 1:
+        return "not-found", math.nan, None, (math.nan, math.nan), np.full((2, 2), np.nan), ""
     pk = float(s[r0, c0])
-    if np.count_nonzero(flat == pk) > 1:  # a flat surface or a tied maximum: no clearly defined peak
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
-    g0, g1 = s.shape
-    if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
-        return "edge-peak", pk, (r0, c0), (0.0, 0.0), nan_h, ""
-    up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
-    left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
-    neighbours = [up, down, left, right]
-    if strict_8:
-        neighbours += [
-            float(s[r0 - 1, c0 - 1]),
-            float(s[r0 - 1, c0 + 1]),
-            float(s[r0 + 1, c0 - 1]),
-            float(s[r0 + 1, c0 + 1]),
-        ]
-    # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
-    if not all(v < pk for v in neighbours):
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
-    qr, qc, h, q_ok = quadric_vertex(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2])
+    if code == 2:  # a flat surface or a tied maximum: no clearly defined peak
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), np.full((2, 2), np.nan), ""
+    if code == 3:
+        return "edge-peak", pk, (r0, c0), (0.0, 0.0), np.full((2, 2), np.nan), ""
+    if code == 4:  # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), np.full((2, 2), np.nan), ""
+    z3 = s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2]
+    # all nine values defined (the usual case): quadric_fit's closed form, without its checks
+    coef = _QPINV @ z3.reshape(9) if all9 else quadric_fit(z3)
+    qr, qc, h, q_ok = _quadric_vertex(coef.tolist())
     status = "ok" if pk >= corr_min else "low-correlation"
     if peak != "parabola" and q_ok:  # "gradient" refines it in correlate()
         return status, pk, (r0, c0), (qr, qc), h, "quadric"
     # SPC's two parabolas (|δ| ≤ ½ for the strict maximum checked above)
+    up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
+    left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
     dr = _vertex(up, pk, down)
     dc = _vertex(left, pk, right)
     if not q_ok:  # the quadric is no maximum: the curvature of the two parabolas
@@ -758,24 +822,43 @@ def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False, peak: str 
     """
     if peak not in PEAK_METHODS:
         raise SpcUsageError(f"peak must be one of {', '.join(PEAK_METHODS)}, got {peak!r}")
-    return _find_peak(np.asarray(surface, dtype=np.float64), corr_min, strict_8, peak)[:4]
+    s = np.ascontiguousarray(surface, dtype=np.float64)
+    if s.ndim != 2:
+        raise SpcUsageError(f"find_peak needs a 2-D surface, got shape {s.shape}")
+    return _find_peak(s, corr_min, strict_8, peak)[:4]
 
 
 # --------------------------------------------------------------------------------------------------
 # the stage
 
 
+@numba.njit(cache=True, nogil=True)
+def _k_valid(v, vm, use_min, min_value, out):  # pragma: no cover - compiled
+    """out = vm & finite(v) (& v > min_value when ``use_min``), in one pass (bitwise: no branches)."""
+    for i in range(v.shape[0]):
+        for j in range(v.shape[1]):
+            x = v[i, j]
+            out[i, j] = vm[i, j] & math.isfinite(x) & ((not use_min) | (x > min_value))
+
+
 def _valid_mask(values, valid, min_value):
-    v = np.asarray(values, dtype=np.float64)
-    m = np.isfinite(v)
-    if valid is not None:
-        vm = np.asarray(valid, dtype=bool)
-        if vm.shape != v.shape:
-            raise SpcUsageError(f"mask shape {vm.shape} differs from image shape {v.shape}")
-        m &= vm
-    if min_value is not None:
-        with np.errstate(invalid="ignore"):
-            m &= v > float(min_value)
+    """C-contiguous float64 values and their validity: finite, inside ``valid`` (if given) and above
+    ``min_value`` (if not None)."""
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    if valid is None:
+        m = np.isfinite(v)
+        if min_value is not None:
+            with np.errstate(invalid="ignore"):
+                m &= v > float(min_value)
+        return v, m
+    vm = np.ascontiguousarray(valid, dtype=np.bool_)
+    if vm.shape != v.shape:
+        raise SpcUsageError(f"mask shape {vm.shape} differs from image shape {v.shape}")
+    if v.ndim != 2:
+        raise SpcUsageError("correlate needs 2-D images")
+    m = np.empty(v.shape, dtype=np.bool_)
+    use_min = min_value is not None
+    _k_valid(v, vm, use_min, float(min_value) if use_min else 0.0, m)
     return v, m
 
 
@@ -814,23 +897,25 @@ def correlate(
         raise SpcUsageError(f"images differ in shape ({e.shape} vs {p.shape}); give the anchors")
     ea = ((e.shape[0] - 1) // 2, (e.shape[1] - 1) // 2) if extracted_anchor is None else extracted_anchor
     pa = ((p.shape[0] - 1) // 2, (p.shape[1] - 1) // 2) if predicted_anchor is None else predicted_anchor
-    eb, meb, eab = bin_image(e, me, n, ea, opts.bin_min_fraction)
-    pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
+    if n == 1:
+        # bin_image would copy the images with their invalid pixels set to 0; no kernel reads those
+        eb, meb, eab = e, me, (int(ea[0]), int(ea[1]))
+        pb, mpb, pab = p, mp, (int(pa[0]), int(pa[1]))
+    else:
+        eb, meb, eab = bin_image(e, me, n, ea, opts.bin_min_fraction)
+        pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
     origin = (eab[0] - pab[0], eab[1] - pab[1])
-    surf, cnts = ncc_surface(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
-    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     k = opts.grid_half
+    surf, cnts = _ncc(eb, meb, pb, mpb, k, opts.min_valid, origin)
+    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     if opts.peak == "gradient" and status in ("ok", "low-correlation"):
-        g_r, g_c, g_ok = gradient_offset(
-            eb, meb, pb, mpb, (origin[0] + idx[0] - k, origin[1] + idx[1] - k)
-        )
+        g_r, g_c, g_ok = _gradient_offset(eb, meb, pb, mpb, origin[0] + idx[0] - k, origin[1] + idx[1] - k)
         if g_ok:
             dr, dc, fit = g_r, g_c, "gradient"
-    cov = np.full((2, 2), np.nan)
     if idx is None or status == "not-found":
-        off = np.full(2, np.nan)
-    else:
-        off = n * np.array([(idx[0] - k) + dr, (idx[1] - k) + dc], dtype=np.float64)
-        if status != "edge-peak":
-            cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
+        return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), np.full(2, np.nan), hess, peak_fit=fit)
+    off = np.array([n * ((idx[0] - k) + dr), n * ((idx[1] - k) + dc)])
+    if status == "edge-peak":
+        return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, peak_fit=fit)
+    cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
     return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, cov, fit)
