@@ -910,3 +910,47 @@ def test_gradient_offset_kernel_matches_a_dense_least_squares(seed, o0, o1):
     assert good == (gain > 0.0)  # a misplaced origin can leave no positive gain: refused by both
     if good:
         np.testing.assert_allclose([dr, dc], [rr, rc], rtol=1e-8, atol=1e-9)
+
+
+@given(seed=st.integers(0, 2**31 - 1), o0=st.integers(-3, 3), o1=st.integers(-3, 3))
+@settings(max_examples=40, deadline=None)
+def test_alignment_kernel_sums_equal_sequential_numpy_sums_bitwise(seed, o0, o1):
+    """The alignment kernel's normal matrix and right-hand side are, bit for bit, sequential sums in
+    scan order (NumPy's cumsum) over the masked pixels, of regressors centred on their sequential means."""
+    from spctool.stages.correlate import _k_alignment
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
+    e = np.pad(3.0 * p + 7.0 + 0.3 * rng.normal(size=p.shape), 3, mode="edge")
+    mp = rng.random(p.shape) > 0.1
+    me = rng.random(e.shape) > 0.1
+    o0, o1 = 3 + o0, 3 + o1
+    hp, wp = p.shape
+    he, we = e.shape
+    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
+    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
+
+    def win(a, di, dj, oi=0, oj=0):
+        return a[i0 + oi + di : i1 + oi + di, j0 + oj + dj : j1 + oj + dj]
+
+    ok = win(mp, 0, 0) & win(me, 0, 0, o0, o1)
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ok &= win(mp, di, dj)
+    cols = [
+        win(p, 0, 0)[ok],
+        0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok],
+        0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok],
+    ]
+    y = win(e, 0, 0, o0, o1)[ok]
+    n = len(y)
+
+    def seq(x):  # a sequential sum (cumsum adds in order; the kernel starts from 0.0 as well)
+        return np.cumsum(np.concatenate([[0.0], x]))[-1]
+
+    x = [c - seq(c) / n for c in cols]
+    yc = y - seq(y) / n
+    ref_n = np.array([[seq(a * b) for b in x] for a in x])
+    ref_r = np.array([seq(a * yc) for a in x])
+    normal, rhs = np.zeros((3, 3)), np.zeros(3)
+    assert _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs) == n
+    assert normal.tobytes() == ref_n.tobytes() and rhs.tobytes() == ref_r.tobytes()

@@ -212,15 +212,28 @@ def _block_range(size: int, anchor: int, n: int) -> tuple[int, int]:
 def _k_bin(v, m, n, s0, s1, need, out, ok):  # pragma: no cover - compiled
     """Block means of the valid pixels: pixel (i, j) belongs to block ((i − s0)//n, (j − s1)//n); a block
     is valid (``ok``) with at least one valid pixel and at least ``need`` of them.  ``out`` (zeros on
-    entry) receives Σvalue/count of each valid block and stays 0 elsewhere."""
+    entry) receives Σvalue/count of each valid block and stays 0 elsewhere.
+
+    Each row is walked block by block (block b holds columns b·n + s1 … b·n + s1 + n − 1), so every
+    block still sums its pixels in scan order, without a division per pixel; column indices are
+    unsigned (np.uint64), which spares numba's negative-index test (see :func:`_k_usable`)."""
+    u = np.uint64
     cnts = np.zeros(out.shape)
-    for i in range(v.shape[0]):
-        bi = (i - s0) // n
-        for j in range(v.shape[1]):
-            if m[i, j]:
-                bj = (j - s1) // n
-                out[bi, bj] += v[i, j]
-                cnts[bi, bj] += 1.0
+    w = v.shape[1]
+    for i_ in range(v.shape[0]):
+        i = u(i_)
+        bi = u((i_ - s0) // n)
+        for b in range(u(out.shape[1])):
+            lo = max(0, int(b) * n + s1)
+            hi = min(w, int(b) * n + s1 + n)
+            acc = out[bi, b]
+            c = cnts[bi, b]
+            for j in range(u(lo), u(hi)):
+                if m[i, j]:
+                    acc += v[i, j]
+                    c += 1.0
+            out[bi, b] = acc
+            cnts[bi, b] = c
     for bi in range(out.shape[0]):
         for bj in range(out.shape[1]):
             c = cnts[bi, bj]
@@ -573,11 +586,14 @@ def _quadric_vertex(coef, max_move: float = 1.0):
 
 
 @numba.njit(cache=True, inline="always")
-def _k_usable(me, mp, o0, o1, i, j):  # pragma: no cover - compiled
-    """P pixel (i, j) valid with its four axis neighbours, and its E pixel valid (every index is inside
-    both images: the caller's ranges).  Bitwise ``&``: a chain of ``and`` over array elements compiled to
-    a branch per element, which made the alignment's first pass ~6× slower."""
-    return mp[i, j] & me[i + o0, j + o1] & mp[i - 1, j] & mp[i + 1, j] & mp[i, j - 1] & mp[i, j + 1]
+def _k_usable(me, mp, i, j, ie, je):  # pragma: no cover - compiled
+    """P pixel (i, j) valid with its four axis neighbours, and E pixel (ie, je) valid (every index is
+    inside both images: the caller's ranges).  Bitwise ``&``: a chain of ``and`` over array elements
+    compiled to a branch per element, which made the alignment's first pass ~6× slower.  Unsigned
+    indices (np.uint64): numba adds a negative-index wrap-around test to every signed index it cannot
+    prove non-negative, which halved the speed of this pass."""
+    one = np.uint64(1)
+    return mp[i, j] & me[ie, je] & mp[i - one, j] & mp[i + one, j] & mp[i, j - one] & mp[i, j + one]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -587,18 +603,25 @@ def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: 
     in P: the first finds those pixels, keeps their regressors (P, g_r, g_c) and E in scan order and
     sums them for the means; the second forms the normal matrix of the centred regressors and its
     right-hand side with the centred E from the kept values (the same sums in the same order as
-    recomputing them from the images, without a second pass over the masks).  Returns the count."""
+    recomputing them from the images, without a second pass over the masks).  Returns the count.
+    The caller's ranges keep every index ≥ 0, so they are unsigned (see :func:`_k_usable`)."""
+    u = np.uint64
+    one = u(1)
     kept = np.empty((max(0, (i1 - i0) * (j1 - j0)), 4))
     n = 0
     sp = se = sr = sc = 0.0
-    for i in range(i0, i1):
-        for j in range(j0, j1):
-            if not _k_usable(me, mp, o0, o1, i, j):
+    for i_ in range(i0, i1):
+        i = u(i_)
+        ie = u(i_ + o0)
+        for t in range(u(max(0, j1 - j0))):
+            j = u(j0) + t
+            je = u(j0 + o1) + t
+            if not _k_usable(me, mp, i, j, ie, je):
                 continue
             x0 = p[i, j]
-            x1 = 0.5 * (p[i + 1, j] - p[i - 1, j])
-            x2 = 0.5 * (p[i, j + 1] - p[i, j - 1])
-            y = e[i + o0, j + o1]
+            x1 = 0.5 * (p[i + one, j] - p[i - one, j])
+            x2 = 0.5 * (p[i, j + one] - p[i, j - one])
+            y = e[ie, je]
             kept[n, 0] = x0
             kept[n, 1] = x1
             kept[n, 2] = x2
@@ -614,23 +637,28 @@ def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: 
     me_ = se / n
     mr = sr / n
     mc = sc / n
-    for k in range(n):
+    # the nine sums in registers, each accumulated in scan order from the caller's initial value
+    a00, a01, a02 = normal[0, 0], normal[0, 1], normal[0, 2]
+    a11, a12, a22 = normal[1, 1], normal[1, 2], normal[2, 2]
+    b0, b1, b2 = rhs[0], rhs[1], rhs[2]
+    for k in range(u(n)):
         x0 = kept[k, 0] - mp_
         x1 = kept[k, 1] - mr
         x2 = kept[k, 2] - mc
         y = kept[k, 3] - me_
-        normal[0, 0] += x0 * x0
-        normal[0, 1] += x0 * x1
-        normal[0, 2] += x0 * x2
-        normal[1, 1] += x1 * x1
-        normal[1, 2] += x1 * x2
-        normal[2, 2] += x2 * x2
-        rhs[0] += x0 * y
-        rhs[1] += x1 * y
-        rhs[2] += x2 * y
-    normal[1, 0] = normal[0, 1]
-    normal[2, 0] = normal[0, 2]
-    normal[2, 1] = normal[1, 2]
+        a00 += x0 * x0
+        a01 += x0 * x1
+        a02 += x0 * x2
+        a11 += x1 * x1
+        a12 += x1 * x2
+        a22 += x2 * x2
+        b0 += x0 * y
+        b1 += x1 * y
+        b2 += x2 * y
+    normal[0, 0], normal[0, 1], normal[0, 2] = a00, a01, a02
+    normal[1, 0], normal[1, 1], normal[1, 2] = a01, a11, a12
+    normal[2, 0], normal[2, 1], normal[2, 2] = a02, a12, a22
+    rhs[0], rhs[1], rhs[2] = b0, b1, b2
     return n
 
 
