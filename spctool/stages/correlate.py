@@ -328,19 +328,22 @@ def _k_dense(ez, pz, g, out):  # pragma: no cover - compiled
 
 @numba.njit(**_JIT)
 def _k_runs(mask_row, lo, hi, out):  # pragma: no cover - compiled
-    """Write the [start, stop) runs of True in mask_row[lo:hi] to out (k, 2); return k."""
+    """Write the [start, stop) runs of True in mask_row[lo:hi] to out (k, 2); return k.  (0 ≤ lo:
+    unsigned indices, see :func:`_k_usable`.)"""
+    one = np.uint64(1)
+    end = np.uint64(hi)
     k = 0
-    j = lo
-    while j < hi:
+    j = np.uint64(lo)
+    while j < end:
         if mask_row[j]:
             s = j
-            while j < hi and mask_row[j]:
-                j += 1
+            while j < end and mask_row[j]:
+                j += one
             out[k, 0] = s
             out[k, 1] = j
             k += 1
         else:
-            j += 1
+            j += one
     return k
 
 
@@ -356,8 +359,12 @@ def _k_ncc(e, me, p, mp, o0, o1, half, min_valid, surf, cnts):  # pragma: no cov
       row prefix sums at the ends of each run of valid pixels (two look-ups per run and offset), so
       their cost depends on the number of runs, not on the number of pixels.
 
-    All sums are float64; the result equals the brute-force Pearson to rounding (≈ 1e-15).
+    All sums are float64; the result equals the brute-force Pearson to rounding (≈ 1e-15).  Indices
+    that numba cannot prove non-negative are unsigned (see :func:`_k_usable`); each prefix and box sum
+    has its own array, so the look-ups of one offset row are contiguous loops that vectorise.
     """
+    u = np.uint64
+    one = u(1)
     he, we = e.shape
     hp, wp = p.shape
     g = 2 * half + 1
@@ -368,94 +375,132 @@ def _k_ncc(e, me, p, mp, o0, o1, half, min_valid, surf, cnts):  # pragma: no cov
     r1 = max(r0, min(h2, he + half - o0))
     c0 = max(0, half - o1)
     c1 = max(c0, min(w2, we + half - o1))
-    # centring constants: Pearson is shift-invariant; centring keeps the one-pass sums well conditioned
+    nr = r1 - r0
+    nc = c1 - c0
+    er0 = u(r0 + o0 - half)  # E row and column of E' pixel (r0, c0), ≥ 0
+    ec0 = u(c0 + o1 - half)
+    # centring constants: Pearson is shift-invariant; centring keeps the one-pass sums well conditioned.
+    # E's and P's sums are independent chains: one loop advances both, each in scan order
     ce = 0.0
     ne = 0
-    for i in range(r0, r1):
-        for j in range(c0, c1):
-            if me[i + o0 - half, j + o1 - half]:
-                ce += e[i + o0 - half, j + o1 - half]
-                ne += 1
-    ce = ce / ne if ne > 0 else 0.0
     cp = 0.0
     npv = 0
-    for i in range(hp):
-        for j in range(wp):
-            if mp[i, j]:
-                cp += p[i, j]
+    for t_ in range(max(nr, hp)):
+        t = u(t_)
+        both = u(min(nc, wp) if (t_ < nr and t_ < hp) else 0)
+        for j in range(both):
+            if me[er0 + t, ec0 + j]:
+                ce += e[er0 + t, ec0 + j]
+                ne += 1
+            if mp[t, j]:
+                cp += p[t, j]
                 npv += 1
+        if t_ < nr:
+            for j in range(both, u(nc)):
+                if me[er0 + t, ec0 + j]:
+                    ce += e[er0 + t, ec0 + j]
+                    ne += 1
+        if t_ < hp:
+            for j in range(both, u(wp)):
+                if mp[t, j]:
+                    cp += p[t, j]
+                    npv += 1
+    ce = ce / ne if ne > 0 else 0.0
     cp = cp / npv if npv > 0 else 0.0
-    # E': validity, centred values, row prefixes of (valid, v, v²): rpe[r, 3c + q] = Σ_{j<c}
-    mv = np.zeros((h2, w2), np.bool_)
+    # E': centred values and row prefixes of (valid, v, v²): en/es/es2[r, c] = Σ_{j<c} (0 outside E)
     ez = np.zeros((h2, w2))
-    rpe = np.zeros((h2, 3 * (w2 + 1)))
-    for i in range(r0, r1):
+    en = np.zeros((h2, w2 + 1))
+    es = np.zeros((h2, w2 + 1))
+    es2 = np.zeros((h2, w2 + 1))
+    for r_ in range(r0, r1):
+        r = u(r_)
+        ei = er0 + u(r_ - r0)
         n_ = 0.0
         s_ = 0.0
         s2_ = 0.0
-        row = rpe[i]
-        for j in range(w2):
-            if j >= c0 and j < c1 and me[i + o0 - half, j + o1 - half]:
-                v = e[i + o0 - half, j + o1 - half] - ce
-                ez[i, j] = v
-                mv[i, j] = True
+        for t in range(u(nc)):
+            c = u(c0) + t
+            if me[ei, ec0 + t]:
+                v = e[ei, ec0 + t] - ce
+                ez[r, c] = v
                 n_ += 1.0
                 s_ += v
                 s2_ += v * v
-            row[3 * j + 3] = n_
-            row[3 * j + 4] = s_
-            row[3 * j + 5] = s2_
-    # P: centred values, row prefixes of (v, v²) for columns c = −pad … w2: rpp[i, 2(c + pad) + q]
+            en[r, c + one] = n_
+            es[r, c + one] = s_
+            es2[r, c + one] = s2_
+        for c in range(u(c1 + 1), u(w2 + 1)):
+            en[r, c] = n_
+            es[r, c] = s_
+            es2[r, c] = s2_
+    # P: centred values, row prefixes of (v, v²) for columns c = −pad … w2: pp/pp2[i, c + pad]
     pad = g - 1
     pz = np.zeros((hp, wp))
     wpp = w2 + pad + 1
-    rpp = np.zeros((hp, 2 * wpp))
-    for i in range(hp):
+    pp = np.zeros((hp, wpp))
+    pp2 = np.zeros((hp, wpp))
+    for i_ in range(hp):
+        i = u(i_)
         s_ = 0.0
         s2_ = 0.0
-        row = rpp[i]
-        for c in range(w2 + 1):
-            if c > 0 and c - 1 < wp and mp[i, c - 1]:
-                v = p[i, c - 1] - cp
-                pz[i, c - 1] = v
+        for j in range(u(wp)):
+            if mp[i, j]:
+                v = p[i, j] - cp
+                pz[i, j] = v
                 s_ += v
                 s2_ += v * v
-            row[2 * (c + pad)] = s_
-            row[2 * (c + pad) + 1] = s2_
-    acc = np.zeros((g, g, 5))  # N, Σe, Σe², Σp, Σp²
-    runs = np.empty((w2 + 1, 2), np.int64)
+            pp[i, j + u(pad + 1)] = s_
+            pp2[i, j + u(pad + 1)] = s2_
+        for c in range(u(wp + pad + 1), u(wpp)):
+            pp[i, c] = s_
+            pp2[i, c] = s2_
+    # the box sums N, Σe, Σe², Σp, Σp² per offset (a, b)
+    an = np.zeros((g, g))
+    ae = np.zeros((g, g))
+    ae2 = np.zeros((g, g))
+    ap = np.zeros((g, g))
+    ap2 = np.zeros((g, g))
+    runs = np.empty((max(w2, we) + 1, 2), np.int64)
+    gu = u(g)
     for i in range(hp):  # runs of valid P pixels: sums of E' over them
         k = _k_runs(mp[i], 0, wp, runs)
         for q in range(k):
-            s = runs[q, 0]
-            t = runs[q, 1]
+            s = u(runs[q, 0])
+            t = u(runs[q, 1])
             for a in range(g):
-                row = rpe[i + a]
-                for b in range(g):
-                    acc[a, b, 0] += row[3 * (t + b)] - row[3 * (s + b)]
-                    acc[a, b, 1] += row[3 * (t + b) + 1] - row[3 * (s + b) + 1]
-                    acc[a, b, 2] += row[3 * (t + b) + 2] - row[3 * (s + b) + 2]
-    for r in range(r0, r1):  # runs of valid E' pixels: sums of P over them (P column = E' column − b)
-        k = _k_runs(mv[r], c0, c1, runs)
+                xn, xe, xe2 = an[a], ae[a], ae2[a]
+                rn, rs, rs2 = en[i + a], es[i + a], es2[i + a]
+                for b in range(gu):
+                    xn[b] += rn[t + b] - rn[s + b]
+                for b in range(gu):
+                    xe[b] += rs[t + b] - rs[s + b]
+                for b in range(gu):
+                    xe2[b] += rs2[t + b] - rs2[s + b]
+    # runs of valid E' pixels (found in E's mask): sums of P over them (P column = E' column − b)
+    shift = c0 - int(ec0) + pad  # E column → E' column + pad
+    for r in range(r0, r1):
+        k = _k_runs(me[int(er0) + r - r0], int(ec0), int(ec0) + nc, runs)
         a_lo = max(0, r - hp + 1)
         a_hi = min(g, r + 1)
         for q in range(k):
-            s = runs[q, 0]
-            t = runs[q, 1]
+            s = u(runs[q, 0] + shift)
+            t = u(runs[q, 1] + shift)
             for a in range(a_lo, a_hi):
-                row = rpp[r - a]
-                for b in range(g):
-                    acc[a, b, 3] += row[2 * (t - b + pad)] - row[2 * (s - b + pad)]
-                    acc[a, b, 4] += row[2 * (t - b + pad) + 1] - row[2 * (s - b + pad) + 1]
+                xp, xp2 = ap[a], ap2[a]
+                rs, rs2 = pp[r - a], pp2[r - a]
+                for b in range(gu):
+                    xp[b] += rs[t - b] - rs[s - b]
+                for b in range(gu):
+                    xp2[b] += rs2[t - b] - rs2[s - b]
     sep = np.zeros((g, g))
     _k_dense(ez, pz, g, sep)
     for a in range(g):
         for b in range(g):
-            n = float(round(acc[a, b, 0]))
-            se = acc[a, b, 1]
-            see = acc[a, b, 2]
-            sp = acc[a, b, 3]
-            spp = acc[a, b, 4]
+            n = float(round(an[a, b]))
+            se = ae[a, b]
+            see = ae2[a, b]
+            sp = ap[a, b]
+            spp = ap2[a, b]
             cnts[a, b] = int(n)
             if n < min_valid:
                 surf[a, b] = np.nan
