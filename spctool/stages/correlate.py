@@ -264,6 +264,11 @@ def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
     a0, a1 = int(anchor[0]), int(anchor[1])
     if n == 1:
         return np.where(m, v, 0.0), m.copy(), (a0, a1)
+    return _bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, a0, a1, min_fraction)
+
+
+def _bin(v, m, n: int, a0: int, a1: int, min_fraction: float):
+    """:func:`bin_image` for n ≥ 2 on a C-contiguous float64 image and bool mask (no checks)."""
     b0 = _block_range(v.shape[0], a0, n)
     b1 = _block_range(v.shape[1], a1, n)
     h = n // 2
@@ -274,7 +279,7 @@ def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
     out = np.zeros(shape)
     ok = np.empty(shape, dtype=np.bool_)
     need = min_fraction * n * n - 1e-9
-    _k_bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, s0, s1, need, out, ok)
+    _k_bin(v, m, n, s0, s1, need, out, ok)
     return out, ok, (-b0[0], -b1[0])
 
 
@@ -975,8 +980,8 @@ def correlate(
         eb, meb, eab = e, me, (int(ea[0]), int(ea[1]))
         pb, mpb, pab = p, mp, (int(pa[0]), int(pa[1]))
     else:
-        eb, meb, eab = bin_image(e, me, n, ea, opts.bin_min_fraction)
-        pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
+        eb, meb, eab = _bin(e, me, n, int(ea[0]), int(ea[1]), opts.bin_min_fraction)
+        pb, mpb, pab = _bin(p, mp, n, int(pa[0]), int(pa[1]), opts.bin_min_fraction)
     origin = (eab[0] - pab[0], eab[1] - pab[1])
     k = opts.grid_half
     surf, cnts = _ncc(eb, meb, pb, mpb, k, opts.min_valid, origin)
