@@ -84,7 +84,12 @@ correlation with register tiling, and the masked sums (N, Σe, Σe², Σp, Σp²
 looked up at the ends of each run of valid pixels, so masks cost per run, not per pixel.  All sums are
 float64 and agree with a brute-force Pearson to ≈ 1e-15; a 99×99 pair at spacing 1 takes ≈ 0.3 ms
 (benchmarks/bench_register.py).  Images are centred on their valid mean before summing (Pearson is
-invariant to that) to keep the one-pass sums well conditioned.
+invariant to that) to keep the one-pass sums well conditioned.  The rest of a call runs in small kernels
+as well (the validity test, the binning, Stage G's grid checks, the alignment); at spacing 1 the images
+go to them unbinned (no copy: no kernel reads an invalid pixel).  Wherever numba cannot prove an index
+non-negative the kernels index with unsigned integers, which spares a wrap-around test per access
+(twice as fast in the alignment and the binning).  None of this changes a result: every sum keeps its
+operations and their order (tests/test_correlate.py compares the kernels bit for bit with NumPy).
 """
 
 from __future__ import annotations
