@@ -214,6 +214,34 @@ def test_bin_image_min_fraction_and_identity():
     assert a1 == (2, 2)
 
 
+@pytest.mark.parametrize("n,frac", [(2, 0.0), (3, 0.5), (4, 1.0), (5, 0.3)])
+def test_bin_kernel_equals_numpy_block_means_bitwise(n, frac):
+    """The binning kernel sums each block's valid pixels in scan order and divides once: bit for bit
+    NumPy's unbuffered ``add.at`` in the same order and a masked ``divide``."""
+    from spctool.stages.correlate import _block_range
+
+    rng = np.random.default_rng(n)
+    v = rng.normal(size=(23, 19)) * 10.0 ** rng.uniform(-3, 3, (23, 19))
+    m = rng.random(v.shape) > 0.25
+    anchor = (9, 4)
+    b, bv, ba = bin_image(v, m, n, anchor, min_fraction=frac)
+    r0, r1 = _block_range(v.shape[0], anchor[0], n)
+    c0, c1 = _block_range(v.shape[1], anchor[1], n)
+    i, j = np.nonzero(m)  # row-major: the kernel's order
+    bi = (i - anchor[0] + n // 2) // n - r0
+    bj = (j - anchor[1] + n // 2) // n - c0
+    sums = np.zeros((r1 - r0 + 1, c1 - c0 + 1))
+    cnts = np.zeros_like(sums)
+    np.add.at(sums, (bi, bj), v[i, j])
+    np.add.at(cnts, (bi, bj), 1.0)
+    ok = (cnts > 0) & (cnts >= frac * n * n - 1e-9)
+    ref = np.zeros_like(sums)
+    np.divide(sums, cnts, out=ref, where=ok)
+    assert ba == (-r0, -c0)
+    np.testing.assert_array_equal(bv, ok)
+    assert b.tobytes() == ref.tobytes()
+
+
 def test_binned_grid_equals_shifting_then_binning():
     """L15: binned images offset by (u, v) bins give exactly the correlation of the prediction moved by
     n·(u, v) full cells and then binned (same bin phase), over the same bins."""
@@ -301,6 +329,57 @@ def test_find_peak_strict_8():
     s[4, 4] = np.nan  # an undefined diagonal neighbour (too few common pixels there)
     assert find_peak(s)[0] == "ok"
     assert find_peak(s, strict_8=True)[0] == "not-found"
+
+
+def _grid_peak_reference(s, strict_8):
+    """Stage G's grid checks with NumPy: ``(code, (r0, c0))`` as :func:`_k_grid_peak` encodes them."""
+    finite = np.isfinite(s)
+    if not finite.any():
+        return 1, None
+    flat = np.where(finite, s, -np.inf)
+    r0, c0 = divmod(int(np.argmax(flat)), s.shape[1])
+    pk = s[r0, c0]
+    if np.count_nonzero(flat == pk) > 1:
+        return 2, (r0, c0)
+    if r0 in (0, s.shape[0] - 1) or c0 in (0, s.shape[1] - 1):
+        return 3, (r0, c0)
+    around = np.delete(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2].ravel(), 4)  # the 8 neighbours
+    if not strict_8:
+        around = around[[1, 3, 4, 6]]  # the four along the axes
+    if not np.all(around < pk):
+        return 4, (r0, c0)
+    return 0, (r0, c0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    g=st.sampled_from([3, 5, 7, 11]),
+    seed=st.integers(0, 2**31 - 1),
+    kind=st.sampled_from(["normal", "nan", "ties", "inf", "all-nan"]),
+    strict_8=st.booleans(),
+)
+def test_grid_peak_kernel_equals_the_numpy_reference(g, seed, kind, strict_8):
+    """The compiled grid checks of Stage G (:func:`_k_grid_peak`) agree with NumPy's argmax, tie
+    count, border and neighbour tests on surfaces with undefined values, ties and infinities."""
+    from spctool.stages.correlate import _k_grid_peak
+
+    rng = np.random.default_rng(seed)
+    s = rng.normal(size=(g, g))
+    if kind == "nan":
+        s[rng.random(s.shape) < 0.2] = np.nan
+    elif kind == "ties":
+        s = np.round(s, 1)
+    elif kind == "inf":
+        s[rng.random(s.shape) < 0.2] = np.inf * rng.choice([-1.0, 1.0])
+    elif kind == "all-nan":
+        s[:] = np.nan
+    code, r0, c0, all9 = _k_grid_peak(s, strict_8)
+    ref, idx = _grid_peak_reference(s, strict_8)
+    assert code == ref
+    if idx is not None:
+        assert (r0, c0) == idx
+    if code == 0:
+        assert all9 == bool(np.isfinite(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2]).all())
 
 
 # --------------------------------------------------------------------------------------------------
@@ -611,6 +690,24 @@ def test_peak_covariance_formula_and_degenerate_cases():
     assert math.isnan(resampled_noise_footprint(0.0))
 
 
+def test_peak_covariance_equals_the_array_formula_bitwise():
+    """The element-by-element covariance equals (1 − ρ²)/(ρN/f)·(−H)⁻¹ symmetrised with arrays, bit
+    for bit."""
+    rng = np.random.default_rng(11)
+    for _ in range(500):
+        a = rng.normal(size=(2, 2))
+        h = -(a @ a.T) - 1e-3 * np.eye(2) if rng.random() < 0.8 else rng.normal(size=(2, 2))
+        rho, count, fp = rng.uniform(0.01, 1.0), float(rng.integers(1, 5000)), rng.uniform(0.5, 3.0)
+        det = h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]
+        got = peak_covariance(h, rho, count, fp)
+        if not (h[0, 0] < 0.0 and det > 0.0):
+            assert np.all(np.isnan(got))
+            continue
+        inv_neg = np.array([[-h[1, 1], h[0, 1]], [h[1, 0], -h[0, 0]]]) / det
+        cov = (1.0 - rho * rho) / (rho * count / fp) * inv_neg
+        assert got.tobytes() == (0.5 * (cov + cov.T)).tobytes()
+
+
 def _scatter_vs_predicted(make_e, p, footprint, trials, d):
     offs, covs = [], []
     for _ in range(trials):
@@ -699,6 +796,28 @@ def test_masks_zero_pixels_and_min_value():
     # min_value=None keeps the zeros (they then spoil the match)
     res3 = correlate(e, p, options=CorrelateOptions(min_value=None))
     assert res3.peak < res.peak - 0.01
+
+
+@pytest.mark.parametrize("min_value", [None, 0.0, 0.4])
+def test_validity_kernel_equals_numpy(min_value):
+    """correlate's validity test (finite, inside the mask, above ``min_value``) in its kernel equals
+    the NumPy expression, with NaN, ±inf and a non-contiguous input."""
+    from spctool.stages.correlate import _valid_mask
+
+    rng = np.random.default_rng(7)
+    v = rng.normal(size=(30, 42))
+    v[rng.random(v.shape) < 0.1] = np.nan
+    v[rng.random(v.shape) < 0.05] = np.inf
+    v[rng.random(v.shape) < 0.05] = -np.inf
+    vm = rng.random(v.shape) > 0.2
+    for values, valid in ((v, vm), (v[:, ::2], vm[:, ::2])):
+        ref = np.isfinite(values) & valid
+        if min_value is not None:
+            with np.errstate(invalid="ignore"):
+                ref &= values > min_value
+        got_v, got_m = _valid_mask(values, valid, min_value)
+        np.testing.assert_array_equal(got_m, ref)
+        assert got_v.flags.c_contiguous and np.array_equal(got_v, values, equal_nan=True)
 
 
 def test_flat_and_edge_inputs_are_rejected_with_status():
@@ -791,3 +910,47 @@ def test_gradient_offset_kernel_matches_a_dense_least_squares(seed, o0, o1):
     assert good == (gain > 0.0)  # a misplaced origin can leave no positive gain: refused by both
     if good:
         np.testing.assert_allclose([dr, dc], [rr, rc], rtol=1e-8, atol=1e-9)
+
+
+@given(seed=st.integers(0, 2**31 - 1), o0=st.integers(-3, 3), o1=st.integers(-3, 3))
+@settings(max_examples=40, deadline=None)
+def test_alignment_kernel_sums_equal_sequential_numpy_sums_bitwise(seed, o0, o1):
+    """The alignment kernel's normal matrix and right-hand side are, bit for bit, sequential sums in
+    scan order (NumPy's cumsum) over the masked pixels, of regressors centred on their sequential means."""
+    from spctool.stages.correlate import _k_alignment
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
+    e = np.pad(3.0 * p + 7.0 + 0.3 * rng.normal(size=p.shape), 3, mode="edge")
+    mp = rng.random(p.shape) > 0.1
+    me = rng.random(e.shape) > 0.1
+    o0, o1 = 3 + o0, 3 + o1
+    hp, wp = p.shape
+    he, we = e.shape
+    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
+    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
+
+    def win(a, di, dj, oi=0, oj=0):
+        return a[i0 + oi + di : i1 + oi + di, j0 + oj + dj : j1 + oj + dj]
+
+    ok = win(mp, 0, 0) & win(me, 0, 0, o0, o1)
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ok &= win(mp, di, dj)
+    cols = [
+        win(p, 0, 0)[ok],
+        0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok],
+        0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok],
+    ]
+    y = win(e, 0, 0, o0, o1)[ok]
+    n = len(y)
+
+    def seq(x):  # a sequential sum (cumsum adds in order; the kernel starts from 0.0 as well)
+        return np.cumsum(np.concatenate([[0.0], x]))[-1]
+
+    x = [c - seq(c) / n for c in cols]
+    yc = y - seq(y) / n
+    ref_n = np.array([[seq(a * b) for b in x] for a in x])
+    ref_r = np.array([seq(a * yc) for a in x])
+    normal, rhs = np.zeros((3, 3)), np.zeros(3)
+    assert _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs) == n
+    assert normal.tobytes() == ref_n.tobytes() and rhs.tobytes() == ref_r.tobytes()

@@ -929,7 +929,11 @@ def test_acquire_reach_finds_what_the_maplet_grid_loses(scene):
     cam = rs.pointing_error(scene.camera, 6.0, 4.0)
     out = [
         register(
-            scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds,
+            scene.photo,
+            cam,
+            scene.sun,
+            [scene.maplet],
+            scene.thresholds,
             RegisterOptions(extract=eopts, acquire_reach=a),
         )  # fmt: skip
         for a in (0, 80)
@@ -1020,3 +1024,42 @@ def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypat
     wider = dataclasses.replace(opts, template_margin=3)
     register(scene.photo, other, scene.sun, [scene.maplet], scene.thresholds, wider, patch_cache=cache)
     assert projected[2:] == [other, other] and len(built) == 2
+
+
+@pytest.mark.parametrize("no_shadows", [False, True])
+def test_image_step_kernels_equal_the_numpy_masks(no_shadows):
+    """The image-space step's photo window and masks (one pass each) equal the NumPy construction:
+    the crop zero beyond the photo, valid where positive, finite and within the thresholds; the
+    template valid where fully covered (and lit without image shadows); ``_rint`` is ``np.rint``."""
+    from spctool.stages.registrar import _k_photo_window, _k_template_valid, _rint
+
+    rng = np.random.default_rng(3)
+    photo = rng.uniform(-20.0, 300.0, (40, 50))
+    photo[rng.random(photo.shape) < 0.05] = np.nan
+    photo[rng.random(photo.shape) < 0.05] = np.inf
+    photo[rng.random(photo.shape) < 0.05] = 0.0
+    t1, t2 = 10.0, 250.0
+    for i0, j0, h, w in [(-5, -7, 20, 25), (30, 40, 15, 18), (3, 4, 10, 12), (-30, 60, 8, 9)]:
+        ref = np.zeros((h, w))
+        r0, r1 = max(i0, 0), min(i0 + h, photo.shape[0])
+        c0, c1 = max(j0, 0), min(j0 + w, photo.shape[1])
+        if r0 < r1 and c0 < c1:
+            ref[r0 - i0 : r1 - i0, c0 - j0 : c1 - j0] = photo[r0:r1, c0:c1]
+        ref_valid = (ref > 0.0) & (ref <= t2) & np.isfinite(ref)
+        if no_shadows:
+            ref_valid &= ref >= t1
+        crop, valid = np.empty((h, w)), np.empty((h, w), bool)
+        _k_photo_window(photo, i0, j0, t1, t2, no_shadows, crop, valid)
+        assert crop.tobytes() == ref.tobytes()
+        np.testing.assert_array_equal(valid, ref_valid)
+    cov = rng.choice([0.0, 0.5, 1.0 - 1e-13, 1.0 - 1e-11, 1.0], size=(30, 31))
+    rad = rng.uniform(-1.0, 1.0, cov.shape)
+    out = np.empty(cov.shape, bool)
+    _k_template_valid(cov, rad, 1.0 - 1e-12, no_shadows, out)
+    ref_t = cov >= 1.0 - 1e-12
+    if no_shadows:
+        ref_t &= rad > 0.0
+    np.testing.assert_array_equal(out, ref_t)
+    xs = [0.5, 1.5, 2.5, -0.5, -0.3, -0.0, 0.0, 0.3, 1e17 + 2.0, -3.7, 1e-300, math.inf, -math.inf, math.nan]
+    for x in xs + list(rng.normal(0, 1e3, 200)):
+        assert np.float64(_rint(x)).tobytes() == np.rint(np.float64(x)).tobytes()

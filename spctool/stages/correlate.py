@@ -84,7 +84,12 @@ correlation with register tiling, and the masked sums (N, Σe, Σe², Σp, Σp²
 looked up at the ends of each run of valid pixels, so masks cost per run, not per pixel.  All sums are
 float64 and agree with a brute-force Pearson to ≈ 1e-15; a 99×99 pair at spacing 1 takes ≈ 0.3 ms
 (benchmarks/bench_register.py).  Images are centred on their valid mean before summing (Pearson is
-invariant to that) to keep the one-pass sums well conditioned.
+invariant to that) to keep the one-pass sums well conditioned.  The rest of a call runs in small kernels
+as well (the validity test, the binning, Stage G's grid checks, the alignment); at spacing 1 the images
+go to them unbinned (no copy: no kernel reads an invalid pixel).  Wherever numba cannot prove an index
+non-negative the kernels index with unsigned integers, which spares a wrap-around test per access
+(twice as fast in the alignment and the binning).  None of this changes a result: every sum keeps its
+operations and their order (tests/test_correlate.py compares the kernels bit for bit with NumPy).
 """
 
 from __future__ import annotations
@@ -209,15 +214,37 @@ def _block_range(size: int, anchor: int, n: int) -> tuple[int, int]:
 
 
 @numba.njit(cache=True, nogil=True)
-def _k_bin(v, m, n, s0, s1, sums, cnts):  # pragma: no cover - compiled
-    """sums/cnts[b0, b1] += value/1 of valid pixel (i, j) in block ((i − s0)//n, (j − s1)//n)."""
-    for i in range(v.shape[0]):
-        bi = (i - s0) // n
-        for j in range(v.shape[1]):
-            if m[i, j]:
-                bj = (j - s1) // n
-                sums[bi, bj] += v[i, j]
-                cnts[bi, bj] += 1.0
+def _k_bin(v, m, n, s0, s1, need, out, ok):  # pragma: no cover - compiled
+    """Block means of the valid pixels: pixel (i, j) belongs to block ((i − s0)//n, (j − s1)//n); a block
+    is valid (``ok``) with at least one valid pixel and at least ``need`` of them.  ``out`` (zeros on
+    entry) receives Σvalue/count of each valid block and stays 0 elsewhere.
+
+    Each row is walked block by block (block b holds columns b·n + s1 … b·n + s1 + n − 1), so every
+    block still sums its pixels in scan order, without a division per pixel; column indices are
+    unsigned (np.uint64), which spares numba's negative-index test (see :func:`_k_usable`)."""
+    u = np.uint64
+    cnts = np.zeros(out.shape)
+    w = v.shape[1]
+    for i_ in range(v.shape[0]):
+        i = u(i_)
+        bi = u((i_ - s0) // n)
+        for b in range(u(out.shape[1])):
+            lo = max(0, int(b) * n + s1)
+            hi = min(w, int(b) * n + s1 + n)
+            acc = out[bi, b]
+            c = cnts[bi, b]
+            for j in range(u(lo), u(hi)):
+                if m[i, j]:
+                    acc += v[i, j]
+                    c += 1.0
+            out[bi, b] = acc
+            cnts[bi, b] = c
+    for bi in range(out.shape[0]):
+        for bj in range(out.shape[1]):
+            c = cnts[bi, bj]
+            good = (c > 0.0) & (c >= need)
+            ok[bi, bj] = good
+            out[bi, bj] = out[bi, bj] / c if good else 0.0
 
 
 def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
@@ -242,18 +269,22 @@ def bin_image(values, valid, n: int, anchor=None, min_fraction: float = 0.0):
     a0, a1 = int(anchor[0]), int(anchor[1])
     if n == 1:
         return np.where(m, v, 0.0), m.copy(), (a0, a1)
+    return _bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, a0, a1, min_fraction)
+
+
+def _bin(v, m, n: int, a0: int, a1: int, min_fraction: float):
+    """:func:`bin_image` for n ≥ 2 on a C-contiguous float64 image and bool mask (no checks)."""
     b0 = _block_range(v.shape[0], a0, n)
     b1 = _block_range(v.shape[1], a1, n)
     h = n // 2
     # input index of the first cell of the first block (≤ 0): block of pixel i = (i − s0)//n
     s0 = a0 - h + b0[0] * n
     s1 = a1 - h + b1[0] * n
-    sums = np.zeros((b0[1] - b0[0] + 1, b1[1] - b1[0] + 1))
-    cnts = np.zeros_like(sums)
-    _k_bin(np.ascontiguousarray(v), np.ascontiguousarray(m), n, s0, s1, sums, cnts)
-    ok = (cnts > 0) & (cnts >= min_fraction * n * n - 1e-9)
-    out = np.zeros_like(sums)
-    np.divide(sums, cnts, out=out, where=ok)
+    shape = (b0[1] - b0[0] + 1, b1[1] - b1[0] + 1)
+    out = np.zeros(shape)
+    ok = np.empty(shape, dtype=np.bool_)
+    need = min_fraction * n * n - 1e-9
+    _k_bin(v, m, n, s0, s1, need, out, ok)
     return out, ok, (-b0[0], -b1[0])
 
 
@@ -307,19 +338,22 @@ def _k_dense(ez, pz, g, out):  # pragma: no cover - compiled
 
 @numba.njit(**_JIT)
 def _k_runs(mask_row, lo, hi, out):  # pragma: no cover - compiled
-    """Write the [start, stop) runs of True in mask_row[lo:hi] to out (k, 2); return k."""
+    """Write the [start, stop) runs of True in mask_row[lo:hi] to out (k, 2); return k.  (0 ≤ lo:
+    unsigned indices, see :func:`_k_usable`.)"""
+    one = np.uint64(1)
+    end = np.uint64(hi)
     k = 0
-    j = lo
-    while j < hi:
+    j = np.uint64(lo)
+    while j < end:
         if mask_row[j]:
             s = j
-            while j < hi and mask_row[j]:
-                j += 1
+            while j < end and mask_row[j]:
+                j += one
             out[k, 0] = s
             out[k, 1] = j
             k += 1
         else:
-            j += 1
+            j += one
     return k
 
 
@@ -335,8 +369,12 @@ def _k_ncc(e, me, p, mp, o0, o1, half, min_valid, surf, cnts):  # pragma: no cov
       row prefix sums at the ends of each run of valid pixels (two look-ups per run and offset), so
       their cost depends on the number of runs, not on the number of pixels.
 
-    All sums are float64; the result equals the brute-force Pearson to rounding (≈ 1e-15).
+    All sums are float64; the result equals the brute-force Pearson to rounding (≈ 1e-15).  Indices
+    that numba cannot prove non-negative are unsigned (see :func:`_k_usable`); each prefix and box sum
+    has its own array, so the look-ups of one offset row are contiguous loops that vectorise.
     """
+    u = np.uint64
+    one = u(1)
     he, we = e.shape
     hp, wp = p.shape
     g = 2 * half + 1
@@ -347,95 +385,133 @@ def _k_ncc(e, me, p, mp, o0, o1, half, min_valid, surf, cnts):  # pragma: no cov
     r1 = max(r0, min(h2, he + half - o0))
     c0 = max(0, half - o1)
     c1 = max(c0, min(w2, we + half - o1))
-    # centring constants: Pearson is shift-invariant; centring keeps the one-pass sums well conditioned
+    nr = r1 - r0
+    nc = c1 - c0
+    er0 = u(r0 + o0 - half)  # E row and column of E' pixel (r0, c0), ≥ 0
+    ec0 = u(c0 + o1 - half)
+    # centring constants: Pearson is shift-invariant; centring keeps the one-pass sums well conditioned.
+    # E's and P's sums are independent chains: one loop advances both, each in scan order
     ce = 0.0
     ne = 0
-    for i in range(r0, r1):
-        for j in range(c0, c1):
-            if me[i + o0 - half, j + o1 - half]:
-                ce += e[i + o0 - half, j + o1 - half]
-                ne += 1
-    ce = ce / ne if ne > 0 else 0.0
     cp = 0.0
     npv = 0
-    for i in range(hp):
-        for j in range(wp):
-            if mp[i, j]:
-                cp += p[i, j]
+    for t_ in range(max(nr, hp)):
+        t = u(t_)
+        both = u(min(nc, wp) if (t_ < nr and t_ < hp) else 0)
+        for j in range(both):
+            if me[er0 + t, ec0 + j]:
+                ce += e[er0 + t, ec0 + j]
+                ne += 1
+            if mp[t, j]:
+                cp += p[t, j]
                 npv += 1
+        if t_ < nr:
+            for j in range(both, u(nc)):
+                if me[er0 + t, ec0 + j]:
+                    ce += e[er0 + t, ec0 + j]
+                    ne += 1
+        if t_ < hp:
+            for j in range(both, u(wp)):
+                if mp[t, j]:
+                    cp += p[t, j]
+                    npv += 1
+    ce = ce / ne if ne > 0 else 0.0
     cp = cp / npv if npv > 0 else 0.0
-    # E': validity, centred values, row prefixes of (valid, v, v²): rpe[r, 3c + q] = Σ_{j<c}
-    mv = np.zeros((h2, w2), np.bool_)
+    # E': centred values and row prefixes of (valid, v, v²): en/es/es2[r, c] = Σ_{j<c} (0 outside E)
     ez = np.zeros((h2, w2))
-    rpe = np.zeros((h2, 3 * (w2 + 1)))
-    for i in range(r0, r1):
+    en = np.zeros((h2, w2 + 1))
+    es = np.zeros((h2, w2 + 1))
+    es2 = np.zeros((h2, w2 + 1))
+    for r_ in range(r0, r1):
+        r = u(r_)
+        ei = er0 + u(r_ - r0)
         n_ = 0.0
         s_ = 0.0
         s2_ = 0.0
-        row = rpe[i]
-        for j in range(w2):
-            if j >= c0 and j < c1 and me[i + o0 - half, j + o1 - half]:
-                v = e[i + o0 - half, j + o1 - half] - ce
-                ez[i, j] = v
-                mv[i, j] = True
+        for t in range(u(nc)):
+            c = u(c0) + t
+            if me[ei, ec0 + t]:
+                v = e[ei, ec0 + t] - ce
+                ez[r, c] = v
                 n_ += 1.0
                 s_ += v
                 s2_ += v * v
-            row[3 * j + 3] = n_
-            row[3 * j + 4] = s_
-            row[3 * j + 5] = s2_
-    # P: centred values, row prefixes of (v, v²) for columns c = −pad … w2: rpp[i, 2(c + pad) + q]
+            en[r, c + one] = n_
+            es[r, c + one] = s_
+            es2[r, c + one] = s2_
+        for c in range(u(c1 + 1), u(w2 + 1)):
+            en[r, c] = n_
+            es[r, c] = s_
+            es2[r, c] = s2_
+    # P: centred values, row prefixes of (v, v²) for columns c = −pad … w2: pp/pp2[i, c + pad]
     pad = g - 1
     pz = np.zeros((hp, wp))
     wpp = w2 + pad + 1
-    rpp = np.zeros((hp, 2 * wpp))
-    for i in range(hp):
+    pp = np.zeros((hp, wpp))
+    pp2 = np.zeros((hp, wpp))
+    for i_ in range(hp):
+        i = u(i_)
         s_ = 0.0
         s2_ = 0.0
-        row = rpp[i]
-        for c in range(w2 + 1):
-            if c > 0 and c - 1 < wp and mp[i, c - 1]:
-                v = p[i, c - 1] - cp
-                pz[i, c - 1] = v
+        for j in range(u(wp)):
+            if mp[i, j]:
+                v = p[i, j] - cp
+                pz[i, j] = v
                 s_ += v
                 s2_ += v * v
-            row[2 * (c + pad)] = s_
-            row[2 * (c + pad) + 1] = s2_
-    acc = np.zeros((g, g, 5))  # N, Σe, Σe², Σp, Σp²
-    runs = np.empty((w2 + 1, 2), np.int64)
+            pp[i, j + u(pad + 1)] = s_
+            pp2[i, j + u(pad + 1)] = s2_
+        for c in range(u(wp + pad + 1), u(wpp)):
+            pp[i, c] = s_
+            pp2[i, c] = s2_
+    # the box sums N, Σe, Σe², Σp, Σp² per offset (a, b)
+    an = np.zeros((g, g))
+    ae = np.zeros((g, g))
+    ae2 = np.zeros((g, g))
+    ap = np.zeros((g, g))
+    ap2 = np.zeros((g, g))
+    runs = np.empty((max(w2, we) + 1, 2), np.int64)
+    gu = u(g)
     for i in range(hp):  # runs of valid P pixels: sums of E' over them
         k = _k_runs(mp[i], 0, wp, runs)
         for q in range(k):
-            s = runs[q, 0]
-            t = runs[q, 1]
+            s = u(runs[q, 0])
+            t = u(runs[q, 1])
             for a in range(g):
-                row = rpe[i + a]
-                for b in range(g):
-                    acc[a, b, 0] += row[3 * (t + b)] - row[3 * (s + b)]
-                    acc[a, b, 1] += row[3 * (t + b) + 1] - row[3 * (s + b) + 1]
-                    acc[a, b, 2] += row[3 * (t + b) + 2] - row[3 * (s + b) + 2]
-    for r in range(r0, r1):  # runs of valid E' pixels: sums of P over them (P column = E' column − b)
-        k = _k_runs(mv[r], c0, c1, runs)
+                xn, xe, xe2 = an[a], ae[a], ae2[a]
+                rn, rs, rs2 = en[i + a], es[i + a], es2[i + a]
+                for b in range(gu):
+                    xn[b] += rn[t + b] - rn[s + b]
+                for b in range(gu):
+                    xe[b] += rs[t + b] - rs[s + b]
+                for b in range(gu):
+                    xe2[b] += rs2[t + b] - rs2[s + b]
+    # runs of valid E' pixels (found in E's mask): sums of P over them (P column = E' column − b)
+    shift = c0 - int(ec0) + pad  # E column → E' column + pad
+    for r in range(r0, r1):
+        k = _k_runs(me[int(er0) + r - r0], int(ec0), int(ec0) + nc, runs)
         a_lo = max(0, r - hp + 1)
         a_hi = min(g, r + 1)
         for q in range(k):
-            s = runs[q, 0]
-            t = runs[q, 1]
+            s = u(runs[q, 0] + shift)
+            t = u(runs[q, 1] + shift)
             for a in range(a_lo, a_hi):
-                row = rpp[r - a]
-                for b in range(g):
-                    acc[a, b, 3] += row[2 * (t - b + pad)] - row[2 * (s - b + pad)]
-                    acc[a, b, 4] += row[2 * (t - b + pad) + 1] - row[2 * (s - b + pad) + 1]
+                xp, xp2 = ap[a], ap2[a]
+                rs, rs2 = pp[r - a], pp2[r - a]
+                for b in range(gu):
+                    xp[b] += rs[t - b] - rs[s - b]
+                for b in range(gu):
+                    xp2[b] += rs2[t - b] - rs2[s - b]
     sep = np.zeros((g, g))
     _k_dense(ez, pz, g, sep)
     for a in range(g):
         for b in range(g):
-            n = float(round(acc[a, b, 0]))
-            se = acc[a, b, 1]
-            see = acc[a, b, 2]
-            sp = acc[a, b, 3]
-            spp = acc[a, b, 4]
-            cnts[a, b] = n
+            n = float(round(an[a, b]))
+            se = ae[a, b]
+            see = ae2[a, b]
+            sp = ap[a, b]
+            spp = ap2[a, b]
+            cnts[a, b] = int(n)
             if n < min_valid:
                 surf[a, b] = np.nan
                 continue
@@ -463,22 +539,24 @@ def ncc_surface(e, e_valid, p, p_valid, grid_half: int = 5, min_valid: int = 25,
     mp = np.asarray(p_valid, dtype=bool)
     if e.ndim != 2 or p.ndim != 2 or me.shape != e.shape or mp.shape != p.shape:
         raise SpcUsageError("ncc_surface needs 2-D images with masks of the same shapes")
-    g = 2 * int(grid_half) + 1
-    surf = np.empty((g, g))
-    cnts = np.empty((g, g))
-    _k_ncc(
+    return _ncc(
         np.ascontiguousarray(e),
         np.ascontiguousarray(me),
         np.ascontiguousarray(p),
         np.ascontiguousarray(mp),
-        int(origin[0]),
-        int(origin[1]),
         int(grid_half),
-        float(min_valid),
-        surf,
-        cnts,
+        min_valid,
+        (int(origin[0]), int(origin[1])),
     )
-    return surf, np.rint(cnts).astype(np.int64)
+
+
+def _ncc(e, me, p, mp, half: int, min_valid, origin):
+    """:func:`ncc_surface` on C-contiguous float64 images and bool masks (no checks)."""
+    g = 2 * half + 1
+    surf = np.empty((g, g))
+    cnts = np.empty((g, g), dtype=np.int64)
+    _k_ncc(e, me, p, mp, origin[0], origin[1], half, float(min_valid), surf, cnts)
+    return surf, cnts
 
 
 # --------------------------------------------------------------------------------------------------
@@ -544,7 +622,13 @@ def quadric_vertex(z3, max_move: float = 1.0):
     off by (e/2f)·δ_r along v (and by (e/2d)·δ_c along u).  For a peak with correlation ρ between the
     axes that is ρ·(σ_v/σ_u)·δ_r — half the other axis's offset at ρ = 0.5.
     """
-    _, b, c, d, e, f = quadric_fit(z3)
+    return _quadric_vertex(quadric_fit(z3).tolist(), max_move)
+
+
+def _quadric_vertex(coef, max_move: float = 1.0):
+    """:func:`quadric_vertex` from the fit's coefficients (a, b, c, d, e, f), as Python floats (the same
+    IEEE operations as on NumPy scalars, without their overhead)."""
+    _, b, c, d, e, f = coef
     h = np.array([[2.0 * d, e], [e, 2.0 * f]])
     det = 4.0 * d * f - e * e
     if not (d < 0.0 and det > 0.0):
@@ -553,17 +637,18 @@ def quadric_vertex(z3, max_move: float = 1.0):
     dc = -(2.0 * d * c - e * b) / det
     if not (abs(dr) <= max_move and abs(dc) <= max_move):
         return math.nan, math.nan, h, False
-    return float(dr), float(dc), h, True
+    return dr, dc, h, True
 
 
 @numba.njit(cache=True, inline="always")
-def _k_usable(me, mp, o0, o1, i, j):  # pragma: no cover - compiled
-    """P pixel (i, j) valid with its four axis neighbours, and its E pixel valid (every index is inside
-    both images: the caller's ranges).  Bitwise ``&``: a chain of ``and`` over array elements compiled to
-    a branch per element, which made the alignment's first pass ~6× slower."""
-    return (
-        mp[i, j] & me[i + o0, j + o1] & mp[i - 1, j] & mp[i + 1, j] & mp[i, j - 1] & mp[i, j + 1]
-    )
+def _k_usable(me, mp, i, j, ie, je):  # pragma: no cover - compiled
+    """P pixel (i, j) valid with its four axis neighbours, and E pixel (ie, je) valid (every index is
+    inside both images: the caller's ranges).  Bitwise ``&``: a chain of ``and`` over array elements
+    compiled to a branch per element, which made the alignment's first pass ~6× slower.  Unsigned
+    indices (np.uint64): numba adds a negative-index wrap-around test to every signed index it cannot
+    prove non-negative, which halved the speed of this pass."""
+    one = np.uint64(1)
+    return mp[i, j] & me[ie, je] & mp[i - one, j] & mp[i + one, j] & mp[i, j - one] & mp[i, j + one]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -573,18 +658,25 @@ def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: 
     in P: the first finds those pixels, keeps their regressors (P, g_r, g_c) and E in scan order and
     sums them for the means; the second forms the normal matrix of the centred regressors and its
     right-hand side with the centred E from the kept values (the same sums in the same order as
-    recomputing them from the images, without a second pass over the masks).  Returns the count."""
+    recomputing them from the images, without a second pass over the masks).  Returns the count.
+    The caller's ranges keep every index ≥ 0, so they are unsigned (see :func:`_k_usable`)."""
+    u = np.uint64
+    one = u(1)
     kept = np.empty((max(0, (i1 - i0) * (j1 - j0)), 4))
     n = 0
     sp = se = sr = sc = 0.0
-    for i in range(i0, i1):
-        for j in range(j0, j1):
-            if not _k_usable(me, mp, o0, o1, i, j):
+    for i_ in range(i0, i1):
+        i = u(i_)
+        ie = u(i_ + o0)
+        for t in range(u(max(0, j1 - j0))):
+            j = u(j0) + t
+            je = u(j0 + o1) + t
+            if not _k_usable(me, mp, i, j, ie, je):
                 continue
             x0 = p[i, j]
-            x1 = 0.5 * (p[i + 1, j] - p[i - 1, j])
-            x2 = 0.5 * (p[i, j + 1] - p[i, j - 1])
-            y = e[i + o0, j + o1]
+            x1 = 0.5 * (p[i + one, j] - p[i - one, j])
+            x2 = 0.5 * (p[i, j + one] - p[i, j - one])
+            y = e[ie, je]
             kept[n, 0] = x0
             kept[n, 1] = x1
             kept[n, 2] = x2
@@ -600,23 +692,28 @@ def _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs):  # pragma: 
     me_ = se / n
     mr = sr / n
     mc = sc / n
-    for k in range(n):
+    # the nine sums in registers, each accumulated in scan order from the caller's initial value
+    a00, a01, a02 = normal[0, 0], normal[0, 1], normal[0, 2]
+    a11, a12, a22 = normal[1, 1], normal[1, 2], normal[2, 2]
+    b0, b1, b2 = rhs[0], rhs[1], rhs[2]
+    for k in range(u(n)):
         x0 = kept[k, 0] - mp_
         x1 = kept[k, 1] - mr
         x2 = kept[k, 2] - mc
         y = kept[k, 3] - me_
-        normal[0, 0] += x0 * x0
-        normal[0, 1] += x0 * x1
-        normal[0, 2] += x0 * x2
-        normal[1, 1] += x1 * x1
-        normal[1, 2] += x1 * x2
-        normal[2, 2] += x2 * x2
-        rhs[0] += x0 * y
-        rhs[1] += x1 * y
-        rhs[2] += x2 * y
-    normal[1, 0] = normal[0, 1]
-    normal[2, 0] = normal[0, 2]
-    normal[2, 1] = normal[1, 2]
+        a00 += x0 * x0
+        a01 += x0 * x1
+        a02 += x0 * x2
+        a11 += x1 * x1
+        a12 += x1 * x2
+        a22 += x2 * x2
+        b0 += x0 * y
+        b1 += x1 * y
+        b2 += x2 * y
+    normal[0, 0], normal[0, 1], normal[0, 2] = a00, a01, a02
+    normal[1, 0], normal[1, 1], normal[1, 2] = a01, a11, a12
+    normal[2, 0], normal[2, 1], normal[2, 2] = a02, a12, a22
+    rhs[0], rhs[1], rhs[2] = b0, b1, b2
     return n
 
 
@@ -642,8 +739,16 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
     alignment.  ``ok`` is False (δ NaN) with fewer than 8 usable pixels, a singular system, a
     non-positive gain a, or |δ| > ``max_move`` along an axis (outside the linear range).
     """
+    return _gradient_offset(
+        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
+        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
+        int(origin[0]), int(origin[1]), max_move,
+    )  # fmt: skip
+
+
+def _gradient_offset(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
+    """:func:`gradient_offset` on C-contiguous float64 images and bool masks, P placed at (o0, o1)."""
     nan = (math.nan, math.nan, False)
-    o0, o1 = int(origin[0]), int(origin[1])
     hp, wp = p.shape
     he, we = e.shape
     # P rows i with 1 ≤ i ≤ hp − 2 (central differences) whose E row i + o0 is inside E
@@ -653,18 +758,14 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
         return nan
     normal = np.zeros((3, 3))
     rhs = np.zeros(3)
-    count = _k_alignment(
-        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
-        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
-        o0, o1, i0, i1, j0, j1, normal, rhs,
-    )  # fmt: skip
+    count = _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs)
     if count < 8 or not normal[0, 0] > 0.0:
         return nan
     try:
         coef = np.linalg.solve(normal, rhs)
     except np.linalg.LinAlgError:
         return nan
-    a, cr, cc = (float(x) for x in coef)
+    a, cr, cc = coef.tolist()
     if not (a > 0.0 and math.isfinite(cr) and math.isfinite(cc)):
         return nan
     dr, dc = -cr / a, -cc / a
@@ -698,51 +799,97 @@ def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0) -
     (item 7).  NaN when H is not negative definite or ρ ∉ (0, 1].
     """
     h = np.asarray(hessian, dtype=np.float64)
-    nan = np.full((2, 2), np.nan)
-    if not (np.all(np.isfinite(h)) and 0.0 < rho <= 1.0 and count > 0 and footprint > 0):
-        return nan
-    det = h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]
-    if not (h[0, 0] < 0.0 and det > 0.0):
-        return nan
-    inv_neg = np.array([[-h[1, 1], h[0, 1]], [h[1, 0], -h[0, 0]]]) / det  # (−H)⁻¹
-    cov = (1.0 - rho * rho) / (rho * count / footprint) * inv_neg
-    return 0.5 * (cov + cov.T)
+    if h.shape != (2, 2):
+        raise SpcUsageError(f"peak_covariance needs a 2×2 Hessian, got shape {h.shape}")
+    (h00, h01), (h10, h11) = h.tolist()
+    finite = math.isfinite(h00) and math.isfinite(h01) and math.isfinite(h10) and math.isfinite(h11)
+    if not (finite and 0.0 < rho <= 1.0 and count > 0 and footprint > 0):
+        return np.full((2, 2), np.nan)
+    det = h00 * h11 - h01 * h10
+    if not (h00 < 0.0 and det > 0.0):
+        return np.full((2, 2), np.nan)
+    # scale·(−H)⁻¹ and its symmetric part, element by element (the same operations as on the arrays)
+    scale = (1.0 - rho * rho) / (rho * count / footprint)
+    c00 = scale * (-h11 / det)
+    c01 = scale * (h01 / det)
+    c10 = scale * (h10 / det)
+    c11 = scale * (-h00 / det)
+    return np.array([[0.5 * (c00 + c00), 0.5 * (c01 + c10)], [0.5 * (c10 + c01), 0.5 * (c11 + c11)]])
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_grid_peak(s, strict_8):  # pragma: no cover - compiled
+    """Stage G's checks on the grid (:func:`_find_peak`): ``(code, r0, c0, all9)``.
+
+    (r0, c0) is the first maximum of the finite entries in scan order (NumPy's argmax of the surface
+    with −inf for the undefined ones); ``code`` 1: no finite entry, 2: the maximum is attained more
+    than once, 3: it lies on the border, 4: a neighbour (the four along the axes, with ``strict_8`` all
+    eight) is undefined or not below it, 0: a strict interior maximum; ``all9``: its 3×3 neighbourhood
+    is finite."""
+    g0, g1 = s.shape
+    r0 = -1
+    c0 = -1
+    pk = -np.inf
+    for i in range(g0):
+        for j in range(g1):
+            v = s[i, j]
+            if math.isfinite(v) and (r0 < 0 or v > pk):
+                pk = v
+                r0 = i
+                c0 = j
+    if r0 < 0:
+        return 1, 0, 0, False
+    ties = 0
+    for i in range(g0):
+        for j in range(g1):
+            ties += s[i, j] == pk
+    if ties > 1:
+        return 2, r0, c0, False
+    if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
+        return 3, r0, c0, False
+    below = s[r0 - 1, c0] < pk and s[r0 + 1, c0] < pk and s[r0, c0 - 1] < pk and s[r0, c0 + 1] < pk
+    if strict_8:
+        below = (
+            below
+            and s[r0 - 1, c0 - 1] < pk
+            and s[r0 - 1, c0 + 1] < pk
+            and s[r0 + 1, c0 - 1] < pk
+            and s[r0 + 1, c0 + 1] < pk
+        )
+    if not below:
+        return 4, r0, c0, False
+    all9 = True
+    for i in range(r0 - 1, r0 + 2):
+        for j in range(c0 - 1, c0 + 2):
+            all9 = all9 and math.isfinite(s[i, j])
+    return 0, r0, c0, all9
 
 
 def _find_peak(s, corr_min, strict_8, peak):
     """find_peak plus the Hessian at the grid peak (NaN when there is no 3×3 neighbourhood) and the
     estimate used ("quadric", "parabola", "parabola-fallback" or "").  The Hessian is the quadric's,
-    or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas."""
-    nan_h = np.full((2, 2), np.nan)
-    finite = np.isfinite(s)
-    if not finite.any():
-        return "not-found", math.nan, None, (math.nan, math.nan), nan_h, ""
-    flat = np.where(finite, s, -np.inf)
-    r0, c0 = divmod(int(np.argmax(flat)), s.shape[1])
+    or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas.
+    ``s``: a C-contiguous float64 surface (the checks run in :func:`_k_grid_peak`)."""
+    code, r0, c0, all9 = _k_grid_peak(s, bool(strict_8))
+    if code == 1:
+        return "not-found", math.nan, None, (math.nan, math.nan), np.full((2, 2), np.nan), ""
     pk = float(s[r0, c0])
-    if np.count_nonzero(flat == pk) > 1:  # a flat surface or a tied maximum: no clearly defined peak
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
-    g0, g1 = s.shape
-    if r0 == 0 or c0 == 0 or r0 == g0 - 1 or c0 == g1 - 1:
-        return "edge-peak", pk, (r0, c0), (0.0, 0.0), nan_h, ""
-    up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
-    left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
-    neighbours = [up, down, left, right]
-    if strict_8:
-        neighbours += [
-            float(s[r0 - 1, c0 - 1]),
-            float(s[r0 - 1, c0 + 1]),
-            float(s[r0 + 1, c0 - 1]),
-            float(s[r0 + 1, c0 + 1]),
-        ]
-    # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
-    if not all(v < pk for v in neighbours):
-        return "not-found", pk, (r0, c0), (math.nan, math.nan), nan_h, ""
-    qr, qc, h, q_ok = quadric_vertex(s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2])
+    if code == 2:  # a flat surface or a tied maximum: no clearly defined peak
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), np.full((2, 2), np.nan), ""
+    if code == 3:
+        return "edge-peak", pk, (r0, c0), (0.0, 0.0), np.full((2, 2), np.nan), ""
+    if code == 4:  # undefined (NaN) or non-decreasing neighbours: no clearly defined peak (L15 footnote 43)
+        return "not-found", pk, (r0, c0), (math.nan, math.nan), np.full((2, 2), np.nan), ""
+    z3 = s[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2]
+    # all nine values defined (the usual case): quadric_fit's closed form, without its checks
+    coef = _QPINV @ z3.reshape(9) if all9 else quadric_fit(z3)
+    qr, qc, h, q_ok = _quadric_vertex(coef.tolist())
     status = "ok" if pk >= corr_min else "low-correlation"
     if peak != "parabola" and q_ok:  # "gradient" refines it in correlate()
         return status, pk, (r0, c0), (qr, qc), h, "quadric"
     # SPC's two parabolas (|δ| ≤ ½ for the strict maximum checked above)
+    up, down = float(s[r0 - 1, c0]), float(s[r0 + 1, c0])
+    left, right = float(s[r0, c0 - 1]), float(s[r0, c0 + 1])
     dr = _vertex(up, pk, down)
     dc = _vertex(left, pk, right)
     if not q_ok:  # the quadric is no maximum: the curvature of the two parabolas
@@ -758,24 +905,43 @@ def find_peak(surface, corr_min: float = 0.3, strict_8: bool = False, peak: str 
     """
     if peak not in PEAK_METHODS:
         raise SpcUsageError(f"peak must be one of {', '.join(PEAK_METHODS)}, got {peak!r}")
-    return _find_peak(np.asarray(surface, dtype=np.float64), corr_min, strict_8, peak)[:4]
+    s = np.ascontiguousarray(surface, dtype=np.float64)
+    if s.ndim != 2:
+        raise SpcUsageError(f"find_peak needs a 2-D surface, got shape {s.shape}")
+    return _find_peak(s, corr_min, strict_8, peak)[:4]
 
 
 # --------------------------------------------------------------------------------------------------
 # the stage
 
 
+@numba.njit(cache=True, nogil=True)
+def _k_valid(v, vm, use_min, min_value, out):  # pragma: no cover - compiled
+    """out = vm & finite(v) (& v > min_value when ``use_min``), in one pass (bitwise: no branches)."""
+    for i in range(v.shape[0]):
+        for j in range(v.shape[1]):
+            x = v[i, j]
+            out[i, j] = vm[i, j] & math.isfinite(x) & ((not use_min) | (x > min_value))
+
+
 def _valid_mask(values, valid, min_value):
-    v = np.asarray(values, dtype=np.float64)
-    m = np.isfinite(v)
-    if valid is not None:
-        vm = np.asarray(valid, dtype=bool)
-        if vm.shape != v.shape:
-            raise SpcUsageError(f"mask shape {vm.shape} differs from image shape {v.shape}")
-        m &= vm
-    if min_value is not None:
-        with np.errstate(invalid="ignore"):
-            m &= v > float(min_value)
+    """C-contiguous float64 values and their validity: finite, inside ``valid`` (if given) and above
+    ``min_value`` (if not None)."""
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    if valid is None:
+        m = np.isfinite(v)
+        if min_value is not None:
+            with np.errstate(invalid="ignore"):
+                m &= v > float(min_value)
+        return v, m
+    vm = np.ascontiguousarray(valid, dtype=np.bool_)
+    if vm.shape != v.shape:
+        raise SpcUsageError(f"mask shape {vm.shape} differs from image shape {v.shape}")
+    if v.ndim != 2:
+        raise SpcUsageError("correlate needs 2-D images")
+    m = np.empty(v.shape, dtype=np.bool_)
+    use_min = min_value is not None
+    _k_valid(v, vm, use_min, float(min_value) if use_min else 0.0, m)
     return v, m
 
 
@@ -814,23 +980,25 @@ def correlate(
         raise SpcUsageError(f"images differ in shape ({e.shape} vs {p.shape}); give the anchors")
     ea = ((e.shape[0] - 1) // 2, (e.shape[1] - 1) // 2) if extracted_anchor is None else extracted_anchor
     pa = ((p.shape[0] - 1) // 2, (p.shape[1] - 1) // 2) if predicted_anchor is None else predicted_anchor
-    eb, meb, eab = bin_image(e, me, n, ea, opts.bin_min_fraction)
-    pb, mpb, pab = bin_image(p, mp, n, pa, opts.bin_min_fraction)
+    if n == 1:
+        # bin_image would copy the images with their invalid pixels set to 0; no kernel reads those
+        eb, meb, eab = e, me, (int(ea[0]), int(ea[1]))
+        pb, mpb, pab = p, mp, (int(pa[0]), int(pa[1]))
+    else:
+        eb, meb, eab = _bin(e, me, n, int(ea[0]), int(ea[1]), opts.bin_min_fraction)
+        pb, mpb, pab = _bin(p, mp, n, int(pa[0]), int(pa[1]), opts.bin_min_fraction)
     origin = (eab[0] - pab[0], eab[1] - pab[1])
-    surf, cnts = ncc_surface(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
-    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     k = opts.grid_half
+    surf, cnts = _ncc(eb, meb, pb, mpb, k, opts.min_valid, origin)
+    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
     if opts.peak == "gradient" and status in ("ok", "low-correlation"):
-        g_r, g_c, g_ok = gradient_offset(
-            eb, meb, pb, mpb, (origin[0] + idx[0] - k, origin[1] + idx[1] - k)
-        )
+        g_r, g_c, g_ok = _gradient_offset(eb, meb, pb, mpb, origin[0] + idx[0] - k, origin[1] + idx[1] - k)
         if g_ok:
             dr, dc, fit = g_r, g_c, "gradient"
-    cov = np.full((2, 2), np.nan)
     if idx is None or status == "not-found":
-        off = np.full(2, np.nan)
-    else:
-        off = n * np.array([(idx[0] - k) + dr, (idx[1] - k) + dc], dtype=np.float64)
-        if status != "edge-peak":
-            cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
+        return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), np.full(2, np.nan), hess, peak_fit=fit)
+    off = np.array([n * ((idx[0] - k) + dr), n * ((idx[1] - k) + dc)])
+    if status == "edge-peak":
+        return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, peak_fit=fit)
+    cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
     return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, cov, fit)

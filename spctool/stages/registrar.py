@@ -51,6 +51,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from spctool.errors import SpcUsageError
@@ -859,8 +860,10 @@ class Registrar:
         if lm.proj is None or lm.proj[0] is not camera:
             lm.proj = (camera, np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2))
         c0 = lm.proj[1]
-        disp = center - c0
-        frac = disp - np.round(disp)
+        # the placement's arithmetic on Python floats: the same IEEE operations as on the 2-vectors
+        (c0s, c0l), (cs, cl) = c0.tolist(), center.tolist()
+        disp_s, disp_l = cs - c0s, cl - c0l
+        frac = np.array([disp_s - _rint(disp_s), disp_l - _rint(disp_l)])
         rend, f_t, window = self._template(lm, camera, frac, spacing, draft)
         g = 2 * copts.grid_half + 1
         if rend is None:
@@ -874,34 +877,27 @@ class Registrar:
                 (math.nan, math.nan),
             )
             return LandmarkStep(center, np.full(2, np.nan), corr, None, "outside")
-        placement_int = np.round(disp - f_t)
-        placement = placement_int + f_t
+        fs, fl = f_t.tolist()
+        pi_s, pi_l = _rint(disp_s - fs), _rint(disp_l - fl)  # the integer placement
+        di_s, di_l = int(pi_s), int(pi_l)
         s0, s1, l0, l1 = window
-        di_s, di_l = int(placement_int[0]), int(placement_int[1])
         tmpl = rend.radiance
-        tvalid = rend.coverage >= 1.0 - 1e-12
-        if not self.options.image_shadows:
-            tvalid &= tmpl > 0.0
-        # photo crop: the template window moved by the integer placement, plus the search margin
+        tvalid = np.empty(tmpl.shape, dtype=np.bool_)
+        _k_template_valid(rend.coverage, tmpl, 1.0 - 1e-12, not self.options.image_shadows, tvalid)
+        # photo crop: the template window moved by the integer placement, plus the search margin; DN 0 =
+        # no data (SPC), and the crop beyond the photo is 0, so "> 0" also keeps it out
         marg = (copts.grid_half + 1) * int(spacing)
         cl_lo, cl_hi = l0 + di_l - marg, l1 + di_l + marg
         cs_lo, cs_hi = s0 + di_s - marg, s1 + di_s + marg
-        crop = np.zeros((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
-        nln, npx = self.photo.shape
-        a_lo, a_hi = max(cl_lo, 1), min(cl_hi, nln)
-        b_lo, b_hi = max(cs_lo, 1), min(cs_hi, npx)
-        if a_lo <= a_hi and b_lo <= b_hi:
-            crop[a_lo - cl_lo : a_hi - cl_lo + 1, b_lo - cs_lo : b_hi - cs_lo + 1] = self.photo[
-                a_lo - 1 : a_hi, b_lo - 1 : b_hi
-            ]
+        crop = np.empty((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
+        cvalid = np.empty(crop.shape, dtype=np.bool_)
         t1, t2 = self.thresholds
-        # DN 0 = no data (SPC); the crop beyond the photo stays 0, so "> 0" also keeps it out
-        cvalid = (crop > 0.0) & (crop <= t2) & np.isfinite(crop)
-        if not self.options.image_shadows:
-            cvalid &= crop >= t1
+        _k_photo_window(
+            self.photo, cl_lo - 1, cs_lo - 1, t1, t2, not self.options.image_shadows, crop, cvalid
+        )
         # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
-        a_s = min(max(int(round(c0[0] + f_t[0])), s0), s1)
-        a_l = min(max(int(round(c0[1] + f_t[1])), l0), l1)
+        a_s = min(max(round(c0s + fs), s0), s1)
+        a_l = min(max(round(c0l + fl), l0), l1)
         p_anchor = (a_l - l0, a_s - s0)
         e_anchor = (a_l + di_l - cl_lo, a_s + di_s - cs_lo)
         made = self._image_copts.get(id(copts))
@@ -919,9 +915,43 @@ class Registrar:
             extracted_anchor=e_anchor,
             predicted_anchor=p_anchor,
         )
-        shift = np.array([corr.offset[1], corr.offset[0]])  # (line, sample) axes → (dsample, dline)
-        # the step's reference is where the template actually sat
-        return LandmarkStep(c0 + placement, shift, corr, None, corr.status, template=rend)
+        (o_l, o_s) = corr.offset.tolist()
+        shift = np.array([o_s, o_l])  # (line, sample) axes → (dsample, dline)
+        # the step's reference is where the template actually sat: c0 + the integer placement + f_t
+        return LandmarkStep(
+            np.array([c0s + (pi_s + fs), c0l + (pi_l + fl)]), shift, corr, None, corr.status, template=rend
+        )
+
+
+def _rint(x: float) -> float:
+    """``np.rint`` of one Python float (half to even, the sign of a zero kept, non-finite unchanged)."""
+    if not math.isfinite(x):
+        return x
+    r = float(round(x))
+    return r if r != 0.0 else math.copysign(0.0, x)
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_template_valid(coverage, radiance, full, positive, out):  # pragma: no cover - compiled
+    """An image-space template's valid pixels: fully covered (coverage ≥ ``full``) and, with
+    ``positive`` (no image shadows), of positive radiance."""
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[i, j] = (coverage[i, j] >= full) & ((not positive) | (radiance[i, j] > 0.0))
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_photo_window(photo, i0, j0, t1, t2, use_t1, crop, valid):  # pragma: no cover - compiled
+    """crop[i, j] = photo[i0 + i, j0 + j] (0-based; 0 outside the photo) and its validity: positive
+    (DN 0 = no data), finite, ≤ ``t2`` and, with ``use_t1``, ≥ ``t1`` — in one pass."""
+    nl, ns = photo.shape
+    for i in range(crop.shape[0]):
+        r = i0 + i
+        for j in range(crop.shape[1]):
+            c = j0 + j
+            x = photo[r, c] if (r >= 0) & (r < nl) & (c >= 0) & (c < ns) else 0.0
+            crop[i, j] = x
+            valid[i, j] = (x > 0.0) & (x <= t2) & math.isfinite(x) & ((not use_t1) | (x >= t1))
 
 
 #: a template re-rendered at a finer supersampling within this many pixels (per axis) of the phase of
