@@ -112,6 +112,21 @@ def test_orthonormalize():
     assert np.linalg.det(fr.orthonormalize(refl)) == pytest.approx(1.0)
 
 
+def test_single_rotation_paths_equal_the_stacked_ones_bit_for_bit():
+    """One rotation vector / one matrix take a scalar path (the Monte Carlo perturbs the attitude of
+    every sample); it must give the stacked path's values to the last bit, across the Taylor switch."""
+    rng = np.random.default_rng(11)
+    for scale in (0.0, 1e-9, 5e-5, 1e-4, 2e-4, 1e-3, 0.05, 1.0, 3.0):
+        for _ in range(200):
+            phi = rng.normal(size=3) * scale
+            assert fr.rot_from_rotvec(phi).tobytes() == fr.rot_from_rotvec(phi[None])[0].tobytes()
+            r = rng.normal(size=(3, 3))
+            assert fr.orthonormalize(r).tobytes() == fr.orthonormalize(r[None])[0].tobytes()
+    phi = np.array([1e-4, 0.0, 0.0])  # exactly at the switch
+    assert fr.rot_from_rotvec(phi).tobytes() == fr.rot_from_rotvec(phi[None])[0].tobytes()
+    assert np.isnan(fr.rot_from_rotvec(np.array([np.nan, 0.0, 0.0]))).all()
+
+
 @given(seeds)
 @settings(max_examples=50, deadline=None)
 def test_attitude_update_first_order_and_sign(seed):

@@ -458,14 +458,14 @@ def perturb(scene, landmark: int, z_row, sample: int, config: MonteCarloConfig) 
     cam = scene.camera
     m0 = scene.maplets[landmark]
     changes = {}
-    if np.any(delta["position"]) or np.any(delta["attitude"]):
+    if delta["position"].any() or delta["attitude"].any():
         changes["scobj"] = cam.scobj - delta["position"]
         changes["rotation"] = apply_attitude_update(cam.rotation, np.radians(delta["attitude"]))
     if delta["skew"][0] != 0.0:
         k = cam.kmatrix.copy()
         k[1, 0] += delta["skew"][0]
         changes["kmatrix"] = k
-    if np.any(delta["center"]):
+    if delta["center"].any():
         changes["ctr"] = cam.ctr + delta["center"]
     if delta["focal"][0] != 0.0:
         changes["mmfl"] = cam.mmfl + delta["focal"][0]
@@ -475,7 +475,7 @@ def perturb(scene, landmark: int, z_row, sample: int, config: MonteCarloConfig) 
         coef[1:7] += delta["distortion"]
         changes["model"], changes["coefficients"] = model, coef
     pcam = dataclasses.replace(cam, **changes) if changes else cam
-    sun = _sun_radec(scene.sun, *delta["sun"]) if np.any(delta["sun"]) else scene.sun
+    sun = _sun_radec(scene.sun, *delta["sun"]) if delta["sun"].any() else scene.sun
     heights, albedo = m0.heights, m0.albedo
     fields_on = [n for n in ("height", "albedo") if n in config.parameters]
     if fields_on and config.fields == "cell":
@@ -483,10 +483,16 @@ def perturb(scene, landmark: int, z_row, sample: int, config: MonteCarloConfig) 
             np.random.SeedSequence([config.seed, _SEED_TAG, _FIELDS, int(landmark), int(sample)])
         )
         noise = rng.standard_normal((2,) + m0.heights.shape)  # both drawn always: streams independent
+        # the fields in place of their noise (no temporaries): noise·σ, then + the onboard grid (the sum
+        # is commutative: the values of grid + noise·σ)
         if "height" in fields_on:
-            heights = heights + noise[0] * (_PARAM["height"].sigma[0] * config.sigma_scale / m0.scale)
+            heights = np.multiply(
+                noise[0], _PARAM["height"].sigma[0] * config.sigma_scale / m0.scale, out=noise[0]
+            )
+            heights += m0.heights
         if "albedo" in fields_on:
-            albedo = albedo + noise[1] * (_PARAM["albedo"].sigma[0] * config.sigma_scale)
+            albedo = np.multiply(noise[1], _PARAM["albedo"].sigma[0] * config.sigma_scale, out=noise[1])
+            albedo += m0.albedo
     elif fields_on:
         if delta["height"][0] != 0.0:
             heights = heights + delta["height"][0] / m0.scale
