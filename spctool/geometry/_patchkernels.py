@@ -517,23 +517,38 @@ def predict_cells(pos, ds, dl, n, out):
     :func:`_fused_rays`' ``cand``: a wrong cell costs a march, never a different hit (:func:`_cell_hit`)."""
     nl, ns = pos.shape[0], pos.shape[1]
     last = n - 2
+    w_out = out.shape[1]
+    # per column (the same for every line): the interpolation's column and weight, the nearest column
+    col = np.empty(w_out, np.int64)
+    fxs = np.empty(w_out)
+    near = np.empty(w_out, np.int64)
+    for c in range(w_out):
+        x = c + ds
+        a = min(int(math.floor(x)), ns - 2)
+        fx = x - a
+        col[c] = a if (0 <= a and 0.0 <= fx <= 1.0) else -1
+        fxs[c] = fx
+        cn = int(math.floor(x + 0.5))
+        near[c] = cn if 0 <= cn < ns else -1
     for r in range(out.shape[0]):
         y = r + dl
         b = min(int(math.floor(y)), nl - 2)  # the last line itself interpolates with weight 1
         fy = y - b
-        for c in range(out.shape[1]):
+        rows = 0 <= b and 0.0 <= fy <= 1.0
+        rn = int(math.floor(y + 0.5))
+        rn_ok = 0 <= rn < nl
+        for c in range(w_out):
             out[r, c] = -2
-            x = c + ds
-            a = min(int(math.floor(x)), ns - 2)
-            fx = x - a
             u = math.nan
             w = math.nan
-            if 0 <= b and 0 <= a and 0.0 <= fy <= 1.0 and 0.0 <= fx <= 1.0:
+            a = col[c]
+            if rows and a >= 0:
                 u00, w00 = pos[b, a, 0], pos[b, a, 1]
                 u01, w01 = pos[b, a + 1, 0], pos[b, a + 1, 1]
                 u10, w10 = pos[b + 1, a, 0], pos[b + 1, a, 1]
                 u11, w11 = pos[b + 1, a + 1, 0], pos[b + 1, a + 1, 1]
                 if not (math.isnan(u00) or math.isnan(u01) or math.isnan(u10) or math.isnan(u11)):
+                    fx = fxs[c]
                     g00 = (1.0 - fx) * (1.0 - fy)
                     g01 = fx * (1.0 - fy)
                     g10 = (1.0 - fx) * fy
@@ -541,12 +556,20 @@ def predict_cells(pos, ds, dl, n, out):
                     u = g00 * u00 + g01 * u01 + g10 * u10 + g11 * u11
                     w = g00 * w00 + g01 * w01 + g10 * w10 + g11 * w11
             if math.isnan(u):  # an edge of the hits (or of the lattice): the nearest sub-ray's
-                rn = int(math.floor(y + 0.5))
-                cn = int(math.floor(x + 0.5))
-                if 0 <= rn < nl and 0 <= cn < ns:
+                cn = near[c]
+                if rn_ok and cn >= 0:
                     u = pos[rn, cn, 0]
                     w = pos[rn, cn, 1]
             if not (math.isnan(u) or math.isnan(w)):
                 i = min(max(int(math.floor(u)), 0), last)
                 j = min(max(int(math.floor(w)), 0), last)
                 out[r, c] = i * (n - 1) + j
+
+
+@numba.njit(cache=True, nogil=True)
+def usable_cells(hint, ncells, out):
+    """out[k] = hint[k] where it is a cell index of a grid of ``ncells`` cells, else −2 (march; never −1,
+    the raster's "no terrain here", which only the raster of the very camera rendered can claim)."""
+    for k in range(hint.shape[0]):
+        h = hint[k]
+        out[k] = h if 0 <= h < ncells else -2

@@ -68,7 +68,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._patchkernels import SHAPE, SKY, _fused_rays, predict_cells
+from spctool.geometry._patchkernels import SHAPE, SKY, _fused_rays, predict_cells, usable_cells
 from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays, terrain_cells
 from spctool.geometry.heightfield import kernel_array
 from spctool.geometry.surfaces import (
@@ -657,7 +657,9 @@ def _usable_hint(hint, n: int) -> np.ndarray:
     is one, else −2 (march; never −1, the raster's "no terrain here", which only the raster of this very
     camera can claim)."""
     h = np.asarray(hint, dtype=np.int64)
-    return np.where((h >= 0) & (h < (n - 1) * (n - 1)), h, -2)
+    out = np.empty(h.shape, np.int64)
+    usable_cells(h.reshape(-1), (n - 1) * (n - 1), out.reshape(-1))
+    return out
 
 
 def cull_patches(camera, patches, window=None, margin_px: float = 4.0) -> list:
