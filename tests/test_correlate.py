@@ -873,8 +873,10 @@ def test_grid_half_changes_the_grid():
     np.testing.assert_allclose(res.offset, (6.2, -7.1), atol=0.02)
 
 
-def _gradient_offset_reference(e, me, p, mp, origin):
-    """The alignment's least squares with NumPy masks and a dense solve (the kernel's reference)."""
+def _alignment_pixels(e, me, p, mp, origin):
+    """The alignment's masked pixels by NumPy: (p, its central-difference gradients along rows and
+    columns, e at the origin's offset) over the pixels where both masks and p's four neighbours hold,
+    in scan order, and the kernel's window (i0, i1, j0, j1)."""
     o0, o1 = origin
     hp, wp = p.shape
     he, we = e.shape
@@ -887,9 +889,18 @@ def _gradient_offset_reference(e, me, p, mp, origin):
     ok = win(mp, 0, 0) & win(me, 0, 0, o0, o1)
     for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
         ok &= win(mp, di, dj)
-    pv, ev = win(p, 0, 0)[ok], win(e, 0, 0, o0, o1)[ok]
-    gr = 0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok]
-    gc = 0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok]
+    cols = (
+        win(p, 0, 0)[ok],
+        0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok],
+        0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok],
+        win(e, 0, 0, o0, o1)[ok],
+    )
+    return cols, (i0, i1, j0, j1)
+
+
+def _gradient_offset_reference(e, me, p, mp, origin):
+    """The alignment's least squares with NumPy masks and a dense solve (the kernel's reference)."""
+    (pv, gr, gc, ev), _ = _alignment_pixels(e, me, p, mp, origin)
     m = np.stack([pv - pv.mean(), gr - gr.mean(), gc - gc.mean()], axis=1)
     coef = np.linalg.lstsq(m, ev - ev.mean(), rcond=None)[0]
     return -coef[1] / coef[0], -coef[2] / coef[0], coef[0]
@@ -925,23 +936,7 @@ def test_alignment_kernel_sums_equal_sequential_numpy_sums_bitwise(seed, o0, o1)
     mp = rng.random(p.shape) > 0.1
     me = rng.random(e.shape) > 0.1
     o0, o1 = 3 + o0, 3 + o1
-    hp, wp = p.shape
-    he, we = e.shape
-    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
-    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
-
-    def win(a, di, dj, oi=0, oj=0):
-        return a[i0 + oi + di : i1 + oi + di, j0 + oj + dj : j1 + oj + dj]
-
-    ok = win(mp, 0, 0) & win(me, 0, 0, o0, o1)
-    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        ok &= win(mp, di, dj)
-    cols = [
-        win(p, 0, 0)[ok],
-        0.5 * (win(p, 1, 0) - win(p, -1, 0))[ok],
-        0.5 * (win(p, 0, 1) - win(p, 0, -1))[ok],
-    ]
-    y = win(e, 0, 0, o0, o1)[ok]
+    (*cols, y), (i0, i1, j0, j1) = _alignment_pixels(e, me, p, mp, (o0, o1))
     n = len(y)
 
     def seq(x):  # a sequential sum (cumsum adds in order; the kernel starts from 0.0 as well)

@@ -600,6 +600,22 @@ def _upwind_max(tops, au, aw, out):
                 out[b, a] = m
 
 
+@njit(cache=True, inline="always")
+def _reach_rows(au, aw, big, major0):
+    """(lo_own, hi_own, lo_next, hi_next): the rows, relative to its own, a ray along the horizontal
+    direction (au, aw) (``big`` = max(|au|, |aw|), ``major0``: axis 0 dominates) can pass over in its own
+    column and enter in the next (:func:`horizon_bound`): one-sided along the minor direction — its
+    change per column is below one row — unless the direction is within 1e-9 of a diagonal or has no
+    minor component (then a row of margin on both sides, for rays through a corner)."""
+    minor = aw if major0 else au
+    one_sided = minor != 0.0 and abs(abs(au) - abs(aw)) > 1e-9 * big
+    if one_sided and minor > 0.0:
+        return 0, 1, 0, 2
+    if one_sided:
+        return -1, 0, -2, 0
+    return -1, 1, -2, 2
+
+
 @njit(cache=True, nogil=True)
 def horizon_bound(tops, au, aw, az, out, entry_out):
     """out[i, j] ≥ top(c) − z_c for every cell c a ray leaving any point of cell (i, j) along the direction
@@ -634,14 +650,7 @@ def horizon_bound(tops, au, aw, az, out, entry_out):
     na = n0 if major0 else n1
     nb = n1 if major0 else n0
     step = 1 if (au if major0 else aw) > 0.0 else -1
-    # rows a ray can reach: one-sided along the minor direction unless it is (nearly) diagonal or zero
-    minor = aw if major0 else au
-    one_sided = minor != 0.0 and abs(abs(au) - abs(aw)) > 1e-9 * big
-    lo_own, hi_own, lo_next, hi_next = -1, 1, -2, 2
-    if one_sided and minor > 0.0:
-        lo_own, hi_own, lo_next, hi_next = 0, 1, 0, 2
-    elif one_sided:
-        lo_own, hi_own, lo_next, hi_next = -1, 0, -2, 0
+    lo_own, hi_own, lo_next, hi_next = _reach_rows(au, aw, big, major0)
     entry = np.empty((na, nb))
     for k in range(na):
         a = na - 1 - k if step > 0 else k
@@ -1012,15 +1021,7 @@ def sun_bounds(tops, au, aw, az, k, up, hor, ent):
     g = tops if major0 else tops.T.copy()
     na, nb = g.shape
     step = 1 if (au if major0 else aw) > 0.0 else -1
-    # rows a ray can reach (horizon_bound): one-sided along the minor direction unless it is (nearly)
-    # diagonal or zero
-    minor = aw if major0 else au
-    one_sided = minor != 0.0 and abs(abs(au) - abs(aw)) > 1e-9 * big
-    lo_own, hi_own, lo_next, hi_next = -1, 1, -2, 2
-    if one_sided and minor > 0.0:
-        lo_own, hi_own, lo_next, hi_next = 0, 1, 0, 2
-    elif one_sided:
-        lo_own, hi_own, lo_next, hi_next = -1, 0, -2, 0
+    lo_own, hi_own, lo_next, hi_next = _reach_rows(au, aw, big, major0)
     rise = (az / big) * (1.0 - 1e-12) if rising else 0.0
     upg = np.empty((na, nb))
     horg = np.full((na, nb), np.inf)
