@@ -433,3 +433,53 @@ def test_raster_small_patches_chunks_and_fine_supersampling(q, ss, chunk):
     got = render(cam, sun, None, patches[:1], dataclasses.replace(opts, visibility="raster"))
     assert np.count_nonzero(ref.coverage) > (0 if q == 1 else 500)
     assert_same_rendering(got, ref)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_hinted_cell_never_moves_a_hit_at_nodes_edges_and_grid_lines(seed):
+    """Rays aimed at the grid's nodes and edges (and along its lines, du = 0), each hinted with the cell
+    of its hit and the eight around it: wherever ``_cell_hit`` takes the hint, its crossing is the
+    march's to the last bit (a crossing two cells' formulas share, a ray lying in two columns: the
+    march decides)."""
+    import math
+
+    from spctool.geometry._heightkernels import _march
+    from spctool.geometry._patchkernels import _cell_hit
+    from spctool.geometry.surfaces import NEAR_CELLS, HeightPatch
+
+    rng = np.random.default_rng(seed)
+    n, taken = 9, 0
+    for _ in range(40):
+        h = rng.normal(size=(n, n)) * rng.choice([0.05, 0.3, 1.0])
+        if rng.random() < 0.3:
+            h = np.round(h, 1)  # ties and flat cells
+        p = HeightPatch(h, 0.001, np.zeros(3), [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0])
+        hts, valids, tops, near = p.heights[None], p.valid[None], p.cell_tops[None], p.near_steps[None]
+        hmin, hmax = p.height_range
+        for _ in range(60):
+            u = float(rng.integers(1, n - 1)) if rng.random() < 0.7 else rng.uniform(1, n - 2)
+            w = float(rng.integers(1, n - 1)) if rng.random() < 0.7 else rng.uniform(1, n - 2)
+            i, j = min(int(u), n - 2), min(int(w), n - 2)
+            fu, fw = u - i, w - j
+            z = (1 - fu) * (1 - fw) * h[i, j] + fu * (1 - fw) * h[i + 1, j]
+            z += (1 - fu) * fw * h[i, j + 1] + fu * fw * h[i + 1, j + 1]
+            d = np.array([rng.normal() * 0.3, rng.normal() * 0.3, -1.0])
+            if rng.random() < 0.3:
+                d[1] = d[0] * rng.choice([1, -1])  # a diagonal through the corners
+            if rng.random() < 0.15:
+                d[0] = 0.0  # along a grid line
+            t0 = rng.uniform(5, 20)
+            u0, w0, z0 = u - t0 * d[0], w - t0 * d[1], z - t0 * d[2]
+            args = (u0, w0, z0, d[0], d[1], d[2], 0.0, 1e9)
+            ref = _march(hts, valids, tops, 0, n, n, hmin, hmax, *args, tops, False)
+            if not math.isfinite(ref):
+                continue
+            ci = min(max(int(math.floor(u0 + ref * d[0])), 0), n - 2)
+            cj = min(max(int(math.floor(w0 + ref * d[1])), 0), n - 2)
+            for a in range(max(ci - 1, 0), min(ci + 1, n - 2) + 1):
+                for b in range(max(cj - 1, 0), min(cj + 1, n - 2) + 1):
+                    got = _cell_hit(hts, near, 0, n, a, b, *args, hmax, float(NEAR_CELLS))
+                    if not math.isnan(got):
+                        taken += 1
+                        assert np.float64(got).tobytes() == np.float64(ref).tobytes(), (a, b, got, ref)
+    assert taken > 100  # the hint is taken for most rays off the nodes

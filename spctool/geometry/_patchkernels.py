@@ -39,6 +39,10 @@ SHAPE = -1
 
 _BIG = 1e300
 
+#: a raster or predicted cell is taken only where the ray enters it at least this high (cells) above its
+#: terrain: below, the previous cell's formula might already read a crossing there (:func:`_cell_hit`)
+_HINT_CLEARANCE = 1e-9
+
 
 @numba.njit(inline="always", cache=True)
 def _slab1(o, d, lo, hi):
@@ -202,7 +206,7 @@ def _bilinear_at(maps, p, c, i, j, w00, w10, w01, w11):
 
 
 @numba.njit(forceinline=True, cache=True)
-def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reach):
+def _cell_hit(hts, near, p, n, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reach):
     """The first crossing of a grid ray (index coordinates) with the terrain when the raster says it lies
     in cell (i, j) — what :func:`_march` returns, with the same clip (z ≤ hmax) and the same cell step
     (:func:`_cell_crossing`) — or nan when that cannot be vouched for (the caller then marches).
@@ -211,7 +215,12 @@ def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reac
     of the highest node down to that column, stays within ``reach`` cells of it and descends faster than
     any slope of the terrain there (``near`` (P, n − 1, n − 1, 2): the largest steps along x and y over
     those cells, +inf near missing nodes): its height above the terrain then only falls on the way, so
-    no earlier cell was crossed."""
+    no earlier cell was crossed.  Where the march could read the same crossing through another cell's
+    bilinear formula (a few ulp apart), the march decides: the cell must be the one the march assigns
+    to the ray's segment there (its midpoint's, as :func:`_march` computes it: a ray along a grid line
+    lies in two columns), the ray must enter it more than :data:`_HINT_CLEARANCE` above the terrain
+    (not on a shared edge), and the crossing must not lie at its exit within 1e-12 (a node, an edge).
+    ``n``: the patch's nodes per side."""
     if not dz < 0.0:
         return math.nan
     if not dz < -(near[p, i, j, 0] * abs(du) + near[p, i, j, 1] * abs(dw)):
@@ -228,10 +237,18 @@ def _cell_hit(hts, near, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, reac
         return math.nan
     if (t_lo - t_top) * max(abs(du), abs(dw)) > reach:
         return math.nan  # the way down is longer than the slope bound covers
-    fa = _cell_f(hts, p, i, j, u0, w0, z0, du, dw, dz, t_lo)
-    if not fa >= 0.0:
+    tm = 0.5 * (t_lo + t_hi)  # the march's cell for this segment
+    if min(max(int(math.floor(u0 + tm * du)), 0), n - 2) != i:
         return math.nan
-    return _cell_crossing(hts, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, fa)
+    if min(max(int(math.floor(w0 + tm * dw)), 0), n - 2) != j:
+        return math.nan
+    fa = _cell_f(hts, p, i, j, u0, w0, z0, du, dw, dz, t_lo)
+    if not fa > _HINT_CLEARANCE:
+        return math.nan
+    tp = _cell_crossing(hts, p, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, fa)
+    if t_hi - tp < 1e-12 * abs(t_hi):
+        return math.nan  # at the exit: the next cell's formula may give the march's value
+    return tp
 
 
 @numba.njit(forceinline=True, cache=True)
@@ -309,7 +326,7 @@ def _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c):
             tp = math.nan
             if c >= 0:  # the raster's cell, where _cell_hit can vouch for it
                 tp = _cell_hit(
-                    hts, near, p, c // (n - 1), c % (n - 1), a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
+                    hts, near, p, n, c // (n - 1), c % (n - 1), a0 + q, a1 + q, a2, b0, b1, b2, tn, tmax,
                     geo[p, 20], geo[p, 21],
                 )  # fmt: skip
             if math.isnan(tp):
