@@ -487,8 +487,9 @@ class Registrar:
         #: Registrars of later passes over the same maplets (not modified in between) build none again
         #: (navigate, the Monte Carlo's phases; the Sun tables are kept per Sun direction, the window per
         #: camera object); under ("template", name) each landmark's last template with V's pixel, whose
-        #: hit positions place the rays of the first template of a later call with another camera or
-        #: maplet of the landmark (the Monte Carlo's next sample: :meth:`_carried_hint`); None: per
+        #: hit positions place the rays of the first template of a later call with another camera
+        #: object (the Monte Carlo's next sample, navigate's next pass: :meth:`_carried_hint`; a hint
+        #: only, so a name shared by two maplets costs marches, never a different template); None: per
         #: Registrar
         self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)

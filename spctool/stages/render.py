@@ -642,9 +642,9 @@ def predicted_cells(previous: Rendering, shift, n: int, shape=None) -> np.ndarra
     The hit positions interpolated there (:func:`predict_cells`) find the right cell for most rays
     whatever the shift, where the earlier render's own cells (the shift rounded) miss about half of
     them at a quarter pixel (each miss costs a march; the rendering is the same either way).  None
-    when ``previous`` kept no positions."""
+    when ``previous`` kept no positions or the shift is not finite."""
     pos = previous.positions
-    if pos is None:
+    if pos is None or not np.all(np.isfinite(shift)):
         return None
     nss = int(previous.options.supersample)
     out = np.empty(pos.shape[:2] if shape is None else tuple(int(v) for v in shape), np.int64)
