@@ -949,3 +949,33 @@ def test_alignment_kernel_sums_equal_sequential_numpy_sums_bitwise(seed, o0, o1)
     normal, rhs = np.zeros((3, 3)), np.zeros(3)
     assert _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs) == n
     assert normal.tobytes() == ref_n.tobytes() and rhs.tobytes() == ref_r.tobytes()
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    half=st.integers(0, 4),
+    shape=st.tuples(st.integers(3, 14), st.integers(3, 14), st.integers(2, 12), st.integers(2, 12)),
+    origin=st.tuples(st.integers(-6, 6), st.integers(-6, 6)),
+    min_valid=st.sampled_from([1, 4, 25]),
+    holes=st.sampled_from([0.0, 0.2, 0.6]),
+)
+@settings(max_examples=150, deadline=None)
+def test_ncc_kernel_equals_its_bd3e756_version_bit_for_bit(seed, half, shape, origin, min_valid, holes):
+    """The rewritten NCC kernel (unsigned indices, one array per prefix and box sum) keeps every sum's
+    operations and order: its surfaces and counts equal the bd3e756 kernel's (``tests/ncc_reference.py``)
+    to the last bit — masks with holes, offsets reaching beyond either image, constant images."""
+    from ncc_reference import k_ncc_bd3e756
+
+    rng = np.random.default_rng(seed)
+    he, we, hp, wp = shape
+    e = rng.normal(size=(he, we)) * rng.choice([1.0, 1e-3, 1e3]) + rng.choice([0.0, 5.0])
+    p = rng.normal(size=(hp, wp))
+    if rng.random() < 0.1:
+        p[:] = 2.0  # constant: NaN where it is the whole overlap
+    me, mp = rng.random(e.shape) >= holes, rng.random(p.shape) >= holes
+    g = 2 * half + 1
+    surf, cnts = ncc_surface(e, me, p, mp, grid_half=half, min_valid=min_valid, origin=origin)
+    ref, ref_n = np.empty((g, g)), np.empty((g, g))
+    k_ncc_bd3e756(e, me, p, mp, origin[0], origin[1], half, float(min_valid), ref, ref_n)
+    assert surf.tobytes() == ref.tobytes()
+    np.testing.assert_array_equal(cnts, np.rint(ref_n).astype(np.int64))
