@@ -28,7 +28,12 @@ def _same(a, b):
 
 
 def _grid(rng, n0, n1, missing):
+    """Heights with spikes, ties (a few nodes rounded to one decimal) and signed zeros, and a valid mask
+    with ``missing`` of the nodes left out."""
     h = rng.normal(size=(n0, n1)) * rng.uniform(0.1, 3.0) + 8.0 * (rng.uniform(size=(n0, n1)) > 0.97)
+    pick = rng.uniform(size=(n0, n1))
+    h = np.where(pick < 0.1, np.round(h, 1), h)
+    h = np.where(pick > 0.95, np.where(pick > 0.975, -0.0, 0.0), h)
     valid = rng.uniform(size=(n0, n1)) >= missing
     return np.where(valid, h, 0.0), valid
 
