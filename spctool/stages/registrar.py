@@ -401,16 +401,14 @@ class _Grid:
 
 class _KeptPatch:
     """A maplet's entry in :attr:`Registrar.patch_cache`: the maplet itself (the key is its id), its
-    render-ready patch, its last template window as (camera, window, template_margin) or None, and its
-    last template's hits (:attr:`_Landmark.hits`, a later call's hint) or None."""
+    render-ready patch, and its last template window as (camera, window, template_margin) or None."""
 
-    __slots__ = ("maplet", "patch", "window", "hits")
+    __slots__ = ("maplet", "patch", "window")
 
     def __init__(self, maplet, patch):
         self.maplet = maplet
         self.patch = patch
         self.window = None
-        self.hits = None
 
 
 class _Landmark:
@@ -487,10 +485,9 @@ class Registrar:
         #: Registrars of later passes over the same maplets (not modified in between) build none again
         #: (navigate, the Monte Carlo's phases; the Sun tables are kept per Sun direction, the window per
         #: camera object); under ("template", name) each landmark's last template with V's pixel, whose
-        #: hit positions place the rays of the first template of a later call with another camera
-        #: object (the Monte Carlo's next sample, navigate's next pass: :meth:`_carried_hint`; a hint
-        #: only, so a name shared by two maplets costs marches, never a different template); None: per
-        #: Registrar
+        #: hit positions place the rays of the first template of a later call (the Monte Carlo's next
+        #: phase and next sample, navigate's next pass: :meth:`_carried_hint`; a hint only, so a name
+        #: shared by two maplets costs marches, never a different template); None: per Registrar
         self.patch_cache = patch_cache
         data = getattr(photo, "data", photo)
         self.photo = np.ascontiguousarray(data, dtype=np.float64)
@@ -742,8 +739,6 @@ class Registrar:
                 lm.patch = kept.patch
                 if lm.footprint is None and kept.window is not None and kept.window[2] == mg:
                     lm.footprint = kept.window[:2]
-                if lm.hits is None:
-                    lm.hits = kept.hits
             else:
                 # packed once per landmark, reused by every render
                 lm.patch = PatchSet([HeightPatch.from_maplet(lm.maplet, name=lm.name)])
@@ -791,9 +786,6 @@ class Registrar:
                 hint = self._carried_hint(lm, camera, frac, nss, win, n)
             part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint, return_cells=True)
             lm.hits = (camera, frac.copy(), nss, win, part)
-            kept = self._kept(lm.maplet)
-            if kept is not None:
-                kept.hits = lm.hits
             if self.patch_cache is not None and lm.proj is not None and lm.proj[0] is camera:
                 self.patch_cache[("template", lm.name)] = (lm.proj[1], lm.hits)
             rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
@@ -804,19 +796,23 @@ class Registrar:
 
     def _carried_hint(self, lm: _Landmark, camera, frac, nss: int, window, n: int):
         """The cells a first template of ``lm`` is expected to hit, from the last template of a landmark
-        of the same name kept in :attr:`patch_cache` by a call with another camera (its knowledge
-        perturbed: the Monte Carlo's previous sample), or None.  The same terrain appears at the same
-        offset from V's pixel, so this template's pixel p (phase ``frac``) sits where the earlier
-        one's p − P + P' − f + f' sat (P, P': V's pixels, f, f': the phases, windows apart by their
-        origins); the maplet frame moves with V, so the hit positions carry over (a hint: a miss costs
-        a march, never a different template)."""
+        of the same name kept in :attr:`patch_cache` by an earlier call, or None.  With the same camera
+        object (the Monte Carlo's second phase): :func:`_cells_hint`'s rules.  With another (its
+        knowledge perturbed: the Monte Carlo's previous sample; navigate's next pass): the same terrain
+        appears at the same offset from V's pixel, so this template's pixel p (phase ``frac``) sits
+        where the earlier one's p − P + P' − f + f' sat (P, P': V's pixels, f, f': the phases, windows
+        apart by their origins); the maplet frame moves with V, so the hit positions carry over (a
+        hint: a miss costs a march, never a different template)."""
         if self.patch_cache is None or lm.proj is None or lm.proj[0] is not camera:
             return None
         carried = self.patch_cache.get(("template", lm.name))
         if carried is None:
             return None
-        v_old, (cam_old, f_old, k, win_old, prev) = carried
-        if k != nss or cam_old is camera:  # the same camera: _cells_hint's rules
+        v_old, hits = carried
+        cam_old, f_old, k, win_old, prev = hits
+        if cam_old is camera:
+            return _cells_hint(hits, camera, frac, nss, window, n)
+        if k != nss:
             return None
         from spctool.stages.render import predicted_cells
 
