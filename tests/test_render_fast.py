@@ -213,3 +213,26 @@ def test_bin_subrays_equals_the_numpy_means_bit_for_bit(nss):
     np.testing.assert_array_equal(cov, hit.reshape(shape4).sum(axis=(1, 3)) / nss**2)
     np.testing.assert_array_equal(shd, sh.reshape(shape4).sum(axis=(1, 3)) / nss**2)
     np.testing.assert_array_equal(sid, surface.reshape(shape4)[:, 0, :, 0])
+
+
+def test_bin_subrays_one_subray_keeps_the_sums_bits():
+    """nss = 1 (image-space templates) copies each sub-ray as the loop of sums does: 0 + r, so −0 → +0
+    and every other value (NaN, ±inf, subnormals) unchanged, bit for bit."""
+    from spctool.geometry._rasterkernels import bin_subrays
+
+    nl, width = 5, 9
+    rng = np.random.default_rng(5)
+    r = rng.normal(size=nl * width)
+    r[:6] = [-0.0, 0.0, np.nan, np.inf, -np.inf, 5e-324]
+    hit = rng.uniform(size=r.size) > 0.5
+    sh = rng.uniform(size=r.size) > 0.5
+    surface = rng.integers(-2, 3, size=r.size).astype(np.int32)
+    rad, cov, shd = np.empty((nl, width)), np.empty((nl, width)), np.empty((nl, width))
+    sid = np.empty((nl, width), np.int16)
+    bin_subrays(r, hit, sh, surface, 1, rad, cov, shd, sid)
+    want = (0.0 + (0.0 + r)).reshape(nl, width)
+    np.testing.assert_array_equal(rad.view(np.uint64), want.view(np.uint64))
+    assert rad[0, 0] == 0.0 and not np.signbit(rad[0, 0])
+    np.testing.assert_array_equal(cov, hit.reshape(nl, width).astype(float))
+    np.testing.assert_array_equal(shd, sh.reshape(nl, width).astype(float))
+    np.testing.assert_array_equal(sid, surface.reshape(nl, width))

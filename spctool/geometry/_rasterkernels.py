@@ -34,6 +34,15 @@ def bin_subrays(r, hit, sh, surface, nss, rad, cov, shd, sid):
     (NumPy sums 8 or more terms pairwise; callers use NumPy there)."""
     nl, width = rad.shape
     k = nss * nss
+    if nss == 1:  # one sub-ray per pixel: the same sums (0 + r, whose only change is −0 → +0), flat
+        for a in range(nl):
+            m0 = a * width
+            for s in range(width):
+                rad[a, s] = (0.0 + (0.0 + r[m0 + s])) / 1
+                cov[a, s] = hit[m0 + s] / 1
+                shd[a, s] = sh[m0 + s] / 1
+                sid[a, s] = surface[m0 + s]
+        return
     for a in range(nl):
         for s in range(width):
             m0 = ((a * nss) * width + s) * nss
