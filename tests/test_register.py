@@ -1063,3 +1063,22 @@ def test_image_step_kernels_equal_the_numpy_masks(no_shadows):
     xs = [0.5, 1.5, 2.5, -0.5, -0.3, -0.0, 0.0, 0.3, 1e17 + 2.0, -3.7, 1e-300, math.inf, -math.inf, math.nan]
     for x in xs + list(rng.normal(0, 1e3, 200)):
         assert np.float64(_rint(x)).tobytes() == np.rint(np.float64(x)).tobytes()
+
+
+def test_image_space_steps_with_a_wider_search_share_one_setting(scene):
+    """Acquiring steps (``grid_half`` given) reuse one correlation setting per (stage, search width): a
+    Registrar stepping many times keeps one image-space form per setting, not one per step, and each
+    step reads the same peak as a fresh Registrar's."""
+    from spctool.stages.registrar import Registrar
+
+    opts = RegisterOptions(space="image", supersample=1)
+    reg = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds, opts)
+    c = np.asarray(scene.truth_pixel, dtype=np.float64) + np.array([2.0, -1.0])
+    steps = [reg.step(0, scene.camera, c, 4, grid_half=12) for _ in range(5)]
+    steps += [reg.step(0, scene.camera, c, 1, final=True, grid_half=9) for _ in range(3)]
+    assert len(reg._copts_half) == 2 and len(reg._image_copts) == 2
+    fresh = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds, opts)
+    first = fresh.step(0, scene.camera, c, 4, grid_half=12)
+    assert first.correlation.surface.shape == (25, 25)
+    for st in steps[:5]:
+        np.testing.assert_array_equal(st.shift, first.shift)

@@ -506,6 +506,9 @@ class Registrar:
         #: the converged stage's correlation settings (its sub-pixel estimator)
         self._copts_final = dataclasses.replace(self._copts, peak=self.options.converge_peak)
         self._image_copts: dict = {}  # id(copts) → (copts, its image-space form): made once, not per step
+        #: (final, grid_half) → the step's correlation settings with that search: one object per search
+        #: width, so that the image-space forms above stay one per setting, not one per acquiring step
+        self._copts_half: dict = {}
 
     def __len__(self):
         return len(self.landmarks)
@@ -577,7 +580,11 @@ class Registrar:
         extended by this many cells per side, and ``grid_half`` the search, ``acquire_reach``)."""
         copts = self._copts_final if final else self._copts
         if grid_half is not None and grid_half != copts.grid_half:
-            copts = dataclasses.replace(copts, grid_half=int(grid_half))
+            key = (bool(final), int(grid_half))
+            made = self._copts_half.get(key)
+            if made is None:
+                made = self._copts_half[key] = dataclasses.replace(copts, grid_half=int(grid_half))
+            copts = made
         if self.options.space == "image":
             return self._image_step(i, camera, np.asarray(center, dtype=np.float64), spacing, copts, draft)
         return self._maplet_step(
