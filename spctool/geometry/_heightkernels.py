@@ -740,13 +740,16 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
     if (_ix(cmax, p, cM, cm) if major0 else _ix(cmax, p, cm, cM)) == -np.inf:
         return False  # the start is on a cell with a missing corner (its edge): the march decides
     gapM = max((cM + 1.0 - pM) if sM > 0 else (pM - cM), 0.0)  # to the own column's far side
-    keep = 1.0 - _LIT_SLACK  # times cut by this: earlier, so lower on a rising ray
+    keep = 1.0 - _LIT_SLACK  # times cut by this: earlier, so lower on a rising ray (and within it of
+    inv_M = 1.0 / abs(dM)  # the quotients: reciprocals' products are a few ulp off)
+    inv_m = 1.0 / abs(dm) if dm != 0.0 else 0.0
+    m_b = pm
     rising = True  # the ray's height above the terrain is known positive where it is
     for col in range(LIT_COLUMNS):
         c = cM + col * sM
-        t_in = 0.0 if col == 0 else (gapM + (col - 1.0)) / abs(dM)
-        t_out = (gapM + col) / abs(dM)
-        m_a = pm + dm * t_in
+        t_in = 0.0 if col == 0 else (gapM + (col - 1.0)) * inv_M
+        t_out = (gapM + col) * inv_M
+        m_a = m_b
         m_b = pm + dm * t_out
         r_lo = max(int(math.floor(min(m_a, m_b) - _LIT_SLACK)), 0)
         r_hi = min(int(math.floor(max(m_a, m_b) + _LIT_SLACK)), nm - 1)
@@ -760,9 +763,9 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
                 continue
             t_r = t_in  # the earliest moment the ray can be in row r of this column
             if dm > 0.0 and r > m_a:
-                t_r = max(t_r, (r - pm) / dm)
+                t_r = max(t_r, (r - pm) * inv_m)
             elif dm < 0.0 and r + 1.0 < m_a:
-                t_r = max(t_r, (pm - (r + 1.0)) / (-dm))
+                t_r = max(t_r, (pm - (r + 1.0)) * inv_m)
             if z0 + dz * (t_r * keep) > top:
                 continue
             if not (rising and _rises_over(h, p, i, j, du, dw, dz)):
