@@ -143,6 +143,43 @@ def test_lit_from_on_grid_lines_axes_and_diagonals(azimuth, holes):
         assert not np.any(lit & crossed)
 
 
+def test_lit_from_walks_the_rows_in_the_rays_order():
+    """A hand-built case (found in review): the ray passes a cell with a missing corner and then a cell it
+    rises faster than but which lies above it where it comes in (the terrain across the missing cell is
+    unknown), so only that order — the missing cell first — says "march"; the march crosses at t = 4/3.
+    Walking the column's rows the other way round would have called the ray lit."""
+    h = np.zeros((3, 4))
+    valid = np.ones((3, 4), bool)
+    valid[2, 0] = False
+    h[2, 1], h[1, 2], h[2, 2] = 2.0, -3.4, -1.4
+    tops = cell_tops(h, valid)
+    d = np.array([1.0, 0.6, 0.3])
+    out, entry = np.empty_like(tops), np.empty_like(tops)
+    horizon_bound(tops, d[0], d[1], d[2], out, entry)
+    start = np.array([[0.5, 0.2, 0.001]])
+    t = np.empty(1)
+    intersect_rays(h, valid, start, d[None, :].copy(), np.zeros(1), np.full(1, 1e9), t)
+    assert t[0] == pytest.approx(4.0 / 3.0)
+    lit = np.empty(1, bool)
+    _lit_many(h, tops, entry, start, d, lit)
+    assert not lit[0]
+
+
+def test_lit_from_leaves_an_all_but_vertical_ray_to_the_march():
+    """Horizontal components below the smallest normal double (their reciprocals overflow): no walk, no
+    undefined floor of a NaN — the march decides."""
+    h = np.zeros((5, 5))
+    valid = np.ones((5, 5), bool)
+    tops = cell_tops(h, valid)
+    for d in ([1e-310, 5e-311, 1.0], [-4e-320, 1e-310, 1.0], [0.0, 1e-315, 1.0]):
+        d = np.array(d)
+        out, entry = np.empty_like(tops), np.empty_like(tops)
+        horizon_bound(tops, d[0], d[1], d[2], out, entry)
+        lit = np.empty(3, bool)
+        _lit_many(h, tops, entry, np.array([[2.0, 2.0, 0.001], [2.5, 1.0, 0.001], [4.0, 4.0, 0.001]]), d, lit)
+        assert not lit.any()
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_lit_from_clears_most_lit_rays_of_a_rough_terrain(seed):
     """The Monte Carlo's case (issue 17): hills two cells high whose heights are perturbed cell by cell

@@ -743,6 +743,8 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
     keep = 1.0 - _LIT_SLACK  # times cut by this: earlier, so lower on a rising ray (and within it of
     inv_M = 1.0 / abs(dM)  # the quotients: reciprocals' products are a few ulp off)
     inv_m = 1.0 / abs(dm) if dm != 0.0 else 0.0
+    if not (inv_M < np.inf and inv_m < np.inf):
+        return False  # a subnormal component (a ray all but vertical): the march decides
     m_b = pm
     rising = True  # the ray's height above the terrain is known positive where it is
     for col in range(LIT_COLUMNS):
