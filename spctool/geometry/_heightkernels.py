@@ -735,10 +735,9 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
     nM = (n0 if major0 else n1) - 1  # cells along each axis
     nm = (n1 if major0 else n0) - 1
     sM = 1 if dM > 0.0 else -1
+    # the own column; a start beside a cell with a missing corner needs no test of its own: that cell,
+    # wherever it comes on the way, leaves only tops to clear the cells after it
     cM = min(max(int(math.floor(pM)), 0), nM - 1)
-    cm = min(max(int(math.floor(pm)), 0), nm - 1)
-    if (_ix(cmax, p, cM, cm) if major0 else _ix(cmax, p, cm, cM)) == -np.inf:
-        return False  # the start is on a cell with a missing corner (its edge): the march decides
     gapM = max((cM + 1.0 - pM) if sM > 0 else (pM - cM), 0.0)  # to the own column's far side
     keep = 1.0 - _LIT_SLACK  # times cut by this: earlier, so lower on a rising ray (and within it of
     inv_M = 1.0 / abs(dM)  # the quotients: reciprocals' products are a few ulp off)
