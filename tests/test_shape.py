@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from spctool.geometry import _raykernels as rk
 from spctool.geometry.shape import (
     SPC_PATCH_EPS,
+    SPC_SMALL_A,
     HitResult,
     PatchShape,
     TriangleShape,
@@ -350,11 +351,17 @@ def test_reference_and_kernel_agree_on_random_patches(seed):
     spc_root = roots[np.argmin(np.abs(roots - (-coef[2] / coef[1])))]
     if inside and abs(spc_root - target[0]) < 1e-6:
         assert ok and ref is not None
+    # where |A| ≤ SPC_SMALL_A (an absolute bound) the reference takes SPC's series −C/B − AC²/B³ (erratum
+    # 14), the kernel the exact stable root: on a small, strongly twisted patch (scale 1e-3, AC/B² ~ 1e-3)
+    # the series is off by its next terms, (AC/B²)² relative and less (at most 0.8× in t, 2× in u, v over
+    # 20 000 seeds; about one seed in 1250 exceeded the 1e-8 this test allowed everywhere)
+    series = (coef[0] * coef[2] / coef[1] ** 2) ** 2 if abs(coef[0]) <= SPC_SMALL_A else 0.0
     if ok and ref is not None:
-        assert t == pytest.approx(ref.t, rel=1e-8, abs=1e-12 * scale)
-        assert (u, v) == pytest.approx((ref.u, ref.v), abs=1e-7)
-        if inside:  # the hit is the point the ray was aimed at
+        assert t == pytest.approx(ref.t, rel=1e-8 + 4.0 * series, abs=1e-12 * scale)
+        assert (u, v) == pytest.approx((ref.u, ref.v), abs=1e-7 + 8.0 * series)
+        if inside:  # the hit is the point the ray was aimed at, at its distance
             assert (u, v) == pytest.approx(tuple(target), abs=1e-8)
+            assert t == pytest.approx(float(np.linalg.norm(p - o)), rel=1e-8)
     elif outside:
         assert not ok and ref is None
     else:
