@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import multiprocessing as mp
 import sys
 from pathlib import Path
 
@@ -259,6 +260,26 @@ def test_run_is_reproducible_whatever_jobs_and_chunks(scene):
     # another seed gives other samples
     other = mc.run(scene, _cfg(samples=4, seed=12, sigma_scale=0.2), jobs=1)
     assert not _same(other.apriori, one.apriori)
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_workers_started_either_way_give_the_same_samples(scene, monkeypatch, method):
+    if method not in mp.get_all_start_methods():
+        pytest.skip(f"no {method} here")
+    cfg = _cfg(samples=2, seed=5, sigma_scale=0.2)
+    one = mc.run(scene, cfg, jobs=1)
+    monkeypatch.setattr(mc, "_start_method", lambda: method)
+    two = mc.run(scene, cfg, jobs=2, chunk=1)
+    assert _same(two.measured, one.measured) and np.array_equal(two.status, one.status)
+
+
+def test_workers_fork_only_before_numba_starts_its_threads(monkeypatch):
+    from numba.np.ufunc import parallel
+
+    monkeypatch.setattr(parallel, "_is_initialized", False)
+    assert mc._start_method() == ("fork" if sys.platform == "linux" else "spawn")
+    monkeypatch.setattr(parallel, "_is_initialized", True)  # GNU OpenMP's threads do not survive a fork
+    assert mc._start_method() == "spawn"
 
 
 def test_error_is_truth_minus_register(scene):
