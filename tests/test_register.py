@@ -1082,3 +1082,58 @@ def test_image_space_steps_with_a_wider_search_share_one_setting(scene):
     assert first.correlation.surface.shape == (25, 25)
     for st in steps[:5]:
         np.testing.assert_array_equal(st.shift, first.shift)
+
+
+# --------------------------------------------------------------------------------------------------
+# the converged stage's secant step
+
+
+def _broyden_reference(jac, f, dc, df):
+    """The secant step as NumPy writes it (LAPACK's eigenvalues and solve): the reference."""
+    if dc is not None and float(dc @ dc) > 0.0:
+        jac = jac + np.outer(df - jac @ dc, dc) / float(dc @ dc)
+    g = -jac
+    eig = np.linalg.eigvals(g)
+    gain_ok = np.all((eig.real >= 0.2) & (eig.real <= 5.0))
+    if not (np.all(np.abs(eig.imag) <= 0.5 * np.abs(eig.real)) and gain_ok):
+        return -np.eye(2), f.copy(), eig
+    return jac, np.linalg.solve(g, f), eig
+
+
+def test_broyden_step_matches_lapack_on_random_systems():
+    from spctool.stages.register import _broyden_step
+
+    rng = np.random.default_rng(17)
+    fallbacks = taken = 0
+    for _ in range(20000):
+        jac = -np.eye(2) + rng.normal(0.0, 0.8, (2, 2)) * rng.choice([0.01, 0.3, 1.0, 3.0])
+        f = rng.normal(0.0, 0.05, 2)
+        dc, df = (None, None) if rng.random() < 0.2 else (rng.normal(0.0, 0.02, 2), rng.normal(0.0, 0.02, 2))
+        j_ref, m_ref, eig = _broyden_reference(jac, f, dc, df)
+        # away from the decision's borders (a turn at |Im| = ½|Re|, a gain at 0.2 or 5), the same decision
+        re, im = eig.real, np.abs(eig.imag)
+        if np.any(np.abs(re - 0.2) < 1e-9) or np.any(np.abs(re - 5.0) < 1e-9):
+            continue
+        if np.any((im > 0) & (np.abs(im - 0.5 * np.abs(re)) < 1e-9)):
+            continue
+        j_new, m_new = _broyden_step(jac.copy(), f.copy(), dc, df)
+        np.testing.assert_allclose(j_new, j_ref, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(m_new, m_ref, rtol=1e-9, atol=1e-15)
+        if np.array_equal(j_ref, -np.eye(2)):
+            fallbacks += 1
+        else:
+            taken += 1
+    assert fallbacks > 1000 and taken > 1000  # both branches exercised
+
+
+def test_broyden_step_falls_back_on_a_turn_a_flat_gain_and_non_finite_input():
+    from spctool.stages.register import _broyden_step
+
+    f = np.array([0.03, -0.01])
+    turn = np.array([[0.0, 1.0], [-1.0, 0.0]]) * -1.0  # G a 90° rotation: eigenvalues ±i
+    for jac in (turn, -0.1 * np.eye(2), -np.diag([1.0, 6.0]), np.array([[np.nan, 0.0], [0.0, -1.0]])):
+        j, m = _broyden_step(jac, f, None, None)
+        assert np.array_equal(j, -np.eye(2)) and np.array_equal(m, f)
+    # a gain of 2 on the sample axis: the step is F/2 there
+    j, m = _broyden_step(-np.diag([2.0, 1.0]), f, None, None)
+    np.testing.assert_allclose(m, [0.015, -0.01], rtol=1e-15)

@@ -469,19 +469,40 @@ def _broyden_step(jac, f, dc, df):
     """The secant (Broyden) update of the final stage's Jacobian estimate ``jac`` of F(c) = (where the
     step says V is) − c, given the last move ``dc`` and the change ``df`` of F; then the step −jac⁻¹·F.
     Falls back to the plain step F (jac = −I) when the update leaves the Jacobian far from −I (a gain
-    outside 0.2–5 on an axis, a turn, or a singular matrix): the secant then measured noise, not gain."""
-    minus_i = -np.eye(2)
+    outside 0.2–5 on an axis, a turn, or a singular matrix): the secant then measured noise, not gain.
+
+    On Python floats (a 2 × 2 system: the eigenvalues of G = −jac from its trace and determinant, the
+    step by Cramer's rule; what ``np.linalg.eigvals``/``solve`` give to a few ulp, at a fiftieth of
+    their call overhead — twice per image-space sample)."""
+    (j00, j01), (j10, j11) = jac.tolist()
     if dc is not None:
-        den = float(dc @ dc)
+        (c0, c1), (d0, d1) = dc.tolist(), df.tolist()
+        den = c0 * c0 + c1 * c1
         if den > 0.0:
-            jac = jac + np.outer(df - jac @ dc, dc) / den
-    g = -jac
-    eig = np.linalg.eigvals(g)
-    if not (np.all(np.isfinite(eig)) and np.all(np.abs(eig.imag) <= 0.5 * np.abs(eig.real))):
-        return minus_i, f.copy()
-    if not (np.all(eig.real >= 0.2) and np.all(eig.real <= 5.0)):
-        return minus_i, f.copy()
-    return jac, np.linalg.solve(g, f)
+            r0 = d0 - (j00 * c0 + j01 * c1)
+            r1 = d1 - (j10 * c0 + j11 * c1)
+            j00, j01 = j00 + r0 * c0 / den, j01 + r0 * c1 / den
+            j10, j11 = j10 + r1 * c0 / den, j11 + r1 * c1 / den
+    f0, f1 = f.tolist()
+    g00, g01, g10, g11 = -j00, -j01, -j10, -j11
+    half = 0.5 * (g00 + g11)
+    det = g00 * g11 - g01 * g10
+    disc = half * half - det  # eigenvalues half ± √disc (a complex pair where disc < 0)
+    if not (math.isfinite(half) and math.isfinite(disc)):
+        return -np.eye(2), f.copy()
+    if disc >= 0.0:
+        root = math.sqrt(disc)
+        lo, hi = half - root, half + root  # real: imaginary parts 0
+    else:
+        if math.sqrt(-disc) > 0.5 * abs(half):  # a turn: |imaginary| > ½ |real|
+            return -np.eye(2), f.copy()
+        lo = hi = half
+    if not (lo >= 0.2 and hi <= 5.0):
+        return -np.eye(2), f.copy()
+    # G·x = f by Cramer's rule (det = λ₁λ₂ ≥ 0.04: not singular)
+    x0 = (f0 * g11 - g01 * f1) / det
+    x1 = (g00 * f1 - g10 * f0) / det
+    return np.array([[j00, j01], [j10, j11]]), np.array([x0, x1])
 
 
 #: the converged stage's draft steps (``converge_draft``) end with the first that moves by less than this
