@@ -43,6 +43,7 @@ from spctool.errors import SpcUsageError
 from spctool.formats import atomic, guard
 from spctool.formats.workdir import WorkDir
 from spctool.jsonsafe import json_safe
+from spctool.workers import start_method
 
 # --------------------------------------------------------------------------------------------------
 # driver
@@ -449,34 +450,6 @@ def _one_per_format(workdir: Path) -> tuple[str, ...]:
         if path is not None and wd.sum_path(name).exists():
             seen.setdefault(path.suffix.upper(), name)
     return tuple(seen.values())
-
-
-def start_method() -> str:
-    """How local worker processes start: ``fork`` where that is safe, else ``spawn``.
-
-    A forked worker inherits this process's imports (numpy, scipy, numba, spctool: ~0.5 s a spawned
-    worker spends before its first picture) and any shared data already loaded.  Fork is safe here
-    only on Linux (macOS system libraries are not fork-safe), while this process runs a single thread
-    (a lock held by another thread — a progress bar writing to stderr — would stay locked in the
-    child) and before numba's threading layer has started (GNU OpenMP, numba's default on Linux,
-    aborts a forked child that runs a parallel kernel).  ``SPCTOOL_START_METHOD=spawn|fork|forkserver``
-    overrides the choice.
-    """
-    import sys
-
-    forced = os.environ.get("SPCTOOL_START_METHOD", "").strip().lower()
-    if forced:
-        if forced not in ("spawn", "fork", "forkserver"):
-            raise SpcUsageError(f"SPCTOOL_START_METHOD must be spawn, fork or forkserver, got {forced!r}")
-        return forced
-    if not sys.platform.startswith("linux") or threading.active_count() != 1:
-        return "spawn"
-    parallel = sys.modules.get("numba.np.ufunc.parallel")
-    if parallel is not None and getattr(parallel, "_is_initialized", True):
-        layer = getattr(parallel, "_threading_layer", None)
-        if layer != "workqueue":  # numba's own layer is fork-safe; OpenMP and TBB here are not
-            return "spawn"
-    return "fork"
 
 
 def _new_pool(workers: int, method: str, initargs: tuple):

@@ -119,7 +119,7 @@ FILES = (
 
 #: environment variables spctool reads
 ENVIRONMENT = (
-    ("SPCTOOL_START_METHOD", "batch: force the local worker start method (fork, spawn, forkserver)"),
+    ("SPCTOOL_START_METHOD", "batch, montecarlo: force how local workers start (fork, spawn, forkserver)"),
     ("NUMBA_NUM_THREADS", "threads of the compiled kernels (one per batch worker)"),
     ("NUMBA_CACHE_DIR", "where numba caches its compiled kernels"),
     (

@@ -300,7 +300,8 @@ def register(cli: click.Group) -> None:
         ctx.info(
             f"{len(scene)} landmarks x {samples} samples, {space} space, {jobs or mc.default_jobs()} job(s)"
         )
-        with progress(ctx, f"montecarlo {space}", total) as advance:
+        # no refresh thread: the workers fork only from a single-threaded process (spctool.workers)
+        with progress(ctx, f"montecarlo {space}", total, threaded=False) as advance:
             result = mc.run(scene, config, jobs=jobs or mc.default_jobs(), progress=advance)
         result.timing["scene_s"] = scene_s
         summary = mcr.summarise(result)

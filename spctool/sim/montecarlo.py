@@ -69,9 +69,9 @@ Scenes and report.  The study's input — one photo with its truth and the onboa
 layout (statistics, text, JSON, CSV and figures) is :mod:`spctool.sim.montecarlo_report`.
 
 Speed.  Everything that does not change per sample (the photo as float64, the truth pixels, the
-designs) is computed once; samples run in chunks on ``jobs`` worker processes (forked on Linux, so
-they start with the scene and the loaded kernels, unless numba's OpenMP threads already run here: those
-do not survive a fork, and the workers are then spawned), each capped at one numba thread.  Maplet
+designs) is computed once; samples run in chunks on ``jobs`` worker processes (forked where
+:func:`spctool.workers.start_method` finds it safe: they start with the scene and the loaded modules,
+no import, no 40 MB pickle of the photo; else spawned), each capped at one numba thread.  Maplet
 space costs one registration with 12 extraction/correlation steps per sample; image space about four template
 renders (:mod:`spctool.stages.render`, ray-traced with cast shadows), which dominate its cost; each
 sample hands its last template to the landmark's next one (``register_sample``'s ``carry``), whose
@@ -83,7 +83,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -92,6 +91,7 @@ import numpy as np
 from spctool.errors import SpcUsageError
 from spctool.geometry.frames import apply_attitude_update
 from spctool.stages.register import RegisterOptions, register
+from spctool.workers import start_method
 
 __all__ = [
     "PARAMETERS",
@@ -659,6 +659,7 @@ def run(
         tick(len(st))
 
     work = list(_chunks(n_lm, n, int(chunk)))
+    method = "in-process"
     if jobs == 1 or len(work) == 1:
         _worker_init(scene, config, designs, 0)
         try:
@@ -670,7 +671,8 @@ def run(
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        ctx = mp.get_context(_start_method())
+        method = start_method()
+        ctx = mp.get_context(method)
         with ProcessPoolExecutor(
             max_workers=min(jobs, len(work)),
             mp_context=ctx,
@@ -701,23 +703,10 @@ def run(
             "cpu_s": cpu[0],
             "cpu_per_sample_ms": 1e3 * cpu[0] / max(total, 1),
             "jobs": jobs,
+            "start_method": method,
             "samples": total,
         },
     )
-
-
-def _start_method() -> str:
-    """How worker processes start: ``fork`` on Linux while this process has not started numba's
-    parallel threads (the workers then inherit the imported modules, the loaded kernels and the scene:
-    no import, no 40 MB pickle, about a second less per run); ``spawn`` otherwise (GNU OpenMP's
-    threads do not survive a fork, and other platforms' fork is not safe)."""
-    if sys.platform != "linux":
-        return "spawn"
-    try:
-        from numba.np.ufunc import parallel
-    except ImportError:  # pragma: no cover - numba is a dependency
-        return "spawn"
-    return "spawn" if getattr(parallel, "_is_initialized", True) else "fork"
 
 
 def default_jobs() -> int:
