@@ -7,7 +7,7 @@ checked for two things:
 * no import circles: the module graph has no strongly connected component of
   more than one module (and no module imports itself);
 * floors: a lower floor never imports an upper one.  Bottom to top:
-  ``errors``, ``jsonsafe`` (and the package root) < ``formats`` < ``geometry`` <
+  ``errors``, ``jsonsafe``, ``workers`` (and the package root) < ``formats`` < ``geometry`` <
   ``photometry`` < ``stages`` < ``sim``, ``batch``, ``figures`` < ``cli``.
 
 Run as a script (``python tests/test_architecture.py``) to print the graph's
@@ -27,6 +27,7 @@ FLOORS = {
     "": 0,  # spctool/__init__.py (__version__)
     "errors": 0,
     "jsonsafe": 0,  # JSON values of results (numpy only)
+    "workers": 0,  # how local worker processes start (batch, the Monte Carlo)
     "formats": 1,
     "geometry": 2,
     "photometry": 3,
