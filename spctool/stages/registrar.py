@@ -509,6 +509,7 @@ class Registrar:
         #: (final, grid_half) → the step's correlation settings with that search: one object per search
         #: width, so that the image-space forms above stay one per setting, not one per acquiring step
         self._copts_half: dict = {}
+        self._ropts: dict = {}  # rays per pixel → the templates' RenderOptions (the same for every render)
 
     def __len__(self):
         return len(self.landmarks)
@@ -772,19 +773,20 @@ class Registrar:
         s0, s1, l0, l1 = lm.footprint[1]
         # rays through p − frac: the same camera with its CTR moved by frac
         shifted = camera.with_ctr(camera.ctr + frac)
-        ropts = RenderOptions(
-            photometry=self.options.predict.photometry,
-            supersample=nss,
-            shadows=bool(self.options.image_shadows),
-            shading=self.options.template_shading,
-            visibility=self.options.template_visibility if nss >= 2 else "march",
-            ray_inverse="grid",
-            threads=1,
-        )
+        ropts = self._ropts.get(nss)
+        if ropts is None:
+            ropts = self._ropts[nss] = RenderOptions(
+                photometry=self.options.predict.photometry,
+                supersample=nss,
+                shadows=bool(self.options.image_shadows),
+                shading=self.options.template_shading,
+                visibility=self.options.template_visibility if nss >= 2 else "march",
+                ray_inverse="grid",
+                threads=1,
+            )
         shp = (l1 - l0 + 1, s1 - s0 + 1)
-        rad = np.zeros(shp)
-        cov = np.zeros(shp)
         cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
+        rend = None
         if cs0 <= s1 and cl0 <= l1:
             win = (cs0, s1, cl0, l1)
             n = patch.heights.shape[0]
@@ -795,9 +797,14 @@ class Registrar:
             lm.hits = (camera, frac.copy(), nss, win, part)
             if self.patch_cache is not None and lm.proj is not None and lm.proj[0] is camera:
                 self.patch_cache[("template", lm.name)] = (lm.proj[1], lm.hits)
-            rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
-            cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
-        rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
+            if (cs0, cl0) == (s0, l0):  # the whole window in the photo: the render is the template
+                rend = part
+        if rend is None:  # sky (radiance and coverage 0) left of / above the photo
+            rad, cov = np.zeros(shp), np.zeros(shp)
+            if cs0 <= s1 and cl0 <= l1:
+                rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
+                cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
+            rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
         lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
         return rend, frac.copy(), (s0, s1, l0, l1)
 
