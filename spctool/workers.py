@@ -9,6 +9,7 @@ made here once, by one rule, for every command that starts workers.
 from __future__ import annotations
 
 import os
+import sys
 import threading
 
 from spctool.errors import SpcUsageError
@@ -28,8 +29,6 @@ def start_method() -> str:
     aborts a forked child that runs a parallel kernel).  ``SPCTOOL_START_METHOD=spawn|fork|forkserver``
     overrides the choice.
     """
-    import sys
-
     forced = os.environ.get("SPCTOOL_START_METHOD", "").strip().lower()
     if forced:
         if forced not in ("spawn", "fork", "forkserver"):

@@ -488,16 +488,13 @@ def _broyden_step(jac, f, dc, df):
     half = 0.5 * (g00 + g11)
     det = g00 * g11 - g01 * g10
     disc = half * half - det  # eigenvalues half ± √disc (a complex pair where disc < 0)
-    if not (math.isfinite(half) and math.isfinite(disc)):
-        return -np.eye(2), f.copy()
-    if disc >= 0.0:
+    usable = math.isfinite(half) and math.isfinite(disc)
+    if usable and disc >= 0.0:  # real: imaginary parts 0
         root = math.sqrt(disc)
-        lo, hi = half - root, half + root  # real: imaginary parts 0
-    else:
-        if math.sqrt(-disc) > 0.5 * abs(half):  # a turn: |imaginary| > ½ |real|
-            return -np.eye(2), f.copy()
-        lo = hi = half
-    if not (lo >= 0.2 and hi <= 5.0):
+        usable = half - root >= 0.2 and half + root <= 5.0
+    elif usable:  # a complex pair: not a turn (|imaginary| ≤ ½ |real|), real part within the gains
+        usable = math.sqrt(-disc) <= 0.5 * abs(half) and 0.2 <= half <= 5.0
+    if not usable:
         return -np.eye(2), f.copy()
     # G·x = f by Cramer's rule (det = λ₁λ₂ ≥ 0.04: not singular)
     x0 = (f0 * g11 - g01 * f1) / det

@@ -786,7 +786,7 @@ class Registrar:
             )
         shp = (l1 - l0 + 1, s1 - s0 + 1)
         cs0, cl0 = max(s0, 1), max(l0, 1)  # render() windows are 1-based; pixels left of/above 1 stay sky
-        rend = None
+        part = None
         if cs0 <= s1 and cl0 <= l1:
             win = (cs0, s1, cl0, l1)
             n = patch.heights.shape[0]
@@ -797,11 +797,11 @@ class Registrar:
             lm.hits = (camera, frac.copy(), nss, win, part)
             if self.patch_cache is not None and lm.proj is not None and lm.proj[0] is camera:
                 self.patch_cache[("template", lm.name)] = (lm.proj[1], lm.hits)
-            if (cs0, cl0) == (s0, l0):  # the whole window in the photo: the render is the template
-                rend = part
-        if rend is None:  # sky (radiance and coverage 0) left of / above the photo
+        if part is not None and (cs0, cl0) == (s0, l0):
+            rend = part  # the whole window in the photo: the render is the template
+        else:  # sky (radiance and coverage 0) left of / above the photo
             rad, cov = np.zeros(shp), np.zeros(shp)
-            if cs0 <= s1 and cl0 <= l1:
+            if part is not None:
                 rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
                 cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
             rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
