@@ -330,3 +330,58 @@ def test_bin_subrays_one_subray_keeps_the_sums_bits():
     np.testing.assert_array_equal(cov, hit.reshape(nl, width).astype(float))
     np.testing.assert_array_equal(shd, sh.reshape(nl, width).astype(float))
     np.testing.assert_array_equal(sid, surface.reshape(nl, width))
+
+
+@pytest.mark.parametrize(
+    "azimuth, elevation",
+    [(0.0, 40.0), (90.0, 55.0), (37.0, 50.0), (210.0, 65.0), (300.0, 30.0), (45.0, 45.0), (123.0, 88.0)],
+)
+@pytest.mark.parametrize("holes", [False, True])
+def test_lit_corridor_clears_only_cells_whose_rays_rise_over_the_terrain(azimuth, elevation, holes):
+    """:func:`spctool.geometry._patchkernels.lit_corridor` by brute force: from points of every cleared cell
+    (corners and edges included), the ray toward the Sun — sampled every ~0.005 cells of travel up to the
+    reach along its dominant axis — stays over full cells and its height above the bilinear terrain never
+    decreases (the shortcut's claim: no crossing there).  And it does more than the isotropic ``near``
+    bound on a rough terrain: it clears cells where that one does not."""
+    from spctool.geometry.surfaces import LIT_CELLS, PatchSet
+
+    rng = np.random.default_rng(int(azimuth) + int(elevation) + 1000 * holes)
+    q = 12
+    n = 2 * q + 1
+    x = np.arange(n)
+    h = 5.0 * np.sin(x[:, None] / 3.0) * np.cos(x[None, :] / 4.0) + rng.normal(size=(n, n)) * 0.6
+    valid = np.ones((n, n), bool)
+    if holes:
+        valid[rng.integers(0, n, 8), rng.integers(0, n, 8)] = False
+    ux, uy, uz = orient_frame(np.array([0.2, 0.5, 0.8]))
+    scale = 0.003
+    p = HeightPatch(h, scale, np.array([0.1, 0.2, 0.3]), ux, uy, uz, valid=valid)
+    au, aw, az = _direction(azimuth, elevation)
+    sun = au * ux + aw * uy + az * uz
+    arrays = PatchSet([p]).fused_arrays(sun)
+    geo, clear, near = arrays[0], arrays[10][0], arrays[9][0]
+    s = sun
+    b0, b1, b2 = (
+        (s[0] * geo[0, 7 + c] + s[1] * geo[0, 10 + c] + s[2] * geo[0, 13 + c]) * geo[0, 16] for c in range(3)
+    )
+    hh = np.where(valid, h, 0.0)
+    full = valid[:-1, :-1] & valid[1:, :-1] & valid[:-1, 1:] & valid[1:, 1:]
+    assert not np.any(clear & ~full)
+    lead = max(abs(b0), abs(b1))
+    t = np.linspace(0.0, LIT_CELLS / lead, 401)
+    for i, j in np.argwhere(clear):
+        for fu, fw in [(0.0, 0.0), (1.0, 1.0), (0.0, 1.0), (1.0, 0.0), *rng.uniform(size=(4, 2))]:
+            uu, ww = i + fu + b0 * t, j + fw * 1.0 + b1 * t
+            inside = (uu >= 0) & (uu <= n - 1) & (ww >= 0) & (ww <= n - 1)
+            uu, ww, tt = uu[inside], ww[inside], t[inside]
+            ci, cj = np.minimum(uu.astype(int), n - 2), np.minimum(ww.astype(int), n - 2)
+            assert full[ci, cj].all()
+            gu, gw = uu - ci, ww - cj
+            terrain = (1 - gw) * ((1 - gu) * hh[ci, cj] + gu * hh[ci + 1, cj]) + gw * (
+                (1 - gu) * hh[ci, cj + 1] + gu * hh[ci + 1, cj + 1]
+            )
+            above = b2 * tt - terrain
+            assert np.all(np.diff(above) >= -1e-9 * (1.0 + np.abs(above[1:])))
+    near_ok = b2 > near[..., 2] * abs(b0) + near[..., 3] * abs(b1)
+    if 50.0 <= elevation <= 65.0 and not holes:
+        assert np.count_nonzero(clear & ~near_ok) > 0.05 * clear.size

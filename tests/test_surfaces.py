@@ -203,7 +203,7 @@ def test_patch_set_bounds_equal_the_reference_kernels():
         sun = np.asarray(sun) / np.linalg.norm(sun)
         for group in (patches[1:2], patches):
             pset = PatchSet(group)
-            _, _, maps, _, tops, _, up, hor, ent, near = pset.fused_arrays(sun)
+            _, _, maps, _, tops, _, up, hor, ent, near, _ = pset.fused_arrays(sun)
             nmax = max(p.heights.shape[0] for p in group)
             for k, p in enumerate(group):
                 m = p.heights.shape[0] - 1
@@ -220,3 +220,4 @@ def test_patch_set_bounds_equal_the_reference_kernels():
     # no Sun: no bound
     up, hor, ent = PatchSet(patches).fused_arrays(None)[6:9]
     assert np.all(up == np.inf) and np.all(hor == np.inf) and np.all(ent == np.inf)
+    assert not PatchSet(patches).fused_arrays(None)[10].any()

@@ -254,7 +254,7 @@ def _cell_hit(hts, near, p, n, i, j, u0, w0, z0, du, dw, dz, t_lo, t_hi, hmax, r
 @numba.njit(forceinline=True, cache=True)
 def _patch_ray(
     k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops, ns,
-    upmax, horizon, entry, near, cand, surf, geom, sh, cells, pos,
+    upmax, horizon, entry, near, clear, cand, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """Sub-ray k: nearest patch hit → surf[k] (SKY or the patch), geom[k] = (μ₀, μ, cos α, albedo) and
     the cast shadow sh[k] (tested where the normal faces ``sun_lit``, as :func:`render` does); rays
@@ -266,13 +266,15 @@ def _patch_ray(
     answer, fewer cells); ``horizon``, ``entry`` (P, n − 1, n − 1): ``_heightkernels.horizon_bound`` — the
     shadow march ends where the ray is above it, and ``lit_from`` declares a shadow ray lit without a march
     where it provably clears every cell on its way, over a few columns, up to the grid's edge or a
-    column's entry bound (+inf: no shortcut, the reference).  ``cand`` (one patch; empty: march every
-    ray): the raster's cell under each sub-ray (:func:`spctool.geometry._rasterkernels.terrain_cells`):
-    −1 no terrain (sky), ≥ 0 the cell i·(n − 1) + j whose crossing is taken (:func:`_cell_hit`) when the
-    ray enters its column above the terrain and descends more steeply than the terrain's steepest slope
-    (then the first crossing is there: the same hit as the march's), −2 or else: the march.  ``cells``
-    (empty: not wanted) gets the cell i·(n − 1) + j of the hit (one patch; left as it is for a ray that
-    hits nothing), which a later render of the same patch can pass as its ``cand``."""
+    column's entry bound (+inf: no shortcut, the reference); ``clear`` (P, n − 1, n − 1):
+    :func:`lit_corridor`, the cells from which a shadow ray rises over the terrain within the reach (False: no
+    shortcut).  ``cand`` (one patch; empty: march every ray): the raster's cell under each sub-ray
+    (:func:`spctool.geometry._rasterkernels.terrain_cells`): −1 no terrain (sky), ≥ 0 the cell i·(n − 1) + j
+    whose crossing is taken (:func:`_cell_hit`) when the ray enters its column above the terrain and descends
+    more steeply than the terrain's steepest slope (then the first crossing is there: the same hit as the
+    march's), −2 or else: the march.  ``cells`` (empty: not wanted) gets the cell i·(n − 1) + j of the hit
+    (one patch; left as it is for a ray that hits nothing), which a later render of the same patch can pass as
+    its ``cand``."""
     if _sky(k, dirs, ok, surf, geom, sh):
         return
     c = cand[k] if cand.shape[0] > 0 else -2
@@ -283,7 +285,7 @@ def _patch_ray(
         return
     _patch_shade(
         k, best, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-        tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells, pos,
+        tops, ns, upmax, horizon, entry, near, clear, surf, geom, sh, cells, pos,
     )  # fmt: skip
 
 
@@ -345,7 +347,7 @@ def _patch_hit(k, origin, dirs, geo, boxes, hts, valids, tops, ns, near, c):
 @numba.njit(forceinline=True, cache=True)
 def _patch_shade(
     k, p, lx, ly, origin, dirs, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids, tops,
-    ns, upmax, horizon, entry, near, surf, geom, sh, cells, pos,
+    ns, upmax, horizon, entry, near, clear, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """Shading geometry and cast shadow of sub-ray k, which hits patch p at maplet-frame (lx, ly) (and
     its cell in ``cells`` and its grid position (u, w) in ``pos`` unless they are empty)."""
@@ -416,8 +418,13 @@ def _patch_shade(
     b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
     b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
     own_lit = False
-    if npatch == 1 and b2 > 0.0 and b2 > near[p, i, j, 2] * abs(b0) + near[p, i, j, 3] * abs(b1):
-        # the ray rises faster than every slope within geo[p, 22] cells of the hit (near[p, i, j]): its
+    if (
+        npatch == 1
+        and b2 > 0.0
+        and (clear[p, i, j] or b2 > near[p, i, j, 2] * abs(b0) + near[p, i, j, 3] * abs(b1))
+    ):
+        # the ray rises faster than the terrain wherever it can be within geo[p, 22] cells (clear[p, i, j],
+        # :func:`lit_corridor`) or than every slope within those cells of the hit (near[p, i, j]): its
         # height above the terrain only grows from the offset it starts at while it stays there, so it
         # crosses nothing there; it is lit (the march's answer; issue 17) when it is above the highest
         # cell ahead (upmax) before it leaves those cells, or, where it leaves them, above the horizon
@@ -481,7 +488,7 @@ def _patch_shade(
 @numba.njit(cache=True, nogil=True)
 def _fused_rays(
     origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, valids, tops, ns, upmax,
-    horizon, entry, near, cand, surf, geom, sh, cells, pos,
+    horizon, entry, near, clear, cand, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL); ``cand``: the raster's (or an earlier
     render's) cells or empty; ``cells``: where to write each hit's cell, or empty; ``pos`` (n, 2): where to
@@ -492,7 +499,7 @@ def _fused_rays(
     sun_lit, sun, geo, boxes = borrowed(sun_lit), borrowed(sun), borrowed(geo), borrowed(boxes)
     maps, valids, tops, ns = borrowed(maps), borrowed(valids), borrowed(tops), borrowed(ns)
     upmax, horizon, entry, cand = borrowed(upmax), borrowed(horizon), borrowed(entry), borrowed(cand)
-    near = borrowed(near)
+    near, clear = borrowed(near), borrowed(clear)
     surf, geom, sh, cells = borrowed(surf), borrowed(geom), borrowed(sh), borrowed(cells)
     pos = borrowed(pos)
     hts = borrowed(maps[:, 0])
@@ -500,7 +507,7 @@ def _fused_rays(
         for k in range(dirs.shape[0]):
             _patch_ray(
                 k, origin, dirs, ok, sun_lit, sun, shadows, offset, facet, geo, boxes, maps, hts, valids,
-                tops, ns, upmax, horizon, entry, near, cand, surf, geom, sh, cells, pos,
+                tops, ns, upmax, horizon, entry, near, clear, cand, surf, geom, sh, cells, pos,
             )  # fmt: skip
         return
     # the raster's cells: every hit first (one quadratic per sub-ray, the march where the cell cannot
@@ -519,9 +526,71 @@ def _fused_rays(
         if which[k] >= 0:
             _patch_shade(
                 k, which[k], where[k, 0], where[k, 1], origin, dirs, sun_lit, sun, shadows, offset, facet,
-                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, near, surf, geom, sh, cells,
-                pos,
+                geo, boxes, maps, hts, valids, tops, ns, upmax, horizon, entry, near, clear, surf, geom, sh,
+                cells, pos,
             )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def lit_corridor(geo, maps, valids, ns, sun, out):
+    """out (P, n − 1, n − 1) bool: for every cell of each patch, a shadow ray from any point of it (the Sun
+    ``sun`` in maplet cells as :func:`_patch_shade` computes it) rises faster than the bilinear terrain in
+    every cell it can pass within ``geo[p, 22]`` cells along its dominant axis — its height above the
+    terrain only grows there (the ``near`` shortcut's argument for the cells the ray can reach rather than
+    every cell around the hit).  A cell's directional slope is largest at a corner (:func:`_rises_over`'s
+    rule and margin); the cells the ray can pass are those of the cell's own box moved by up to the reach
+    toward the Sun (one row of slack at the far side); a cell with a missing corner clears nothing.
+    False where the Sun is not above the maplet plane (and on the padding of smaller patches).
+
+    Computed once per patch and Sun (:meth:`spctool.geometry.surfaces.PatchSet.fused_arrays`): on the
+    s16-50m maplets 79 % of the cells clear, where the isotropic ``near`` bound lets through 24 % of the
+    hits (the rest went on to ``lit_from``'s column walk)."""
+    s0 = sun[0]
+    s1 = sun[1]
+    s2 = sun[2]
+    for p in range(geo.shape[0]):
+        out[p] = False
+        n = ns[p]
+        m = n - 1
+        inv = geo[p, 16]
+        b0 = (s0 * geo[p, 7] + s1 * geo[p, 10] + s2 * geo[p, 13]) * inv
+        b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
+        b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
+        if not b2 > 0.0 or m < 1:
+            continue
+        lead = max(abs(b0), abs(b1))
+        t = geo[p, 22] / lead if lead > 0.0 else 0.0
+        # the cells the ray can be in: rows i + di_lo … i + di_hi, columns j + dj_lo … j + dj_hi
+        di_lo = int(math.floor(min(0.0, b0 * t) - 1e-9))
+        di_hi = int(math.floor(1.0 + max(0.0, b0 * t) + 1e-9))
+        dj_lo = int(math.floor(min(0.0, b1 * t) - 1e-9))
+        dj_hi = int(math.floor(1.0 + max(0.0, b1 * t) + 1e-9))
+        slope = np.empty((m, m))
+        for i in range(m):
+            for j in range(m):
+                full = valids[p, i, j] and valids[p, i + 1, j] and valids[p, i, j + 1]
+                if full and valids[p, i + 1, j + 1]:
+                    h00 = maps[p, 0, i, j]
+                    a = maps[p, 0, i + 1, j] - h00
+                    b = maps[p, 0, i, j + 1] - h00
+                    c = maps[p, 0, i + 1, j + 1] - maps[p, 0, i + 1, j] - maps[p, 0, i, j + 1] + h00
+                    base = a * b0 + b * b1
+                    slope[i, j] = max(max(base, base + c * b0), max(base + c * b1, base + c * (b0 + b1)))
+                else:
+                    slope[i, j] = np.inf
+        rows = np.empty((m, m))  # the maxima over each cell's columns, then over its rows
+        for i in range(m):
+            for j in range(m):
+                top = -np.inf
+                for jj in range(max(j + dj_lo, 0), min(j + dj_hi, m - 1) + 1):
+                    top = max(top, slope[i, jj])
+                rows[i, j] = top
+        for i in range(m):
+            for j in range(m):
+                top = -np.inf
+                for ii in range(max(i + di_lo, 0), min(i + di_hi, m - 1) + 1):
+                    top = max(top, rows[ii, j])
+                out[p, i, j] = b2 > top + 1e-12 * (abs(b2) + abs(top))
 
 
 @numba.njit(cache=True, nogil=True)

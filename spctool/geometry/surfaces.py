@@ -30,7 +30,13 @@ import numpy as np
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
 from spctool.geometry._heightkernels import patch_grids, patch_maps, sun_bounds
-from spctool.geometry._patchkernels import _crossings, _in_boxes, _local_slab, _near_spheres
+from spctool.geometry._patchkernels import (
+    _crossings,
+    _in_boxes,
+    _local_slab,
+    _near_spheres,
+    lit_corridor,
+)
 from spctool.geometry.heightfield import Slopes, kernel_array
 from spctool.geometry.shape import PatchShape, TriangleShape
 
@@ -343,14 +349,17 @@ class PatchSet:
         ``boxes`` (P, 9): box lo (0–2), hi (3–5) and hi of the relief-raised shadow box (6–8);
         ``maps`` (P, 4, n, n): heights, hx, hy, albedo (zero-padded to the largest patch);
         ``valids`` (P, n, n); ``tops`` (P, n − 1, n − 1): :attr:`HeightPatch.cell_tops` (padded with −inf);
-        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon``, ``entry`` (P, n − 1, n − 1).
+        ``ns`` (P,): each patch's 2·QSZ + 1; ``upmax``, ``horizon``, ``entry`` (P, n − 1, n − 1);
+        ``clear`` (P, n − 1, n − 1) bool: :func:`spctool.geometry._patchkernels.lit_corridor` for ``sun``
+        (False everywhere when None or ``fast=False``).
         """
-        up, hor, ent = self._upmax(sun)
+        up, hor, ent, clear = self._upmax(sun)
         *packed, near = self._packed()
         if not fast:  # the reference: no shortcut, no raster vouching (near slopes unbounded)
             hor = ent = np.full_like(hor, np.inf)
             near = np.full_like(near, np.inf)
-        return (*packed, up, hor, ent, near)
+            clear = np.zeros_like(clear)
+        return (*packed, up, hor, ent, near, clear)
 
     def _upmax(self, sun):
         key = None if sun is None else tuple(float(v) for v in sun)
@@ -361,11 +370,14 @@ class PatchSet:
                 up, hor, ent = (np.full(shape, np.inf) for _ in range(3))  # +inf: no bound (padding)
             else:
                 up, hor, ent = (np.empty(shape) for _ in range(3))  # sun_bounds writes every value
+            clear = np.zeros(shape, bool)
             if sun is not None:
                 for k, p in enumerate(self.patches):
                     su, sw, sz = np.asarray(sun, dtype=np.float64) @ p.rotation
                     sun_bounds(p.cell_tops, float(su), float(sw), float(sz), k, up, hor, ent)
-            self._up = (key, up, hor, ent)
+                geo, _, maps, valids, _, ns, _ = self._packed()
+                lit_corridor(geo, maps, valids, ns, kernel_array(sun), clear)
+            self._up = (key, up, hor, ent, clear)
         return self._up[1:]
 
     def _packed(self):
