@@ -531,6 +531,12 @@ def _fused_rays(
             )  # fmt: skip
 
 
+@numba.njit(inline="always", cache=True)
+def _max2(x, y):
+    """The larger of two floats (a select: loops of it vectorise where ``max`` does not)."""
+    return x if x > y else y
+
+
 @numba.njit(cache=True, nogil=True)
 def lit_corridor(geo, maps, valids, ns, sun, out):
     """out (P, n − 1, n − 1) bool: for every cell of each patch, a shadow ray from any point of it (the Sun
@@ -565,32 +571,47 @@ def lit_corridor(geo, maps, valids, ns, sun, out):
         di_hi = int(math.floor(1.0 + max(0.0, b0 * t) + 1e-9))
         dj_lo = int(math.floor(min(0.0, b1 * t) - 1e-9))
         dj_hi = int(math.floor(1.0 + max(0.0, b1 * t) + 1e-9))
+        # whole rows at a time, indexed from non-negative bases (loops that vectorise): the slopes, +inf on
+        # the cells of a missing node, then the maxima over each cell's columns and over its rows
         slope = np.empty((m, m))
         for i in range(m):
+            r0 = maps[p, 0, i]
+            r1 = maps[p, 0, i + 1]
+            srow = slope[i]
             for j in range(m):
-                full = valids[p, i, j] and valids[p, i + 1, j] and valids[p, i, j + 1]
-                if full and valids[p, i + 1, j + 1]:
-                    h00 = maps[p, 0, i, j]
-                    a = maps[p, 0, i + 1, j] - h00
-                    b = maps[p, 0, i, j + 1] - h00
-                    c = maps[p, 0, i + 1, j + 1] - maps[p, 0, i + 1, j] - maps[p, 0, i, j + 1] + h00
-                    base = a * b0 + b * b1
-                    slope[i, j] = max(max(base, base + c * b0), max(base + c * b1, base + c * (b0 + b1)))
-                else:
-                    slope[i, j] = np.inf
-        rows = np.empty((m, m))  # the maxima over each cell's columns, then over its rows
+                h00 = r0[j]
+                a = r1[j] - h00
+                b = r0[j + 1] - h00
+                c = r1[j + 1] - r1[j] - r0[j + 1] + h00
+                base = a * b0 + b * b1
+                x = _max2(base, base + c * b0)
+                y = _max2(base + c * b1, base + c * (b0 + b1))
+                srow[j] = _max2(x, y)
+        for i in range(n):
+            for j in range(n):
+                if not valids[p, i, j]:
+                    for ci in range(max(i - 1, 0), min(i, m - 1) + 1):
+                        for cj in range(max(j - 1, 0), min(j, m - 1) + 1):
+                            slope[ci, cj] = np.inf
+        rows = np.full((m, m), -np.inf)
+        for d in range(dj_lo, dj_hi + 1):
+            src, dst = max(d, 0), max(-d, 0)
+            for i in range(m):
+                srow = slope[i]
+                rrow = rows[i]
+                for k in range(m - abs(d)):
+                    rrow[dst + k] = _max2(rrow[dst + k], srow[src + k])
+        top = np.full((m, m), -np.inf)
+        for d in range(di_lo, di_hi + 1):
+            src, dst = max(d, 0), max(-d, 0)
+            for k in range(m - abs(d)):
+                rrow = rows[src + k]
+                trow = top[dst + k]
+                for j in range(m):
+                    trow[j] = _max2(trow[j], rrow[j])
         for i in range(m):
             for j in range(m):
-                top = -np.inf
-                for jj in range(max(j + dj_lo, 0), min(j + dj_hi, m - 1) + 1):
-                    top = max(top, slope[i, jj])
-                rows[i, j] = top
-        for i in range(m):
-            for j in range(m):
-                top = -np.inf
-                for ii in range(max(i + di_lo, 0), min(i + di_hi, m - 1) + 1):
-                    top = max(top, rows[ii, j])
-                out[p, i, j] = b2 > top + 1e-12 * (abs(b2) + abs(top))
+                out[p, i, j] = b2 > top[i, j] + 1e-12 * (abs(b2) + abs(top[i, j]))
 
 
 @numba.njit(cache=True, nogil=True)
