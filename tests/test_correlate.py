@@ -979,3 +979,28 @@ def test_ncc_kernel_equals_its_bd3e756_version_bit_for_bit(seed, half, shape, or
     k_ncc_bd3e756(e, me, p, mp, origin[0], origin[1], half, float(min_valid), ref, ref_n)
     assert surf.tobytes() == ref.tobytes()
     np.testing.assert_array_equal(cnts, np.rint(ref_n).astype(np.int64))
+
+
+@pytest.mark.parametrize("spacing", [1, 2, 3])
+def test_correlate_valid_is_correlate_for_masks_of_valid_pixels(spacing):
+    """Image space's entry (masks already the valid, finite pixels; no ``min_value``) returns what
+    correlate returns."""
+    from spctool.stages.correlate import correlate_valid
+
+    rng = np.random.default_rng(spacing)
+    e = rng.normal(size=(60, 64))
+    p = e[9:47, 11:51] + 0.05 * rng.normal(size=(38, 40))
+    e[rng.integers(0, 60, 40), rng.integers(0, 64, 40)] = np.nan
+    me = rng.uniform(size=e.shape) > 0.05
+    mp = rng.uniform(size=p.shape) > 0.05
+    opts = CorrelateOptions(grid_half=3, peak="gradient", min_value=None)  # image space's: no DN floor
+    ea, pa = (28, 31), (19, 20)
+    ref = correlate(
+        e, p, extracted_valid=me, predicted_valid=mp, spacing=spacing, options=opts,
+        extracted_anchor=ea, predicted_anchor=pa,
+    )  # fmt: skip
+    got = correlate_valid(e, me & np.isfinite(e), p, mp & np.isfinite(p), spacing, opts, ea, pa)
+    assert got.status == ref.status and got.peak_fit == ref.peak_fit
+    np.testing.assert_array_equal(got.surface, ref.surface)
+    np.testing.assert_array_equal(got.offset, ref.offset)
+    np.testing.assert_array_equal(got.covariance, ref.covariance)

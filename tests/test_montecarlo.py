@@ -366,7 +366,9 @@ def test_a_sample_carries_its_templates_to_the_next(scene, monkeypatch):
     for j in range(3):
         p = mc.perturb(scene, 0, mc.design(cfg, 0)[j], j, cfg)
         with_carry = mc.register_sample(scene, p, cfg.plan, carry)
-        assert list(carry) == [("template", "LMK001")]  # the templates only, not the sample's patch
+        # the templates and the settings made from each phase's options, not the sample's patch
+        assert sorted(k[0] for k in carry) == ["options"] * len(cfg.plan) + ["template"]
+        assert [k for k in carry if k[0] == "template"] == [("template", "LMK001")]
         plain = mc.register_sample(scene, p, cfg.plan)
         assert with_carry.status == plain.status == ["ok"]
         assert _same(with_carry.measured, plain.measured)

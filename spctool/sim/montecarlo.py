@@ -573,7 +573,7 @@ def register_sample(scene, p: Perturbed, plan, carry: dict | None = None) -> obj
         )  # fmt: skip
         iters += res.iterations
     res.apriori, res.iterations = apriori, iters
-    if carry is not None:  # the templates only: the patches are this sample's
+    if carry is not None:  # templates and the settings made from the options (the patches are this sample's)
         carry.clear()
         carry.update((k, v) for k, v in cache.items() if isinstance(k, tuple))
     return res

@@ -980,6 +980,14 @@ def correlate(
         raise SpcUsageError(f"images differ in shape ({e.shape} vs {p.shape}); give the anchors")
     ea = ((e.shape[0] - 1) // 2, (e.shape[1] - 1) // 2) if extracted_anchor is None else extracted_anchor
     pa = ((p.shape[0] - 1) // 2, (p.shape[1] - 1) // 2) if predicted_anchor is None else predicted_anchor
+    return correlate_valid(e, me, p, mp, n, opts, ea, pa, noise_footprint)
+
+
+def correlate_valid(e, me, p, mp, n: int, opts: CorrelateOptions, ea, pa, noise_footprint: float = 1.0):
+    """:func:`correlate` of images whose masks are already their valid pixels: C-contiguous float64 E and
+    P, bool masks ``me``, ``mp`` true only where the pixel is finite (and above ``opts.min_value`` when
+    that is set), spacing ``n`` ≥ 1 and both anchors given (no checks: image space's steps, whose
+    photo window and template kernels make such masks)."""
     if n == 1:
         # bin_image would copy the images with their invalid pixels set to 0; no kernel reads those
         eb, meb, eab = e, me, (int(ea[0]), int(ea[1]))

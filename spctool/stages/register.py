@@ -70,7 +70,6 @@ full-resolution stage did not settle within ``converge_max`` steps).
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -447,7 +446,13 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
 
 
 def _record(result, last, i, st: LandmarkStep, keep_images: bool):
-    last[i] = st if keep_images else dataclasses.replace(st, extraction=None, template=None)
+    if keep_images:
+        last[i] = st
+    else:  # a shallow copy without the extraction and template (dataclasses.replace re-runs __init__)
+        bare = object.__new__(LandmarkStep)
+        bare.__dict__.update(st.__dict__)
+        bare.extraction = bare.template = None
+        last[i] = bare
     result.iterations[i] += 1
     result.spacing[i] = st.correlation.spacing
     result.correlation[i] = st.correlation.peak

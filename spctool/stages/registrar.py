@@ -61,6 +61,7 @@ from spctool.stages.correlate import (
     CorrelateOptions,
     Correlation,
     correlate,
+    correlate_valid,
     resampled_noise_footprint,
 )
 from spctool.stages.extract import (
@@ -502,14 +503,26 @@ class Registrar:
             [getattr(m, "name", "") or f"#{i + 1}" for i, m in enumerate(maplets)] if names is None else names
         )
         self.landmarks = [_Landmark(m, str(n)) for m, n in zip(maplets, names)]
-        self._copts = self.options.correlate_options
-        #: the converged stage's correlation settings (its sub-pixel estimator)
-        self._copts_final = dataclasses.replace(self._copts, peak=self.options.converge_peak)
-        self._image_copts: dict = {}  # id(copts) → (copts, its image-space form): made once, not per step
-        #: (final, grid_half) → the step's correlation settings with that search: one object per search
-        #: width, so that the image-space forms above stay one per setting, not one per acquiring step
-        self._copts_half: dict = {}
-        self._ropts: dict = {}  # rays per pixel → the templates' RenderOptions (the same for every render)
+        # the settings derived from the options, made once per options object: per Registrar, or, with a
+        # patch_cache, once for every call with the same options (the Monte Carlo's phases and samples)
+        key = ("options", id(self.options))
+        made = None if patch_cache is None else patch_cache.get(key)
+        if made is None or made[0] is not self.options:
+            copts = self.options.correlate_options
+            made = (
+                self.options,
+                copts,
+                #: the converged stage's correlation settings (its sub-pixel estimator)
+                dataclasses.replace(copts, peak=self.options.converge_peak),
+                {},  # id(copts) → (copts, its image-space form): made once, not per step
+                #: (final, grid_half) → the step's correlation settings with that search: one object per
+                #: search width, so that the image-space forms stay one per setting, not one per step
+                {},
+                {},  # rays per pixel → the templates' RenderOptions (the same for every render)
+            )
+            if patch_cache is not None:
+                patch_cache[key] = made
+        _, self._copts, self._copts_final, self._image_copts, self._copts_half, self._ropts = made
 
     def __len__(self):
         return len(self.landmarks)
@@ -529,7 +542,10 @@ class Registrar:
         s, ln, front = camera.project_with_mask(v)
         nln, npx = self.photo.shape
         inside = front & (s >= 1.0) & (s <= npx) & (ln >= 1.0) & (ln <= nln)
-        return np.stack([s, ln], axis=-1), inside
+        pixels = np.stack([s, ln], axis=-1)
+        for lm, px in zip(self.landmarks, pixels):  # V's pixel with this camera (image space places by it)
+            lm.proj = (camera, px.copy())
+        return pixels, inside
 
     def prediction(self, i: int, camera, extraction=None):
         """The prediction of landmark ``i`` for ``camera`` (cached per camera).  With
@@ -916,16 +932,8 @@ class Registrar:
             frac_min = self.options.image_bin_fraction
             made = (copts, dataclasses.replace(copts, min_value=None, bin_min_fraction=frac_min))
             self._image_copts[id(copts)] = made
-        corr = correlate(
-            crop,
-            tmpl,
-            extracted_valid=cvalid,
-            predicted_valid=tvalid,
-            spacing=spacing,
-            options=made[1],
-            extracted_anchor=e_anchor,
-            predicted_anchor=p_anchor,
-        )
+        # the masks are the valid pixels already (finite; image space sets no min_value)
+        corr = correlate_valid(crop, cvalid, tmpl, tvalid, int(spacing), made[1], e_anchor, p_anchor)
         (o_l, o_s) = corr.offset.tolist()
         shift = np.array([o_s, o_l])  # (line, sample) axes → (dsample, dline)
         # the step's reference is where the template actually sat: c0 + the integer placement + f_t
@@ -944,11 +952,12 @@ def _rint(x: float) -> float:
 
 @numba.njit(cache=True, nogil=True)
 def _k_template_valid(coverage, radiance, full, positive, out):  # pragma: no cover - compiled
-    """An image-space template's valid pixels: fully covered (coverage ≥ ``full``) and, with
-    ``positive`` (no image shadows), of positive radiance."""
+    """An image-space template's valid pixels: fully covered (coverage ≥ ``full``), of finite radiance and,
+    with ``positive`` (no image shadows), of positive radiance."""
     for i in range(out.shape[0]):
         for j in range(out.shape[1]):
-            out[i, j] = (coverage[i, j] >= full) & ((not positive) | (radiance[i, j] > 0.0))
+            x = radiance[i, j]
+            out[i, j] = (coverage[i, j] >= full) & math.isfinite(x) & ((not positive) | (x > 0.0))
 
 
 @numba.njit(cache=True, nogil=True)
