@@ -100,8 +100,14 @@ def _template_bench(fused: bool, target=None, supersample=1, visibility="march")
         frac = np.array([0.31, -0.27])
         real = rmod.render
 
-        def general(camera, sun, shape=None, patches=(), options=None, *, window=None, albedo_fn=None):
-            return rmod._render(camera, sun, shape, patches, options, window, albedo_fn, fused=False)
+        def general(
+            camera, sun, shape=None, patches=(), options=None, *, window=None, albedo_fn=None, progress=None,
+            cells=None, return_cells=False,
+        ):  # fmt: skip
+            # render()'s signature; the general path takes no cell hints and keeps no cells
+            return rmod._render(
+                camera, sun, shape, patches, options, window, albedo_fn, fused=False, progress=progress
+            )
 
         def once():
             lm.tmpl = None
