@@ -1032,8 +1032,9 @@ def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypat
 def test_image_step_kernels_equal_the_numpy_masks(no_shadows):
     """The image-space step's photo window and masks (one pass each) equal the NumPy construction:
     the crop zero beyond the photo, valid where positive, finite and within the thresholds; the
-    template valid where fully covered (and lit without image shadows); ``_rint`` is ``np.rint``."""
-    from spctool.stages.registrar import _k_photo_window, _k_template_valid, _rint
+    template valid where fully covered, finite (and lit without image shadows); ``_rint`` is ``np.rint``
+    and ``_phase_moved`` the largest change of phase as NumPy computes it."""
+    from spctool.stages.registrar import _k_photo_window, _k_template_valid, _phase_moved, _rint
 
     rng = np.random.default_rng(3)
     photo = rng.uniform(-20.0, 300.0, (40, 50))
@@ -1056,15 +1057,23 @@ def test_image_step_kernels_equal_the_numpy_masks(no_shadows):
         np.testing.assert_array_equal(valid, ref_valid)
     cov = rng.choice([0.0, 0.5, 1.0 - 1e-13, 1.0 - 1e-11, 1.0], size=(30, 31))
     rad = rng.uniform(-1.0, 1.0, cov.shape)
+    rad[rng.random(cov.shape) < 0.05] = np.nan
+    rad[rng.random(cov.shape) < 0.05] = np.inf
     out = np.empty(cov.shape, bool)
     _k_template_valid(cov, rad, 1.0 - 1e-12, no_shadows, out)
-    ref_t = cov >= 1.0 - 1e-12
+    ref_t = (cov >= 1.0 - 1e-12) & np.isfinite(rad)  # the correlation's own rule: finite values only
     if no_shadows:
         ref_t &= rad > 0.0
     np.testing.assert_array_equal(out, ref_t)
     xs = [0.5, 1.5, 2.5, -0.5, -0.3, -0.0, 0.0, 0.3, 1e17 + 2.0, -3.7, 1e-300, math.inf, -math.inf, math.nan]
     for x in xs + list(rng.normal(0, 1e3, 200)):
         assert np.float64(_rint(x)).tobytes() == np.rint(np.float64(x)).tobytes()
+    # the template's change of phase: np.max(np.abs(a − b)), NaN included
+    odd = [([0.1, np.nan], [0.0, 0.0]), ([np.inf, 0.0], [np.inf, 1.0]), ([-0.0, 0.2], [0.0, 0.2])]
+    for a, b in [*rng.normal(0, 0.3, (200, 2, 2)), *odd]:
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        got, want = _phase_moved(a, b), float(np.max(np.abs(a - b)))
+        assert got == want or (math.isnan(got) and math.isnan(want))
 
 
 def test_image_space_steps_with_a_wider_search_share_one_setting(scene):

@@ -366,6 +366,8 @@ def disagreeing_shifts(result: RegisterResult) -> str | None:
     (S16's search on 49×49 maplets at 45 px: 27–98 px off, 3–51 px from the median shift).  Needs three
     registered landmarks; the status is not changed (solve-pose's outlier rejection and ``navigate``'s
     pose checks decide)."""
+    if len(result.names) < 3:  # fewer than three landmarks: nothing to compare (no array work)
+        return None
     ok = np.asarray(result.ok, dtype=bool) & np.all(np.isfinite(result.apriori), axis=1)
     if int(ok.sum()) < 3:
         return None

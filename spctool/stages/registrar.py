@@ -775,7 +775,7 @@ class Registrar:
         if (
             lm.tmpl is not None
             and lm.tmpl_key[0] is camera
-            and np.max(np.abs(lm.tmpl_key[1] - frac)) <= tol
+            and _phase_moved(lm.tmpl_key[1], frac) <= tol
             and lm.tmpl.options.supersample >= nss
         ):
             return lm.tmpl, lm.tmpl_key[1], lm.tmpl_key[2]
@@ -940,6 +940,16 @@ class Registrar:
         return LandmarkStep(
             np.array([c0s + (pi_s + fs), c0l + (pi_l + fl)]), shift, corr, None, corr.status, template=rend
         )
+
+
+def _phase_moved(a, b) -> float:
+    """max |a − b| over the two axes of two phases (2-vectors), as Python floats: the value of
+    ``np.max(np.abs(a − b))`` (NaN where either difference is NaN) without its NumPy calls."""
+    (a0, a1), (b0, b1) = a.tolist(), b.tolist()
+    d0, d1 = abs(a0 - b0), abs(a1 - b1)
+    if d0 != d0 or d1 != d1:
+        return math.nan
+    return d0 if d0 >= d1 else d1
 
 
 def _rint(x: float) -> float:
