@@ -264,7 +264,9 @@ def register(
     for the pose solve (default: each maplet's V).  ``prior_sigma_*``: SUM SIGMA_VSO (km) and SIGMA_PTG
     (rad) for the pose solve.  ``progress(n)`` is called as landmarks are processed.  ``patch_cache``:
     a dict shared by several calls on the same maplets, not modified in between (navigate's passes),
-    in which image space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`).
+    in which image space keeps each maplet's render-ready patch (:attr:`Registrar.patch_cache`), and every
+    call the settings it makes from its ``options`` (an options object changed in place between two
+    such calls would keep the first call's settings: pass a new one, e.g. ``dataclasses.replace``).
     ``converge_jacobian`` (N, 2, 2): where the converged stage's secant Jacobians start (a previous
     pass's :attr:`RegisterResult.converge_jacobian` on the same maplets; NaN rows or None: −I).  The
     stage's zero does not depend on it; the number of steps does, and so where within ``converge_tol``
