@@ -688,17 +688,36 @@ _LIT_SLACK = 1e-9
 
 
 @njit(cache=True, inline="always")
+def slope_bound(h00, h10, h01, h11, du, dw):
+    """The largest slope along (du, dw) of the bilinear terrain of a cell with corner heights h00 (i, j),
+    h10 (i + 1, j), h01 (i, j + 1), h11: the directional slope a·du + b·dw + c·(fw·du + fu·dw) is linear
+    in the position, so largest at a corner (selects, not ``max``: loops of it vectorise)."""
+    a = h10 - h00
+    b = h01 - h00
+    c = h11 - h10 - h01 + h00
+    base = a * du + b * dw
+    x = base + c * du
+    y = base + c * dw
+    z = base + c * (du + dw)
+    m = base if base > x else x
+    n = y if y > z else z
+    return m if m > n else n
+
+
+@njit(cache=True, inline="always")
+def rises_faster(dz, smax):
+    """The rise ``dz`` exceeds the slope bound ``smax`` by more than rounding (a relative 1e-12)."""
+    return dz > smax + 1e-12 * (abs(dz) + abs(smax))
+
+
+@njit(cache=True, inline="always")
 def _rises_over(h, p, i, j, du, dw, dz):
     """The ray direction (du, dw, dz) rises faster than the bilinear terrain of cell (i, j) anywhere in
-    it: its directional slope a·du + b·dw + c·(fw·du + fu·dw) is linear in the position, so largest
-    at a corner."""
-    h00 = _ix(h, p, i, j)
-    a = _ix(h, p, i + 1, j) - h00
-    b = _ix(h, p, i, j + 1) - h00
-    c = _ix(h, p, i + 1, j + 1) - _ix(h, p, i + 1, j) - _ix(h, p, i, j + 1) + h00
-    base = a * du + b * dw
-    smax = max(max(base, base + c * du), max(base + c * dw, base + c * (du + dw)))
-    return dz > smax + 1e-12 * (abs(dz) + abs(smax))
+    it (:func:`slope_bound`)."""
+    smax = slope_bound(
+        _ix(h, p, i, j), _ix(h, p, i + 1, j), _ix(h, p, i, j + 1), _ix(h, p, i + 1, j + 1), du, dw
+    )
+    return rises_faster(dz, smax)
 
 
 @njit(cache=True, inline="always")

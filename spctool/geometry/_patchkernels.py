@@ -31,6 +31,8 @@ from spctool.geometry._heightkernels import (
     _march,
     borrowed,
     lit_from,
+    rises_faster,
+    slope_bound,
 )
 
 #: surface id of a ray that hits nothing / the shape (patches are numbered 0, 1, …)
@@ -541,12 +543,12 @@ def _max2(x, y):
 def lit_corridor(geo, maps, valids, ns, sun, out):
     """out (P, n − 1, n − 1) bool: for every cell of each patch, a shadow ray from any point of it (the Sun
     ``sun`` in maplet cells as :func:`_patch_shade` computes it) rises faster than the bilinear terrain in
-    every cell it can pass within ``geo[p, 22]`` cells along its dominant axis — its height above the
-    terrain only grows there (the ``near`` shortcut's argument for the cells the ray can reach rather than
-    every cell around the hit).  A cell's directional slope is largest at a corner (:func:`_rises_over`'s
-    rule and margin); the cells the ray can pass are those of the cell's own box moved by up to the reach
-    toward the Sun (one row of slack at the far side); a cell with a missing corner clears nothing.
-    False where the Sun is not above the maplet plane (and on the padding of smaller patches).
+    every cell it can pass within ``geo[p, 22]`` cells along its dominant axis — its height above the terrain
+    only grows there (the ``near`` shortcut's argument for the cells the ray can reach rather than every cell
+    around the hit). A cell's directional slope is largest at a corner (``slope_bound`` and ``rises_faster``,
+    what ``lit_from`` tests cell by cell); the cells the ray can pass are those of the cell's own box moved by
+    up to the reach toward the Sun (one row of slack at the far side); a cell with a missing corner clears
+    nothing.  False where the Sun is not above the maplet plane (and on the padding of smaller patches).
 
     Computed once per patch and Sun (:meth:`spctool.geometry.surfaces.PatchSet.fused_arrays`): on the
     s16-50m maplets 79 % of the cells clear, where the isotropic ``near`` bound lets through 24 % of the
@@ -579,14 +581,7 @@ def lit_corridor(geo, maps, valids, ns, sun, out):
             r1 = maps[p, 0, i + 1]
             srow = slope[i]
             for j in range(m):
-                h00 = r0[j]
-                a = r1[j] - h00
-                b = r0[j + 1] - h00
-                c = r1[j + 1] - r1[j] - r0[j + 1] + h00
-                base = a * b0 + b * b1
-                x = _max2(base, base + c * b0)
-                y = _max2(base + c * b1, base + c * (b0 + b1))
-                srow[j] = _max2(x, y)
+                srow[j] = slope_bound(r0[j], r1[j], r0[j + 1], r1[j + 1], b0, b1)
         for i in range(n):
             for j in range(n):
                 if not valids[p, i, j]:
@@ -611,7 +606,7 @@ def lit_corridor(geo, maps, valids, ns, sun, out):
                     trow[j] = _max2(trow[j], rrow[j])
         for i in range(m):
             for j in range(m):
-                out[p, i, j] = b2 > top[i, j] + 1e-12 * (abs(b2) + abs(top[i, j]))
+                out[p, i, j] = rises_faster(b2, top[i, j])
 
 
 @numba.njit(cache=True, nogil=True)
