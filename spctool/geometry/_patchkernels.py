@@ -275,8 +275,8 @@ def _patch_ray(
     whose crossing is taken (:func:`_cell_hit`) when the ray enters its column above the terrain and descends
     more steeply than the terrain's steepest slope (then the first crossing is there: the same hit as the
     march's), −2 or else: the march.  ``cells`` (empty: not wanted) gets the cell i·(n − 1) + j of the hit
-    (one patch; left as it is for a ray that hits nothing), which a later render of the same patch can pass as
-    its ``cand``."""
+    (one patch; :func:`_fused_rays` writes −2 first for every ray), which a later render of the same patch
+    can pass as its ``cand``."""
     if _sky(k, dirs, ok, surf, geom, sh):
         return
     c = cand[k] if cand.shape[0] > 0 else -2
@@ -493,8 +493,9 @@ def _fused_rays(
     horizon, entry, near, clear, cand, surf, geom, sh, cells, pos,
 ):  # fmt: skip
     """:func:`_patch_ray` for every sub-ray (releases the GIL); ``cand``: the raster's (or an earlier
-    render's) cells or empty; ``cells``: where to write each hit's cell, or empty; ``pos`` (n, 2): where to
-    write each hit's grid position (u, w) (index coordinates, clamped to the grid), or empty."""
+    render's) cells or empty; ``cells``: where to write each sub-ray's cell (−2 without a hit), or empty;
+    ``pos`` (n, 2): where to write each sub-ray's grid position (u, w) (index coordinates, clamped to the
+    grid; NaN without a hit), or empty."""
     # per-ray helpers get views without reference counts (borrowed: no atomic operations per call) and
     # the heights as one (P, n, n) view, indexed in place by the march (no view per ray)
     origin, dirs, ok = borrowed(origin), borrowed(dirs), borrowed(ok)
@@ -505,6 +506,13 @@ def _fused_rays(
     surf, geom, sh, cells = borrowed(surf), borrowed(geom), borrowed(sh), borrowed(cells)
     pos = borrowed(pos)
     hts = borrowed(maps[:, 0])
+    if cells.shape[0] > 0:  # no hit: cell −2 (march), position NaN (the hits overwrite theirs)
+        for k in range(cells.shape[0]):
+            cells[k] = -2
+    if pos.shape[0] > 0:
+        for k in range(pos.shape[0]):
+            pos[k, 0] = math.nan
+            pos[k, 1] = math.nan
     if cand.shape[0] == 0:
         for k in range(dirs.shape[0]):
             _patch_ray(

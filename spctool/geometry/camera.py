@@ -523,6 +523,8 @@ def _f64(a, shape=None, name="array") -> np.ndarray:
 
 def _flat(a) -> np.ndarray:
     """1-D, C-contiguous, writable float64 (one array type for the kernels: one compilation)."""
+    if type(a) is np.ndarray and a.ndim == 1 and a.dtype == np.float64 and a.flags.c_contiguous:
+        return a if a.flags.writeable else a.copy()  # already so (a template's sub-ray lattice)
     out = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1))
     return out if out.flags.writeable else out.copy()
 
@@ -877,15 +879,20 @@ class Camera:
         4 + 4 products per point."""
         sf = _flat(samples)
         lf = _flat(lines)
-        if sf.size == 0 or lf.size == 0 or not (np.isfinite(sf).all() and np.isfinite(lf).all()):
+        if sf.size == 0 or lf.size == 0:
+            ss, ll = np.meshgrid(sf, lf)
+            return self.pixel_to_direction_grid(ss, ll, grid_step=grid_step, interp_tol=interp_tol)
+        # all finite exactly when the extremes are (a NaN propagates to both)
+        s_lo, s_hi, l_lo, l_hi = float(sf.min()), float(sf.max()), float(lf.min()), float(lf.max())
+        if not (math.isfinite(s_lo) and math.isfinite(s_hi) and math.isfinite(l_lo) and math.isfinite(l_hi)):
             ss, ll = np.meshgrid(sf, lf)
             return self.pixel_to_direction_grid(ss, ll, grid_step=grid_step, interp_tol=interp_tol)
         step = float(grid_step)
         c1, c2 = float(self.ctr[0]), float(self.ctr[1])
-        ka = math.floor((float(sf.min()) - c1) / step) - 1
-        kb = math.floor((float(sf.max()) - c1) / step) + 2
-        ja = math.floor((float(lf.min()) - c2) / step) - 1
-        jb = math.floor((float(lf.max()) - c2) / step) + 2
+        ka = math.floor((s_lo - c1) / step) - 1
+        kb = math.floor((s_hi - c1) / step) + 2
+        ja = math.floor((l_lo - c2) / step) - 1
+        jb = math.floor((l_hi - c2) / step) + 2
         key = (self._code, self._q[0], self._q[3:], step, float(interp_tol), ka, kb, ja, jb)
         with _LATTICE_LOCK:
             hit = _LATTICE_GRIDS.get(key)
@@ -909,9 +916,11 @@ class Camera:
         gxn, gyn, good, ngood = hit
         grid = (gxn, gyn, c1 + ka * step, c2 + ja * step, step)
         dirs = np.empty((lf.size, sf.size, 3))
-        redo = np.ones((lf.size, sf.size), dtype=np.bool_)
-        if ngood:
+        if ngood:  # the kernel sets every point's redo
+            redo = np.empty((lf.size, sf.size), dtype=np.bool_)
             _k_cubic_lattice(sf, lf, *grid, good, self.rotation, dirs, redo)
+        else:
+            redo = np.ones((lf.size, sf.size), dtype=np.bool_)
         if redo.any():
             ss, ll = np.broadcast_arrays(sf[None, :], lf[:, None])
             flat = dirs.reshape(-1, 3)

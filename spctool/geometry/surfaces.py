@@ -362,7 +362,10 @@ class PatchSet:
         return (*packed, up, hor, ent, near, clear)
 
     def _upmax(self, sun):
-        key = None if sun is None else tuple(float(v) for v in sun)
+        if sun is None:
+            key = None
+        else:  # the Sun's three floats (tolist: one call rather than a float() each)
+            key = tuple(sun.tolist() if type(sun) is np.ndarray else (float(v) for v in sun))
         if self._up is None or self._up[0] != key:
             nmax = max(p.heights.shape[0] for p in self.patches)
             shape = (len(self), nmax - 1, nmax - 1)

@@ -446,12 +446,19 @@ def _trace_fused(
     surface = np.empty(n, np.int32)
     geom = np.empty((n, 4))
     sh = np.empty(n, bool)
-    origin, dirs, ok = kernel_array(origin), kernel_array(dirs), np.ascontiguousarray(ok, dtype=bool)
+    origin, dirs, ok = kernel_array(origin), kernel_array(dirs), kernel_array(ok, np.bool_)
     sun_lit, sun = kernel_array(sun_lit), kernel_array(sun)
     shadows, offset, facet = bool(shadows), float(offset), bool(facet)
-    cand = _NO_CELLS if cand is None else np.ascontiguousarray(cand, dtype=np.int64)
+    cand = _NO_CELLS if cand is None else kernel_array(cand, np.int64)
     cells = _NO_CELLS if cells is None else cells
     pos = _NO_POS if pos is None else pos
+    threads = numba.get_num_threads() if threads is None else int(threads)
+    if threads < 2 or n < PARALLEL_MIN_RAYS:  # the calling thread, whole arrays (no views to make)
+        _fused_rays(
+            origin, dirs, ok, sun_lit, sun, shadows, offset, facet, *arrays, cand, surface, geom, sh, cells,
+            pos,
+        )  # fmt: skip
+        return surface, geom, sh
 
     def run(a, b):
         _fused_rays(
@@ -472,15 +479,11 @@ def _trace_fused(
             pos[a:b] if pos.shape[0] else pos,
         )
 
-    threads = numba.get_num_threads() if threads is None else int(threads)
-    if threads < 2 or n < PARALLEL_MIN_RAYS:
-        run(0, n)
-    else:
-        from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import ThreadPoolExecutor
 
-        cuts = np.linspace(0, n, threads + 1).astype(np.intp)
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(run, cuts[:-1], cuts[1:]))
+    cuts = np.linspace(0, n, threads + 1).astype(np.intp)
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, cuts[:-1], cuts[1:]))
     return surface, geom, sh
 
 
@@ -563,15 +566,17 @@ def _render(
     offs = (np.arange(nss) + 0.5) / nss - 0.5
     width = s1 - s0 + 1
     height = l1 - l0 + 1
-    rad = np.zeros((height, width))
-    cov = np.zeros((height, width))
-    shd = np.zeros((height, width))
-    sid = np.full((height, width), SKY, dtype=np.int16)
+    # every line of the window is binned below (each chunk's lines, every sample)
+    rad = np.empty((height, width))
+    cov = np.empty((height, width))
+    shd = np.empty((height, width))
+    sid = np.empty((height, width), dtype=np.int16)
     rays_per_line = width * nss * nss
     lines_per_chunk = max(1, int(options.chunk) // rays_per_line)
     one = use_fused and len(plist) == 1
-    out_cells = np.full((height * nss, width * nss), -2, np.int64) if one and keep_cells else None
-    out_pos = np.full((height * nss, width * nss, 2), np.nan) if one and keep_cells else None
+    # the fused kernel writes every sub-ray's cell (−2 without a hit) and position (NaN without one)
+    out_cells = np.empty((height * nss, width * nss), np.int64) if one and keep_cells else None
+    out_pos = np.empty((height * nss, width * nss, 2)) if one and keep_cells else None
     cells = None
     if one and hint is not None and np.shape(hint) == (height * nss, width * nss):
         cells = _usable_hint(hint, plist.patches[0].heights.shape[0])
