@@ -88,7 +88,8 @@ def _k_cubic(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
 def _k_cubic_lattice(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
     """:func:`_k_cubic` on the lattice lines × samples (``dirs`` (nl, ns, 3), ``redo`` (nl, ns)), the
     same arithmetic in the same order: each line's weights and the grid columns' sums over lines once
-    per line, each sample's weights once per call (4 + 4 products per point instead of 16 + 16)."""
+    per line, each sample's weights once per call (4 + 4 products per point instead of 16 + 16).
+    Returns the number of points flagged in ``redo``."""
     rr = rotation_tuple(rot)
     ng = gxn.shape[0]
     mg = gxn.shape[1]
@@ -103,12 +104,14 @@ def _k_cubic_lattice(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
         wcol[c, 0], wcol[c, 1], wcol[c, 2], wcol[c, 3] = _cubic_weights(u - a)
     rx = np.empty(ng)
     ry = np.empty(ng)
+    nredo = 0
     for r in range(lin.shape[0]):
         w = (lin[r] - l0) * inv
         b = int(math.floor(w))
         if not (1 <= b < mg - 2):
             for c in range(m):
                 redo[r, c] = True
+            nredo += m
             continue
         gb = good[:, b]
         wb0, wb1, wb2, wb3 = _cubic_weights(w - b)
@@ -119,9 +122,11 @@ def _k_cubic_lattice(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
             a = acol[c]
             if a < 0 or not gb[a]:
                 redo[r, c] = True
+                nredo += 1
                 continue
             redo[r, c] = False
             wa0, wa1, wa2, wa3 = wcol[c, 0], wcol[c, 1], wcol[c, 2], wcol[c, 3]
             xn = wa0 * rx[a - 1] + wa1 * rx[a] + wa2 * rx[a + 1] + wa3 * rx[a + 2]
             yn = wa0 * ry[a - 1] + wa1 * ry[a] + wa2 * ry[a + 1] + wa3 * ry[a + 2]
             dirs[r, c, 0], dirs[r, c, 1], dirs[r, c, 2] = focal_direction(xn, yn, rr)
+    return nredo

@@ -916,12 +916,13 @@ class Camera:
         gxn, gyn, good, ngood = hit
         grid = (gxn, gyn, c1 + ka * step, c2 + ja * step, step)
         dirs = np.empty((lf.size, sf.size, 3))
-        if ngood:  # the kernel sets every point's redo
+        if ngood:  # the kernel sets every point's redo and counts them
             redo = np.empty((lf.size, sf.size), dtype=np.bool_)
-            _k_cubic_lattice(sf, lf, *grid, good, self.rotation, dirs, redo)
+            nredo = _k_cubic_lattice(sf, lf, *grid, good, self.rotation, dirs, redo)
         else:
             redo = np.ones((lf.size, sf.size), dtype=np.bool_)
-        if redo.any():
+            nredo = redo.size
+        if nredo:
             ss, ll = np.broadcast_arrays(sf[None, :], lf[:, None])
             flat = dirs.reshape(-1, 3)
             self._polish(ss.reshape(-1), ll.reshape(-1), grid, 1e-3, flat, redo.reshape(-1))

@@ -790,13 +790,14 @@ def resampled_noise_footprint(pixels_per_cell: float) -> float:
     return max(1.0, 1.5 / h) ** 2
 
 
-def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0) -> np.ndarray:
+def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0, times: int = 1) -> np.ndarray:
     """Covariance (2×2, binned cells²) of a correlation peak's vertex: (1 − ρ²)/(ρ·N_eff)·(−H)⁻¹.
 
     ``hessian`` H of the surface at the peak (per binned cell²; :func:`quadric_vertex`), ``rho`` the
     peak value, ``count`` N the binned pixels valid in both images there, ``footprint`` the binned
     cells per independent noise sample (N_eff = N/footprint).  Derivation in the module docstring
-    (item 7).  NaN when H is not negative definite or ρ ∉ (0, 1].
+    (item 7).  NaN when H is not negative definite or ρ ∉ (0, 1].  ``times``: a factor applied to every
+    element (``times · C``: n² for cells of spacing n, element by element as on the array).
     """
     h = np.asarray(hessian, dtype=np.float64)
     if h.shape != (2, 2):
@@ -814,7 +815,15 @@ def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0) -
     c01 = scale * (h01 / det)
     c10 = scale * (h10 / det)
     c11 = scale * (-h00 / det)
-    return np.array([[0.5 * (c00 + c00), 0.5 * (c01 + c10)], [0.5 * (c10 + c01), 0.5 * (c11 + c11)]])
+    if times == 1:
+        return np.array([[0.5 * (c00 + c00), 0.5 * (c01 + c10)], [0.5 * (c10 + c01), 0.5 * (c11 + c11)]])
+    k = float(times)
+    return np.array(
+        [
+            [k * (0.5 * (c00 + c00)), k * (0.5 * (c01 + c10))],
+            [k * (0.5 * (c10 + c01)), k * (0.5 * (c11 + c11))],
+        ]
+    )
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1008,5 +1017,5 @@ def correlate_valid(e, me, p, mp, n: int, opts: CorrelateOptions, ea, pa, noise_
     off = np.array([n * ((idx[0] - k) + dr), n * ((idx[1] - k) + dc)])
     if status == "edge-peak":
         return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, peak_fit=fit)
-    cov = (n * n) * peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint))
+    cov = peak_covariance(hess, peak, float(cnts[idx]), float(noise_footprint), n * n)
     return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), off, hess, cov, fit)

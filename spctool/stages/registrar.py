@@ -48,6 +48,7 @@ missing data), template pixels where every sub-ray hit the maplet.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -461,6 +462,23 @@ class _Landmark:
         return self._slopes
 
 
+@functools.lru_cache(maxsize=16)
+def _border_nodes(q: int) -> np.ndarray:
+    """(4·(2q + 1), 2) maplet-frame (x, y) of a maplet's border nodes, side by side: x = −q … q at
+    y = −q, then at y = q, then y = −q … q at x = −q and at x = q (read-only: shared per q)."""
+    t = np.arange(-q, q + 1, dtype=np.float64)
+    edge = np.concatenate(
+        [
+            np.stack([t, np.full_like(t, -q)], 1),
+            np.stack([t, np.full_like(t, q)], 1),
+            np.stack([np.full_like(t, -q), t], 1),
+            np.stack([np.full_like(t, q), t], 1),
+        ]
+    )
+    edge.flags.writeable = False
+    return edge
+
+
 class Registrar:
     """Correlation steps for the landmarks of one photo (shared by
     :func:`spctool.stages.register.register` and the CLI).
@@ -538,11 +556,13 @@ class Registrar:
         """(pixels (N, 2), usable (N,)): projection of every V; usable = in front and inside the photo."""
         if not self.landmarks:
             return np.zeros((0, 2)), np.zeros(0, bool)
-        v = np.stack([lm.v for lm in self.landmarks])
+        v = np.array([lm.v for lm in self.landmarks], dtype=np.float64)
         s, ln, front = camera.project_with_mask(v)
         nln, npx = self.photo.shape
         inside = front & (s >= 1.0) & (s <= npx) & (ln >= 1.0) & (ln <= nln)
-        pixels = np.stack([s, ln], axis=-1)
+        pixels = np.empty((s.shape[0], 2))
+        pixels[:, 0] = s
+        pixels[:, 1] = ln
         for lm, px in zip(self.landmarks, pixels):  # V's pixel with this camera (image space places by it)
             lm.proj = (camera, px.copy())
         return pixels, inside
@@ -863,18 +883,16 @@ class Registrar:
         """The template window (s0, s1, l0, l1): the projection of the maplet's border nodes, plus
         ``template_margin``; None when a border node is behind the camera."""
         q = patch.qsz
-        t = np.arange(-q, q + 1, dtype=np.float64)
-        edge = np.concatenate(
-            [
-                np.stack([t, np.full_like(t, -q)], 1),
-                np.stack([t, np.full_like(t, q)], 1),
-                np.stack([np.full_like(t, -q), t], 1),
-                np.stack([np.full_like(t, q), t], 1),
-            ]
-        )
+        edge = _border_nodes(q)
         hts = patch.heights  # the border nodes' own heights (the bilinear surface there, exactly)
-        h = np.concatenate([hts[:, 0], hts[:, -1], hts[0, :], hts[-1, :]])
-        s, ln, front = camera.project_with_mask(patch.to_body(np.column_stack([edge, h])))
+        local = np.empty((edge.shape[0], 3))
+        local[:, :2] = edge
+        m = 2 * q + 1
+        local[:m, 2] = hts[:, 0]
+        local[m : 2 * m, 2] = hts[:, -1]
+        local[2 * m : 3 * m, 2] = hts[0, :]
+        local[3 * m :, 2] = hts[-1, :]
+        s, ln, front = camera.project_with_mask(patch.to_body(local))
         if not np.all(front):
             return None
         mg = int(self.options.template_margin)
