@@ -685,6 +685,16 @@ def test_grid_seeded_inverse_equals_newton(model, coef):
         assert np.max(np.maximum(np.abs(smp - ss.reshape(-1)), np.abs(lin - ll.reshape(-1)))) < 1e-6
     assert cam.pixel_to_direction_grid([], []).shape == (0, 3)
     assert cam.pixel_to_direction_lattice([], [1.0, 2.0]).shape == (2, 0, 3)
+    # a sample or line that is not finite (the lattice reads it off the extremes): NaN there, the other
+    # points as without it (the general grid path, mesh for mesh)
+    for smp, lin in (([10.0, np.nan, 12.0], [5.0, 6.0]), ([10.0, 11.0], [np.inf, 6.0]), ([np.nan], [1.0])):
+        ss, ll = np.meshgrid(np.array(smp), np.array(lin))
+        lat = cam.pixel_to_direction_lattice(np.array(smp), np.array(lin))
+        np.testing.assert_array_equal(lat, cam.pixel_to_direction_grid(ss, ll))
+        bad = ~(np.isfinite(ss) & np.isfinite(ll))
+        assert np.all(np.isnan(lat[bad]))
+        if (~bad).any():
+            np.testing.assert_array_equal(lat[~bad], cam.pixel_to_direction_grid(ss[~bad], ll[~bad]))
 
 
 def test_grid_seeded_inverse_keeps_non_invertible_pixels_nan():

@@ -706,6 +706,9 @@ def test_peak_covariance_equals_the_array_formula_bitwise():
         inv_neg = np.array([[-h[1, 1], h[0, 1]], [h[1, 0], -h[0, 0]]]) / det
         cov = (1.0 - rho * rho) / (rho * count / fp) * inv_neg
         assert got.tobytes() == (0.5 * (cov + cov.T)).tobytes()
+        # ``times``: n² for cells of spacing n, bit for bit the array times the integer
+        n = int(rng.integers(2, 6))
+        assert peak_covariance(h, rho, count, fp, n * n).tobytes() == ((n * n) * got).tobytes()
 
 
 def _scatter_vs_predicted(make_e, p, footprint, trials, d):

@@ -824,6 +824,7 @@ class Camera:
         is within ``max_move`` px of the answer (else the point gets the full iteration), so after the
         step the residual is of order (curvature of the map)·``max_move``² — far below 1e-10 px for the
         smooth models here (``tests/test_camera.py`` checks both against :meth:`pixel_to_direction`).
+        NaN for a point whose sample or line is not finite.
         """
         s, ln = np.broadcast_arrays(np.asarray(sample, dtype=np.float64), np.asarray(line, dtype=np.float64))
         lead = s.shape
@@ -831,6 +832,14 @@ class Camera:
         lf = _flat(ln)
         if sf.size == 0:
             return np.empty(lead + (3,))
+        finite = np.isfinite(sf) & np.isfinite(lf)
+        if not finite.all():  # a point that is not finite has no direction (NaN); the grid spans the others
+            dirs = np.full((sf.size, 3), np.nan)
+            if finite.any():
+                dirs[finite] = self.pixel_to_direction_grid(
+                    sf[finite], lf[finite], grid_step=grid_step, max_move=max_move, interp_tol=interp_tol
+                )
+            return dirs.reshape(lead + (3,))
         grid = self._inverse_grid(sf, lf, grid_step)
         dirs = np.empty((sf.size, 3))
         redo = np.ones(sf.size, dtype=np.bool_)
