@@ -165,30 +165,34 @@ def _sphere_miss(geo, p, x0, x1, x2, d0, d1, d2):
 
 
 @numba.njit(inline="always", cache=True)
+def _to_cells(geo, p, x0, x1, x2):
+    """Body-frame vector (x0, x1, x2) (km) in patch p's maplet frame, in cells: (UX·x, UY·x, UZ·x)/SCALE
+    (geo[p, 7:16] the maplet → body rotation row by row, geo[p, 16] = 1/SCALE)."""
+    inv = geo[p, 16]
+    return (
+        (x0 * geo[p, 7] + x1 * geo[p, 10] + x2 * geo[p, 13]) * inv,
+        (x0 * geo[p, 8] + x1 * geo[p, 11] + x2 * geo[p, 14]) * inv,
+        (x0 * geo[p, 9] + x1 * geo[p, 12] + x2 * geo[p, 15]) * inv,
+    )
+
+
+@numba.njit(inline="always", cache=True)
 def _slab_local(geo, boxes, p, hi_col, x0, x1, x2, d0, d1, d2):
     """Maplet-frame ray and box entry/exit of patch p (_local_slab); box hi from boxes[p, hi_col:]."""
-    px = x0 - geo[p, 4]
-    py = x1 - geo[p, 5]
-    pz = x2 - geo[p, 6]
-    inv = geo[p, 16]
+    oa0, oa1, oa2 = _to_cells(geo, p, x0 - geo[p, 4], x1 - geo[p, 5], x2 - geo[p, 6])
+    da0, da1, da2 = _to_cells(geo, p, d0, d1, d2)
     tn = 0.0
     tf = _BIG
-    oa0 = (px * geo[p, 7] + py * geo[p, 10] + pz * geo[p, 13]) * inv
-    da0 = (d0 * geo[p, 7] + d1 * geo[p, 10] + d2 * geo[p, 13]) * inv
     t1, t2 = _slab1(oa0, da0, boxes[p, 0], boxes[p, hi_col])
     if t1 > tn:
         tn = t1
     if t2 < tf:
         tf = t2
-    oa1 = (px * geo[p, 8] + py * geo[p, 11] + pz * geo[p, 14]) * inv
-    da1 = (d0 * geo[p, 8] + d1 * geo[p, 11] + d2 * geo[p, 14]) * inv
     t1, t2 = _slab1(oa1, da1, boxes[p, 1], boxes[p, hi_col + 1])
     if t1 > tn:
         tn = t1
     if t2 < tf:
         tf = t2
-    oa2 = (px * geo[p, 9] + py * geo[p, 12] + pz * geo[p, 15]) * inv
-    da2 = (d0 * geo[p, 9] + d1 * geo[p, 12] + d2 * geo[p, 15]) * inv
     t1, t2 = _slab1(oa2, da2, boxes[p, 2], boxes[p, hi_col + 2])
     if t1 > tn:
         tn = t1
@@ -415,10 +419,7 @@ def _patch_shade(
     # cast shadow (shadowed): first the own patch's quick answers — the ray rises above the highest cell
     # ahead (upmax), or provably clears its own cell and its horizon (lit_from; shortcuts on where the
     # horizon bound is finite) — with the Sun in maplet cells exactly as _slab_local computes it
-    inv = geo[p, 16]
-    b0 = (s0 * geo[p, 7] + s1 * geo[p, 10] + s2 * geo[p, 13]) * inv
-    b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
-    b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
+    b0, b1, b2 = _to_cells(geo, p, s0, s1, s2)
     own_lit = False
     if (
         npatch == 1
@@ -568,10 +569,7 @@ def lit_corridor(geo, maps, valids, ns, sun, out):
         out[p] = False
         n = ns[p]
         m = n - 1
-        inv = geo[p, 16]
-        b0 = (s0 * geo[p, 7] + s1 * geo[p, 10] + s2 * geo[p, 13]) * inv
-        b1 = (s0 * geo[p, 8] + s1 * geo[p, 11] + s2 * geo[p, 14]) * inv
-        b2 = (s0 * geo[p, 9] + s1 * geo[p, 12] + s2 * geo[p, 15]) * inv
+        b0, b1, b2 = _to_cells(geo, p, s0, s1, s2)
         if not b2 > 0.0 or m < 1:
             continue
         lead = max(abs(b0), abs(b1))

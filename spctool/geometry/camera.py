@@ -888,14 +888,13 @@ class Camera:
         4 + 4 products per point."""
         sf = _flat(samples)
         lf = _flat(lines)
-        if sf.size == 0 or lf.size == 0:
+        # the extremes, all finite exactly when every point is (a NaN propagates to both); empty or not
+        # finite: the general grid path, point by point
+        ext = (sf.min(), sf.max(), lf.min(), lf.max()) if sf.size and lf.size else (math.nan,)
+        if not all(map(math.isfinite, ext)):
             ss, ll = np.meshgrid(sf, lf)
             return self.pixel_to_direction_grid(ss, ll, grid_step=grid_step, interp_tol=interp_tol)
-        # all finite exactly when the extremes are (a NaN propagates to both)
-        s_lo, s_hi, l_lo, l_hi = float(sf.min()), float(sf.max()), float(lf.min()), float(lf.max())
-        if not (math.isfinite(s_lo) and math.isfinite(s_hi) and math.isfinite(l_lo) and math.isfinite(l_hi)):
-            ss, ll = np.meshgrid(sf, lf)
-            return self.pixel_to_direction_grid(ss, ll, grid_step=grid_step, interp_tol=interp_tol)
+        s_lo, s_hi, l_lo, l_hi = map(float, ext)
         step = float(grid_step)
         c1, c2 = float(self.ctr[0]), float(self.ctr[1])
         ka = math.floor((s_lo - c1) / step) - 1
