@@ -37,7 +37,9 @@ landmark on one core; a 16-landmark picture cold 7.2 s):
   and the registration itself.
 * ``register montecarlo s16-50m image 2 jobs`` — ``spctool montecarlo --preset s16-50m --space image -j 2``
   (12 landmarks × 500 samples; scene from ``SPCTOOL_MC_SCENE`` when set, its build not timed).
-  Target ≤ 20 s.
+  Target ≤ 20 s for the study (``timing.run_s``: the 6000 registrations on the 2 workers); the
+  ``whole command`` line is the same process's wall from start to exit (interpreter, imports, scene
+  file, the designs, the study and the report).
 
 The 16-landmark world is built once by ``spctool simulate`` (about a minute) into the temporary
 directory (``SPCTOOL_REGISTER_WORLD`` overrides the place) and reused.
@@ -383,10 +385,15 @@ def bench_montecarlo_image():
     out = Path(tempfile.gettempdir()) / "spctool-bench-mc-image.json"
     args = ["montecarlo", "--preset", "s16-50m", "--space", "image", "-j", "2", "--json", "-o", str(out)]
     scene = os.environ.get("SPCTOOL_MC_SCENE")
+    built = not (scene and os.path.isfile(scene))
     if scene:
         args += ["--scene", scene]
+    t = time.perf_counter()
     _spctool(*args)
+    wall = time.perf_counter() - t
     _MC.update(json.loads(out.read_text())["timing"])
+    # the whole command as a user times it; a scene built in this run is not part of it (--scene keeps it)
+    _MC["command_s"] = wall - (float(_MC.get("scene_s", 0.0)) if built else 0.0)
     run_s = float(_MC["run_s"])
     return run_s, "s", run_s <= 20.0
 
@@ -400,6 +407,14 @@ def bench_montecarlo_image_cpu():
         bench_montecarlo_image()
     t = float(_MC["cpu_s"]) / 2.0
     return t, "s", t <= 20.0
+
+
+def bench_montecarlo_image_command():
+    """The same run's whole command, wall: interpreter start, imports, scene file, the designs, the
+    study and the report (a scene built in the run excluded)."""
+    if not _MC:
+        bench_montecarlo_image()
+    return float(_MC["command_s"]), "s", True
 
 
 BENCHMARKS = [
@@ -421,6 +436,11 @@ BENCHMARKS = [
     ("cold register start-up: imports + numba initialisation (CPU)", "(informative)", bench_cold_numba),
     ("register montecarlo s16-50m image 2 jobs, wall", "<= 20 s", bench_montecarlo_image),
     ("register montecarlo s16-50m image 2 jobs, CPU / 2", "<= 20 s", bench_montecarlo_image_cpu),
+    (
+        "register montecarlo s16-50m image 2 jobs, whole command wall",
+        "(informative: start-up, scene file, designs, report)",
+        bench_montecarlo_image_command,
+    ),
 ]
 
 

@@ -389,26 +389,34 @@ def design_dimensions(config: MonteCarloConfig) -> list[tuple[str, int, float]]:
 
 def lhs_uniform(n: int, d: int, rng: np.random.Generator) -> np.ndarray:
     """(n, d) Latin Hypercube in (0, 1): along every dimension each stratum [k/n, (k+1)/n) holds exactly
-    one sample (:class:`scipy.stats.qmc.LatinHypercube`, scrambled).  Values are kept strictly inside
-    (0, 1) so that the normal inverse CDF stays finite."""
-    from scipy.stats import qmc
-
+    one sample.  Scrambled LHS (McKay et al. 1979) drawn from the first child of ``rng``'s seed sequence
+    (``rng.spawn(1)[0]``): one uniform per cell of the (n, d) array, then, per dimension, the strata
+    1 … n shuffled, and ``(stratum − uniform) / n`` — the draws and the arithmetic of
+    :class:`scipy.stats.qmc.LatinHypercube` (``scramble=True``, ``strength=1``) given ``rng``, value for
+    value (a test holds them equal), without importing ``scipy.stats`` (0.4 s of every study's start).
+    Values are kept strictly inside (0, 1) so that the normal inverse CDF stays finite."""
     if d == 0:
         return np.zeros((n, 0))
-    u = qmc.LatinHypercube(d, rng=rng).random(n)
+    rng = rng.spawn(1)[0]
+    u = rng.uniform(size=(n, d))
+    strata = np.tile(np.arange(1, n + 1), (d, 1))
+    for k in range(d):
+        rng.shuffle(strata[k, :])
+    out = (strata.T - u) / n
     tiny = 1e-12 / max(n, 1)
-    return np.clip(u, tiny, 1.0 - tiny)
+    return np.clip(out, tiny, 1.0 - tiny)
 
 
 def design(config: MonteCarloConfig, landmark: int) -> np.ndarray:
     """(samples, d) standard-normal design of landmark number ``landmark`` (0-based): LHS or MC from the
-    stream ``(seed, 0x5316, 1, landmark)``, mapped by the normal inverse CDF (LHS)."""
-    from scipy.stats import norm
+    stream ``(seed, 0x5316, 1, landmark)``, mapped by the normal inverse CDF (LHS; ``scipy.special.ndtri``,
+    what ``scipy.stats.norm.ppf`` evaluates)."""
+    from scipy.special import ndtri
 
     d = len(design_dimensions(config))
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, _SEED_TAG, _DESIGN, int(landmark)]))
     if config.sampling == "lhs":
-        return norm.ppf(lhs_uniform(config.samples, d, rng))
+        return ndtri(lhs_uniform(config.samples, d, rng))
     return rng.standard_normal((config.samples, d))
 
 
