@@ -815,9 +815,7 @@ def peak_covariance(hessian, rho: float, count: float, footprint: float = 1.0, t
     c01 = scale * (h01 / det)
     c10 = scale * (h10 / det)
     c11 = scale * (-h00 / det)
-    if times == 1:
-        return np.array([[0.5 * (c00 + c00), 0.5 * (c01 + c10)], [0.5 * (c10 + c01), 0.5 * (c11 + c11)]])
-    k = float(times)
+    k = float(times)  # 1.0·x is x exactly: one expression for every factor
     return np.array(
         [
             [k * (0.5 * (c00 + c00)), k * (0.5 * (c01 + c10))],
