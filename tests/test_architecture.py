@@ -35,6 +35,7 @@ FLOORS = {
     "sim": 5,
     "batch": 5,
     "figures": 5,
+    "figures_refine": 5,  # the picture of a landmark refinement (geometry --plot)
     "cli": 6,
 }
 
