@@ -423,6 +423,8 @@ class _Bundle:
                     self.info_cam[g, i] = 1.0 / (s * s)
         self.n_red = 6 * self.n_pic + self.nc * len(self.group_camera)
         self._pairs = None
+        #: per-measurement weight factor (1, or the robust pre-pass's Cauchy factor)
+        self.robust = np.ones(prob.obs_picture.size)
 
     # -- state -------------------------------------------------------------------------------------
     def start(self):
@@ -497,9 +499,12 @@ class _Bundle:
         pred = self.project(s, k_idx, False)[0]
         return self.prob.obs_pixel[k_idx] - pred
 
+    def weights(self, k_idx) -> np.ndarray:
+        return self.prob.obs_weight[k_idx] * self.robust[k_idx, None, None]
+
     def cost(self, s, k_idx, hold) -> float:
         r = self.residuals(s, k_idx)
-        w = self.prob.obs_weight[k_idx]
+        w = self.weights(k_idx)
         chi2 = float(np.einsum("ki,kij,kj->", r, w, r))
         return chi2 + self.prior_cost(s, hold)
 
@@ -533,7 +538,7 @@ class _Bundle:
         """Blocks of the normal equations: pose (P, 6, 6) and rhs, landmark (L, 3, 3) and rhs, cross
         terms (K, 6, 3) per measurement, camera blocks."""
         prob = self.prob
-        w = prob.obs_weight[k_idx]
+        w = self.weights(k_idx)
         pj = prob.obs_picture[k_idx]
         lv = prob.obs_landmark[k_idx]
         wjx = w @ lin.jx  # (K, 2, 6)
@@ -860,7 +865,7 @@ def _fit_alternate(bundle: _Bundle, s, k_idx, hold, opts, stats) -> tuple[dict, 
     history = stats.setdefault("cost", [])
     history.append(cost)
     converged = False
-    for _ in range(opts.max_iter * 5):
+    for _ in range(opts.max_iter):
         stats["iterations"] = stats.get("iterations", 0) + 1
         lin = bundle.linearise(s, k_idx)
         a, ga, d, gd, *_ = bundle.normal(s, k_idx, hold, lin)
@@ -967,6 +972,12 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     joint_pics[prob.obs_picture[usable]] = True
     rounds = 0
     converged = False
+    if opts.reject_outliers:  # a robust fit first; what stands out there is flagged before the plain fits
+        k0 = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
+        s = _robust_prepass(bundle, s, k0, hold, opts, fit, stats)
+        rho0, c0 = _normalised(bundle, s, k0)
+        status[k0[rho0 > opts.reject_sigma * (c0 if opts.robust_scale else 1.0)]] = "outlier"
+        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
     while True:
         k_idx = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
         s, converged = fit(bundle, s, k_idx, hold, opts, stats)
@@ -977,15 +988,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             break
         status[new] = "outlier"
         rounds += 1
-        # a landmark that lost too many measurements keeps its prior
-        cnt2, par2 = _parallax(bundle, s, np.flatnonzero((status == "ok") & in_vlm))
-        newly = ~keep & ((cnt2 < opts.min_pictures) | (par2 < opts.min_parallax_deg))
-        if newly.any():
-            keep |= newly
-            lstatus[newly] = "undetermined"
-            if (newly & ~has_prior).any():
-                s["v"][newly & ~has_prior] = bundle.v0[newly & ~has_prior]
-                hold = keep & ~has_prior
+        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
     used_idx = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
     status[keep[prob.obs_landmark] & (status == "ok")] = "undetermined"  # used, V not refined
     kind = opts.covariance
@@ -999,13 +1002,14 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     pose_cov, lcov, cam_cov = _covariance(bundle, s, used_idx, hold, kind)
     # pictures ignored in Vlm, and pictures with no landmark in the joint solve: poses against fixed V
     s = _solve_ignored(bundle, s, status, joint_pics, hold, pose_cov, warnings)
+    # residuals at the solution the poses were fitted with (a kept landmark at its solved V)
+    res_before = prob.obs_pixel - bundle.project(bundle.start(), np.arange(k_all), False)[0]
+    res_after = prob.obs_pixel - bundle.project(s, np.arange(k_all), False)[0]
     if keep.any():  # kept landmarks: V and σ as they were (nothing written for them is learnt)
         s["v"][keep] = bundle.v0[keep]
         info_k = bundle.info_lmk[keep]
         var = np.where(info_k > 0, 1.0 / np.where(info_k > 0, info_k, 1.0), np.nan)
         lcov[keep] = var[:, :, None] * np.eye(3)
-    res_before = prob.obs_pixel - bundle.project(bundle.start(), np.arange(k_all), False)[0]
-    res_after = prob.obs_pixel - bundle.project(s, np.arange(k_all), False)[0]
     rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res_after, prob.obs_weight, res_after), 0.0))
     chi2_idx = used_idx
     chi2 = float(np.sum(rho[chi2_idx] ** 2))
@@ -1034,6 +1038,12 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     ]
     if not converged:
         warnings.append(f"did not converge in {opts.max_iter} iterations")
+    if opts.mode == "alternate":
+        warnings.append(
+            "SPC's alternation stops when a round lowers the cost by less than the tolerance; it crawls "
+            "along directions that move landmarks and cameras together, so it may stop short of the joint "
+            "minimum (mode joint reaches it)"
+        )
     return BundleResult(
         picture_names=prob.picture_names,
         landmark_names=prob.landmark_names,
@@ -1070,15 +1080,48 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     )
 
 
+def _recheck_determinacy(bundle: _Bundle, s, status, in_vlm, keep, has_prior, lstatus, opts):
+    """(keep, hold) after flags: a landmark that lost too many measurements keeps its prior (one without a
+    prior is held at it)."""
+    cnt, par = _parallax(bundle, s, np.flatnonzero((status == "ok") & in_vlm))
+    newly = ~keep & ((cnt < opts.min_pictures) | (par < opts.min_parallax_deg))
+    keep = keep | newly
+    lstatus[newly] = "undetermined"
+    s["v"][newly & ~has_prior] = bundle.v0[newly & ~has_prior]
+    return keep, keep & ~has_prior
+
+
+def _normalised(bundle: _Bundle, s, k_idx) -> tuple[np.ndarray, float]:
+    """ρ_k = ‖W^(1/2) r_k‖ of measurements ``k_idx`` and the robust scale c = max(1, median ρ/√(2 ln 2))."""
+    r = bundle.residuals(s, k_idx)
+    w = bundle.prob.obs_weight[k_idx]
+    rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", r, w, r), 0.0))
+    c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if rho.size else 1.0
+    return rho, c
+
+
+def _robust_prepass(bundle: _Bundle, s, k_idx, hold, opts, fit, stats) -> dict:
+    """Iteratively reweighted fits with Cauchy weights 1/(1 + (ρ/(k·c/2))²): a few gross errors then
+    cannot drag the poses and landmarks, so that the outlier test that follows sees them alone.  The
+    final fits use the measurements' own weights (the factors are reset)."""
+    s, _ = fit(bundle, s, k_idx, hold, opts, stats)
+    for _ in range(4):
+        rho, c = _normalised(bundle, s, k_idx)
+        if not np.any(rho > opts.reject_sigma * c):
+            break
+        half = 0.5 * opts.reject_sigma * (c if opts.robust_scale else 1.0)
+        bundle.robust[k_idx] = 1.0 / (1.0 + (rho / half) ** 2)
+        s, _ = fit(bundle, s, k_idx, hold, opts, stats)
+    bundle.robust[:] = 1.0
+    return s
+
+
 def _flag_outliers(bundle: _Bundle, s, k_idx, opts) -> np.ndarray:
     """Measurements to flag this round: above k·c, the worst per landmark only."""
     if k_idx.size == 0:
         return k_idx
-    r = bundle.residuals(s, k_idx)
-    w = bundle.prob.obs_weight[k_idx]
-    rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", r, w, r), 0.0))
-    c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if opts.robust_scale else 1.0
-    bad = rho > opts.reject_sigma * c
+    rho, c = _normalised(bundle, s, k_idx)
+    bad = rho > opts.reject_sigma * (c if opts.robust_scale else 1.0)
     if not bad.any():
         return np.zeros(0, dtype=np.int64)
     lv = bundle.prob.obs_landmark[k_idx]
