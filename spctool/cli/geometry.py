@@ -272,9 +272,9 @@ def _summary(result, prob, inputs, opts) -> dict:
     return {
         "mode": result.mode,
         "source": inputs.source,
-        "pictures": len(prob.picture_names),
-        "landmarks": len(prob.landmark_names),
-        "landmarks_refined": int(ok_l.sum()),
+        "n_pictures": len(prob.picture_names),
+        "n_landmarks": len(prob.landmark_names),
+        "n_landmarks_refined": int(ok_l.sum()),
         "measurements": result.counts(),
         "iterations": result.iterations,
         "converged": result.converged,
@@ -301,8 +301,8 @@ def _summary_lines(s: dict) -> list[str]:
     counts = s["measurements"]
     f = s["formal_uncertainty"]
     return [
-        f"geometry ({s['mode']}): {s['pictures']} pictures, {s['landmarks']} landmarks "
-        f"({s['landmarks_refined']} refined), measurements "
+        f"geometry ({s['mode']}): {s['n_pictures']} pictures, {s['n_landmarks']} landmarks "
+        f"({s['n_landmarks_refined']} refined), measurements "
         + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())),
         f"{s['iterations']} iterations, {'converged' if s['converged'] else 'NOT converged'}; "
         f"chi2/dof {s['reduced_chi2']:.3g}; rms residual {s['rms_before_px']:.4g} -> "
