@@ -1,0 +1,151 @@
+"""``spctool geometry`` and ``batch --rounds`` on working directories with known truth: a biased map is
+refined from the pictures (truth VLMs of tests/batch_world.py), the files are written as SPC's READ
+statements read them, and a second round measures better than the first."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from batch_world import make_world
+
+from spctool.formats.landmark import read_lmk, write_lmk
+from spctool.formats.maplet import read_map, write_map
+
+ERR_KM = 3e-5  # 3 cm: three maplet cells
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    root = tmp_path_factory.mktemp("geometry_world")
+    make_world(root, n_pictures=8, n_landmarks=9)
+    truth = {p.stem: read_lmk(p).vlm.copy() for p in sorted((root / "LMKFILES").glob("*.LMK"))}
+    return root, truth
+
+
+def _biased(pristine, dest: Path) -> dict:
+    """A copy whose LMK VLMs (and MAP V) are off by 3 cm (1σ per axis), SIGMA_LMK saying so."""
+    root, truth = pristine
+    shutil.copytree(root, dest)
+    rng = np.random.default_rng(5)
+    for name in sorted(truth):
+        p = dest / "LMKFILES" / f"{name}.LMK"
+        lmk = read_lmk(p)
+        lmk = dataclasses.replace(
+            lmk, vlm=lmk.vlm + rng.normal(size=3) * ERR_KM, sigma_lmk=np.full(3, ERR_KM)
+        )
+        write_lmk(p, lmk)
+        m = read_map(dest / "MAPFILES" / f"{name}.MAP")
+        m.v = lmk.vlm
+        write_map(dest / "MAPFILES" / f"{name}.MAP", m)
+    return truth
+
+
+def _fortran_d(text: str) -> float:
+    return float(text.replace("D", "E").replace("d", "e"))
+
+
+def test_geometry_refines_a_biased_map_and_writes_what_spc_reads(pristine, run_cli, tmp_path):
+    wd = tmp_path / "wd"
+    truth = _biased(pristine, wd)
+    before = {n: read_lmk(wd / "LMKFILES" / f"{n}.LMK").vlm for n in truth}
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0  # no-pose pictures, not failed
+    sums_before = {p.name: p.read_bytes() for p in (wd / "SUMFILES").glob("*.SUM")}
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--dry-run", "--json")
+    assert res.exit_code == 0, res.stderr
+    assert {p.name: p.read_bytes() for p in (wd / "SUMFILES").glob("*.SUM")} == sums_before  # nothing written
+    assert not list((wd / "LMKFILES").glob("*.bak"))
+    doc = json.loads(res.stdout)
+    assert doc["n_landmarks_refined"] == 9 and doc["measurements"] == {"ok": 72}
+    assert doc["rms_after_px"] < 0.05 < 1.0 < doc["rms_before_px"]
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--report-dir", "rep", "--plot", "geo.png")
+    assert res.exit_code == 0, res.stderr
+    after = {n: read_lmk(wd / "LMKFILES" / f"{n}.LMK") for n in truth}
+    e0 = np.array([before[n] - truth[n] for n in truth])
+    e1 = np.array([after[n].vlm - truth[n] for n in truth])
+    rms0, rms1 = np.sqrt(np.mean(np.sum(e0**2, 1))), np.sqrt(np.mean(np.sum(e1**2, 1)))
+    # the absolute error is bounded by the landmark priors (the gauge: their mean); the relative map is exact
+    rel = e1 - e1.mean(axis=0)
+    assert rms1 < 0.5 * rms0
+    assert np.sqrt(np.mean(np.sum(rel**2, 1))) < 0.05 * rms0
+    sig = np.array([after[n].sigma_lmk for n in truth])
+    assert np.all(np.abs(e1) < 3 * sig)  # the posterior 1σ covers the error
+    assert (wd / "rep" / "RESIDUALS.txt").exists() and (wd / "geo.png").stat().st_size > 10_000
+    for n in truth:  # .bak kept; SPC's READ formats give back the numbers written
+        assert (wd / "LMKFILES" / f"{n}.LMK.bak").exists()
+        lines = (wd / "LMKFILES" / f"{n}.LMK").read_text().splitlines()
+        # LITHOS: READ(10,'(3D20.10)') VLM on line 5; SIGMA_LMK on line 9; (2D20.10) SIGKM, RMSLMK on line 4
+        vlm = [_fortran_d(lines[4][i : i + 20]) for i in (0, 20, 40)]
+        assert np.allclose(vlm, after[n].vlm, rtol=1e-10, atol=0) and lines[4][63:66] == "VLM"
+        assert np.allclose(
+            [_fortran_d(lines[8][i : i + 20]) for i in (0, 20, 40)], after[n].sigma_lmk, rtol=1e-10
+        )
+        assert 0 < _fortran_d(lines[3][20:40]) < 0.05  # RMSLMK, pixels
+        # PICTURES rows (A12,2F10.2): every picture, the measured pixel
+        k = lines.index("PICTURES")
+        rows = lines[k + 1 : k + 9]
+        assert sorted(r[:12].strip() for r in rows) == sorted(p[:-4] for p in sums_before)
+        assert all(abs(float(r[12:22])) > 0 and abs(float(r[22:32])) > 0 for r in rows)
+        # MAP header V (real*4, big-endian, bytes 16-27): the VLM
+        raw = (wd / "MAPFILES" / f"{n}.MAP").read_bytes()
+        v = struct.unpack(">3f", raw[15:27])
+        assert np.allclose(v, after[n].vlm, rtol=1e-6)
+    # the SUMs: new pose lines (3D20.10) SCOBJ, the batch's LANDMARKS rows
+    text = (wd / "SUMFILES" / "T000000001A1.SUM").read_text()
+    assert "LANDMARKS" in text and text.count("\n") > 20
+
+
+def test_batch_rounds_two_measures_better_than_one(pristine, run_cli, tmp_path):
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    assert run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle").exit_code == 0
+    truth = json.loads((wd / "TRUTH.json").read_text())
+    true_pos = {p["name"]: -np.array(p["scobj"]) for p in truth["pictures"]}
+
+    def round_stats(k):
+        doc = json.loads((tmp_path / "cycle" / f"ROUND{k}" / "BATCH_SUMMARY.json").read_text())
+        found = sum(p["found"] for p in doc["pictures"])
+        ok = [p for p in doc["pictures"] if p["status"] == "ok"]
+        err = []
+        for name in true_pos:
+            text = (tmp_path / "cycle" / f"ROUND{k}" / "SUMFILES" / f"{name}.SUM").read_text().splitlines()
+            scobj = np.array([_fortran_d(text[4][i : i + 20]) for i in (0, 20, 40)])
+            err.append(np.linalg.norm(-scobj - true_pos[name]))
+        return found, len(ok), float(np.sqrt(np.mean(np.square(err))))
+
+    f1, ok1, e1 = round_stats(1)
+    f2, ok2, e2 = round_stats(2)
+    assert f2 >= f1 and ok2 >= ok1 and ok2 == 8
+    assert e2 < e1
+    # the working directory was not written; the refined map is a working directory of its own
+    assert not list((wd / "LMKFILES").glob("*.bak"))
+    assert (tmp_path / "cycle" / "MAP2" / "GEOMETRY.json").exists()
+    assert (tmp_path / "cycle" / "MAP2" / "IMAGEFILES").is_symlink()
+    # resuming the finished cycle changes nothing
+    stamp = {p: p.stat().st_mtime_ns for p in (tmp_path / "cycle" / "MAP2" / "LMKFILES").iterdir()}
+    run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle")
+    assert stamp == {p: p.stat().st_mtime_ns for p in (tmp_path / "cycle" / "MAP2" / "LMKFILES").iterdir()}
+
+
+def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
+    from spctool.formats.sumfile import read_sum, write_sum
+
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    out = tmp_path / "out"
+    run_cli("-q", "-C", wd, "batch", "--out-dir", out)
+    for p in (out / "SUMFILES").glob("*.SUM"):
+        pic = read_sum(p)
+        write_sum(p, dataclasses.replace(pic, sigma_vso=np.zeros(3), sigma_ptg=np.zeros(3)))
+    for p in (wd / "LMKFILES").glob("*.LMK"):
+        write_lmk(p, dataclasses.replace(read_lmk(p), sigma_lmk=np.zeros(3), sigkm=0.0))
+    res = run_cli("-C", wd, "geometry", "--from-batch", out)
+    assert res.exit_code == 1
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "gauge is not fixed" in err[0]
