@@ -128,9 +128,20 @@ def test_batch_rounds_two_measures_better_than_one(pristine, run_cli, tmp_path):
     assert (tmp_path / "cycle" / "MAP2" / "GEOMETRY.json").exists()
     assert (tmp_path / "cycle" / "MAP2" / "IMAGEFILES").is_symlink()
     # resuming the finished cycle changes nothing
-    stamp = {p: p.stat().st_mtime_ns for p in (tmp_path / "cycle" / "MAP2" / "LMKFILES").iterdir()}
+    lmks = tmp_path / "cycle" / "MAP2" / "LMKFILES"
+    stamp = {p: p.stat().st_mtime_ns for p in lmks.iterdir()}
+    content = {p.name: p.read_bytes() for p in lmks.iterdir()}
     run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle")
-    assert stamp == {p: p.stat().st_mtime_ns for p in (tmp_path / "cycle" / "MAP2" / "LMKFILES").iterdir()}
+    assert stamp == {p: p.stat().st_mtime_ns for p in lmks.iterdir()}
+    # a run killed while the refined map was being built (a .partial folder, no round 2) resumes to the
+    # same files, none lost or written twice
+    (tmp_path / "cycle" / "MAP2").rename(tmp_path / "cycle" / "MAP2.partial")
+    (tmp_path / "cycle" / "MAP2.partial" / "GEOMETRY.json").unlink()
+    shutil.rmtree(tmp_path / "cycle" / "ROUND2")
+    assert run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle").exit_code == 0
+    assert not (tmp_path / "cycle" / "MAP2.partial").exists()
+    assert content == {p.name: p.read_bytes() for p in lmks.iterdir()}
+    assert round_stats(2) == (f2, ok2, e2)
 
 
 def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
@@ -197,3 +208,22 @@ def test_rounds_on_the_independent_world_refine_the_map(run_cli, tmp_path):
         ]
         err.append(float(np.sqrt(np.mean(np.square(e)))))
     assert err[1] < err[0]
+
+
+def test_geometry_on_the_real_rosetta_picture_keeps_single_picture_landmarks(real, run_cli, tmp_path):
+    """One real picture (Rosetta OSIRIS, three LMKs): nothing can be triangulated, every VLM keeps its
+    prior (said once), the pose is solved against them; the LMK files are rewritten with .bak."""
+    src = real / "rosetta-67p"
+    for folder, pattern in (("SUMFILES", "*.SUM"), ("LMKFILES", "*.LMK")):
+        (tmp_path / folder).mkdir()
+        for f in src.glob(pattern):
+            shutil.copy(f, tmp_path / folder / f.name)
+    before = {f.name: read_lmk(f).vlm for f in (tmp_path / "LMKFILES").glob("*.LMK")}
+    res = run_cli("-C", tmp_path, "geometry", "--json")
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert [r["status"] for r in doc["landmarks"]] == ["undetermined"] * 3
+    assert "undetermined" in res.stderr and res.stderr.count("\n") == 1
+    for f in (tmp_path / "LMKFILES").glob("*.LMK"):
+        assert np.array_equal(read_lmk(f).vlm, before[f.name])
+    assert doc["rms_after_px"] < doc["rms_before_px"]

@@ -397,7 +397,7 @@ def summary_table(result: BundleResult, problem: BundleProblem):
     from spctool.formats.table import LandmarkTable
 
     n = len(result.landmark_names)
-    used = np.array([s == "ok" for s in result.obs_status])
+    used = np.array([s in ("ok", "undetermined") for s in result.obs_status])
     npic = np.bincount(problem.obs_landmark[used], minlength=n)
     d = (result.landmark_positions - result.landmark_positions0) * 1000.0
     sig = result.landmark_sigmas * 1000.0

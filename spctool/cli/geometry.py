@@ -265,7 +265,7 @@ def _summary(result, prob, inputs, opts) -> dict:
 
     ok_l = np.array([s == "ok" for s in result.landmark_status])
     d = np.linalg.norm(result.landmark_positions - result.landmark_positions0, axis=1) * 1000.0
-    used = np.array([s == "ok" for s in result.obs_status])
+    used = np.array([s in ("ok", "undetermined", "ignored-in-vlm") for s in result.obs_status])
     rms_b = float(np.sqrt(np.mean(result.residual_before[used] ** 2))) if used.any() else math.nan
     rms_a = float(np.sqrt(np.mean(result.residual_after[used] ** 2))) if used.any() else math.nan
     dp = np.linalg.norm(result.delta_position, axis=1) * 1000.0
