@@ -384,24 +384,8 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res_after, prob.obs_weight, res_after), 0.0))
     chi2_idx = used_idx
     chi2 = float(np.sum(rho[chi2_idx] ** 2))
-    n_est_l = int((~hold).sum())
-    dof = 2 * chi2_idx.size - 6 * int(joint_pics.sum()) - 3 * n_est_l - bundle.nc * len(bundle.group_camera)
-    dof += int(np.count_nonzero(bundle.info_pos[joint_pics])) + int(
-        np.count_nonzero(bundle.info_att[joint_pics])
-    )
-    dof += int(np.count_nonzero(bundle.info_lmk[~hold]))
-    cam_terms = {}
-    if bundle.nc:
-        for g, cam in enumerate(bundle.group_camera):
-            d = {}
-            for i, (label, idx) in enumerate(bundle.slots[g]):
-                sig = (
-                    math.sqrt(cam_cov[g * bundle.nc + i, g * bundle.nc + i])
-                    if cam_cov is not None
-                    else math.nan
-                )
-                d[label] = (float(bundle.q0[g][idx]), float(s["q"][g, idx]), sig)
-            cam_terms[cam.name or f"camera{g}"] = d
+    dof = _degrees_of_freedom(bundle, chi2_idx.size, joint_pics, hold)
+    cam_terms = _camera_terms(bundle, s, cam_cov)
     cams = bundle.group_cameras(s)
     out_cams = [
         replace(cams[bundle.group[j]], rotation=s["rot"][j], scobj=-s["pos"][j], name=prob.cameras[j].name)
@@ -449,6 +433,30 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
         _obs_picture=prob.obs_picture,
         _obs_landmark=prob.obs_landmark,
     )
+
+
+def _degrees_of_freedom(bundle: _Bundle, n_used: int, joint_pics, hold) -> int:
+    """2·measurements − unknowns + prior equations (the solved pictures and landmarks, camera terms)."""
+    dof = (
+        2 * n_used - 6 * int(joint_pics.sum()) - 3 * int((~hold).sum()) - bundle.nc * len(bundle.group_camera)
+    )
+    dof += int(np.count_nonzero(bundle.info_pos[joint_pics])) + int(
+        np.count_nonzero(bundle.info_att[joint_pics])
+    )
+    return dof + int(np.count_nonzero(bundle.info_lmk[~hold]))
+
+
+def _camera_terms(bundle: _Bundle, s, cam_cov) -> dict:
+    """{camera: {term: (a priori, solved, 1σ)}} of the freed camera terms."""
+    out = {}
+    for g, cam in enumerate(bundle.group_camera if bundle.nc else []):
+        d = {}
+        for i, (label, idx) in enumerate(bundle.slots[g]):
+            k = g * bundle.nc + i
+            sig = math.sqrt(cam_cov[k, k]) if cam_cov is not None else math.nan
+            d[label] = (float(bundle.q0[g][idx]), float(s["q"][g, idx]), sig)
+        out[cam.name or f"camera{g}"] = d
+    return out
 
 
 def _recheck_determinacy(bundle: _Bundle, s, status, in_vlm, keep, has_prior, lstatus, opts):
