@@ -421,23 +421,15 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
             ob = _observe(wm, views, pixels, reg_corr, opts, opts.reregister)
             if ob.pictures is None:
                 break
-        t1, t2, usable = heightfield.slopes(heights, valid)
-        lam = pc.fit_lambda(t1, t2, albedo, ob.pictures, valid, sopts)
-        if not opts.refit_lambda and it > 0:  # the scales of the first pass, where known
-            kept = lam_by_view[ob.used]
-            lam = np.where(np.isfinite(kept), kept, lam)
-        sol = pc.solve_cells(t1, t2, albedo, ob.pictures, lam, valid, sopts)
-        new_albedo, lam = pc.normalise_albedo(sol.albedo, lam, sol.solved)
+        lam = None
+        if not opts.refit_lambda and it > 0 and np.all(np.isfinite(lam_by_view[ob.used])):
+            lam = lam_by_view[ob.used]  # the first pass's scales
+        step = pc.heights_pass(heights, albedo, valid, ob.pictures, h0, cond, opts.condition_weight,
+                               opts.keep_plane, lam, sopts)
         if it == 0:
-            lam_by_view[ob.used] = lam
-        new_albedo = np.where(sol.flagged, albedo, new_albedo)
-        new_heights = si.integrate_slopes(sol.t1, sol.t2, valid, cond, h0, opts.condition_weight,
-                                          fixed=sol.flagged)
-        if opts.keep_plane:
-            new_heights = si.keep_plane(new_heights, h0, valid)
-            new_heights = np.where(sol.flagged, h0, new_heights)
-        new_heights = np.where(valid, new_heights, 0.0)
-        change = float(np.sqrt(np.mean((new_heights - heights)[valid] ** 2)))
+            lam_by_view[ob.used] = step.lam
+        sol, lam, new_heights, new_albedo = step.cells, step.lam, step.heights, step.albedo
+        change = step.change_rms
         res = pc.residual_rms(sol.t1, sol.t2, new_albedo, ob.pictures, lam, valid, sopts)
         history.append({
             "iteration": it + 1,

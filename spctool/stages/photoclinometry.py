@@ -59,11 +59,13 @@ from spctool.errors import SpcUsageError
 
 __all__ = [
     "CellSolution",
+    "PassResult",
     "Pictures",
     "SolveOptions",
     "azimuth_groups",
     "brightness",
     "fit_lambda",
+    "heights_pass",
     "jacobian",
     "normalise_albedo",
     "photometric_constants",
@@ -425,3 +427,50 @@ def solve_cells(t1, t2, albedo, pictures: Pictures, lam, cell_mask=None,
         azimuths=n_az,
         diverged=diverged.reshape(shape),
     )
+
+
+# --------------------------------------------------------------------------------------------------
+# one pass: λ, cells, integration
+
+
+@dataclass
+class PassResult:
+    """Result of :func:`heights_pass` (arrays (N, N)): the new ``heights`` and ``albedo``, the scales
+    ``lam`` (K,) after the albedo normalisation, the :class:`CellSolution` ``cells``, and the rms
+    height change over the valid cells ``change_rms`` (cells)."""
+
+    heights: np.ndarray
+    albedo: np.ndarray
+    lam: np.ndarray
+    cells: CellSolution
+    change_rms: float
+
+
+def heights_pass(heights, albedo, valid, pictures: Pictures, start_heights, conditioning,
+                 weight: float = 0.025, keep_plane: bool = True, lam=None,
+                 options: SolveOptions | None = None) -> PassResult:
+    """One pass of "Find heights" on fixed observations: HGT2SLP slopes of ``heights``
+    (:func:`spctool.geometry.heightfield.slopes`), λ (:func:`fit_lambda`, unless ``lam`` is given),
+    the per-cell solve, the albedo normalised to mean 1, the slopes integrated
+    (:func:`spctool.stages.slope_integration.integrate_slopes`) with the ``conditioning`` cells pulled
+    toward ``start_heights`` with ``weight`` and the unsolvable cells fixed there, and (``keep_plane``)
+    the starting map's best-fit plane restored."""
+    from spctool.geometry import heightfield
+    from spctool.stages import slope_integration as si
+
+    valid = np.asarray(valid, dtype=bool)
+    h = np.asarray(heights, dtype=np.float64)
+    h0 = np.asarray(start_heights, dtype=np.float64)
+    a = np.asarray(albedo, dtype=np.float64)
+    t1, t2, _ = heightfield.slopes(h, valid)
+    if lam is None:
+        lam = fit_lambda(t1, t2, a, pictures, valid, options)
+    cells = solve_cells(t1, t2, a, pictures, lam, valid, options)
+    new_albedo, lam = normalise_albedo(cells.albedo, lam, cells.solved)
+    new_albedo = np.where(cells.flagged, a, new_albedo)
+    new_h = si.integrate_slopes(cells.t1, cells.t2, valid, conditioning, h0, weight, fixed=cells.flagged)
+    if keep_plane:
+        new_h = np.where(cells.flagged, h0, si.keep_plane(new_h, h0, valid))
+    new_h = np.where(valid, new_h, 0.0)
+    change = float(np.sqrt(np.mean((new_h - h)[valid] ** 2))) if np.any(valid) else 0.0
+    return PassResult(new_h, new_albedo, np.asarray(lam, dtype=np.float64), cells, change)
