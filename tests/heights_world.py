@@ -99,3 +99,48 @@ def rms(a, b, mask=None) -> float:
     if mask is not None:
         d = d[np.asarray(mask, bool)]
     return float(math.sqrt(np.mean(d * d)))
+
+
+def write_workdir(root, start, views, truth=None) -> list[str]:
+    """An SPC working directory of the scene: MAPFILES/ and LMKFILES/ (PICTURES: every view at its
+    a-priori pixel), SUMFILES/ (true poses, THRSH of the views), IMAGEFILES/ (16-bit DAT),
+    LMRKLIST.TXT, PICTLIST.TXT and, with ``truth``, TRUTHFILES/<NAME>.MAP.  Returns the picture names."""
+    from pathlib import Path
+
+    from spctool.formats.landmark import LandmarkPicture, write_lmk
+    from spctool.formats.lists import (
+        LandmarkList,
+        PictureList,
+        PictureListEntry,
+        write_lmrklist,
+        write_pictlist,
+    )
+    from spctool.formats.maplet import write_map
+    from spctool.formats.photo import write_photo
+    from spctool.formats.sumfile import Picture, write_sum
+    from spctool.sim.maplets import new_landmark
+
+    root = Path(root)
+    for d in ("SUMFILES", "IMAGEFILES", "MAPFILES", "LMKFILES", "TRUTHFILES"):
+        (root / d).mkdir(parents=True, exist_ok=True)
+    name = start.name
+    write_map(root / "MAPFILES" / f"{name}.MAP", start)
+    if truth is not None:
+        write_map(root / "TRUTHFILES" / f"{name}.MAP", truth)
+    lmk = new_landmark(name, start.scale, start.qsz, start.v, start.ux, start.uy, start.uz)
+    lmk.pictures = [LandmarkPicture(v.name, v.pixel[0], v.pixel[1]) for v in views]
+    write_lmk(root / "LMKFILES" / f"{name}.LMK", lmk)
+    for v in views:
+        cam = v.camera
+        npx = v.photo.shape[1]
+        dn = np.clip(v.photo, 0, 65535).astype(np.uint16)
+        write_photo(root / "IMAGEFILES" / f"{v.name}.DAT", dn, fmt="dat")
+        rot = np.asarray(cam.rotation)
+        pic = Picture(name=v.name, utc="2016 JAN 01 00:00:00.000", npx=npx, nln=v.photo.shape[0],
+                      thrsh=np.array(v.thresholds, dtype=float), mmfl=cam.mmfl, ctr=cam.ctr, scobj=cam.scobj,
+                      cx=rot[0], cy=rot[1], cz=rot[2], sz=np.asarray(v.sun, float), kmatrix=cam.kmatrix,
+                      sigma_vso=np.full(3, 1e-4), sigma_ptg=np.full(3, 2e-3))
+        write_sum(root / "SUMFILES" / f"{v.name}.SUM", pic)
+    write_pictlist(root / "PICTLIST.TXT", PictureList([PictureListEntry(v.name) for v in views]))
+    write_lmrklist(root / "LMRKLIST.TXT", LandmarkList([name]))
+    return [v.name for v in views]

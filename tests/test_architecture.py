@@ -35,6 +35,7 @@ FLOORS = {
     "sim": 5,
     "batch": 5,
     "figures": 5,
+    "figures_heights": 5,  # figures of a "Find heights" run (lithos)
     "cli": 6,
 }
 

@@ -15,6 +15,7 @@ COMMANDS = {
     "register": "spctool.cli.register",
     "solve-pose": "spctool.cli.pose",
     "navigate": "spctool.cli.navigate",
+    "lithos": "spctool.cli.heights",
     "info": "spctool.cli.files",
     "validate": "spctool.cli.files",
     "convert": "spctool.cli.files",
