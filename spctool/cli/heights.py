@@ -27,31 +27,54 @@ from spctool.cli.common import Context, emit_table, pass_context
 from spctool.errors import SpcFormatError, SpcResultError
 
 
+def _rows_of(ctx: Context, lmk):
+    """(picture name, pixel or None) of the LMK PICTURES rows not flagged '*'; without any, every
+    picture of PICTLIST.TXT (else SUMFILES/) whose camera sees V lit and facing it (pixel None: the
+    projection), with a note."""
+    rows = [(r.name, (float(r.sample), float(r.line))) for r in lmk.pictures if r.flag != "*"]
+    if rows or lmk.pictures:
+        return rows
+    names = ctx.wd.picture_names()
+    ctx.note_once(f"{lmk.name}: no PICTURES rows in its LMK: trying the {len(names)} pictures of "
+                  "PICTLIST.TXT that see it")
+    return [(n, None) for n in names]
+
+
+def _sees(camera, pic, lmk) -> bool:
+    """V in front of the camera, inside the photo, facing it and lit (both above the maplet plane)."""
+    v = np.asarray(lmk.vlm, dtype=np.float64)
+    uz = np.asarray(lmk.uz, dtype=np.float64)
+    s, ln, front = camera.project_with_mask(v[None, :])
+    e = np.asarray(camera.position, dtype=np.float64) - v
+    return bool(front[0] and 1.0 <= s[0] < pic.npx and 1.0 <= ln[0] < pic.nln and e @ uz > 0.0
+                and np.asarray(pic.sz, float) @ uz > 0.0)
+
+
 def _views(ctx: Context, lmk, kw):
-    """(views, skipped names) of the LMK's PICTURES rows not flagged '*'."""
+    """(views, skipped names) of the landmark's pictures (:func:`_rows_of`)."""
     from spctool.cli.common import load_photo, load_picture
     from spctool.cli.options import picture_thresholds
     from spctool.stages.find_heights import PictureView
 
     views, skipped = [], []
-    for row in lmk.pictures:
-        if row.flag == "*":
-            continue
+    explicit = bool(lmk.pictures)
+    for name, pixel in _rows_of(ctx, lmk):
         try:
-            pic = load_picture(ctx, row.name)
+            pic = load_picture(ctx, name)
+            if not explicit and not _sees(pic.camera, pic.pic, lmk):
+                continue
             photo = load_photo(ctx, pic.pic, required=False)
         except SpcFormatError as exc:
-            ctx.note_once(f"{lmk.name}: picture {row.name} left out ({exc})")
-            skipped.append(row.name)
+            ctx.note_once(f"{lmk.name}: picture {name} left out ({exc})")
+            skipped.append(name)
             continue
         if photo is None:
-            ctx.note_once(f"{lmk.name}: picture {row.name} left out (no photo in IMAGEFILES/)")
-            skipped.append(row.name)
+            ctx.note_once(f"{lmk.name}: picture {name} left out (no photo in IMAGEFILES/)")
+            skipped.append(name)
             continue
-        pixel = (float(row.sample), float(row.line))
-        if not all(math.isfinite(x) for x in pixel):
+        if pixel is not None and not all(math.isfinite(x) for x in pixel):
             pixel = None
-        views.append(PictureView(row.name, photo, pic.camera, pic.pic.sz,
+        views.append(PictureView(name, photo, pic.camera, pic.pic.sz,
                                  picture_thresholds(kw["thresholds"], pic.pic), pixel))
     return views, skipped
 
@@ -73,6 +96,9 @@ def _updated_lmk(lmk, result):
             rows.append(LandmarkPicture(row.name, p.pixel[0], p.pixel[1], ""))
         else:
             rows.append(LandmarkPicture(row.name, row.sample, row.line, "*"))
+    listed = {row.name for row in lmk.pictures}
+    rows += [LandmarkPicture(p.name, p.pixel[0], p.pixel[1], "" if p.used else "*")
+             for p in result.pictures if p.name not in listed]
     out.pictures = rows
     if not np.array_equal(np.asarray(result.v, float), np.asarray(lmk.vlm, float)):
         out.vlm = np.asarray(result.v, dtype=np.float64)
@@ -100,7 +126,7 @@ def _row(name, result, n_pictures, wrote):
         "ncc_before": mean("ncc_before"),
         "ncc_after": mean("ncc_after"),
         "written": "yes" if wrote else "no",
-        "status": s.get("status", "unsolvable"),
+        "status": "worse" if result is not None and result.worse else s.get("status", "unsolvable"),
     }
 
 
@@ -132,6 +158,8 @@ def _row(name, result, n_pictures, wrote):
 @click.option("--recentre", is_flag=True,
               help="Move V along UZ by the mean height (MAP and LMK VLM) and subtract it.")
 @click.option("--dry-run", is_flag=True, help="Solve and report; write nothing.")
+@click.option("--force", is_flag=True,
+              help="Write a refined maplet even when it matches the photos worse (lower mean NCC).")
 @click.option("--figures", "figures_dir", metavar="DIR", type=click.Path(file_okay=False),
               help="Write <LANDMARK>_heights.png and <LANDMARK>_rerender.png to DIR.")
 @options.output_option
@@ -152,6 +180,10 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     and albedo and are counted as flagged.  A maplet with fewer such pictures, or with fewer than
     a quarter of its cells solvable, cannot be solved: it is left unchanged and named on stderr.
 
+    A refined maplet whose re-rendering matches the extractions worse than the starting one (mean
+    NCC lower by more than 0.005) is not written unless --force: a warning says so and its status
+    is "worse".
+
     Writes MAPFILES/<NAME>.MAP (heights, albedo; HSCALE = max|h|/30000) and LMKFILES/<NAME>.LMK
     (PICTURES: centres of the pictures used, '*' on those the extraction removed), each atomically
     with a .bak of the old file.  Columns: name, pictures, used, iterations, converged, change_rms
@@ -164,9 +196,10 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     Example:
 
     \b
-      spctool -C work lithos BW0000 --dry-run
-      spctool -C work lithos BW0000 BW0001 --figures lithos-figures
-      spctool -C work lithos --json -o lithos.json
+      spctool demo --copy-to demo
+      spctool -C demo lithos B01536 --dry-run
+      spctool -C demo lithos B01536 B01595 --iterations 3 --figures lithos-figures
+      spctool -C demo lithos B01980 --json -o lithos.json
     """
     from spctool.formats.landmark import write_lmk
     from spctool.formats.maplet import write_map
@@ -198,6 +231,10 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
         wrote = False
         if not result.ok:
             failed.append(f"{lmk.name}: cannot solve the heights: {result.reason}; MAP and LMK unchanged")
+        elif result.worse and not kw["force"]:
+            b, a = result.mean_ncc()
+            ctx.warn(f"{lmk.name}: the refined maplet matches the photos worse than the starting one "
+                     f"(mean NCC {b:.3f} -> {a:.3f}): not written (--force writes it)")
         elif not kw["dry_run"]:
             map_path = ctx.wd.map_path(lmk.name)
             write_map(map_path, maplet_with(maplet, result), backup=True)

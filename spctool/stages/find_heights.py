@@ -14,7 +14,9 @@ One outer iteration, on the current heights H and albedo a:
    last pixel; a picture that fails keeps its last pixel.  ``reregister=False`` keeps the given pixels.
 2. **Re-extract** the photo onto the grid at that pixel, on the current heights (the first extraction
    sits on wrong heights: parallax; :func:`spctool.stages.extract.extract` with its filters and the
-   LITHOS removal criteria).  Pictures the criteria remove take no part.
+   LITHOS removal criteria).  Pictures the criteria remove take no part.  The brightness model has
+   no cast shadows, so cells in the current heights' cast shadow and cells darker than
+   ``dark_fraction`` of the picture's median are left out of that picture's equations.
 3. **λ fit, per-cell solve** (:mod:`spctool.stages.photoclinometry`), starting from the HGT2SLP
    slopes of H (:func:`spctool.geometry.heightfield.slopes`) and a; albedo normalised to mean 1.
 4. **Integration** (:mod:`spctool.stages.slope_integration`) with conditioning cells (a seeded random
@@ -129,7 +131,10 @@ class FindHeightsOptions:
     ``reregister`` and ``register`` (the registration options; default one spacing-1 step with the
     converged stage, maplet space); ``extract`` (extraction options; default LITHOS removal criteria);
     ``solve`` (:class:`~spctool.stages.photoclinometry.SolveOptions`); ``min_solved_fraction``;
-    ``recentre`` (move V along UZ by the mean height and subtract it: off unless asked).
+    ``recentre`` (move V along UZ by the mean height and subtract it: off unless asked);
+    ``cast_shadows`` (leave out of the solve the cells the current heights shadow in a picture) and
+    ``dark_fraction`` (and the cells darker than this fraction of the picture's median on the maplet:
+    shadows a THRSH T1 of 1 DN lets through with the read noise).
     """
 
     iterations: int = 10
@@ -142,6 +147,8 @@ class FindHeightsOptions:
     reregister: bool = True
     min_solved_fraction: float = 0.25
     recentre: bool = False
+    cast_shadows: bool = True
+    dark_fraction: float = 0.1
     register: RegisterOptions = field(default_factory=_default_register)
     extract: ExtractOptions = field(default_factory=_default_extract)
     solve: pc.SolveOptions = field(default_factory=pc.SolveOptions)
@@ -150,7 +157,8 @@ class FindHeightsOptions:
         if int(self.iterations) < 1:
             raise SpcUsageError(f"iterations must be >= 1, got {self.iterations}")
         self.iterations = int(self.iterations)
-        for name in ("tolerance", "condition_weight", "condition_fraction", "min_solved_fraction"):
+        for name in ("tolerance", "condition_weight", "condition_fraction", "min_solved_fraction",
+                     "dark_fraction"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value >= 0.0):
                 raise SpcUsageError(f"{name} must be a finite number >= 0, got {value}")
@@ -231,6 +239,22 @@ class FindHeightsResult:
     def change_rms(self) -> float:
         return float(self.history[-1]["change_rms"]) if self.history else math.nan
 
+    def mean_ncc(self) -> tuple[float, float]:
+        """Mean NCC of the re-rendered maplet with the extractions, (before, after), over the pictures
+        used in both (NaN when none)."""
+        both = [p for p in self.pictures if math.isfinite(p.ncc_before) and math.isfinite(p.ncc_after)]
+        if not both:
+            return math.nan, math.nan
+        return (float(np.mean([p.ncc_before for p in both])), float(np.mean([p.ncc_after for p in both])))
+
+    @property
+    def worse(self) -> bool:
+        """True when the refined maplet matches the photos worse than the starting one (mean NCC fell
+        by more than 0.005): a result not to be written unasked (map-refinement.md §2, "Known limits
+        and metrics")."""
+        before, after = self.mean_ncc()
+        return bool(self.ok and math.isfinite(before) and math.isfinite(after) and after < before - 0.005)
+
     @property
     def used_pictures(self) -> list[str]:
         return [p.name for p in self.pictures if p.used]
@@ -250,6 +274,9 @@ class FindHeightsResult:
             "valid_cells": int(np.count_nonzero(v)),
             "height_change_rms_cells": float(np.sqrt(np.mean((self.heights - self.start_heights)[v] ** 2)))
             if np.any(v) else math.nan,
+            "ncc_before": self.mean_ncc()[0],
+            "ncc_after": self.mean_ncc()[1],
+            "worse": self.worse,
             "history": list(self.history),
             "pictures": [dict(p.__dict__) for p in self.pictures],
         }
@@ -309,6 +336,10 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
         used[i] = ok and bool(np.any(ext.valid))
         obs[i] = ext.image
         val[i] = ext.valid & wm.valid
+        if opts.cast_shadows:  # cells the current heights shadow carry no slope (the model has no shadows)
+            val[i] &= ~heightfield.cast_shadows(wm.heights, wm.valid, wm.ux, wm.uy, wm.uz, s_hat)
+        if opts.dark_fraction > 0.0 and np.any(val[i]):  # shadows above THRSH T1 (noise, a dark offset)
+            val[i] &= obs[i] > opts.dark_fraction * float(np.median(obs[i][val[i]]))
     if not np.any(used):
         return _Observed(None, used, status, exts)
     pics = pc.Pictures(obs[used], val[used], suns[used], ems[used], alpha[used])
