@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from batch_world import Q_TRUTH, _camera, _direction, _grid
+from batch_world import Q_TRUTH, _camera, _direction, _grid  # noqa: F401
 from scipy.ndimage import gaussian_filter
 
 from spctool.formats.maplet import Maplet
@@ -34,6 +34,10 @@ VIEWS = [
     (25.0, 315.0, 45.0, 270.0),
     (10.0, 90.0, 30.0, 135.0),
     (15.0, 0.0, 55.0, 315.0),
+    (20.0, 180.0, 40.0, 45.0),
+    (20.0, 270.0, 40.0, 225.0),
+    (30.0, 100.0, 50.0, 10.0),
+    (12.0, 200.0, 35.0, 190.0),
 ]
 
 
@@ -70,7 +74,7 @@ def make_scene(n_pictures=4, q=20, smooth=4.0, seed=11, npx=160, views=None, amp
     terr = Terrain(seed, lam=lam, amp=amp, lam_albedo=lam_albedo)
     ux, uy, uz = frames.orient_frame(frames.normalize(np.array([0.3, 0.2, 1.0])))
     v0 = 0.2 * uz
-    xt, yt = _grid(Q_TRUTH)
+    xt, yt = _grid(max(Q_TRUTH, FACTOR * q + 10))
     truth_patch = HeightPatch(terr.h(xt, yt), TRUTH_SCALE, v0, ux, uy, uz, albedo=terr.albedo(xt, yt),
                               name="truth")
     x, y = _grid(q)
@@ -144,3 +148,11 @@ def write_workdir(root, start, views, truth=None) -> list[str]:
     write_pictlist(root / "PICTLIST.TXT", PictureList([PictureListEntry(v.name) for v in views]))
     write_lmrklist(root / "LMRKLIST.TXT", LandmarkList([name]))
     return [v.name for v in views]
+
+
+def solve_ok(args) -> bool:
+    """``find_heights`` of (maplet, views, seed) → solved?  (a picklable task for worker processes)"""
+    from spctool.stages.find_heights import FindHeightsOptions, find_heights
+
+    start, views, seed = args
+    return find_heights(start, views, FindHeightsOptions(seed=seed)).ok

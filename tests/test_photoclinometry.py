@@ -182,6 +182,16 @@ def test_cells_with_too_few_azimuths_keep_prior_and_are_flagged():
     assert np.max(np.abs(sol.t1[~right] - t1[~right])) <= 1e-3
 
 
+def test_solve3_matches_numpy():
+    rng = np.random.default_rng(9)
+    m = rng.normal(size=(50, 3, 3))
+    a = m @ m.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    b = rng.normal(size=(50, 3))
+    got = pc._solve3(a[:, 0, 0], a[:, 0, 1], a[:, 0, 2], a[:, 1, 1], a[:, 1, 2], a[:, 2, 2], *b.T)
+    np.testing.assert_allclose(got, np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-9, atol=1e-12)
+    assert np.isnan(pc._solve3(*np.zeros((9, 1)))).all()
+
+
 def test_options_refuse_bad_values():
     with pytest.raises(SpcUsageError):
         pc.SolveOptions(photometry="hapke")

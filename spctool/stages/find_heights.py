@@ -113,7 +113,9 @@ class WorkingMaplet:
 
 
 def _default_register() -> RegisterOptions:
-    return RegisterOptions(steps=(("align", 1),))
+    # one full-resolution step and its converged stage, to 0.02 px (the maplet changes between passes,
+    # so register's 0.005 px would be spent on a target that moves)
+    return RegisterOptions(steps=(("align", 1),), converge_tol=0.02, converge_max=4)
 
 
 def _default_extract() -> ExtractOptions:

@@ -29,9 +29,10 @@ counts in reflectance units, whatever its exposure), with the analytic Jacobian 
 ∂P/∂a = λR, ∂P/∂t_i = λa (R_μ₀ ∂μ₀/∂t_i + R_μ ∂μ/∂t_i), R_μ₀ = c₁ + c₂ μ/(μ₀ + μ)²,
 R_μ = −c₂ μ₀/(μ₀ + μ)², ∂μ₀/∂t_i = (−s_i − μ₀ t_i/|n|)/|n| (the chain through
 ∂n̂/∂n = (I − n̂n̂ᵀ)/|n| of map-refinement.md §2, written out).  The 3×3 normal equations of every
-cell are formed by one ``einsum`` and solved together (``numpy.linalg.solve`` on a stack), damped
-Levenberg–Marquardt style: (A + d·diag(A) + d·ε I) δ = b, d = ``damping`` (GIANT: 5e-3).  Each step's
-slope change is capped at ``max_step`` per cell.
+cell are formed as six sums over the pictures and solved together by the adjugate, damped
+Levenberg–Marquardt style: (A + d·diag(A) + d·ε·max diag(A)) δ = b, d = ``damping`` (GIANT:
+5e-3).  Each step's slope change is capped at ``max_step`` per cell; the iterations stop early when
+no cell moves by more than 1e-9.
 
 A cell is **solvable** when at least ``min_azimuths`` (3) of the pictures lit and valid on it have
 Sun azimuths (in the maplet plane) at least ``azimuth_separation_deg`` apart (S16; the pictures are
@@ -354,6 +355,25 @@ def residual_rms(t1, t2, albedo, pictures: Pictures, lam, mask=None, options: So
         return np.where(n > 0, np.sqrt(ss / np.maximum(n, 1)), np.nan)
 
 
+def _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2) -> np.ndarray:
+    """Solutions (M, 3) of M symmetric 3×3 systems by the adjugate (Cramer's rule), vectorised; NaN
+    rows where a matrix is singular."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(det != 0.0, 1.0 / det, np.nan)
+        return np.stack([
+            (c00 * b0 + c01 * b1 + c02 * b2) * inv,
+            (c01 * b0 + c11 * b1 + c12 * b2) * inv,
+            (c02 * b0 + c12 * b1 + c22 * b2) * inv,
+        ], axis=1)
+
+
 def solve_cells(t1, t2, albedo, pictures: Pictures, lam, cell_mask=None,
                 options: SolveOptions | None = None) -> CellSolution:
     """The per-cell Gauss–Newton solve of (t₁, t₂, a) from the pictures with scales ``lam`` (K,),
@@ -382,26 +402,30 @@ def solve_cells(t1, t2, albedo, pictures: Pictures, lam, cell_mask=None,
     ov = obs_valid.reshape(len(pictures), -1)[:, idx]
     safe_lam = np.where(good_pic, lam, 1.0)
     w = np.where(good_pic, 1.0 / (safe_lam * safe_lam), 0.0)[:, None]  # (K, 1)
-    eye = np.eye(3)
     for _ in range(opts.iterations):
         p, jac, lit = jacobian(x[:, 0], x[:, 1], x[:, 2], pictures, safe_lam, opts)  # (K, M), (K, M, 3)
-        use = ov & lit
-        wk = np.where(use, w, 0.0)
-        r = np.where(use, obs - p, 0.0)
-        a_mat = np.einsum("km,kmi,kmj->mij", wk, jac, jac)
-        b_vec = np.einsum("km,kmi,km->mi", wk, jac, r)
-        diag = np.einsum("mii->mi", a_mat)
-        scale = np.maximum(diag.max(axis=1), 1e-300)
-        a_mat = a_mat + opts.damping * (diag[:, :, None] * eye + 1e-6 * scale[:, None, None] * eye)
-        ok = np.all(np.isfinite(a_mat), axis=(1, 2)) & (scale > 1e-300)
-        a_mat[~ok] = eye
-        b_vec[~ok] = 0.0
-        step = np.linalg.solve(a_mat, b_vec[..., None])[..., 0]
+        wk = np.where(ov & lit, w, 0.0)
+        wr = wk * (obs - p)
+        j0, j1, j2 = jac[..., 0], jac[..., 1], jac[..., 2]
+        wj0, wj1, wj2 = wk * j0, wk * j1, wk * j2
+        # the 3x3 normal equations of every cell (symmetric: six sums over the pictures)
+        a00, a01, a02 = (wj0 * j0).sum(0), (wj0 * j1).sum(0), (wj0 * j2).sum(0)
+        a11, a12, a22 = (wj1 * j1).sum(0), (wj1 * j2).sum(0), (wj2 * j2).sum(0)
+        b0, b1, b2 = (j0 * wr).sum(0), (j1 * wr).sum(0), (j2 * wr).sum(0)
+        scale = np.maximum(np.maximum(a00, a11), a22)
+        floor = 1e-6 * scale
+        a00 = a00 + opts.damping * (a00 + floor)
+        a11 = a11 + opts.damping * (a11 + floor)
+        a22 = a22 + opts.damping * (a22 + floor)
+        step = _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        step[~(np.isfinite(step).all(axis=1) & (scale > 0.0))] = 0.0
         slope_step = np.hypot(step[:, 0], step[:, 1])
         shrink = np.where(slope_step > opts.max_step, opts.max_step / np.maximum(slope_step, 1e-300), 1.0)
         step *= shrink[:, None]
         x = x + step
         x[:, 2] = np.clip(x[:, 2], opts.albedo_min, opts.albedo_max)
+        if not np.any(np.abs(step) > 1e-9):  # every cell converged
+            break
 
     finite = np.all(np.isfinite(x), axis=1)
     steep = np.hypot(x[:, 0], x[:, 1]) > opts.max_slope
