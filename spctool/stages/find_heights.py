@@ -118,6 +118,11 @@ def _default_register() -> RegisterOptions:
     return RegisterOptions(steps=(("align", 1),), converge_tol=0.02, converge_max=4)
 
 
+def _default_acquire() -> RegisterOptions:
+    steps = (("align", 4), ("align", 2), ("align", 1))
+    return RegisterOptions(steps=steps, converge_tol=0.02, converge_max=4)
+
+
 def _default_extract() -> ExtractOptions:
     return ExtractOptions(criteria="lithos_standard")
 
@@ -131,7 +136,9 @@ class FindHeightsOptions:
     the valid cells, map-refinement.md §2 "Pitfalls"), ``seed`` of their draw; ``keep_plane``;
     ``refit_lambda`` (λ refitted every pass; False: fitted on the starting map only);
     ``reregister`` and ``register`` (the registration options; default one spacing-1 step with the
-    converged stage, maplet space); ``extract`` (extraction options; default LITHOS removal criteria);
+    converged stage, maplet space), ``acquire`` (those of a picture without an a-priori pixel:
+    spacings 4, 2, 1 from the projection of V); ``extract`` (extraction options; default LITHOS
+    removal criteria);
     ``solve`` (:class:`~spctool.stages.photoclinometry.SolveOptions`); ``min_solved_fraction``;
     ``recentre`` (move V along UZ by the mean height and subtract it: off unless asked);
     ``cast_shadows`` (leave out of the solve the cells the current heights shadow in a picture) and
@@ -152,6 +159,7 @@ class FindHeightsOptions:
     cast_shadows: bool = True
     dark_fraction: float = 0.1
     register: RegisterOptions = field(default_factory=_default_register)
+    acquire: RegisterOptions = field(default_factory=_default_acquire)
     extract: ExtractOptions = field(default_factory=_default_extract)
     solve: pc.SolveOptions = field(default_factory=pc.SolveOptions)
 
@@ -171,9 +179,10 @@ class FindHeightsOptions:
             raise SpcUsageError("condition_fraction and min_solved_fraction must lie in [0, 1]")
 
     def as_dict(self) -> dict:
-        nested = ("register", "extract", "solve")
+        nested = ("register", "acquire", "extract", "solve")
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in nested}
         out["register"] = self.register.as_dict()
+        out["acquire"] = self.acquire.as_dict()
         out["extract"] = self.extract.as_dict()
         out["solve"] = self.solve.as_dict()
         return out
@@ -313,9 +322,11 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
     for i, view in enumerate(views):
         st_reg = "ok"
         if do_register:
-            start = pixels[i:i + 1] if np.all(np.isfinite(pixels[i])) else None
-            res = register(view.photo, view.camera, view.sun, [wm], view.thresholds, opts.register,
-                           apriori=start, names=[wm.name or "maplet"])
+            known = bool(np.all(np.isfinite(pixels[i])))
+            # no pixel yet (the projection of V with the SUM pose): acquire at coarser spacings first
+            ropts = opts.register if known else opts.acquire
+            res = register(view.photo, view.camera, view.sun, [wm], view.thresholds, ropts,
+                           apriori=pixels[i:i + 1] if known else None, names=[wm.name or "maplet"])
             if res.status[0] == "ok":
                 pixels[i] = res.measured[0]
                 reg_corr[i] = float(res.correlation[0])
