@@ -11,7 +11,9 @@
    4 cells with a uniform albedo.
 
 Prints, per maplet, the height rms against the truth (cells) before and after ``lithos``, the gain,
-the albedo correlation with the truth and the mean NCC before/after.  Usage::
+the albedo correlation with the truth and the mean NCC before/after; on the independent world also
+the two-pass navigation (``navigate``) of every picture against the starting and the refined maplets,
+rms distance of the registered landmarks to their true pixels.  Usage::
 
     python benchmarks/validate_lithos.py OUTDIR            # both worlds (~5 min on a quiet machine)
     python benchmarks/validate_lithos.py OUTDIR independent
@@ -124,7 +126,40 @@ def independent(out: Path):
         m.heights = np.where(m.valid, gaussian_filter(m.heights, 4.0, mode="nearest"), 0.0)
         m.albedo = np.where(m.valid, 1.0, 0.0)
         write_map(p, m)
+    import shutil
+
+    shutil.copytree(root, out / "independent-start", dirs_exist_ok=True)
     _lithos(root, "--photometry", "lambert")
+    for r in (out / "independent-start", root):
+        _navigation(r)
+
+
+def _navigation(root: Path):
+    """Two-pass navigation of every picture (``navigate``, Lambert prediction) against the maplets of
+    ``root``; rms and max of the registered landmarks' distance to their true pixels (TRUTH.json)."""
+    import io
+    from contextlib import redirect_stdout
+
+    truth = json.loads((root / "TRUTH.json").read_text())
+    errs = []
+    for pic in truth["pictures"]:
+        buf = io.StringIO()
+        with redirect_stdout(buf):
+            try:
+                _cli("-q", "-C", root, "navigate", pic["name"], "--json", "--photometry", "lambert")
+            except Exception:  # noqa: BLE001 - a picture whose pose fails still prints its table
+                pass
+        text = buf.getvalue()
+        if not text.strip():
+            continue
+        for row in json.loads(text)["landmarks"]:
+            if row["status"] == "ok" and row["name"] in pic["pixels"]:
+                t = pic["pixels"][row["name"]]
+                errs.append(float(np.hypot(row["sample"] - t[0], row["line"] - t[1])))
+    e = np.array(errs)
+    rms = float(np.sqrt(np.mean(e * e)))
+    print(f"{root.name:20s} navigate two-pass: {e.size} landmarks registered, rms {rms:.4f} px, "
+          f"max {e.max():.4f} px against the true pixels", flush=True)
 
 
 def main(argv=None) -> int:
