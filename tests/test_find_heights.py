@@ -60,3 +60,27 @@ def test_no_pictures():
     start, _, _ = make_scene(n_pictures=0)
     res = find_heights(start, [], FindHeightsOptions())
     assert res.status == "unsolvable" and "no pictures" in res.reason
+
+
+def test_recentre_moves_v_by_the_mean_height(scene):
+    start, _, views = scene
+    res = find_heights(start, views, FindHeightsOptions(recentre=True, iterations=2))
+    v = res.valid
+    assert abs(float(res.heights[v].mean())) < 1e-9
+    plain = find_heights(start, views, FindHeightsOptions(iterations=2))
+    mean_h = float(plain.heights[v].mean())
+    moved = np.asarray(start.v) + mean_h * start.scale * np.asarray(start.uz)
+    np.testing.assert_allclose(res.v, moved, atol=1e-12)
+    np.testing.assert_allclose(res.heights[v], plain.heights[v] - mean_h, atol=1e-9)
+
+
+def test_worse_when_the_mean_ncc_falls(scene):
+    from dataclasses import replace
+
+    start, _, views = scene
+    res = find_heights(start, views, FindHeightsOptions(iterations=1))
+    assert not res.worse
+    b, a = res.mean_ncc()
+    assert a > b
+    res.pictures = [replace(p, ncc_after=p.ncc_before - 0.01) for p in res.pictures]
+    assert res.worse and res.summary()["worse"]
