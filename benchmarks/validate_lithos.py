@@ -3,9 +3,10 @@
 
 1. **simulate** (spctool's own renderer): the example spec with three maplets of 1 m cells,
    ``[maplets] write_truth = true``, ``[terrain.albedo] contrast = 0.3`` and five pictures with the Sun
-   from N, E, S, W and overhead; the starting maplets are made by ``make-maplets --keep-frame`` from
-   the world's shape model (far coarser than the truth).  The truth maplet is the truth patch
-   (``TRUTHFILES/``, ``truth_factor`` times finer) sampled at the maplet's nodes.
+   from N, E, S, W and overhead; every picture is navigated first (``navigate --output``: its pose
+   solved against the landmarks as simulated), then the starting maplets are made by ``make-maplets
+   --keep-frame`` from the world's shape model (far coarser than the truth).  The truth maplet is
+   the truth patch (``TRUTHFILES/``, ``truth_factor`` times finer) sampled at the maplet's nodes.
 2. **independent** (trimesh + Embree, :mod:`spctool.sim.independent`, Lambert, faceted truth): the
    maplets the world writes are the truth; the starting maplets are them smoothed by a Gaussian of
    4 cells with a uniform albedo.
@@ -107,6 +108,12 @@ def simulated(out: Path):
     _spec(out / "lithos-validation.toml")
     _cli("-q", "simulate", out / "lithos-validation.toml", root)
     names = sorted(p.stem for p in (root / "MAPFILES").glob("*.MAP"))
+    # SPC's order: the pictures are navigated first (poses solved against the landmarks as simulated),
+    # then the maplets are remade from the shape and refined from the pictures at the solved poses
+    for sum_path in sorted((root / "SUMFILES").glob("*.SUM")):
+        new = f"SUMFILES/{sum_path.stem}.SUM.solved"
+        _cli("-q", "-C", root, "navigate", sum_path.stem, "--output", new, "-o", "/dev/null")
+        (root / new).replace(sum_path)
     _cli("-q", "-C", root, "make-maplets", *names, "--keep-frame", "--overwrite")
     _lithos(root)
 

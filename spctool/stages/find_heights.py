@@ -119,8 +119,9 @@ def _default_register() -> RegisterOptions:
 
 
 def _default_acquire() -> RegisterOptions:
-    steps = (("align", 4), ("align", 2), ("align", 1))
-    return RegisterOptions(steps=steps, converge_tol=0.02, converge_max=4)
+    # coarser spacings (4, 2, 1) lock a coarse starting maplet onto wrong peaks several pixels away
+    # (simulated world of benchmarks/validate_lithos.py: height rms 0.25 instead of 0.11 cells)
+    return _default_register()
 
 
 def _default_extract() -> ExtractOptions:
@@ -136,8 +137,8 @@ class FindHeightsOptions:
     the valid cells, map-refinement.md §2 "Pitfalls"), ``seed`` of their draw; ``keep_plane``;
     ``refit_lambda`` (λ refitted every pass; False: fitted on the starting map only);
     ``reregister`` and ``register`` (the registration options; default one spacing-1 step with the
-    converged stage, maplet space), ``acquire`` (those of a picture without an a-priori pixel:
-    spacings 4, 2, 1 from the projection of V); ``extract`` (extraction options; default LITHOS
+    converged stage, maplet space), ``acquire`` (those of a picture without an a-priori pixel, from
+    the projection of V: by default the same); ``extract`` (extraction options; default LITHOS
     removal criteria);
     ``solve`` (:class:`~spctool.stages.photoclinometry.SolveOptions`); ``min_solved_fraction``;
     ``recentre`` (move V along UZ by the mean height and subtract it: off unless asked);
@@ -323,7 +324,7 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
         st_reg = "ok"
         if do_register:
             known = bool(np.all(np.isfinite(pixels[i])))
-            # no pixel yet (the projection of V with the SUM pose): acquire at coarser spacings first
+            # no pixel yet: from the projection of V with the SUM pose (``acquire``)
             ropts = opts.register if known else opts.acquire
             res = register(view.photo, view.camera, view.sun, [wm], view.thresholds, ropts,
                            apriori=pixels[i:i + 1] if known else None, names=[wm.name or "maplet"])
