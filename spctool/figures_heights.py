@@ -36,17 +36,32 @@ def _residuals(block):
     return (obs - pred) / scale[:, None, None], ok
 
 
+def _tile(values, valid, lo, hi) -> np.ndarray:
+    """RGB of ``values`` stretched on the fixed range [lo, hi], no-data cells in NO_DATA."""
+    ok = np.asarray(valid, bool) & np.isfinite(values)
+    rgb = figures.grey_rgb(figures.stretch(values, lo, hi, valid=ok))
+    rgb[~ok] = figures.NO_DATA
+    return rgb
+
+
 def maplet_sheet(result, title: str = "") -> figures.Figure:
-    """Heights, albedo and per-picture residual maps before and after (module docstring)."""
+    """Heights, albedo and per-picture residual maps before and after (module docstring).  Heights
+    before/after share one grey scale, as do albedo before/after and each picture's two residual
+    maps (±the 99th percentile of |residual| before), so what flattens is seen to flatten."""
     v = result.valid
     h0, h1 = result.start_heights, result.heights
+    hlo, hhi = (float(np.min(np.r_[h0[v], h1[v]])), float(np.max(np.r_[h0[v], h1[v]]))) if v.any() else (0, 1)
+    a0, a1 = result.start_albedo, result.albedo
+    alo, ahi = (float(np.min(np.r_[a0[v], a1[v]])), float(np.max(np.r_[a0[v], a1[v]]))) if v.any() else (0, 2)
+    if not ahi > alo:
+        alo, ahi = alo - 0.1, ahi + 0.1
     tiles = [
-        (f"heights before (cells, {fmt(float(np.ptp(h0[v])) if v.any() else 0.0)} p-p)", h0, v),
-        (f"heights after ({fmt(float(np.ptp(h1[v])) if v.any() else 0.0)} p-p)", h1, v),
-        (f"change (rms {fmt(result.summary()['height_change_rms_cells'])})", h1 - h0, v),
-        ("albedo before", result.start_albedo, v),
-        ("albedo after", result.albedo, v),
-        (f"flagged: {int(result.flagged.sum())} cells", result.flagged.astype(float), v),
+        ("heights before", _tile(h0, v, hlo, hhi)),
+        ("heights after", _tile(h1, v, hlo, hhi)),
+        (f"change, rms {fmt(result.summary()['height_change_rms_cells'])}", h1 - h0, v),
+        ("albedo before", _tile(a0, v, alo, ahi)),
+        ("albedo after", _tile(a1, v, alo, ahi)),
+        (f"flagged: {int(result.flagged.sum())} cells", _tile(result.flagged.astype(float), v, 0.0, 1.0)),
     ]
     before, after = result.images.get("before"), result.images.get("after")
     if before is not None and after is not None:
@@ -54,13 +69,16 @@ def maplet_sheet(result, title: str = "") -> figures.Figure:
         ra, oka = _residuals(after)
         names_b, names_a = _used_names(result, "before"), _used_names(result, "after")
         for name in dict.fromkeys(names_b + names_a):
-            if name in names_b:
-                k = names_b.index(name)
-                tiles.append((f"{name} residual before", rb[k], okb[k]))
-            if name in names_a:
-                k = names_a.index(name)
-                tiles.append((f"{name} residual after", ra[k], oka[k]))
-    head = title or f"{result.name}: {result.status}, {result.iterations} iteration(s)"
+            kb = names_b.index(name) if name in names_b else None
+            ka = names_a.index(name) if name in names_a else None
+            ref = rb[kb][okb[kb]] if kb is not None and okb[kb].any() else np.zeros(1)
+            r = float(np.percentile(np.abs(ref), 99)) or 1.0
+            for k, res, ok, when in ((kb, rb, okb, "before"), (ka, ra, oka, "after")):
+                if k is not None:
+                    rms = float(np.sqrt(np.mean(res[k][ok[k]] ** 2))) if ok[k].any() else float("nan")
+                    tiles.append((f"{name[-6:]} {when} {fmt(rms, 2)}", _tile(res[k], ok[k], -r, r)))
+    head = title or (f"{result.name}: {result.status}, {result.iterations} iteration(s); heights "
+                     f"{fmt(hlo)}..{fmt(hhi)} cells; residuals (photo - maplet)/median, rms")
     return figures.contact_sheet(tiles, title=head, columns=6)
 
 
@@ -76,7 +94,7 @@ def rerender_sheet(result, title: str = "") -> figures.Figure:
             p = by_name[name]
             ncc = p.ncc_before if which == "before" else p.ncc_after
             obs, pred = block["observed"][k], block["predicted"][k]
-            tiles.append((f"{name} photo ({which})", obs, obs > 0))
+            tiles.append((f"{name[-6:]} photo, {which}", obs, obs > 0))
             tiles.append((f"maplet {which}: NCC {fmt(ncc)}", pred, pred > 0))
     head = title or f"{result.name}: extraction | re-rendered maplet"
     return figures.contact_sheet(tiles, title=head, columns=4)
