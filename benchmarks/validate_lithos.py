@@ -7,9 +7,10 @@
    solved against the landmarks as simulated), then the starting maplets are made by ``make-maplets
    --keep-frame`` from the world's shape model (far coarser than the truth).  The truth maplet is
    the truth patch (``TRUTHFILES/``, ``truth_factor`` times finer) sampled at the maplet's nodes.
-2. **independent** (trimesh + Embree, :mod:`spctool.sim.independent`, Lambert, faceted truth): the
-   maplets the world writes are the truth; the starting maplets are them smoothed by a Gaussian of
-   4 cells with a uniform albedo.
+2. **independent** (trimesh + Embree, :mod:`spctool.sim.independent`, Lambert, faceted truth, six
+   pictures with 3 px a-priori errors): every picture is navigated first against the maplets the world
+   writes, which are the truth; the starting maplets are them smoothed by a Gaussian of 4 cells with
+   a uniform albedo.
 
 Prints, per maplet, the height rms against the truth (cells) before and after ``lithos``, the gain,
 the albedo correlation with the truth and the mean NCC before/after; on the independent world also
@@ -68,6 +69,15 @@ def _spec(path: Path):
     path.write_text("\n".join(lines) + "\n" + pics)
 
 
+def _navigate_first(root: Path, *extra):
+    """Every picture's pose solved by ``navigate`` against the world's own maplets (SUM rewritten)."""
+    for sum_path in sorted((root / "SUMFILES").glob("*.SUM")):
+        new = f"SUMFILES/{sum_path.stem}.SUM.solved"
+        _cli("-q", "-C", root, "navigate", sum_path.stem, "--output", new, "-o", "/dev/null", *extra)
+        if (root / new).exists():
+            (root / new).replace(sum_path)
+
+
 def _truth_on_grid(m, t):
     f = round(m.scale / t.scale)
     idx = t.qsz + f * (np.arange(2 * m.qsz + 1) - m.qsz)
@@ -110,10 +120,7 @@ def simulated(out: Path):
     names = sorted(p.stem for p in (root / "MAPFILES").glob("*.MAP"))
     # SPC's order: the pictures are navigated first (poses solved against the landmarks as simulated),
     # then the maplets are remade from the shape and refined from the pictures at the solved poses
-    for sum_path in sorted((root / "SUMFILES").glob("*.SUM")):
-        new = f"SUMFILES/{sum_path.stem}.SUM.solved"
-        _cli("-q", "-C", root, "navigate", sum_path.stem, "--output", new, "-o", "/dev/null")
-        (root / new).replace(sum_path)
+    _navigate_first(root)
     _cli("-q", "-C", root, "make-maplets", *names, "--keep-frame", "--overwrite")
     _lithos(root)
 
@@ -126,6 +133,7 @@ def independent(out: Path):
 
     root = out / "independent"
     build_world(root, IndependentSpec(n_side=2, apriori_px=(3.0,) * 6))
+    _navigate_first(root, "--photometry", "lambert")
     (root / "TRUTHFILES").mkdir(exist_ok=True)
     for p in sorted((root / "MAPFILES").glob("*.MAP")):
         m = read_map(p)
@@ -154,7 +162,7 @@ def _navigation(root: Path):
         with redirect_stdout(buf):
             try:
                 _cli("-q", "-C", root, "navigate", pic["name"], "--json", "--photometry", "lambert")
-            except Exception:  # noqa: BLE001 - a picture whose pose fails still prints its table
+            except (Exception, SystemExit):  # noqa: BLE001 - a failed pose still prints its table
                 pass
         text = buf.getvalue()
         if not text.strip():
