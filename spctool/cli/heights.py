@@ -24,7 +24,7 @@ import numpy as np
 
 from spctool.cli import options
 from spctool.cli.common import Context, emit_table, pass_context
-from spctool.errors import SpcFormatError, SpcResultError
+from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
 
 
 def _rows_of(ctx: Context, lmk):
@@ -147,6 +147,9 @@ def _row(name, result, n_pictures, wrote):
               help="Fit each picture's brightness scale on the starting map only, not every iteration.")
 @click.option("--no-register", is_flag=True,
               help="Extract at the LMK PICTURES pixels; do not re-register on the updated heights.")
+@click.option("--acquire-spacings", default="1", show_default=True, metavar="LIST",
+              help="Spacings (e.g. 4,2,1) of the first registration of a picture without a PICTURES pixel "
+                   "(from the projection of V with the SUM pose); 1 suits navigated pictures.")
 @click.option("--min-azimuths", type=click.IntRange(min=1), default=3, show_default=True, metavar="N",
               help="A cell needs pictures with at least N distinct Sun azimuths.")
 @click.option("--azimuth-separation", type=click.FloatRange(min=0.0), default=20.0, show_default=True,
@@ -205,8 +208,17 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     from spctool.formats.maplet import write_map
     from spctool.stages.find_heights import FindHeightsOptions, find_heights, maplet_with
     from spctool.stages.photoclinometry import SolveOptions
+    from spctool.stages.registrar import RegisterOptions
 
+    try:
+        spacings = tuple(int(t) for t in kw["acquire_spacings"].replace(" ", ",").split(",") if t)
+    except ValueError:
+        spacings = ()
+    if not spacings or min(spacings) < 1:
+        raise SpcUsageError(f"--acquire-spacings expects spacings like 4,2,1, got {kw['acquire_spacings']!r}")
+    acquire = RegisterOptions(steps=tuple(("align", n) for n in spacings), converge_tol=0.02, converge_max=4)
     opts = FindHeightsOptions(
+        acquire=acquire,
         iterations=kw["iterations"],
         tolerance=kw["tolerance"],
         condition_weight=kw["weight"],
