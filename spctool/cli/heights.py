@@ -79,32 +79,6 @@ def _views(ctx: Context, lmk, kw):
     return views, skipped
 
 
-def _updated_lmk(lmk, result):
-    """The LMK with PICTURES updated from ``result`` (used: last centre, no flag; removed: '*')."""
-    from copy import copy
-
-    from spctool.formats.landmark import LandmarkPicture
-
-    out = copy(lmk)
-    by_name = {p.name: p for p in result.pictures}
-    rows = []
-    for row in lmk.pictures:
-        p = by_name.get(row.name)
-        if p is None:
-            rows.append(row)
-        elif p.used:
-            rows.append(LandmarkPicture(row.name, p.pixel[0], p.pixel[1], ""))
-        else:
-            rows.append(LandmarkPicture(row.name, row.sample, row.line, "*"))
-    listed = {row.name for row in lmk.pictures}
-    rows += [LandmarkPicture(p.name, p.pixel[0], p.pixel[1], "" if p.used else "*")
-             for p in result.pictures if p.name not in listed]
-    out.pictures = rows
-    if not np.array_equal(np.asarray(result.v, float), np.asarray(lmk.vlm, float)):
-        out.vlm = np.asarray(result.v, dtype=np.float64)
-    return out
-
-
 def _row(name, result, n_pictures, wrote):
     s = result.summary() if result is not None else {}
     used = [p for p in (result.pictures if result is not None else []) if p.used]
@@ -206,7 +180,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     """
     from spctool.formats.landmark import write_lmk
     from spctool.formats.maplet import write_map
-    from spctool.stages.find_heights import FindHeightsOptions, find_heights, maplet_with
+    from spctool.stages.find_heights import FindHeightsOptions, find_heights, landmark_with, maplet_with
     from spctool.stages.photoclinometry import SolveOptions
     from spctool.stages.registrar import RegisterOptions
 
@@ -250,7 +224,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
         elif not kw["dry_run"]:
             map_path = ctx.wd.map_path(lmk.name)
             write_map(map_path, maplet_with(maplet, result), backup=True)
-            write_lmk(ctx.wd.lmk_path(lmk.name), _updated_lmk(lmk, result), backup=True)
+            write_lmk(ctx.wd.lmk_path(lmk.name), landmark_with(lmk, result), backup=True)
             wrote = True
             ctx.info(f"wrote {map_path} and {ctx.wd.lmk_path(lmk.name)}")
         if kw["figures_dir"] and result.ok:

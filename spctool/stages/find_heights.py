@@ -60,6 +60,7 @@ __all__ = [
     "PictureView",
     "WorkingMaplet",
     "find_heights",
+    "landmark_with",
     "maplet_with",
 ]
 
@@ -529,3 +530,31 @@ def maplet_with(maplet, result: FindHeightsResult):
         m.v = np.asarray(result.v, dtype=np.float64).copy()
     return m
 
+
+def landmark_with(lmk, result: FindHeightsResult):
+    """A copy of the landmark ``lmk`` (:class:`~spctool.formats.landmark.Landmark`) with its PICTURES
+    updated from ``result``: a picture used gets its last registered centre and no flag, a picture
+    the extraction removed keeps its row flagged ``*`` (SPC: picture excluded), a picture not in
+    PICTURES is added; the VLM follows the result's centre (moved only by ``recentre``)."""
+    from copy import copy
+
+    from spctool.formats.landmark import LandmarkPicture
+
+    out = copy(lmk)
+    by_name = {p.name: p for p in result.pictures}
+    rows = []
+    for row in lmk.pictures:
+        p = by_name.get(row.name)
+        if p is None:
+            rows.append(row)
+        elif p.used:
+            rows.append(LandmarkPicture(row.name, p.pixel[0], p.pixel[1], ""))
+        else:
+            rows.append(LandmarkPicture(row.name, row.sample, row.line, "*"))
+    listed = {row.name for row in lmk.pictures}
+    rows += [LandmarkPicture(p.name, p.pixel[0], p.pixel[1], "" if p.used else "*")
+             for p in result.pictures if p.name not in listed]
+    out.pictures = rows
+    if not np.array_equal(np.asarray(result.v, float), np.asarray(lmk.vlm, float)):
+        out.vlm = np.asarray(result.v, dtype=np.float64)
+    return out
