@@ -32,18 +32,22 @@ def _biased(pristine, dest: Path) -> dict:
     """A copy whose LMK VLMs (and MAP V) are off by 3 cm (1σ per axis), SIGMA_LMK saying so."""
     root, truth = pristine
     shutil.copytree(root, dest)
-    rng = np.random.default_rng(5)
-    for name in sorted(truth):
-        p = dest / "LMKFILES" / f"{name}.LMK"
+    _move_landmarks(dest, sorted(truth), np.random.default_rng(5))
+    return truth
+
+
+def _move_landmarks(root: Path, names, rng) -> None:
+    """Each LMK VLM and its MAP's V moved by ERR_KM (1σ per axis), the LMK's SIGMA_LMK saying so."""
+    for name in names:
+        p = root / "LMKFILES" / f"{name}.LMK"
         lmk = read_lmk(p)
         lmk = dataclasses.replace(
             lmk, vlm=lmk.vlm + rng.normal(size=3) * ERR_KM, sigma_lmk=np.full(3, ERR_KM)
         )
         write_lmk(p, lmk)
-        m = read_map(dest / "MAPFILES" / f"{name}.MAP")
+        m = read_map(root / "MAPFILES" / f"{name}.MAP")
         m.v = lmk.vlm
-        write_map(dest / "MAPFILES" / f"{name}.MAP", m)
-    return truth
+        write_map(root / "MAPFILES" / f"{name}.MAP", m)
 
 
 def _fortran_d(text: str) -> float:
@@ -176,17 +180,7 @@ def test_rounds_on_the_independent_world_refine_the_map(run_cli, tmp_path):
     root = tmp_path / "iw"
     doc = build_world(root, IndependentSpec(apriori_px=(6.0, 8.0, 6.0, 10.0, 7.0, 9.0, 6.0, 8.0)))
     truth = {n: np.array(v) for n, v in doc["landmarks"].items()}
-    rng = np.random.default_rng(7)
-    for n in sorted(truth):
-        p = root / "LMKFILES" / f"{n}.LMK"
-        lmk = read_lmk(p)
-        lmk = dataclasses.replace(
-            lmk, vlm=lmk.vlm + rng.normal(size=3) * ERR_KM, sigma_lmk=np.full(3, ERR_KM)
-        )
-        write_lmk(p, lmk)
-        m = read_map(root / "MAPFILES" / f"{n}.MAP")
-        m.v = lmk.vlm
-        write_map(root / "MAPFILES" / f"{n}.MAP", m)
+    _move_landmarks(root, sorted(truth), np.random.default_rng(7))
     for p in (root / "SUMFILES").glob("*.SUM"):  # the a-priori position error is 2 cm: say so
         write_sum(p, dataclasses.replace(read_sum(p), sigma_vso=np.full(3, doc["spec"]["position_km"])))
     e0 = np.array([read_lmk(root / "LMKFILES" / f"{n}.LMK").vlm - v for n, v in truth.items()])
