@@ -72,17 +72,36 @@ fingerprints), :mod:`spctool.batch.picture` (one picture: the stages, its output
 :mod:`spctool.batch.driver` (the run over a PICTLIST: local processes, a kept pool, a Dask cluster).
 """
 
-from spctool.batch.driver import BatchResult, WorkerPool, batch_pictures, run_batch, start_method
-from spctool.batch.inputs import BatchOptions, SharedData, inputs_stamp
-from spctool.batch.picture import (
-    PictureOutcome,
-    PictureSummary,
-    done_summary,
-    navigate_picture,
-    output_paths,
-    process_picture,
-    write_outcome,
-)
+#: where each public name lives; imported on first use (PEP 562), so that ``spctool.batch.refine``
+#: (``spctool geometry``) does not pay for the drivers, numba kernels and shape code of a batch
+_LAZY = {
+    "BatchResult": "driver",
+    "WorkerPool": "driver",
+    "batch_pictures": "driver",
+    "run_batch": "driver",
+    "start_method": "driver",
+    "BatchOptions": "inputs",
+    "SharedData": "inputs",
+    "inputs_stamp": "inputs",
+    "PictureOutcome": "picture",
+    "PictureSummary": "picture",
+    "done_summary": "picture",
+    "navigate_picture": "picture",
+    "output_paths": "picture",
+    "process_picture": "picture",
+    "write_outcome": "picture",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(f"spctool.batch.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'spctool.batch' has no attribute {name!r}")
+
 
 __all__ = [
     "BatchOptions",

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from spctool import __version__
+from spctool.batch import layout
 from spctool.errors import SpcError, SpcFormatError, SpcUsageError
 from spctool.formats import guard
 from spctool.formats.workdir import WorkDir
@@ -32,7 +33,7 @@ from spctool.stages.register import RegisterOptions
 
 MARKER_FORMAT = "spctool-batch-done/2"  # /2: input fingerprints cover every input (issue #19)
 SUMMARY_FORMAT = "spctool-batch/1"
-TABLES_DIR = "TABLES"
+TABLES_DIR = layout.TABLES_DIR
 SUMMARY_STEM = "BATCH_SUMMARY"
 #: status words of a picture; the text after ``": "`` is the one-line reason
 STATUSES = ("ok", "no-pose", "failed")

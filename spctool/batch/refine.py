@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spctool.batch.inputs import TABLES_DIR
+from spctool.batch.layout import TABLES_DIR
 from spctool.errors import SpcFormatError, SpcUsageError
 from spctool.formats import atomic
 from spctool.formats.workdir import WorkDir

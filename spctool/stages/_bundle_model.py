@@ -14,7 +14,6 @@ from dataclasses import replace
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from spctool.errors import SpcResultError, SpcUsageError
 from spctool.geometry.frames import rot_from_rotvec, rotvec_from_rot, skew
@@ -413,7 +412,7 @@ class _Bundle:
             red = ReducedSystem.assemble(self.pairs(k_idx), pj, lv, a, b, dinv)
         except ReducedSystemError as exc:
             raise BundleError(str(exc)) from None
-        gk = np.einsum("kij,kjl,kl->ki", b, dinv[lv], gd[lv])  # G_k g_V
+        gk = np.einsum("kij,kj->ki", b, np.einsum("kjl,kl->kj", dinv[lv], gd[lv]))  # G_k g_V = B_k (D⁻¹ g_V)
         rhs = ga.reshape(-1) - sum_blocks(gk, pj, self.n_pic).reshape(-1)
         return red, dinv, rhs
 
@@ -451,6 +450,8 @@ def _solve_spd(s_mat, rhs) -> np.ndarray:
             ) from None
         y = np.linalg.solve(c, rhs)
         return np.linalg.solve(c.T, y)
+    import scipy.sparse.linalg as spla  # camera terms only: not paid by the plain bundle
+
     sym = 0.5 * (s_mat + s_mat.T)
     diag = sym.diagonal()
     if np.any(diag <= 0):
