@@ -42,6 +42,7 @@ def _spacings(text: str) -> tuple:
     help="Start from the projection of each landmark with the SUM pose, not the table pixels.",
 )
 @options.sum_option
+@options.any_picture_option
 @options.photo_option()
 @options.flip_rows_option
 @options.space_option

@@ -163,6 +163,15 @@ sum_option = click.option(
 )
 
 
+any_picture_option = click.option(
+    "--any-picture",
+    "any_picture",
+    is_flag=True,
+    help="Use a landmark table whose '# picture:' header, or a --sum file whose picture name, is "
+    "another picture's (default: refused, exit 2).",
+)
+
+
 def photo_option(purpose: str = ""):
     """``--photo FILE``; ``purpose`` (e.g. ``" for --overlay"``) follows 'The photo' in the help."""
     return click.option(
