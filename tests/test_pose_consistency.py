@@ -1,0 +1,161 @@
+"""Tests of spctool.stages.pose_consistency and their use in solve_pose (issue 39): the χ² gate, the
+prior–measurement test and the estimated prior scale.
+
+Independent checks: the χ² quantile against scipy.stats; the normalised change q = dᵀ(P₀ − P)⁺d
+against a brute-force linear-Gaussian computation (the measurement-only solution δ and Cov(δ) =
+P₀ + P_m, q = δᵀ(P₀ + P_m)⁻¹δ, the same number by the information identity); and Monte Carlo over 100
+seeds with the prior honest, understated ×10 and absent (NEES against χ²₆).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from spctool.stages.pose import PoseOptions, solve_pose
+from spctool.stages.pose_consistency import chi2_gate, chi2_quantile, prior_scale_step, prior_test
+from tests.test_pose import SIG_A, SIG_P, make_camera, make_landmarks, nees, observe, perturbed
+
+
+@pytest.mark.parametrize("dof", [1, 2, 6, 17, 300])
+def test_chi2_quantile_matches_scipy(dof):
+    for p in (0.5, 0.99, 0.999):
+        assert chi2_quantile(dof, p) == pytest.approx(stats.chi2.ppf(p, dof), rel=1e-10)
+    assert math.isnan(chi2_quantile(0, 0.999))
+
+
+def test_gate_names_the_worst_landmarks_with_their_share():
+    rho2 = np.array([1.0, 50.0, 2.0, 20.0])
+    g = chi2_gate(73.0, 2, rho2, ["A", "B", "C", "D"], 0.999)
+    assert not g.consistent and [w[0] for w in g.worst] == ["B", "D", "C"]
+    assert g.worst[0][2] == pytest.approx(50.0 / 73.0)
+    assert "B (68 %)" in g.reason() and "13.8" in g.reason()  # χ²₂ 99.9 % = 13.82
+    assert (
+        chi2_gate(13.0, 2, rho2, list("ABCD")).consistent
+        and not chi2_gate(13.0, 2, rho2, list("ABCD")).reason()
+    )
+
+
+def test_normalised_change_equals_the_measurement_only_innovation():
+    """Linear-Gaussian case by hand: prior N(0, P₀) on 6 states, measurement information A = HᵀWH
+    (full rank), measurement-only estimate δ.  The joint estimate is d = (A + P₀⁻¹)⁻¹Aδ with
+    P = (A + P₀⁻¹)⁻¹, and dᵀ(P₀ − P)⁻¹d must equal δᵀ(P₀ + A⁻¹)⁻¹δ."""
+    rng = np.random.default_rng(5)
+    h = rng.normal(size=(20, 6))
+    a = h.T @ h
+    sig0 = np.array([0.5, 1.0, 2.0, 0.3, 0.7, 1.1])
+    info = 1.0 / sig0**2
+    p = np.linalg.inv(a + np.diag(info))
+    delta = rng.normal(size=6) * 2.0
+    d = p @ a @ delta
+    expect = float(delta @ np.linalg.solve(np.diag(sig0**2) + np.linalg.inv(a), delta))
+    t = prior_test(d, info, p, float(np.sum(info * d * d)), 10.0)
+    assert t.dof == 6 and t.nis == pytest.approx(expect, rel=1e-9)
+    np.testing.assert_allclose(t.change_sigma, d / sig0)
+    # a component without prior carries no test; uninformed directions are left out
+    info2 = info.copy()
+    info2[2] = 0.0
+    p2 = np.linalg.inv(a + np.diag(info2))
+    d2 = p2 @ a @ delta
+    t2 = prior_test(d2, info2, p2, 1.0, 10.0)
+    assert t2.dof == 5 and math.isnan(t2.change_sigma[2])
+    assert prior_test(np.zeros(6), np.zeros(6), p, 0.0, 1.0).dof == 0
+
+
+def _scene(seed, factor, n=30):
+    rng = np.random.default_rng(seed)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, n)
+    start = perturbed(truth, rng.normal(size=3) * SIG_P * factor, rng.normal(size=3) * SIG_A * factor)
+    return truth, pts, start, observe(truth, pts, rng, 0.1)
+
+
+@pytest.mark.parametrize(
+    "case, factor, use_prior, auto",
+    [
+        ("honest", 1.0, True, False),
+        ("understated x10", 10.0, True, False),
+        ("understated x10, scale estimated", 10.0, True, True),
+        ("absent", 10.0, False, False),
+    ],
+)
+def test_prior_honest_understated_and_absent_over_100_seeds(case, factor, use_prior, auto):
+    """100 seeds: the honest prior and no prior are never contradicted and the NEES follows χ²₆; a
+    prior whose sigmas are 10x too small is reported contradicted every time (the pose is not ok)
+    and, with the scale estimated, widened ~10x with a NEES that follows χ²₆ again."""
+    values, verdicts, scales = [], [], []
+    for seed in range(100):
+        truth, pts, start, y = _scene(seed, factor)
+        opts = PoseOptions(sigma_px=0.1, use_prior=use_prior, estimate_prior_scale=auto)
+        res = solve_pose(start, pts, y, opts, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+        assert res.converged
+        values.append(nees(truth, res))
+        verdicts.append(res.verdict)
+        scales.append(res.prior_scale)
+    values = np.array(values)
+    if case == "understated x10":
+        assert verdicts == ["prior-contradicted"] * 100
+        return
+    assert verdicts.count("ok") >= 98, verdicts  # two 99.9 % tests: P(> 2 of 100 flagged) < 1e-3
+    assert abs(values.mean() - 6.0) < 1.2, values.mean()
+    assert stats.kstest(values, "chi2", args=(6,)).pvalue > 1e-3
+    if auto:
+        assert 5.0 < np.median(scales) < 20.0
+    else:
+        assert set(scales) == {1.0}
+
+
+def test_contradicted_prior_is_one_line_with_figure_and_remedy():
+    truth, pts, start, y = _scene(3, 10.0)
+    res = solve_pose(start, pts, y, PoseOptions(), prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+    assert res.verdict == "prior-contradicted"
+    line = res.prior_contradicted
+    assert "\n" not in line and "--no-prior" in line and "--prior-scale auto" in line
+    assert "understate" in line and "sigma" in line
+    assert res.pose_dict()["verdict"] == "prior-contradicted"
+    assert res.pose_dict()["prior_check"]["contradicted"] is True
+    assert any(h.startswith("verdict: prior-contradicted") for h in res.header_lines())
+    assert any(s.startswith("warning: prior contradicted") for s in res.summary_lines())
+    # the factor to widen by is about the understatement
+    assert 5.0 < prior_scale_step(res.prior_check) < 20.0
+    # the scale estimated: the prior agrees, the pose is ok and the widening is said
+    auto = solve_pose(
+        start,
+        pts,
+        y,
+        PoseOptions(estimate_prior_scale=True),
+        prior_sigma_position=SIG_P,
+        prior_sigma_attitude=SIG_A,
+    )
+    assert auto.verdict == "ok" and auto.prior_scale > 3.0
+    assert any(w.startswith("prior widened x") for w in auto.warnings)
+    # a given scale is applied as is
+    given = solve_pose(
+        start, pts, y, PoseOptions(prior_scale=10.0), prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A
+    )
+    assert given.prior_scale == 10.0 and given.verdict == "ok"
+
+
+def test_inconsistent_fit_is_never_ok_and_names_the_worst_landmarks():
+    """Three landmarks 1.5 px off (15 sigma, below the outlier test's robust limit when rejection is
+    off) make χ² exceed its 99.9 % quantile: inconsistent, those three named, covariance scaled."""
+    truth, pts, start, y = _scene(7, 1.0, n=20)
+    bad = y.copy()
+    bad[[2, 9, 15]] += 1.5
+    res = solve_pose(
+        start,
+        pts,
+        bad,
+        PoseOptions(reject_outliers=False),
+        prior_sigma_position=SIG_P,
+        prior_sigma_attitude=SIG_A,
+    )
+    assert res.verdict == "inconsistent" and not res.consistent
+    assert {w[0] for w in res.gate.worst} == {"#3", "#10", "#16"}
+    assert res.covariance_scale == pytest.approx(res.cost / res.dof)
+    assert "worst landmarks" in res.inconsistent and res.pose_dict()["consistency"]["consistent"] is False
+    good = solve_pose(start, pts, y, PoseOptions(), prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+    assert good.verdict == "ok" and good.consistent and good.inconsistent == ""
