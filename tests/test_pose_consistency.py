@@ -63,6 +63,11 @@ def test_normalised_change_equals_the_measurement_only_innovation():
     t2 = prior_test(d2, info2, p2, 1.0, 10.0)
     assert t2.dof == 5 and math.isnan(t2.change_sigma[2])
     assert prior_test(np.zeros(6), np.zeros(6), p, 0.0, 1.0).dof == 0
+    # measurements noisier than their weights (s = 4): Cov(d) = P(A P0 A + s A)P, by hand
+    cov_d = p @ (a @ np.diag(sig0**2) @ a + 4.0 * a) @ p
+    t4 = prior_test(d, info, p, 1.0, 10.0, noise_scale=4.0)
+    assert t4.dof == 6 and t4.nis == pytest.approx(float(d @ np.linalg.solve(cov_d, d)), rel=1e-9)
+    assert t4.nis < t.nis
 
 
 def _scene(seed, factor, n=30):
@@ -137,6 +142,33 @@ def test_contradicted_prior_is_one_line_with_figure_and_remedy():
         start, pts, y, PoseOptions(prior_scale=10.0), prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A
     )
     assert given.prior_scale == 10.0 and given.verdict == "ok"
+
+
+def test_biased_measurements_are_inconsistent_not_a_contradicted_prior():
+    """Half the landmarks shifted by (1.5, −1.2) px pull the attitude ~10 sigma of a tight (honest)
+    prior away; the measurements' own χ² says they are the problem: inconsistent, not
+    prior-contradicted — without the noise scale in the prior test it would be (q ≈ 300)."""
+    for seed in (1, 2):
+        rng = np.random.default_rng(seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 30)
+        sig_a = SIG_A / 10
+        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * sig_a)
+        bad = observe(truth, pts, rng, 0.1)
+        bad[:15] += [1.5, -1.2]
+        res = solve_pose(
+            start,
+            pts,
+            bad,
+            PoseOptions(reject_outliers=False),
+            prior_sigma_position=SIG_P,
+            prior_sigma_attitude=sig_a,
+        )
+        assert res.verdict == "inconsistent", (res.verdict, res.verdict_reason)
+        assert not res.prior_check.contradicted
+        e = np.concatenate([res.delta_position, res.delta_attitude])
+        info = np.r_[1 / SIG_P**2, 1 / sig_a**2]
+        assert prior_test(e, info, res.covariance_formal, 1.0, 1.0).contradicted  # noise scale 1
 
 
 def test_inconsistent_fit_is_never_ok_and_names_the_worst_landmarks():

@@ -69,6 +69,7 @@ def _spacings(text: str) -> tuple:
 )
 @options.sigma_px_option()
 @options.no_prior_option
+@options.prior_scale_option
 @options.min_landmarks_option
 @click.option(
     "--output",
@@ -126,7 +127,7 @@ def navigate_cmd(ctx: Context, **kw):
         no_image_shadows=not RegisterOptions.image_shadows,
         criteria=None,
     )
-    pose = options.pose_options(kw["sigma_px"], kw["no_prior"], kw["min_landmarks"])
+    pose = options.pose_options(kw["sigma_px"], kw["no_prior"], kw["min_landmarks"], kw["prior_scale"])
     ropts = _register_options(kw, "retina_s16", pose=pose)
     nopts = NavigateOptions(
         passes=1 if kw["single_pass"] else 2,
@@ -184,6 +185,8 @@ def navigate_cmd(ctx: Context, **kw):
     if ctx.verbosity >= (1 if kw["as_json"] else 0) and pose is not None:
         for line in pose.summary_lines():
             click.echo(f"spctool: {line}", err=True)
+    elif pose is not None and pose.verdict in ("inconsistent", "prior-contradicted"):
+        ctx.warn(f"{inp.pic.name}: {pose.verdict}: {pose.verdict_reason}")
     if result.status != "ok":
         raise SpcResultError(f"{inp.pic.name}: {result.status}")
     options.check_require(inp.pic.name, int(result.ok.sum()), kw["require"], "landmarks registered")

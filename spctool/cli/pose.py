@@ -147,6 +147,7 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     "2x2), so a weak, smeared correlation peak counts less than a sharp one.",
 )
 @options.no_prior_option
+@options.prior_scale_option
 @click.option(
     "--estimate-landmarks",
     is_flag=True,
@@ -238,6 +239,7 @@ def solve_pose_cmd(
     sigma_px,
     weights,
     no_prior,
+    prior_scale,
     estimate_landmarks,
     consider_landmarks,
     max_iter,
@@ -307,6 +309,7 @@ def solve_pose_cmd(
         sigma_px,
         no_prior,
         min_landmarks,
+        prior_scale,
         max_iter=max_iter,
         tol=tol,
         landmark_mode=mode,
@@ -416,6 +419,8 @@ def solve_pose_cmd(
     if ctx.verbosity >= (1 if as_json else 0):
         for line in result.summary_lines():
             click.echo(f"spctool: {line}", err=True)
+    elif result.verdict in ("inconsistent", "prior-contradicted"):  # the summary would have said it
+        ctx.warn(f"{pic.name}: {result.verdict}: {result.verdict_reason}")
     if not result.converged:
         raise SpcResultError(
             f"{pic.name}: pose did not converge in {pose_options.max_iter} iterations"

@@ -826,7 +826,13 @@ def _consistency(problem, state, opts, dof, cost, names, used, prior, cov_plain,
         formal = cov_plain if cov_plain is not None else cov_formal if cov_formal is not None else cov
         e = np.concatenate([state.dpos, state.theta])
         term = float(np.sum(prior.info * e * e))
-        prior_check = prior_test(e, prior.info, formal, term, cost, q, float(opts.prior_scale))
+        # the measurements' own noise scale (their χ² over its expected value at the joint solution)
+        dof_meas = 2.0 * rho2.size - 6.0 + float(np.sum(prior.info * np.diag(formal)))
+        chi2_meas = cost - term
+        noise = chi2_meas / dof_meas if dof_meas > 0.5 else 1.0
+        prior_check = prior_test(
+            e, prior.info, formal, term, cost, q, float(opts.prior_scale), noise_scale=noise
+        )
     return gate, prior_check
 
 

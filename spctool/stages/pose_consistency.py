@@ -19,12 +19,16 @@ P₀ − P (the information the measurements add is exactly what shrinks P₀ to
 
     q = dᵀ (P₀ − P)⁺ d  ~  χ²ₖ,
 
-the normalised innovation squared, k the number of directions in which the measurements reduce the
-prior variance at all (eigenvalues of S⁻¹(P₀ − P)S⁻¹ = I − S⁻¹PS⁻¹ above ``min_gain``, S = diag(σ₀):
-directions the measurements do not inform carry no test).  Only components with a prior enter (the
-limit of an infinite σ₀ for the others).  q above its 99.9 % quantile says the a-priori pose is
-further from the measurements' pose than SIGMA_VSO / SIGMA_PTG allow: the prior is *contradicted*.
-Also reported: the prior's share of J and the change per component in a-priori σ units, dⱼ/σ₀ⱼ.
+the normalised innovation squared, k the number of directions in which the measurements reduce the prior
+variance at all (eigenvalues of S⁻¹(P₀ − P)S⁻¹ = I − S⁻¹PS⁻¹ above ``min_gain``, S = diag(σ₀):
+directions the measurements do not inform carry no test). When the measurements' own residuals say their
+noise is s > 1 times what the weights claim (s = χ²_meas / (2M − 6 + tr(BP)), B = P₀⁻¹), the change also
+carries the extra measurement noise: with d = P·A·δ, A = P⁻¹ − B the measurement information, Cov(d) =
+P(A·P₀·A + s·A)P = (P₀ − P) + (s − 1)(P − P·B·P), which is used instead — so an inconsistent set of
+measurements (bad maplets) is not mistaken for a wrong prior. Only components with a prior enter (the
+limit of an infinite σ₀ for the others). q above its 99.9 % quantile says the a-priori pose is further
+from the measurements' pose than SIGMA_VSO / SIGMA_PTG allow: the prior is *contradicted*. Also
+reported: the prior's share of J and the change per component in a-priori σ units, dⱼ/σ₀ⱼ.
 
 **Prior scale.**  If σ₀ understates the a-priori error by a factor s, q ≈ k·s² when the measurements
 dominate; :func:`prior_scale_step` gives the factor √(q/k) by which to widen σ₀ (the pose module
@@ -163,11 +167,13 @@ def prior_test(
     quantile: float = 0.999,
     scale: float = 1.0,
     min_gain: float = MIN_GAIN,
+    noise_scale: float = 1.0,
 ) -> PriorTest:
     """:class:`PriorTest` of the solved change ``change`` = χ̂ − χ₀ (6,) against the prior ``info``
     (6,) inverse variances (0 = no prior on that component), with the formal a-posteriori
     ``covariance`` P (6 × 6, not scaled by cost/dof); ``prior_term`` and ``cost`` give the prior's
-    share of the cost; ``scale`` is reported (the factor already applied to the prior sigmas)."""
+    share of the cost; ``scale`` is reported (the factor already applied to the prior sigmas);
+    ``noise_scale`` s ≥ 1: the measurements' noise relative to their weights (module docstring)."""
     d = np.asarray(change, dtype=np.float64)
     info = np.asarray(info, dtype=np.float64)
     p = np.asarray(covariance, dtype=np.float64)
@@ -179,7 +185,11 @@ def prior_test(
     if idx.size == 0:
         return PriorTest(math.nan, 0, quantile, math.nan, share, change_sigma, scale)
     s = sig0[idx]
-    m = np.eye(idx.size) - p[np.ix_(idx, idx)] / np.outer(s, s)  # S⁻¹(P₀ − P)S⁻¹
+    c = -p  # Cov(d) − P₀ = −P + (s − 1)(P − P·B·P)
+    extra = max(1.0, float(noise_scale)) - 1.0
+    if extra > 0:
+        c = c + extra * (p - (p * info[None, :]) @ p)
+    m = np.eye(idx.size) + c[np.ix_(idx, idx)] / np.outer(s, s)  # S⁻¹·Cov(d)·S⁻¹
     m = 0.5 * (m + m.T)
     lam, vec = np.linalg.eigh(m)
     keep = lam > float(min_gain)
