@@ -717,11 +717,11 @@ def solve_pose(*args, **kwargs) -> PoseResult:
         ) from None
 
 
-def _solve_pose_scaled(camera, landmark_positions, measured, options: PoseOptions | None = None, **kw):
+def _solve_pose_scaled(camera, landmark_positions, measured, options: PoseOptions | None = None, *rest, **kw):
     """:func:`_solve_pose`; with ``options.estimate_prior_scale``, while the measurements contradict
     the prior, widen its sigmas by the test's factor (:func:`prior_scale_step`) and solve again."""
     opts = options or PoseOptions()
-    res = _solve_pose(camera, landmark_positions, measured, opts, **kw)
+    res = _solve_pose(camera, landmark_positions, measured, opts, *rest, **kw)
     if not opts.estimate_prior_scale:
         return res
     first = res
@@ -730,7 +730,7 @@ def _solve_pose_scaled(camera, landmark_positions, measured, options: PoseOption
             break
         step = prior_scale_step(res.prior_check)
         opts = dataclasses.replace(opts, prior_scale=opts.prior_scale * step, estimate_landmarks=False)
-        res = _solve_pose(camera, landmark_positions, measured, opts, **kw)
+        res = _solve_pose(camera, landmark_positions, measured, opts, *rest, **kw)
     if res is not first:
         res.warnings.append(
             f"prior widened x{res.prior_scale:.3g}: the measurements contradicted SIGMA_VSO/SIGMA_PTG"
