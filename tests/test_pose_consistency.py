@@ -191,3 +191,68 @@ def test_inconsistent_fit_is_never_ok_and_names_the_worst_landmarks():
     assert "worst landmarks" in res.inconsistent and res.pose_dict()["consistency"]["consistent"] is False
     good = solve_pose(start, pts, y, PoseOptions(), prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
     assert good.verdict == "ok" and good.consistent and good.inconsistent == ""
+
+
+# ------------------------------------------------------------------------------------------------
+# model error estimated from the residuals (--weights surface)
+# ------------------------------------------------------------------------------------------------
+
+
+def _covs(rng, n, lo=0.005, hi=0.03):
+    s = np.exp(rng.uniform(np.log(lo), np.log(hi), (n, 2)))
+    rho = rng.uniform(-0.6, 0.6, n)
+    c = np.empty((n, 2, 2))
+    c[:, 0, 0], c[:, 1, 1] = s[:, 0] ** 2, s[:, 1] ** 2
+    c[:, 0, 1] = c[:, 1, 0] = rho * s[:, 0] * s[:, 1]
+    return c
+
+
+def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_honest():
+    """Pixel errors = the peaks' covariances Cᵢ (5–30 mpx) plus an isotropic 0.04 px model error that
+    the covariances do not hold: weighted with Cᵢ alone the NEES is far above χ²₆; with the model
+    error estimated (τ ≈ 0.04 px) it follows χ²₆ over 100 seeds."""
+    tau_true = 0.04
+    est, with_tau, without = [], [], []
+    for seed in range(100):
+        rng = np.random.default_rng(500 + seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 25)
+        cov = _covs(rng, 25)
+        full = cov + tau_true**2 * np.eye(2)
+        y = observe(truth, pts) + np.einsum("mij,mj->mi", np.linalg.cholesky(full), rng.normal(size=(25, 2)))
+        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        kw = dict(pixel_covariances=cov, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+        res = solve_pose(start, pts, y, PoseOptions(), **kw)
+        est.append(res.model_error_px)
+        with_tau.append(nees(truth, res))
+        if seed < 30:
+            off = solve_pose(start, pts, y, PoseOptions(model_error=False, scale_covariance=False), **kw)
+            without.append(nees(truth, off))
+            assert off.model_error_px == 0.0
+    est, with_tau = np.array(est), np.array(with_tau)
+    assert np.median(est) == pytest.approx(tau_true, rel=0.15), np.median(est)
+    assert abs(with_tau.mean() - 6.0) < 1.2, with_tau.mean()
+    assert stats.kstest(with_tau, "chi2", args=(6,)).pvalue > 1e-3
+    assert np.mean(without) > 15.0, np.mean(without)
+
+
+def test_model_error_is_capped_and_the_rest_left_to_the_gate():
+    """A misfit of 0.5 px against 0.1 px sigma_px: τ stops at sigma_px and the χ² gate fails; honest
+    covariances (no model error) are left alone in most seeds."""
+    rng = np.random.default_rng(77)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 25)
+    cov = _covs(rng, 25)
+    y = observe(truth, pts) + rng.normal(scale=0.5, size=(25, 2))
+    res = solve_pose(truth, pts, y, PoseOptions(), pixel_covariances=cov)
+    assert res.model_error_px == pytest.approx(0.1) and res.verdict == "inconsistent"
+    assert any("model error 0.1000 px" in s for s in res.summary_lines())
+    zero = 0
+    for seed in range(40):
+        rng = np.random.default_rng(900 + seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 25)
+        cov = _covs(rng, 25)
+        y = observe(truth, pts) + np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
+        zero += solve_pose(truth, pts, y, PoseOptions(), pixel_covariances=cov).model_error_px == 0.0
+    assert zero >= 32  # 90 % quantile: ~36 of 40 expected; P(< 32) ≈ 1 %

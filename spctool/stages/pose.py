@@ -76,7 +76,14 @@ import numpy as np
 
 from spctool.errors import SpcResultError, SpcUsageError
 from spctool.geometry.frames import apply_attitude_update, rotvec_from_rot, skew
-from spctool.stages.pose_consistency import ChiSquareGate, PriorTest, chi2_gate, prior_scale_step, prior_test
+from spctool.stages.pose_consistency import (
+    ChiSquareGate,
+    PriorTest,
+    chi2_gate,
+    chi2_quantile,
+    prior_scale_step,
+    prior_test,
+)
 
 __all__ = [
     "PoseError",
@@ -134,6 +141,11 @@ class PoseOptions:
     * ``consistency_quantile`` — the χ² gate and the prior–measurement test
       (:mod:`spctool.stages.pose_consistency`) fail above this quantile (0.999): the pose is
       ``inconsistent`` / ``prior-contradicted`` (:attr:`PoseResult.verdict`), never ``ok``.
+    * ``model_error`` — with ``pixel_covariances``: estimate the model error τ (px) the residuals show
+      beyond the correlation peaks' covariances (Σᵢ rᵢᵀ(Cᵢ + τ²I)⁻¹rᵢ = dof) and weight with
+      (Cᵢ + τ²I)⁻¹ (True), when χ² exceeds its ``model_error_quantile`` (0.9; below it the
+      covariances are left as they are); τ is at most ``max_model_error_px`` (None: ``sigma_px``), a
+      larger misfit is the χ² gate's.  Reported as :attr:`PoseResult.model_error_px`.
     * ``prior_scale`` — factor applied to the a-priori sigmas (1); ``estimate_prior_scale``: when the
       measurements contradict the prior, widen it by the test's √(q/k) and solve again, at most
       ``max_prior_scale_steps`` times, until they agree (the factor is :attr:`PoseResult.prior_scale`).
@@ -157,6 +169,9 @@ class PoseOptions:
     max_reduced_chi2: float = 100.0
     sigma_floor_px: float = 0.001
     consistency_quantile: float = 0.999
+    model_error: bool = True
+    max_model_error_px: float | None = None
+    model_error_quantile: float = 0.9
     prior_scale: float = 1.0
     estimate_prior_scale: bool = False
     max_prior_scale_steps: int = 6
@@ -194,6 +209,10 @@ class PoseOptions:
             raise SpcUsageError(f"max_reduced_chi2 must be > 0, got {self.max_reduced_chi2}")
         if not (0.0 < self.consistency_quantile < 1.0):
             raise SpcUsageError(f"consistency_quantile must be in (0, 1), got {self.consistency_quantile}")
+        if self.max_model_error_px is not None and not (self.max_model_error_px >= 0):
+            raise SpcUsageError(f"max_model_error_px must be >= 0, got {self.max_model_error_px}")
+        if not (0.0 < self.model_error_quantile < 1.0):
+            raise SpcUsageError(f"model_error_quantile must be in (0, 1), got {self.model_error_quantile}")
         if not (self.prior_scale > 0 and math.isfinite(self.prior_scale)):
             raise SpcUsageError(f"prior_scale must be a positive number, got {self.prior_scale}")
         self.max_prior_scale_steps = int(self.max_prior_scale_steps)
@@ -264,6 +283,7 @@ class PoseResult:
     gate: ChiSquareGate | None = None  # the χ² test of the cost (None: no redundancy)
     prior_check: PriorTest | None = None  # the prior–measurement test (None: no prior)
     prior_scale: float = 1.0  # factor applied to the a-priori sigmas (estimated or given)
+    model_error_px: float = 0.0  # τ added in quadrature to the per-landmark covariances (estimated)
 
     # ---- convenience ------------------------------------------------------------------------------
     @property
@@ -374,6 +394,7 @@ class PoseResult:
             "consistency": None if self.gate is None else self.gate.as_dict(),
             "prior_check": None if self.prior_check is None else self.prior_check.as_dict(),
             "prior_scale": self.prior_scale,
+            "model_error_px": self.model_error_px,
         }
         if self.landmark_corrections is not None:
             out["landmark_corrections"] = {
@@ -420,6 +441,8 @@ class PoseResult:
             f" chi2 {self.chi2:.4g} + prior {self.cost - self.chi2:.4g}, dof {self.dof},"
             f" cost/dof {self.reduced_chi2:.3g}, condition {self.condition_number:.3g}",
         ]
+        if self.model_error_px > 0:
+            lines.append(f"model error {self.model_error_px:.4f} px added to the landmarks' covariances")
         if self.covariance_scale != 1.0:
             lines.append(
                 f"covariance scaled by cost/dof = {self.covariance_scale:.3g} (sigmas x "
@@ -836,6 +859,46 @@ def _consistency(problem, state, opts, dof, cost, names, used, prior, cov_plain,
     return gate, prior_check
 
 
+def _covariance_matrices(covs, n, floor, wts):
+    """(N, 2, 2) measurement covariances the weights ``wts`` stand for: Cᵢ + floor²·I where that is
+    usable, else the inverse of the fallback weight."""
+    c = 0.5 * (np.asarray(covs, dtype=np.float64) + np.swapaxes(np.asarray(covs, dtype=np.float64), 1, 2))
+    c = c + (floor * floor) * np.eye(2)
+    _, bad = _covariance_weights(covs, n, floor, wts)
+    c[bad] = np.linalg.inv(wts[bad]) if bad.any() else c[bad]
+    return c
+
+
+def _model_error(problem, state, covs, opts, prior) -> float:
+    """τ (px): the isotropic model error whose variance added to every landmark's covariance brings the
+    measurement χ² of the fit to its expected value 2M − 6 + (prior equations):
+    Σᵢ rᵢᵀ(Cᵢ + τ²I)⁻¹rᵢ = dof (method of moments; 0 unless χ² exceeds its ``model_error_quantile``,
+    so that honest covariances are left alone but for chance), capped at
+    ``max_model_error_px`` (default ``sigma_px``): a larger misfit is left to the χ² gate."""
+    smp, lin = state.camera.project(problem.pts(state))
+    r = problem.meas - np.stack([smp, lin], axis=-1)
+    dof = 2 * r.shape[0] + prior.n_equations - 6
+    if dof <= 0:
+        return 0.0
+    cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
+
+    def chi2(t2):
+        return float(np.einsum("mi,mij,mj->", r, np.linalg.inv(covs + t2 * np.eye(2)), r))
+
+    if chi2(0.0) <= chi2_quantile(dof, opts.model_error_quantile):  # no evidence of model error
+        return 0.0
+    if chi2(cap * cap) >= dof:
+        return float(cap)
+    lo, hi = 0.0, cap * cap  # χ²(τ²) decreases with τ²: bisection on log τ² below the cap
+    lo = hi * 1e-12
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if chi2(mid) > dof else (lo, mid)
+        if hi <= lo * (1.0 + 1e-6):
+            break
+    return float(math.sqrt(hi))
+
+
 def _usable_landmarks(camera, pts_all, meas_all, names):
     """(usable (N,), known position (N,), a-priori predicted pixels (N, 2), status words, rejections):
     a landmark is usable with a known position, a measured pixel and in front of the a-priori camera;
@@ -995,9 +1058,25 @@ def _solve_pose(
         )
 
     # ---- fit, reject, refit -------------------------------------------------------------------------
+    before = (list(status), list(rejected), list(warnings))
     problem, state, iterations, converged, history, used = _fit_rejecting(
         build, usable, opts, prior, names, status, rejected, warnings
     )
+    tau = 0.0
+    if pixel_covariances is not None and opts.model_error:
+        # the model error the residuals show beyond the correlation peaks' covariances, then the fit
+        # again with it (twice: the residuals of the refit estimate it again)
+        base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
+        for _ in range(2):
+            new_tau = _model_error(problem, state, base[used], opts, prior)
+            if abs(new_tau - tau) <= 0.05 * max(new_tau, 1e-12):
+                break
+            tau = new_tau
+            wts_all = np.linalg.inv(base + (tau * tau) * np.eye(2))
+            status[:], rejected[:], warnings[:] = (list(x) for x in before)
+            problem, state, iterations, converged, history, used = _fit_rejecting(
+                build, usable, opts, prior, names, status, rejected, warnings
+            )
 
     # ---- final linearisation: covariance, residuals -----------------------------------------------
     m = int(np.count_nonzero(used))
@@ -1080,4 +1159,5 @@ def _solve_pose(
         gate=gate,
         prior_check=prior_check,
         prior_scale=float(opts.prior_scale) if prior_used else 1.0,
+        model_error_px=float(tau),
     )
