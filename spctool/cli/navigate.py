@@ -68,6 +68,14 @@ def _spacings(text: str) -> tuple:
     help="Stop after pass 1 (acquisition and one pose solve).",
 )
 @options.sigma_px_option()
+@click.option(
+    "--weights",
+    type=click.Choice(["uniform", "surface"]),
+    default="uniform",
+    show_default=True,
+    help="uniform: every landmark 1/sigma_px^2 per axis; surface: each landmark by the inverse of its "
+    "registration covariance (correlation peak) plus the model error the pose residuals show.",
+)
 @options.no_prior_option
 @options.prior_scale_option
 @options.min_landmarks_option
@@ -103,7 +111,11 @@ def navigate_cmd(ctx: Context, **kw):
     status_1 (pass 1), residual_sample and residual_line (measured minus predicted with the final
     pose), pose_status (ok, rejected-outlier, ...) and status.  --json adds "passes" (per pass:
     steps, found, rms_before_px, rms_after_px, used, rejected, pose) and "pose" (the final one).
-    Exit 1 when no pose could be solved or fewer than --require landmarks were registered.
+    Exit 1 when no pose could be solved or fewer than --require landmarks were registered.  A pose
+    whose chi2 exceeds its 99.9 % quantile (inconsistent: the worst landmarks named, covariance scaled
+    by cost/dof) or whose measurements contradict the SUM's SIGMA_VSO/SIGMA_PTG (prior-contradicted:
+    --no-prior or --prior-scale auto) is reported in one warning line and in the JSON's pose
+    "verdict".
 
     Example:
 
@@ -112,6 +124,7 @@ def navigate_cmd(ctx: Context, **kw):
       spctool -C demo navigate P000000001A1
       spctool -C demo navigate P000000001A1 --json -o nav.json --output new.SUM
       spctool -C demo navigate P000000002A1 --single-pass --space image
+      spctool -C demo navigate P000000003A1 --weights surface --prior-scale auto
     """
     from spctool.cli.register import _Inputs, _register_options
     from spctool.stages.navigate import NavigateOptions, navigate
@@ -136,6 +149,7 @@ def navigate_cmd(ctx: Context, **kw):
         min_landmarks=max(1, kw["min_landmarks"]),
         register=ropts,
         pose=pose,
+        weights=kw["weights"],
     )
     inp = _Inputs(ctx, kw)
     if not inp.names:
