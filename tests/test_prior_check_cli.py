@@ -37,16 +37,19 @@ def test_navigate_reports_a_contradicted_prior_and_widens_it_on_request(understa
     run, demo = understated
     res = run("-C", demo, "navigate", PIC, "--json")
     assert res.exit_code == 0, res.stderr
-    pose = json.loads(res.stdout)["pose"]
+    doc = json.loads(res.stdout)
+    pose = doc["pose"]
     assert pose["verdict"] == "prior-contradicted" and pose["prior_check"]["contradicted"] is True
+    assert doc["status"].startswith("prior-contradicted: the measurements contradict the a-priori pose")
     assert pose["prior_check"]["understatement"] > 4.0
     warn = [ln for ln in res.stderr.splitlines() if "warning" in ln]
     assert len(warn) == 1 and warn[0].startswith(f"spctool: warning: {PIC}: prior-contradicted: ")
     assert "--no-prior or --prior-scale auto" in warn[0] and "understate" in warn[0]
     res = run("-C", demo, "navigate", PIC, "--json", "--prior-scale", "auto")
     assert res.exit_code == 0, res.stderr
-    pose = json.loads(res.stdout)["pose"]
-    assert pose["verdict"] == "ok" and pose["prior_scale"] > 3.0
+    doc = json.loads(res.stdout)
+    pose = doc["pose"]
+    assert pose["verdict"] == "ok" and pose["prior_scale"] > 3.0 and doc["status"] == "ok"
     assert any(w.startswith("prior widened x") for w in pose["warnings"])
     res = run("-C", demo, "navigate", PIC, "--prior-scale", "-2")
     assert res.exit_code == 2 and "--prior-scale" in res.stderr

@@ -175,7 +175,12 @@ def navigate_cmd(ctx: Context, **kw):
     meta = {
         "landmark_source": inp.source,
         "space": ropts.space,
-        "status": result.status,
+        # a navigated pose that fails its consistency checks is not plain ok (its SUM is still written)
+        "status": (
+            f"{pose.verdict}: {pose.verdict_reason}"
+            if result.status == "ok" and pose is not None and pose.verdict != "ok"
+            else result.status
+        ),
         "registered": int(result.ok.sum()),
         "passes": [p.as_dict() for p in result.passes],
         "sum_written": wrote,
