@@ -256,3 +256,18 @@ def test_model_error_is_capped_and_the_rest_left_to_the_gate():
         y = observe(truth, pts) + np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
         zero += solve_pose(truth, pts, y, PoseOptions(), pixel_covariances=cov).model_error_px == 0.0
     assert zero >= 32  # 90 % quantile: ~36 of 40 expected; P(< 32) ≈ 1 %
+
+
+def test_model_error_by_hand():
+    """Cᵢ = σ²I: χ²(τ²) = Σ|rᵢ|²/(σ² + τ²), so τ² = Σ|rᵢ|²/dof − σ² exactly."""
+    from spctool.stages.pose_consistency import model_error
+
+    rng = np.random.default_rng(3)
+    r = rng.normal(scale=0.05, size=(20, 2))
+    c = np.broadcast_to(0.01**2 * np.eye(2), (20, 2, 2))
+    dof = 34
+    expect = math.sqrt(np.sum(r * r) / dof - 0.01**2)
+    assert model_error(r, c, dof, cap=1.0) == pytest.approx(expect, rel=1e-5)
+    assert model_error(r, c, dof, cap=0.02) == 0.02  # capped
+    assert model_error(r * 0.1, c, dof, cap=1.0) == 0.0  # within the covariances
+    assert model_error(r, c, 0, cap=1.0) == 0.0

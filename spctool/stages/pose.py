@@ -80,7 +80,7 @@ from spctool.stages.pose_consistency import (
     ChiSquareGate,
     PriorTest,
     chi2_gate,
-    chi2_quantile,
+    model_error,
     prior_scale_step,
     prior_test,
 )
@@ -870,33 +870,13 @@ def _covariance_matrices(covs, n, floor, wts):
 
 
 def _model_error(problem, state, covs, opts, prior) -> float:
-    """τ (px): the isotropic model error whose variance added to every landmark's covariance brings the
-    measurement χ² of the fit to its expected value 2M − 6 + (prior equations):
-    Σᵢ rᵢᵀ(Cᵢ + τ²I)⁻¹rᵢ = dof (method of moments; 0 unless χ² exceeds its ``model_error_quantile``,
-    so that honest covariances are left alone but for chance), capped at
-    ``max_model_error_px`` (default ``sigma_px``): a larger misfit is left to the χ² gate."""
+    """τ (px) of :func:`spctool.stages.pose_consistency.model_error` for the residuals of the fit
+    (dof 2M − 6 + prior equations), capped at ``max_model_error_px`` (default ``sigma_px``)."""
     smp, lin = state.camera.project(problem.pts(state))
     r = problem.meas - np.stack([smp, lin], axis=-1)
-    dof = 2 * r.shape[0] + prior.n_equations - 6
-    if dof <= 0:
-        return 0.0
     cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
-
-    def chi2(t2):
-        return float(np.einsum("mi,mij,mj->", r, np.linalg.inv(covs + t2 * np.eye(2)), r))
-
-    if chi2(0.0) <= chi2_quantile(dof, opts.model_error_quantile):  # no evidence of model error
-        return 0.0
-    if chi2(cap * cap) >= dof:
-        return float(cap)
-    lo, hi = 0.0, cap * cap  # χ²(τ²) decreases with τ²: bisection on log τ² below the cap
-    lo = hi * 1e-12
-    for _ in range(60):
-        mid = math.sqrt(lo * hi)
-        lo, hi = (mid, hi) if chi2(mid) > dof else (lo, mid)
-        if hi <= lo * (1.0 + 1e-6):
-            break
-    return float(math.sqrt(hi))
+    dof = 2 * r.shape[0] + prior.n_equations - 6
+    return model_error(r, covs, dof, cap, opts.model_error_quantile)
 
 
 def _usable_landmarks(camera, pts_all, meas_all, names):

@@ -30,6 +30,12 @@ limit of an infinite σ₀ for the others). q above its 99.9 % quantile says the
 from the measurements' pose than SIGMA_VSO / SIGMA_PTG allow: the prior is *contradicted*. Also
 reported: the prior's share of J and the change per component in a-priori σ units, dⱼ/σ₀ⱼ.
 
+**Model error.**  With per-landmark covariances Cᵢ (the correlation peaks'), residuals larger than
+they allow are read as an isotropic model error τ common to the landmarks of the fit:
+Σᵢ rᵢᵀ(Cᵢ + τ²I)⁻¹rᵢ = dof (method of moments, :func:`model_error`), estimated only when the χ² with
+τ = 0 exceeds its ``quantile`` (0.9: honest covariances are left alone but for chance) and at most a
+``cap`` — a larger misfit is the χ² gate's to report.
+
 **Prior scale.**  If σ₀ understates the a-priori error by a factor s, q ≈ k·s² when the measurements
 dominate; :func:`prior_scale_step` gives the factor √(q/k) by which to widen σ₀ (the pose module
 iterates it until the test passes).
@@ -42,7 +48,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ChiSquareGate", "PriorTest", "chi2_quantile", "chi2_gate", "prior_test", "prior_scale_step"]
+__all__ = [
+    "ChiSquareGate",
+    "PriorTest",
+    "chi2_quantile",
+    "chi2_gate",
+    "model_error",
+    "prior_test",
+    "prior_scale_step",
+]
 
 #: eigenvalues of I − S⁻¹PS⁻¹ below this (the measurements remove < 0.1 % of the prior variance in that
 #: direction) carry no test of the prior
@@ -205,3 +219,29 @@ def prior_scale_step(test: PriorTest) -> float:
     if not test.contradicted:
         return 1.0
     return max(1.0, test.understatement)
+
+
+def model_error(residuals, covariances, dof: int, cap: float, quantile: float = 0.9) -> float:
+    """τ (px, module docstring "Model error"): ``residuals`` (M, 2) px, ``covariances`` (M, 2, 2) px²,
+    ``dof`` of the fit; 0 when χ²(τ = 0) is within its ``quantile`` or dof ≤ 0, ``cap`` when even
+    χ²(cap) exceeds dof, else the root of χ²(τ²) = dof by bisection on log τ² (χ² decreases with τ²)."""
+    r = np.asarray(residuals, dtype=np.float64)
+    c = np.asarray(covariances, dtype=np.float64)
+    if dof <= 0:
+        return 0.0
+
+    def chi2(t2):
+        return float(np.einsum("mi,mij,mj->", r, np.linalg.inv(c + t2 * np.eye(2)), r))
+
+    if chi2(0.0) <= chi2_quantile(dof, quantile):  # no evidence of model error
+        return 0.0
+    if chi2(cap * cap) >= dof:
+        return float(cap)
+    hi = cap * cap
+    lo = hi * 1e-12
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if chi2(mid) > dof else (lo, mid)
+        if hi <= lo * (1.0 + 1e-6):
+            break
+    return float(math.sqrt(hi))
