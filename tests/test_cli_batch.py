@@ -94,7 +94,10 @@ def test_json_summary(world, reference, tmp_path):
     assert res.exit_code == 0, res.stderr
     doc = json.loads(res.stdout)
     assert doc["command"] == "batch" and doc["format"] == "spctool-batch/1"
-    assert doc["counts"] == {"ok": N_PICTURES, "no-pose": 0, "failed": 0, "resumed": N_PICTURES}
+    assert doc["counts"] == {
+        "ok": N_PICTURES, "inconsistent": 0, "prior-contradicted": 0, "no-pose": 0, "failed": 0,
+        "resumed": N_PICTURES,
+    }
     table = rows(text)
     for row, p in zip(table, doc["pictures"]):
         assert p["picture"] == row[0] and p["status"] == "ok" and p["resumed"] is True

@@ -604,3 +604,29 @@ def test_s16_spec_camera_and_scene_window():
     px = 0.05 * cam.ifov
     expected = math.sqrt(2) * 49.5e-5 / px + 5 * math.hypot(1.667e-4 / px, math.radians(0.05) / cam.ifov) + 60
     assert mcs.scene_window_half(cam, m) == math.ceil(expected)
+
+
+def test_zero_perturbation_floor_is_reported_beside_the_bias(scene):
+    """run() registers every landmark once with its knowledge unperturbed: the floor equals truth −
+    register() on the scene's own camera, Sun and maplet (every plan phase chained by hand), and the
+    report gives |mean| − |floor| per axis beside it."""
+    cfg = _cfg(samples=2, seed=2, sigma_scale=0.3)
+    res = mc.run(scene, cfg)
+    r = None
+    for k, opts in enumerate(cfg.plan):
+        apriori = None if r is None else r.measured
+        r = register(scene.photo, scene.camera, scene.sun, [scene.maplets[0]], scene.thresholds, opts,
+                     apriori=apriori)  # fmt: skip
+        assert r.status[0] == "ok", (k, r.status)
+    assert res.floor.shape == (1, 2) and _same(res.floor[0], scene.truth[0] - r.measured[0])
+    s = mcr.summarise(res)
+    row = s["landmarks"][0]
+    assert row["sample_floor"] == res.floor[0, 0] and row["line_floor"] == res.floor[0, 1]
+    assert row["sample_excess"] == pytest.approx(abs(row["sample_mean"]) - abs(res.floor[0, 0]))
+    assert s["overall"]["max_line_excess"] == row["line_excess"]
+    text = mcr.format_report(res, s)
+    assert "zero-perturbation floor" in text and "largest excess" in text
+    # a result without a floor (an older run) reports none
+    fake = _fake_result([["ok", "ok"], ["ok", "ok"]], np.zeros((2, 2, 2)), [[0.9, 0.9], [0.9, 0.9]])
+    assert fake.floor is None and "zero-perturbation floor" not in mcr.format_report(fake)
+    assert math.isnan(mcr.summarise(fake)["landmarks"][0]["sample_floor"])

@@ -103,6 +103,34 @@ def test_solve_pose_refuses_another_pictures_table(session):
     assert r.exit_code == 0 and (root / "x.SUM").exists() and "warning: " in r.stderr
 
 
+def test_register_refuses_another_pictures_table_or_sum(session):
+    """register (as solve-pose) refuses a landmark table or a --sum made for another picture, with
+    one line naming the file; --any-picture runs it anyway (issue 39)."""
+    run, root, demo, sel, reg = session
+    r = run("-C", demo, "register", PIC2, "--landmarks", root / "sel.txt")
+    assert r.exit_code == 2
+    assert r.stderr.strip().splitlines() == [
+        f"spctool: error: {root / 'sel.txt'}: the table is for picture {PIC1}, not {PIC2} "
+        "(--any-picture uses it anyway)"
+    ]
+    sum1 = demo / "SUMFILES" / f"{PIC1}.SUM"
+    r = run("-C", demo, "register", PIC2, "B01980", "--sum", sum1)
+    assert r.exit_code == 2
+    assert r.stderr.strip().splitlines() == [
+        f"spctool: error: {sum1}: the SUM file is for picture {PIC1}, not {PIC2} "
+        "(--any-picture uses it anyway)"
+    ]
+    r = run("-C", demo, "solve-pose", PIC2, "--sum", sum1, "--measurements", root / "reg.txt")
+    assert r.exit_code == 2 and "the SUM file is for picture" in r.stderr
+    # the picture's own SUM given with --sum, and another picture's with --any-picture, are used
+    r = run("-C", demo, "register", PIC1, "B01980", "--sum", sum1)
+    assert r.exit_code == 0, r.stderr
+    r = run("-C", demo, "register", PIC2, "B01980", "--sum", sum1, "--any-picture")
+    assert r.exit_code == 0, r.stderr
+    r = run("-C", demo, "navigate", PIC2, "--landmarks", root / "sel.txt")
+    assert r.exit_code == 2 and "the table is for picture" in r.stderr
+
+
 def test_solve_pose_output_onto_its_input_keeps_a_backup(session, tmp_path):
     run, root, demo, sel, reg = session
     wd = tmp_path / "d"

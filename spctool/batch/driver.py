@@ -68,11 +68,19 @@ class BatchResult:
         return [p for p in self.pictures if p.failed]
 
     def counts(self) -> dict[str, int]:
+        """Pictures per status word (:data:`STATUSES`) and ``resumed``."""
         out = {k: 0 for k in STATUSES}
         for p in self.pictures:
             out[p.kind] = out.get(p.kind, 0) + 1
         out["resumed"] = sum(1 for p in self.pictures if p.resumed)
         return out
+
+    def counts_text(self) -> str:
+        """'3 ok, 1 inconsistent, 0 no-pose, 0 failed' (inconsistent and prior-contradicted only when
+        some are)."""
+        c = self.counts()
+        words = [k for k in STATUSES if c.get(k) or k in ("ok", "no-pose", "failed")]
+        return ", ".join(f"{c.get(k, 0)} {k}" for k in words)
 
     def to_table(self):
         """The summary table: picture, candidates, selected, found, used, rms before/after (px),
@@ -99,7 +107,7 @@ class BatchResult:
         table = LandmarkTable(cols, command="batch", meta={})
         c = self.counts()
         table.comments.append(
-            f"{len(ps)} pictures: {c['ok']} ok, {c['no-pose']} no-pose, {c['failed']} failed"
+            f"{len(ps)} pictures: {self.counts_text()}"
             + (f"; {c['resumed']} done earlier (skipped)" if c["resumed"] else "")
         )
         table.comments.append(f"outputs: {self.out_dir}")

@@ -35,8 +35,10 @@ MARKER_FORMAT = "spctool-batch-done/2"  # /2: input fingerprints cover every inp
 SUMMARY_FORMAT = "spctool-batch/1"
 TABLES_DIR = layout.TABLES_DIR
 SUMMARY_STEM = "BATCH_SUMMARY"
-#: status words of a picture; the text after ``": "`` is the one-line reason
-STATUSES = ("ok", "no-pose", "failed")
+#: status words of a picture; the text after ``": "`` is the one-line reason.  ``inconsistent`` (χ² of
+#: the fit above its 99.9 % quantile) and ``prior-contradicted`` (the measurements contradict the SUM's
+#: SIGMA_VSO/SIGMA_PTG) are solved poses that are not plain ``ok`` (:attr:`PoseResult.verdict`)
+STATUSES = ("ok", "inconsistent", "prior-contradicted", "no-pose", "failed")
 #: how long a WorkerPool waits for its workers to warm up
 WARM_TIMEOUT_S = 600.0
 

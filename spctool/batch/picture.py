@@ -360,8 +360,10 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         elif pose.converged and not pose.plausible:
             summary.status = f"no-pose: implausible fit: {pose.implausible}"
         elif pose.converged:
+            # written also when inconsistent (its covariance scaled by cost/dof) or prior-contradicted:
+            # the status says which, with the one line behind it
             new_pic = with_pose(new_pic, pose.scobj, pose.rotation, pose.sigma_position, pose.sigma_attitude)
-            summary.status = "ok"
+            summary.status = "ok" if pose.verdict == "ok" else f"{pose.verdict}: {pose.verdict_reason}"
         else:
             summary.status = f"no-pose: did not converge in {options.pose.max_iter} iterations"
     from spctool.formats.sumfile import format_sum

@@ -73,6 +73,7 @@ from spctool.errors import SpcResultError, SpcUsageError
 @options.shape_option(" for the occlusion test", exists=True)
 @options.sigma_px_option()
 @options.no_prior_option
+@options.prior_scale_option
 @options.min_landmarks_option
 @click.option(
     "--plots",
@@ -108,6 +109,7 @@ def batch_cmd(
     shape_path,
     sigma_px,
     no_prior,
+    prior_scale,
     min_landmarks,
     plots,
     no_figure,
@@ -139,7 +141,11 @@ def batch_cmd(
     Summary columns (one row per picture, in list order): picture, candidates, selected (maplets
     selected), found (landmarks registered), used (in the pose solve), rms_before_px and
     rms_after_px (residual rms at the a-priori and the solved pose), dposition_km and
-    dattitude_rad (size of the pose change), status: ok, no-pose (the pose could not be solved:
+    dattitude_rad (size of the pose change), status: ok, inconsistent (solved and written, but
+    chi2 of the fit above its 99.9 % quantile: the covariance is scaled by cost/dof and the worst
+    landmarks are named after the table), prior-contradicted (solved and written, but the
+    measurements contradict the SUM's SIGMA_VSO/SIGMA_PTG: rerun with --no-prior or --prior-scale
+    auto), no-pose (the pose could not be solved:
     too few landmarks or no convergence; the SUM holds the registered landmarks only) or failed
     (the picture could not be processed; the reason follows the table as '# PIC failed: ...' and
     is printed on stderr at once).  --json writes the same rows with the full status text, the
@@ -171,7 +177,7 @@ def batch_cmd(
     target = Path(out_dir) if out_dir else workdir / "BATCH"
     if reach_px is not None and schedule != "two-pass":
         raise SpcUsageError(f"--reach applies to --schedule two-pass, not {schedule}")
-    pose = options.pose_options(sigma_px, no_prior, min_landmarks)
+    pose = options.pose_options(sigma_px, no_prior, min_landmarks, prior_scale)
     register = RegisterOptions(
         schedule="retina_s16" if schedule == "two-pass" else options.register_schedule(schedule),
         space=space,
@@ -250,8 +256,7 @@ def batch_cmd(
     counts = result.counts()
     ctx.info(
         f"{len(result.pictures)} pictures in {result.elapsed_s:.1f} s ({result.mode}, {result.workers} "
-        f"worker(s)): {counts['ok']} ok, {counts['no-pose']} no-pose, {counts['failed']} failed, "
-        f"{counts['resumed']} done earlier"
+        f"worker(s)): {result.counts_text()}, {counts['resumed']} done earlier"
     )
     failed = result.failed
     if failed:

@@ -235,12 +235,46 @@ def load_shape(ctx: Context, shape_path=None):
         raise SpcUsageError(str(exc)) from None
 
 
-def table_pixels(path) -> list[tuple[str, tuple[float, float] | None]]:
+def _shown(path) -> str:
+    return "<stdin>" if str(path) == "-" else str(path)
+
+
+def refuse_other_picture(what: str, path, found: str | None, picture: str, any_picture: bool) -> None:
+    """SpcUsageError (exit 2) when a file made for picture ``found`` is given for ``picture`` — a
+    landmark table's ``# picture:`` header or a ``--sum`` file's picture name — unless ``any_picture``
+    (``--any-picture``).  Nothing is checked when the file names no picture."""
+    if any_picture or not found or not picture or found.strip() == picture.strip():
+        return
+    raise SpcUsageError(
+        f"{_shown(path)}: the {what} is for picture {found.strip()}, not {picture.strip()} "
+        "(--any-picture uses it anyway)"
+    )
+
+
+def picture_name_of(picture: str) -> str:
+    """The picture name PICTURE stands for: the stem of a .SUM path, else PICTURE itself."""
+    p = Path(picture)
+    return p.stem if p.suffix.upper() == ".SUM" else str(picture)
+
+
+def check_sum_picture(picture_arg: str, sum_path, loaded: LoadedPicture, any_picture: bool) -> None:
+    """Refuse a ``--sum FILE`` whose picture name is not PICTURE's (:func:`refuse_other_picture`)."""
+    if sum_path:
+        refuse_other_picture("SUM file", sum_path, loaded.pic.name, picture_name_of(picture_arg), any_picture)
+
+
+def table_pixels(
+    path, picture: str | None = None, any_picture: bool = True
+) -> list[tuple[str, tuple[float, float] | None]]:
     """(name, (sample, line)) of every row of a landmark table ('-' = stdin); the pixel is None when
-    the table has no sample/line columns or the row holds no numbers there (NaN is kept)."""
+    the table has no sample/line columns or the row holds no numbers there (NaN is kept).  With
+    ``picture`` and not ``any_picture``, a table whose ``# picture:`` header names another picture is
+    refused (:func:`refuse_other_picture`)."""
     from spctool.formats.table import read_table
 
     table = read_table(path)
+    if picture:
+        refuse_other_picture("table", path, table.picture, picture, any_picture)
     cols = table.pixel_columns("<stdin>" if str(path) == "-" else path)
     smp, lin = cols if cols is not None else (None, None)
     rows = []
@@ -255,7 +289,7 @@ def table_pixels(path) -> list[tuple[str, tuple[float, float] | None]]:
     return rows
 
 
-def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
+def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture, any_picture: bool = True):
     """The landmarks a per-picture stage works on, as ([(name, pixel or None)], source).
 
     Given landmarks (source ``"given"``): the rows of ``--landmarks TABLE`` with their table pixels
@@ -264,9 +298,9 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture):
     With neither, lithos-select (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options,
     occlusion by the shape as ``lithos-select`` checks it) on the
     LMRKLIST.TXT / LMKFILES/ candidates gives the selected maplets with their predicted pixels
-    (source ``"selection"``).
+    (source ``"selection"``).  A table made for another picture is refused unless ``any_picture``.
     """
-    rows = table_pixels(table_path) if table_path else []
+    rows = table_pixels(table_path, picture.pic.name, any_picture) if table_path else []
     for n in names:  # a landmark named on the command line must exist (exit 2, as in every command)
         if not (Path(n).is_file() or ctx.wd.map_path(n).exists() or ctx.wd.lmk_path(n).exists()):
             raise SpcFormatError(
@@ -307,9 +341,14 @@ class StageInputs(NamedTuple):
 def load_stage_inputs(ctx: Context, kw: dict, *, photo_required: bool = True) -> StageInputs:
     """The inputs of predict, extract, correlate and register, from their parsed options (``kw``:
     PICTURE, [LANDMARK]..., --landmarks, --sum, --photo, --flip-rows, --thresholds of
-    :mod:`spctool.cli.options`): the picture and camera, the DN range, the photo and the landmarks."""
+    :mod:`spctool.cli.options`): the picture and camera, the DN range, the photo and the landmarks.
+    Commands with ``--any-picture`` (``kw["any_picture"]``) refuse a ``--landmarks`` table or a
+    ``--sum`` made for another picture unless it is given."""
     picture = load_picture(ctx, kw["picture"], kw["sum_path"])
+    checked = "any_picture" in kw
+    any_picture = bool(kw.get("any_picture")) or not checked
+    check_sum_picture(kw["picture"], kw["sum_path"], picture, any_picture)
     thresholds = picture_thresholds(kw["thresholds"], picture.pic)
     photo = load_photo(ctx, picture.pic, kw["photo_path"], flip_rows=kw["flip_rows"], required=photo_required)
-    landmarks, source = picture_landmarks(ctx, kw["names"], kw["landmarks_table"], picture)
+    landmarks, source = picture_landmarks(ctx, kw["names"], kw["landmarks_table"], picture, any_picture)
     return StageInputs(picture, thresholds, photo, landmarks, source)

@@ -21,11 +21,7 @@ def batch_summary_figure(result, path) -> Path:
     from spctool import figures
 
     pics = result.pictures
-    counts = result.counts()
-    title = (
-        f"batch: {len(pics)} pictures: {counts['ok']} ok, {counts['no-pose']} no-pose, "
-        f"{counts['failed']} failed"
-    )
+    title = f"batch: {len(pics)} pictures: {result.counts_text()}"
     fig = figures.batch_summary(
         [p.picture for p in pics],
         [p.rms_before_px for p in pics],

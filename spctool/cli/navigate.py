@@ -42,6 +42,7 @@ def _spacings(text: str) -> tuple:
     help="Start from the projection of each landmark with the SUM pose, not the table pixels.",
 )
 @options.sum_option
+@options.any_picture_option
 @options.photo_option()
 @options.flip_rows_option
 @options.space_option
@@ -67,7 +68,16 @@ def _spacings(text: str) -> tuple:
     help="Stop after pass 1 (acquisition and one pose solve).",
 )
 @options.sigma_px_option()
+@click.option(
+    "--weights",
+    type=click.Choice(["uniform", "surface"]),
+    default="uniform",
+    show_default=True,
+    help="uniform: every landmark 1/sigma_px^2 per axis; surface: each landmark by the inverse of its "
+    "registration covariance (correlation peak) plus the model error the pose residuals show.",
+)
 @options.no_prior_option
+@options.prior_scale_option
 @options.min_landmarks_option
 @click.option(
     "--output",
@@ -101,7 +111,11 @@ def navigate_cmd(ctx: Context, **kw):
     status_1 (pass 1), residual_sample and residual_line (measured minus predicted with the final
     pose), pose_status (ok, rejected-outlier, ...) and status.  --json adds "passes" (per pass:
     steps, found, rms_before_px, rms_after_px, used, rejected, pose) and "pose" (the final one).
-    Exit 1 when no pose could be solved or fewer than --require landmarks were registered.
+    Exit 1 when no pose could be solved or fewer than --require landmarks were registered.  A pose
+    whose chi2 exceeds its 99.9 % quantile (inconsistent: the worst landmarks named, covariance scaled
+    by cost/dof) or whose measurements contradict the SUM's SIGMA_VSO/SIGMA_PTG (prior-contradicted:
+    --no-prior or --prior-scale auto) is reported in one warning line and in the JSON's pose
+    "verdict".
 
     Example:
 
@@ -110,6 +124,7 @@ def navigate_cmd(ctx: Context, **kw):
       spctool -C demo navigate P000000001A1
       spctool -C demo navigate P000000001A1 --json -o nav.json --output new.SUM
       spctool -C demo navigate P000000002A1 --single-pass --space image
+      spctool -C demo navigate P000000003A1 --weights surface --prior-scale auto
     """
     from spctool.cli.register import _Inputs, _register_options
     from spctool.stages.navigate import NavigateOptions, navigate
@@ -125,7 +140,7 @@ def navigate_cmd(ctx: Context, **kw):
         no_image_shadows=not RegisterOptions.image_shadows,
         criteria=None,
     )
-    pose = options.pose_options(kw["sigma_px"], kw["no_prior"], kw["min_landmarks"])
+    pose = options.pose_options(kw["sigma_px"], kw["no_prior"], kw["min_landmarks"], kw["prior_scale"])
     ropts = _register_options(kw, "retina_s16", pose=pose)
     nopts = NavigateOptions(
         passes=1 if kw["single_pass"] else 2,
@@ -134,6 +149,7 @@ def navigate_cmd(ctx: Context, **kw):
         min_landmarks=max(1, kw["min_landmarks"]),
         register=ropts,
         pose=pose,
+        weights=kw["weights"],
     )
     inp = _Inputs(ctx, kw)
     if not inp.names:
@@ -159,7 +175,12 @@ def navigate_cmd(ctx: Context, **kw):
     meta = {
         "landmark_source": inp.source,
         "space": ropts.space,
-        "status": result.status,
+        # a navigated pose that fails its consistency checks is not plain ok (its SUM is still written)
+        "status": (
+            f"{pose.verdict}: {pose.verdict_reason}"
+            if result.status == "ok" and pose is not None and pose.verdict != "ok"
+            else result.status
+        ),
         "registered": int(result.ok.sum()),
         "passes": [p.as_dict() for p in result.passes],
         "sum_written": wrote,
@@ -183,6 +204,8 @@ def navigate_cmd(ctx: Context, **kw):
     if ctx.verbosity >= (1 if kw["as_json"] else 0) and pose is not None:
         for line in pose.summary_lines():
             click.echo(f"spctool: {line}", err=True)
+    elif pose is not None and pose.verdict in ("inconsistent", "prior-contradicted"):
+        ctx.warn(f"{inp.pic.name}: {pose.verdict}: {pose.verdict_reason}")
     if result.status != "ok":
         raise SpcResultError(f"{inp.pic.name}: {result.status}")
     options.check_require(inp.pic.name, int(result.ok.sum()), kw["require"], "landmarks registered")

@@ -163,6 +163,15 @@ sum_option = click.option(
 )
 
 
+any_picture_option = click.option(
+    "--any-picture",
+    "any_picture",
+    is_flag=True,
+    help="Use a landmark table whose '# picture:' header, or a --sum file whose picture name, is "
+    "another picture's (default: refused, exit 2).",
+)
+
+
 def photo_option(purpose: str = ""):
     """``--photo FILE``; ``purpose`` (e.g. ``" for --overlay"``) follows 'The photo' in the help."""
     return click.option(
@@ -479,11 +488,45 @@ min_landmarks_option = click.option(
 )
 
 
-def pose_options(sigma_px: float, no_prior: bool, min_landmarks: int, **more):
-    """PoseOptions from --sigma-px, --no-prior and --min-landmarks (plus any other PoseOptions fields)."""
+def _prior_scale(ctx, param, value):
+    text = str(value).strip().lower()
+    if text == "auto":
+        return "auto"
+    try:
+        f = float(text)
+    except ValueError:
+        f = float("nan")
+    if not (f > 0 and f < float("inf")):
+        raise click.BadParameter(f"expected 'auto' or a positive number, got {value!r}")
+    return f
+
+
+prior_scale_option = click.option(
+    "--prior-scale",
+    "prior_scale",
+    default="1",
+    show_default=True,
+    metavar="auto|F",
+    callback=_prior_scale,
+    help="Multiply the SUM's SIGMA_VSO / SIGMA_PTG by F in the pose solve; 'auto': when the "
+    "measurements contradict them (normalised change above its 99.9 % quantile), widen them by the "
+    "estimated factor and solve again.",
+)
+
+
+def pose_options(sigma_px: float, no_prior: bool, min_landmarks: int, prior_scale=1.0, **more):
+    """PoseOptions from --sigma-px, --no-prior, --min-landmarks and --prior-scale (a number or
+    ``"auto"``), plus any other PoseOptions fields."""
     from spctool.stages.pose import PoseOptions
 
-    return PoseOptions(sigma_px=sigma_px, use_prior=not no_prior, min_landmarks=min_landmarks, **more)
+    scale = (
+        {"prior_scale": 1.0, "estimate_prior_scale": True}
+        if prior_scale == "auto"
+        else {"prior_scale": float(prior_scale)}
+    )
+    return PoseOptions(
+        sigma_px=sigma_px, use_prior=not no_prior, min_landmarks=min_landmarks, **scale, **more
+    )
 
 
 template_shading_option = click.option(

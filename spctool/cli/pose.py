@@ -17,7 +17,7 @@ import click
 import numpy as np
 
 from spctool.cli import options
-from spctool.cli.common import Context, emit_table, load_picture, pass_context
+from spctool.cli.common import Context, check_sum_picture, emit_table, load_picture, pass_context
 from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
 
 # ------------------------------------------------------------------------------------------------
@@ -38,14 +38,12 @@ class Measurements:
 def measurements_from_table(path, picture: str | None = None, any_picture: bool = False) -> Measurements:
     """The rows of a landmark table; a table whose ``# picture:`` header names another picture than
     ``picture`` is refused (SpcUsageError) unless ``any_picture``."""
+    from spctool.cli.common import refuse_other_picture
     from spctool.formats.table import read_table
 
     table = read_table(path)
-    if picture and table.picture and table.picture.strip() != picture.strip() and not any_picture:
-        raise SpcUsageError(
-            f"{'<stdin>' if str(path) == '-' else path}: the table is for picture {table.picture.strip()}, "
-            f"not {picture.strip()} (--any-picture uses it anyway)"
-        )
+    if picture:
+        refuse_other_picture("table", path, table.picture, picture, any_picture)
     missing = [c for c in ("name", "sample", "line") if c not in table]
     if missing:
         raise SpcFormatError(
@@ -149,6 +147,7 @@ def load_landmarks(ctx: Context, names, lmk_dir):
     "2x2), so a weak, smeared correlation peak counts less than a sharp one.",
 )
 @options.no_prior_option
+@options.prior_scale_option
 @click.option(
     "--estimate-landmarks",
     is_flag=True,
@@ -203,12 +202,7 @@ def load_landmarks(ctx: Context, names, lmk_dir):
 @click.option(
     "--in-place", is_flag=True, help="Rewrite the picture's SUM file itself, keeping the old one as FILE.bak."
 )
-@click.option(
-    "--any-picture",
-    "any_picture",
-    is_flag=True,
-    help="Use a --measurements table whose '# picture:' header names another picture (default: refused).",
-)
+@options.any_picture_option
 @click.option(
     "--force",
     "force",
@@ -245,6 +239,7 @@ def solve_pose_cmd(
     sigma_px,
     weights,
     no_prior,
+    prior_scale,
     estimate_landmarks,
     consider_landmarks,
     max_iter,
@@ -287,13 +282,13 @@ def solve_pose_cmd(
     header block gives the solved position, its 1-sigma, chi2/dof and the largest
     position-attitude correlation; a summary goes to stderr (with --json only with -v).
 
-    Checks: a --measurements table whose '# picture:' header names another picture is refused
-    (exit 2; --any-picture).  When the residuals exceed --sigma-px (cost/dof > 1) the covariance
-    is scaled by cost/dof (both reported).  A fit with cost/dof > 100 (residuals ~10x --sigma-px:
-    wrong measurements or another picture's table) is implausible: the table is written, no SUM,
-    exit 1 (--force writes it).  Too few landmarks, degenerate geometry or no convergence: exit 1
-    (no SUM is written).  --output writes SIGMA_VSO/SIGMA_PTG as the solved 1-sigma values and keeps
-    an existing FILE as FILE.bak (also when FILE is the input SUM).
+    Checks: a --measurements table whose '# picture:' header names another picture, or a --sum file of
+    another picture, is refused (exit 2; --any-picture). When the residuals exceed --sigma-px (cost/dof
+    > 1) the covariance is scaled by cost/dof (both reported). A fit with cost/dof > 100 (residuals ~10x
+    --sigma-px: wrong measurements or another picture's table) is implausible: the table is written, no
+    SUM, exit 1 (--force writes it). Too few landmarks, degenerate geometry or no convergence: exit 1
+    (no SUM is written). --output writes SIGMA_VSO/SIGMA_PTG as the solved 1-sigma values and keeps an
+    existing FILE as FILE.bak (also when FILE is the input SUM).
 
     Example:
 
@@ -314,6 +309,7 @@ def solve_pose_cmd(
         sigma_px,
         no_prior,
         min_landmarks,
+        prior_scale,
         max_iter=max_iter,
         tol=tol,
         landmark_mode=mode,
@@ -322,7 +318,9 @@ def solve_pose_cmd(
         reject_px=reject_px,
     )
 
-    src_path, pic, _, camera = load_picture(ctx, picture, sum_path)
+    loaded = load_picture(ctx, picture, sum_path)
+    check_sum_picture(picture, sum_path, loaded, any_picture)
+    src_path, pic, _, camera = loaded
     meas = (
         measurements_from_table(measurements, pic.name, any_picture)
         if measurements
@@ -421,6 +419,8 @@ def solve_pose_cmd(
     if ctx.verbosity >= (1 if as_json else 0):
         for line in result.summary_lines():
             click.echo(f"spctool: {line}", err=True)
+    elif result.verdict in ("inconsistent", "prior-contradicted"):  # the summary would have said it
+        ctx.warn(f"{pic.name}: {result.verdict}: {result.verdict_reason}")
     if not result.converged:
         raise SpcResultError(
             f"{pic.name}: pose did not converge in {pose_options.max_iter} iterations"

@@ -49,6 +49,7 @@ _shared_options = options.option_group(
         help="Start from the projection of each landmark with the SUM pose, not the table pixels.",
     ),
     options.sum_option,
+    options.any_picture_option,
     options.photo_option(),
     options.flip_rows_option,
     options.space_option,
@@ -728,6 +729,8 @@ def register_cmd(ctx: Context, **kw):
     the covariance).  With --write-sum the ok landmarks are written to the SUM's LANDMARKS
     section (rows of other landmarks are kept unless --drop-failed).
 
+    A --landmarks table whose '# picture:' header names another picture, or a --sum file of
+    another picture, is refused (exit 2; --any-picture uses it anyway).
     A run that registers no landmark prints a warning naming the most common failure on stderr;
     --require N turns fewer than N registered into exit code 1.
 

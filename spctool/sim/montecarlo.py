@@ -64,6 +64,11 @@ landmark[, sample])``: the design of landmark i from ``(…, 1, i)``, the per-ce
 ``(…, 2, i, j)``.  A sample's result therefore depends only on (seed, landmark, sample), never on the
 order of evaluation or on the number of worker processes (``jobs``): runs are identical bit for bit.
 
+Floor.  Each landmark is also registered once with every perturbation at zero
+(:func:`zero_floor`, :attr:`MonteCarloResult.floor`): its error is the model-error floor of the scene
+(the onboard maplets are smoothed from a finer truth, as S16 prescribes), which the per-landmark means
+are read against (report: |mean| − |floor| per axis).
+
 Scenes and report.  The study's input — one photo with its truth and the onboard maplets, the
 ``s16-50m`` preset among them — is :mod:`spctool.sim.montecarlo_scene`; its output in S16 Table 3's
 layout (statistics, text, JSON, CSV and figures) is :mod:`spctool.sim.montecarlo_report`.
@@ -544,6 +549,9 @@ class MonteCarloResult:
     rho: np.ndarray  #: (L, N) peak ρ of the last correlation (NaN if none)
     iterations: np.ndarray  #: (L, N) correlation steps run
     timing: dict = field(default_factory=dict)
+    #: (L, 2) truth − measured with every perturbation at zero (the model-error floor: the onboard
+    #: maplet against the photo of the finer truth); NaN where that registration failed; None: not run
+    floor: np.ndarray | None = None
 
     @property
     def error(self) -> np.ndarray:
@@ -625,6 +633,20 @@ def _run_chunk(landmark: int, start: int, stop: int):
     return landmark, start, apriori, measured, rho, iters, status, time.process_time() - cpu0
 
 
+def zero_floor(scene, config: MonteCarloConfig) -> np.ndarray:
+    """(L, 2) truth − measured of every landmark registered with its knowledge unperturbed (the
+    a-priori pose, maplet, camera and Sun of ``scene``, ``config.plan``): the bias the study would
+    show with every Table 2 sigma at zero — the floor its per-landmark means are to be read against."""
+    out = np.full((len(scene), 2), np.nan)
+    zero = {p.name: np.zeros(p.size) for p in PARAMETERS}
+    for i in range(len(scene)):
+        p = Perturbed(scene.camera, scene.sun, scene.maplets[i], zero)
+        res = register_sample(scene, p, config.plan)
+        if res.status[0] == "ok":
+            out[i] = scene.truth[i] - res.measured[0]
+    return out
+
+
 def _chunks(n_landmarks: int, samples: int, size: int):
     for i in range(n_landmarks):
         for a in range(0, samples, size):
@@ -691,6 +713,9 @@ def run(
             for f in as_completed(futures):
                 store(f.result())
     elapsed = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    floor = zero_floor(scene, config) if n_lm else np.zeros((0, 2))
+    floor_s = time.perf_counter() - t1
     total = n_lm * n
     return MonteCarloResult(
         scene_info=dict(scene.info),
@@ -713,7 +738,9 @@ def run(
             "jobs": jobs,
             "start_method": method,
             "samples": total,
+            "floor_s": floor_s,
         },
+        floor=floor,
     )
 
 

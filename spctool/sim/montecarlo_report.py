@@ -45,7 +45,7 @@ def _stats(err: np.ndarray) -> tuple[float, float, float, float]:
     return float(mean[0]), float(mean[1]), float(std[0]), float(std[1])
 
 
-def _row(name, status, err, rho) -> dict:
+def _row(name, status, err, rho, floor=None) -> dict:
     cls = np.array([status_class(s) for s in status])
     ok = cls == "ok"
     e = err[ok]
@@ -68,6 +68,11 @@ def _row(name, status, err, rho) -> dict:
         "mean_max_rho": float(rho[finite].mean()) if finite.any() else math.nan,
         "rho_defined": int(finite.sum()),
         "status_counts": dict(sorted(counts.items())),
+        # the zero-perturbation floor and the bias beyond it (|mean| − |floor| per axis)
+        "sample_floor": math.nan if floor is None else float(floor[0]),
+        "line_floor": math.nan if floor is None else float(floor[1]),
+        "sample_excess": math.nan if floor is None else abs(sm) - abs(float(floor[0])),
+        "line_excess": math.nan if floor is None else abs(lm) - abs(float(floor[1])),
     }
 
 
@@ -128,14 +133,18 @@ def sensitivity(result: MonteCarloResult) -> list[dict]:
 def summarise(result: MonteCarloResult) -> dict:
     """Table 3 rows per landmark, the pooled ("all") row, the S16 comparison and the target checks."""
     err = result.error
-    rows = [_row(n, result.status[i], err[i], result.rho[i]) for i, n in enumerate(result.names)]
+    fl = result.floor
+    rows = [
+        _row(n, result.status[i], err[i], result.rho[i], None if fl is None else fl[i])
+        for i, n in enumerate(result.names)
+    ]
     overall = _row("all", result.status.reshape(-1), err.reshape(-1, 2), result.rho.reshape(-1))
     if rows:
         overall["min_success_rate"] = min(r["success_rate"] for r in rows)
         for key in ("sample_mean", "line_mean"):
             vals = [abs(r[key]) for r in rows if math.isfinite(r[key])]
             overall[f"max_abs_{key}"] = max(vals) if vals else math.nan
-        for key in ("sample_std", "line_std"):
+        for key in ("sample_std", "line_std", "sample_excess", "line_excess"):
             vals = [r[key] for r in rows if math.isfinite(r[key])]
             overall[f"max_{key}"] = max(vals) if vals else math.nan
     s16 = _s16_aggregate()
@@ -216,6 +225,24 @@ def format_report(result: MonteCarloResult, summary: dict | None = None) -> str:
             f"worst landmark: |s mean| {_f(ov['max_abs_sample_mean'], '{:.3f}')}, |l mean| "
             f"{_f(ov['max_abs_line_mean'], '{:.3f}')}, s std {_f(ov['max_sample_std'], '{:.3f}')}, l std "
             f"{_f(ov['max_line_std'], '{:.3f}')}, success {_f(ov['min_success_rate'], '{:.3f}')}"
+        )
+    if result.floor is not None and summary["landmarks"]:
+        out.append("")
+        out.append(
+            "zero-perturbation floor (every Table 2 sigma at zero; px) beside the bias: "
+            "excess = |mean| - |floor| per axis"
+        )
+        out.append(f"{'L-map':8s} {'s mean':>8s} {'s floor':>8s} {'s excess':>8s} "
+                   f"{'l mean':>8s} {'l floor':>8s} {'l excess':>8s}")  # fmt: skip
+        for r in summary["landmarks"]:
+            out.append(
+                f"{r['name']:8s} {_f(r['sample_mean']):>8s} {_f(r['sample_floor']):>8s} "
+                f"{_f(r['sample_excess']):>8s} {_f(r['line_mean']):>8s} {_f(r['line_floor']):>8s} "
+                f"{_f(r['line_excess']):>8s}"
+            )
+        out.append(
+            f"largest excess: sample {_f(ov['max_sample_excess'], '{:.3f}')}, line "
+            f"{_f(ov['max_line_excess'], '{:.3f}')} (target <= 0.01 px)"
         )
     out.append("")
     out.append("S16 Table 3 (maplet space, 50 m, 500 LHS samples each; different terrain, same names)")

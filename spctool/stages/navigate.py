@@ -87,6 +87,9 @@ class NavigateOptions:
       thresholds, prediction/extraction options; schedule and steps are set here, and removal
       criteria apply only when given explicitly — ``criteria="default"`` means none).
     * ``pose`` — the :class:`PoseOptions` of both pose solves (outlier rejection on by default).
+    * ``weights`` — ``"uniform"`` (every landmark 1/``sigma_px``² per axis) or ``"surface"`` (each
+      landmark by the inverse of its registration covariance plus the model error the residuals show,
+      :func:`spctool.stages.pose.solve_pose` ``pixel_covariances``).
     """
 
     passes: int = 2
@@ -98,8 +101,11 @@ class NavigateOptions:
     min_landmarks: int = 3
     register: RegisterOptions = field(default_factory=RegisterOptions)
     pose: PoseOptions = field(default_factory=PoseOptions)
+    weights: str = "uniform"
 
     def __post_init__(self):
+        if self.weights not in ("uniform", "surface"):
+            raise SpcUsageError(f"weights must be 'uniform' or 'surface', got {self.weights!r}")
         if int(self.passes) not in (1, 2):
             raise SpcUsageError(f"passes must be 1 or 2, got {self.passes}")
         self.passes = int(self.passes)
@@ -259,6 +265,7 @@ def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig
             prior_sigma_position=sig_pos,
             prior_sigma_attitude=sig_att,
             names=[reg.names[i] for i in use],
+            pixel_covariances=reg.covariance[use] if options.weights == "surface" else None,
         )
     except PoseError as exc:
         return None, str(exc)

@@ -68,6 +68,7 @@ with its reason in :attr:`PoseResult.rejected`; nothing is dropped silently.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -75,11 +76,20 @@ import numpy as np
 
 from spctool.errors import SpcResultError, SpcUsageError
 from spctool.geometry.frames import apply_attitude_update, rotvec_from_rot, skew
+from spctool.stages.pose_consistency import (
+    ChiSquareGate,
+    PriorTest,
+    chi2_gate,
+    model_error,
+    prior_scale_step,
+    prior_test,
+)
 
 __all__ = [
     "PoseError",
     "PoseOptions",
     "PoseResult",
+    "POSE_VERDICTS",
     "Rejection",
     "LANDMARK_MODES",
     "solve_pose",
@@ -87,6 +97,8 @@ __all__ = [
 ]
 
 LANDMARK_MODES = ("fixed", "estimate", "consider")
+#: :attr:`PoseResult.verdict` words, most serious first
+POSE_VERDICTS = ("implausible", "prior-contradicted", "inconsistent", "ok")
 #: median of the norm of a 2-D standard normal vector, √(2 ln 2)
 _RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 #: landmark sigmas ≤ 0 are held (effectively) fixed at this 1σ (km) in "estimate" mode
@@ -126,6 +138,17 @@ class PoseOptions:
       names the reason.
     * ``sigma_floor_px`` — added in quadrature to per-landmark covariances (``pixel_covariances``) so
       that a near-perfect correlation (ρ → 1, covariance → 0) cannot take all the weight (0.001 px).
+    * ``consistency_quantile`` — the χ² gate and the prior–measurement test
+      (:mod:`spctool.stages.pose_consistency`) fail above this quantile (0.999): the pose is
+      ``inconsistent`` / ``prior-contradicted`` (:attr:`PoseResult.verdict`), never ``ok``.
+    * ``model_error`` — with ``pixel_covariances``: estimate the model error τ (px) the residuals show
+      beyond the correlation peaks' covariances (Σᵢ rᵢᵀ(Cᵢ + τ²I)⁻¹rᵢ = dof) and weight with
+      (Cᵢ + τ²I)⁻¹ (True), when χ² exceeds its ``model_error_quantile`` (0.9; below it the
+      covariances are left as they are); τ is at most ``max_model_error_px`` (None: ``sigma_px``), a
+      larger misfit is the χ² gate's.  Reported as :attr:`PoseResult.model_error_px`.
+    * ``prior_scale`` — factor applied to the a-priori sigmas (1); ``estimate_prior_scale``: when the
+      measurements contradict the prior, widen it by the test's √(q/k) and solve again, at most
+      ``max_prior_scale_steps`` times, until they agree (the factor is :attr:`PoseResult.prior_scale`).
     """
 
     max_iter: int = 10
@@ -145,6 +168,13 @@ class PoseOptions:
     scale_covariance: bool = True
     max_reduced_chi2: float = 100.0
     sigma_floor_px: float = 0.001
+    consistency_quantile: float = 0.999
+    model_error: bool = True
+    max_model_error_px: float | None = None
+    model_error_quantile: float = 0.9
+    prior_scale: float = 1.0
+    estimate_prior_scale: bool = False
+    max_prior_scale_steps: int = 6
 
     def __post_init__(self):
         if self.estimate_landmarks:
@@ -177,6 +207,15 @@ class PoseOptions:
             raise SpcUsageError(f"max_condition must be > 1, got {self.max_condition}")
         if not (self.max_reduced_chi2 > 0):
             raise SpcUsageError(f"max_reduced_chi2 must be > 0, got {self.max_reduced_chi2}")
+        if not (0.0 < self.consistency_quantile < 1.0):
+            raise SpcUsageError(f"consistency_quantile must be in (0, 1), got {self.consistency_quantile}")
+        if self.max_model_error_px is not None and not (self.max_model_error_px >= 0):
+            raise SpcUsageError(f"max_model_error_px must be >= 0, got {self.max_model_error_px}")
+        if not (0.0 < self.model_error_quantile < 1.0):
+            raise SpcUsageError(f"model_error_quantile must be in (0, 1), got {self.model_error_quantile}")
+        if not (self.prior_scale > 0 and math.isfinite(self.prior_scale)):
+            raise SpcUsageError(f"prior_scale must be a positive number, got {self.prior_scale}")
+        self.max_prior_scale_steps = int(self.max_prior_scale_steps)
         self.max_iter = int(self.max_iter)
         self.min_landmarks = int(self.min_landmarks)
         self.max_halvings = int(self.max_halvings)
@@ -241,6 +280,10 @@ class PoseResult:
     covariance_formal: np.ndarray | None = None  # (6, 6) before scaling by cost/dof (None: not scaled)
     covariance_scale: float = 1.0  # factor applied to the covariance: cost/dof when it exceeds 1
     implausible: str = ""  # why the fit is implausible (cost/dof > max_reduced_chi2), "" when plausible
+    gate: ChiSquareGate | None = None  # the χ² test of the cost (None: no redundancy)
+    prior_check: PriorTest | None = None  # the prior–measurement test (None: no prior)
+    prior_scale: float = 1.0  # factor applied to the a-priori sigmas (estimated or given)
+    model_error_px: float = 0.0  # τ added in quadrature to the per-landmark covariances (estimated)
 
     # ---- convenience ------------------------------------------------------------------------------
     @property
@@ -262,6 +305,42 @@ class PoseResult:
     @property
     def plausible(self) -> bool:
         return not self.implausible
+
+    @property
+    def consistent(self) -> bool:
+        """χ² of the fit within its ``consistency_quantile`` (:mod:`spctool.stages.pose_consistency`)."""
+        return self.gate is None or self.gate.consistent
+
+    @property
+    def inconsistent(self) -> str:
+        """Why the χ² gate fails (one line), "" when it passes."""
+        return "" if self.gate is None else self.gate.reason()
+
+    @property
+    def prior_contradicted(self) -> str:
+        """Why the measurements contradict the prior (one line with the remedy), "" when they agree."""
+        return "" if self.prior_check is None else self.prior_check.reason()
+
+    @property
+    def verdict(self) -> str:
+        """``implausible``, ``prior-contradicted``, ``inconsistent`` or ``ok`` (the first that holds)."""
+        if self.implausible:
+            return "implausible"
+        if self.prior_contradicted:
+            return "prior-contradicted"
+        if self.inconsistent:
+            return "inconsistent"
+        return "ok"
+
+    @property
+    def verdict_reason(self) -> str:
+        """The one line behind :attr:`verdict` ("" for ``ok``)."""
+        v = self.verdict
+        return {
+            "implausible": self.implausible,
+            "prior-contradicted": self.prior_contradicted,
+            "inconsistent": self.inconsistent,
+        }.get(v, "")
 
     @property
     def position_attitude_correlation(self) -> float:
@@ -310,6 +389,12 @@ class PoseResult:
             "position_attitude_correlation": self.position_attitude_correlation,
             "plausible": self.plausible,
             "implausible": self.implausible or None,
+            "verdict": self.verdict,
+            "verdict_reason": self.verdict_reason or None,
+            "consistency": None if self.gate is None else self.gate.as_dict(),
+            "prior_check": None if self.prior_check is None else self.prior_check.as_dict(),
+            "prior_scale": self.prior_scale,
+            "model_error_px": self.model_error_px,
         }
         if self.landmark_corrections is not None:
             out["landmark_corrections"] = {
@@ -331,6 +416,9 @@ class PoseResult:
             + (" (cost/dof > 1: sigmas x sqrt)" if self.covariance_scale != 1.0 else "")
             + f"  max |position-attitude correlation| {self.position_attitude_correlation:.3f}",
             "fit: plausible" if self.plausible else f"fit: IMPLAUSIBLE ({self.implausible})",
+            f"verdict: {self.verdict}"
+            + (f" ({self.verdict_reason})" if self.verdict_reason else "")
+            + (f"  prior sigmas x{self.prior_scale:.3g}" if self.prior_scale != 1.0 else ""),
         ]
 
     def summary_lines(self) -> list[str]:
@@ -353,6 +441,8 @@ class PoseResult:
             f" chi2 {self.chi2:.4g} + prior {self.cost - self.chi2:.4g}, dof {self.dof},"
             f" cost/dof {self.reduced_chi2:.3g}, condition {self.condition_number:.3g}",
         ]
+        if self.model_error_px > 0:
+            lines.append(f"model error {self.model_error_px:.4f} px added to the landmarks' covariances")
         if self.covariance_scale != 1.0:
             lines.append(
                 f"covariance scaled by cost/dof = {self.covariance_scale:.3g} (sigmas x "
@@ -360,6 +450,17 @@ class PoseResult:
             )
         if self.implausible:
             lines.append(f"warning: implausible fit: {self.implausible}")
+        if self.prior_contradicted:
+            lines.append(f"warning: prior contradicted: {self.prior_contradicted}")
+        if self.inconsistent:
+            lines.append(f"warning: inconsistent fit: {self.inconsistent}")
+        if self.prior_check is not None and self.prior_check.dof > 0:
+            pc = self.prior_check
+            lines.append(
+                f"prior check: normalised change {pc.nis:.3g} ({pc.dof} dof, limit {pc.limit:.3g}),"
+                f" prior {100 * pc.share:.0f} % of the cost"
+                + (f", prior sigmas x{self.prior_scale:.3g}" if self.prior_scale != 1.0 else "")
+            )
         for r in self.rejected:
             lines.append(f"rejected {r.name}: {r.reason} ({r.detail})")
         lines.extend(f"warning: {w}" for w in self.warnings)
@@ -632,11 +733,33 @@ def solve_pose(*args, **kwargs) -> PoseResult:
     a linear-algebra failure (absurd but finite input, e.g. a pixel of 1e300) reported as
     :class:`PoseError` instead of numpy's LinAlgError."""
     try:
-        return _solve_pose(*args, **kwargs)
+        return _solve_pose_scaled(*args, **kwargs)
     except np.linalg.LinAlgError as exc:
         raise PoseError(
             f"the pose could not be solved ({exc}): check the measured pixels and landmark positions"
         ) from None
+
+
+def _solve_pose_scaled(camera, landmark_positions, measured, options: PoseOptions | None = None, *rest, **kw):
+    """:func:`_solve_pose`; with ``options.estimate_prior_scale``, while the measurements contradict
+    the prior, widen its sigmas by the test's factor (:func:`prior_scale_step`) and solve again."""
+    opts = options or PoseOptions()
+    res = _solve_pose(camera, landmark_positions, measured, opts, *rest, **kw)
+    if not opts.estimate_prior_scale:
+        return res
+    first = res
+    for _ in range(opts.max_prior_scale_steps):
+        if res.prior_check is None or not res.prior_check.contradicted:
+            break
+        step = prior_scale_step(res.prior_check)
+        opts = dataclasses.replace(opts, prior_scale=opts.prior_scale * step, estimate_landmarks=False)
+        res = _solve_pose(camera, landmark_positions, measured, opts, *rest, **kw)
+    if res is not first:
+        res.warnings.append(
+            f"prior widened x{res.prior_scale:.3g}: the measurements contradicted SIGMA_VSO/SIGMA_PTG"
+            f" ({first.prior_contradicted})"
+        )
+    return res
 
 
 def _measurement_weights(opts, meas_all, names, pixel_sigmas, pixel_covariances, warnings) -> np.ndarray:
@@ -707,6 +830,53 @@ def _final_covariance(problem, state, mode, used, pts_all, lmk_sig):
         cov = cov + cov @ c @ cov
         cov = 0.5 * (cov + cov.T)
     return cov, cond, cov_plain, lmk_corr, lmk_cov, pts_after
+
+
+def _consistency(problem, state, opts, dof, cost, names, used, prior, cov_plain, cov_formal, cov):
+    """The χ² gate and (with a prior) the prior–measurement test of the solution
+    (:mod:`spctool.stages.pose_consistency`), on the formal covariance (not scaled, not consider-
+    inflated)."""
+    smp, lin = state.camera.project(problem.pts(state))
+    r = problem.meas - np.stack([smp, lin], axis=-1)
+    rho2 = np.einsum("mi,mij,mj->m", r, problem.wts, r)
+    if state.dlmk is not None:
+        rho2 = rho2 + np.sum(problem.lmk_info * state.dlmk * state.dlmk, axis=1)
+    used_names = [names[i] for i in np.flatnonzero(used)]
+    q = opts.consistency_quantile
+    gate = chi2_gate(cost, dof, rho2, used_names, q) if dof > 0 else None
+    prior_check = None
+    if prior.n_equations > 0:
+        formal = cov_plain if cov_plain is not None else cov_formal if cov_formal is not None else cov
+        e = np.concatenate([state.dpos, state.theta])
+        term = float(np.sum(prior.info * e * e))
+        # the measurements' own noise scale (their χ² over its expected value at the joint solution)
+        dof_meas = 2.0 * rho2.size - 6.0 + float(np.sum(prior.info * np.diag(formal)))
+        chi2_meas = cost - term
+        noise = chi2_meas / dof_meas if dof_meas > 0.5 else 1.0
+        prior_check = prior_test(
+            e, prior.info, formal, term, cost, q, float(opts.prior_scale), noise_scale=noise
+        )
+    return gate, prior_check
+
+
+def _covariance_matrices(covs, n, floor, wts):
+    """(N, 2, 2) measurement covariances the weights ``wts`` stand for: Cᵢ + floor²·I where that is
+    usable, else the inverse of the fallback weight."""
+    c = 0.5 * (np.asarray(covs, dtype=np.float64) + np.swapaxes(np.asarray(covs, dtype=np.float64), 1, 2))
+    c = c + (floor * floor) * np.eye(2)
+    _, bad = _covariance_weights(covs, n, floor, wts)
+    c[bad] = np.linalg.inv(wts[bad]) if bad.any() else c[bad]
+    return c
+
+
+def _model_error(problem, state, covs, opts, prior) -> float:
+    """τ (px) of :func:`spctool.stages.pose_consistency.model_error` for the residuals of the fit
+    (dof 2M − 6 + prior equations), capped at ``max_model_error_px`` (default ``sigma_px``)."""
+    smp, lin = state.camera.project(problem.pts(state))
+    r = problem.meas - np.stack([smp, lin], axis=-1)
+    cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
+    dof = 2 * r.shape[0] + prior.n_equations - 6
+    return model_error(r, covs, dof, cap, opts.model_error_quantile)
 
 
 def _usable_landmarks(camera, pts_all, meas_all, names):
@@ -832,6 +1002,7 @@ def _solve_pose(
                 _prior_info(prior_sigma_attitude, 3, "prior attitude sigma", warnings),
             ]
         )
+        info = info / (opts.prior_scale * opts.prior_scale)
     else:
         info = np.zeros(6)
     prior = _Prior(info)
@@ -867,9 +1038,25 @@ def _solve_pose(
         )
 
     # ---- fit, reject, refit -------------------------------------------------------------------------
+    before = (list(status), list(rejected), list(warnings))
     problem, state, iterations, converged, history, used = _fit_rejecting(
         build, usable, opts, prior, names, status, rejected, warnings
     )
+    tau = 0.0
+    if pixel_covariances is not None and opts.model_error:
+        # the model error the residuals show beyond the correlation peaks' covariances, then the fit
+        # again with it (twice: the residuals of the refit estimate it again)
+        base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
+        for _ in range(2):
+            new_tau = _model_error(problem, state, base[used], opts, prior)
+            if abs(new_tau - tau) <= 0.05 * max(new_tau, 1e-12):
+                break
+            tau = new_tau
+            wts_all = np.linalg.inv(base + (tau * tau) * np.eye(2))
+            status[:], rejected[:], warnings[:] = (list(x) for x in before)
+            problem, state, iterations, converged, history, used = _fit_rejecting(
+                build, usable, opts, prior, names, status, rejected, warnings
+            )
 
     # ---- final linearisation: covariance, residuals -----------------------------------------------
     m = int(np.count_nonzero(used))
@@ -895,6 +1082,9 @@ def _solve_pose(
             f"sigma_px {opts.sigma_px:g} px (wrong measurements, another picture's table, or sigma_px "
             "too small)"
         )
+    gate, prior_check = _consistency(
+        problem, state, opts, dof, cost, names, used, prior, cov_plain, cov_formal, cov
+    )
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sig, sig)
@@ -946,4 +1136,8 @@ def _solve_pose(
         covariance_formal=cov_formal,
         covariance_scale=scale,
         implausible=implausible,
+        gate=gate,
+        prior_check=prior_check,
+        prior_scale=float(opts.prior_scale) if prior_used else 1.0,
+        model_error_px=float(tau),
     )
