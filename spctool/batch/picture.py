@@ -199,6 +199,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     out.input_sha256 = hashlib.sha256(raw).hexdigest()
     out.inputs_sha256 = shared.inputs_sha256
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
+    guard.check_finite_header(pic, sum_path, "sum")  # a NaN pose in, never a NaN pose out
     out.photo_name = pic.name
     camera = Camera.from_picture(pic, shared.settings)
     photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)

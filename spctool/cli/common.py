@@ -18,7 +18,7 @@ import click
 
 from spctool.cli.options import picture_thresholds
 from spctool.errors import SpcFormatError, SpcUsageError
-from spctool.formats import atomic
+from spctool.formats import atomic, guard
 from spctool.formats.workdir import WorkDir
 
 
@@ -185,6 +185,7 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
     adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
+    guard.check_finite_header(pic, path, "sum")  # SPC reads NaN; no stage can use a NaN pose or camera
     settings = ctx.settings()
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)
