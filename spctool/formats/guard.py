@@ -18,7 +18,10 @@ Hostile or corrupt input must neither escape the directories a user named nor ex
 * :func:`check_finite` — a pose, vector or camera value read from a text file must be finite (Fortran
   reads ``NaN`` and ``Infinity``; no stage can use them and no writer may pass them on);
 * :func:`refuse_input_overwrite` — an output that is, by device and inode, one of the files a command
-  read (or a directory of them) is refused, whatever path (symbolic link, bind mount) reaches it.
+  read (or a directory of them) is refused, whatever path (symbolic link, bind mount) reaches it;
+  inside an :func:`input_scope` (one command, one batch picture) every file read by
+  :func:`read_bytes` is remembered, and :func:`refuse_read_input` refuses to replace one of them
+  without a backup (:func:`spctool.formats.atomic.write_bytes`).
 
 Operating-system refusals (permission denied, EIO) are re-raised as
 :class:`~spctool.errors.SpcEnvironmentError` naming the user's path (exit 3).
@@ -26,9 +29,11 @@ Operating-system refusals (permission denied, EIO) are re-raised as
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import stat
+import threading
 from pathlib import Path
 
 from spctool.errors import SpcEnvironmentError, SpcFormatError, SpcUsageError
@@ -46,7 +51,9 @@ __all__ = [
     "is_valid_name",
     "read_bytes",
     "read_stdin",
+    "input_scope",
     "refuse_input_overwrite",
+    "refuse_read_input",
     "same_file",
 ]
 
@@ -269,6 +276,7 @@ def read_bytes(path, what: str = "a file", max_bytes: int | None = None) -> byte
     try:
         with open(p, "rb") as fh:
             data = fh.read(size + 1)
+            _note_input(p, os.fstat(fh.fileno()))
     except IsADirectoryError:
         raise SpcFormatError(p, None, f"{what}, found a directory") from None
     except OSError as exc:
@@ -336,3 +344,52 @@ def _human(nbytes: float) -> str:
             return f"{value:.0f} {unit}" if unit == "bytes" else f"{value:.1f} {unit}"
         value /= 1024
     return f"{value:.1f} EiB"  # pragma: no cover
+
+
+# ------------------------------------------------------------------------------------------------
+# the files read by one command (or one batch picture): never replaced without a backup
+
+_READ: dict[tuple[int, int], str] = {}
+_SCOPE = {"depth": 0}
+_SCOPE_LOCK = threading.Lock()
+#: most files remembered in one scope (a batch picture reads a few dozen)
+_MAX_REMEMBERED = 200_000
+
+
+@contextlib.contextmanager
+def input_scope():
+    """Remember the files :func:`read_bytes` reads inside the ``with`` body (nested scopes share one
+    record, cleared when the outermost ends)."""
+    with _SCOPE_LOCK:
+        if _SCOPE["depth"] == 0:
+            _READ.clear()
+        _SCOPE["depth"] += 1
+    try:
+        yield
+    finally:
+        with _SCOPE_LOCK:
+            _SCOPE["depth"] -= 1
+            if _SCOPE["depth"] == 0:
+                _READ.clear()
+
+
+def _note_input(path, st) -> None:
+    if _SCOPE["depth"] and len(_READ) < _MAX_REMEMBERED:
+        _READ[(st.st_dev, st.st_ino)] = os.fspath(path)
+
+
+def refuse_read_input(output) -> None:
+    """SpcUsageError naming both paths when ``output`` is, by device and inode, a file read in the
+    current :func:`input_scope` (and the path it was read by still leads to it: an inode number
+    reused by a new file is no match)."""
+    if not _READ:
+        return
+    ident = _identity(output)
+    if ident is None:
+        return
+    src = _READ.get(ident)
+    if src is not None and _identity(src) == ident:
+        raise SpcUsageError(
+            f"refusing to replace {output}: it is the input {src} (same device and inode), read by this "
+            "command; choose an output path that is not an input"
+        )
