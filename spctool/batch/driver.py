@@ -352,6 +352,11 @@ def check_out_dir(workdir: Path, out_dir: Path) -> None:
         raise SpcUsageError(
             f"--out-dir {shown}: the name is not valid UTF-8 (the batch summary records it); choose another"
         ) from None
+    if guard.same_file(out_dir, workdir):
+        raise SpcUsageError(
+            f"--out-dir {out_dir} must differ from the working directory {workdir} (same device and "
+            "inode): the batch reads SUMFILES/ there"
+        )
     inputs = [workdir] + [workdir / d for d in SPC_FOLDERS]
     guard.refuse_input_overwrite(out_dir, inputs, "--out-dir")
     for sub in OUT_FOLDERS:
