@@ -140,6 +140,22 @@ def test_a_file_read_is_never_replaced_without_a_bak_by_any_path(demo, tmp_path)
     atomic.write_text(tmp_path / "new.SUM", "x\n")  # outside a scope: nothing remembered
 
 
+def test_output_option_onto_an_input_table_is_refused_naming_both(tmp_path):
+    from spctool.cli.common import emit
+    from spctool.formats.table import read_table
+
+    table = tmp_path / "sel.txt"
+    table.write_text("name\nB01536\nB01585\n")
+    link = tmp_path / "sel-link.txt"
+    link.symlink_to(table)
+    before = table.read_bytes()
+    with guard.input_scope():  # as every command runs (SpcGroup.main)
+        read_table(table)  # a command's --landmarks TABLE
+        with pytest.raises(SpcUsageError, match=f"{link}: it is the input {table} .same device and inode"):
+            emit("name\nX\n", str(link))  # its -o FILE
+    assert table.read_bytes() == before and not list(tmp_path.glob("*.bak"))
+
+
 # ------------------------------------------------------------------------------------------------
 # 2. readers bounded by the file's own content; linear checks
 

@@ -60,11 +60,13 @@ pass_context = click.make_pass_decorator(Context, ensure=True)
 
 def emit(text: str, output: str | None = None, *, overwrite: bool = True) -> None:
     """Write ``text`` to ``output`` atomically (an existing file is kept as ``.bak``), or to stdout when
-    ``output`` is None or '-'."""
+    ``output`` is None or '-'.  An ``output`` that is a file this command read (by device and inode:
+    a link or a second path to it too) is refused naming both (:func:`guard.refuse_read_input`)."""
     if output is None or output == "-":
         sys.stdout.write(text)
         sys.stdout.flush()
     else:
+        guard.refuse_read_input(output)
         atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite, backup=True)
 
 
