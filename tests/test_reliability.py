@@ -262,6 +262,13 @@ def test_stages_and_batch_refuse_a_nan_pose_and_never_write_one(demo, tmp_path):
     assert not (out / "SUMFILES" / f"{PIC}.SUM").exists()
 
 
+def test_stages_refuse_a_nan_landmark_naming_its_line(demo):
+    path = demo / "LMKFILES" / "B01536.LMK"
+    path.write_text(path.read_text().replace("    0.2777748334D+00", "    NaN", 1))
+    line = one_line(invoke("-C", demo, "lithos-select", PIC), 2)
+    assert "B01536.LMK:5: expected finite numbers (VLM)" in line
+
+
 def test_writers_refuse_a_non_finite_pose():
     from spctool.formats.nominal import format_nom, read_nom
     from spctool.formats.sumfile import format_sum, read_sum

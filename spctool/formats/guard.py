@@ -330,7 +330,10 @@ def landmark_geometry_problem(obj) -> str | None:
 
 
 def check_landmark_geometry(obj, path):
-    """``obj`` when :func:`landmark_geometry_problem` finds nothing, else SpcFormatError naming ``path``."""
+    """``obj`` when :func:`landmark_geometry_problem` finds nothing, else SpcFormatError naming ``path``
+    (and, for a NaN or Infinity in a parsed LMK header, its line: :func:`check_finite_header`)."""
+    if getattr(getattr(obj, "_source", None), "header", None):
+        check_finite_header(obj, path, "lmk")
     problem = landmark_geometry_problem(obj)
     if problem is not None:
         raise SpcFormatError(path, None, problem)
