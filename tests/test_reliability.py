@@ -23,7 +23,7 @@ from click.testing import CliRunner
 
 from spctool.cli.main import cli
 from spctool.errors import SpcFormatError, SpcUsageError
-from spctool.formats import atomic, guard
+from spctool.formats import guard
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "fixtures" / "demo"
@@ -120,24 +120,29 @@ def test_a_link_made_while_the_batch_runs_is_refused_per_picture_before_anything
         write_outcome(out, outcome, "f" * 64)
 
 
-def test_a_file_read_is_never_replaced_without_a_bak_by_any_path(demo, tmp_path):
+def test_a_picture_never_replaces_a_file_it_read_by_any_path(demo, tmp_path):
+    from spctool.batch.picture import PictureOutcome, PictureSummary, write_outcome
     from spctool.formats.sumfile import read_sum
+    from spctool.formats.workdir import WorkDir
 
     src = demo / "SUMFILES" / f"{PIC}.SUM"
-    link = tmp_path / "link.SUM"
-    link.symlink_to(src)
+    before = src.read_bytes()
+    out = tmp_path / "out"
+    (out / "SUMFILES").mkdir(parents=True)
+    (out / "SUMFILES" / f"{PIC}.SUM").symlink_to(src)  # the output file itself a link to the input
+    outcome = PictureOutcome(PictureSummary(PIC, "ok"), sum_text="X\n", workdir=WorkDir(demo))
+    with guard.input_scope():  # as process_picture runs a picture
+        read_sum(src)
+        with pytest.raises(SpcUsageError, match=f"{PIC}.SUM: it is the input {src} .same device and inode"):
+            write_outcome(out, outcome, "f" * 64)
+    assert src.read_bytes() == before and (out / "SUMFILES" / f"{PIC}.SUM").is_symlink()
     hard = tmp_path / "hard.SUM"
     os.link(src, hard)
-    before = src.read_bytes()
     with guard.input_scope():
-        read_sum(src)
-        for other in (link, hard):
-            with pytest.raises(SpcUsageError, match=f"{other}.*the input {src}"):
-                atomic.write_text(other, "replaced\n")
-        assert src.read_bytes() == before
-        atomic.write_text(link, before.decode("latin-1"), backup=True)  # explicit: kept as .bak
-    assert link.with_name("link.SUM.bak").exists()
-    atomic.write_text(tmp_path / "new.SUM", "x\n")  # outside a scope: nothing remembered
+        read_sum(hard)
+        with pytest.raises(SpcUsageError, match="same device and inode"):
+            guard.refuse_read_input(src)
+    guard.refuse_read_input(src)  # outside a scope nothing is remembered
 
 
 def test_output_option_onto_an_input_table_is_refused_naming_both(tmp_path):

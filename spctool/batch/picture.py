@@ -445,6 +445,8 @@ def write_outcome(out_dir, outcome: PictureOutcome, fingerprint: str) -> None:
     """Write a picture's outputs atomically, the done-marker last (only when it did not fail)."""
     paths = output_paths(out_dir, outcome.summary.picture)
     _refuse_input_folder(paths, outcome.workdir)  # before anything is removed (clear_outputs)
+    for path in paths.values():  # none is a file this picture read, by any path (guard.input_scope)
+        guard.refuse_read_input(path)
     clear_outputs(out_dir, outcome.summary.picture)
     if outcome.sum_text is not None:
         atomic.write_text(paths["sum"], outcome.sum_text)

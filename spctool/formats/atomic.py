@@ -83,10 +83,6 @@ def write_bytes(path, data: bytes, *, overwrite: bool = True, backup: bool = Fal
     path = Path(path)
     if path.exists() and not overwrite:
         raise SpcUsageError(f"{path}: exists already (use --force or another name)")
-    if not backup:  # an input read by this command is never replaced without a backup (any path to it)
-        from spctool.formats.guard import refuse_read_input
-
-        refuse_read_input(path)
     if path.is_dir():
         raise SpcUsageError(f"{path}: is a directory, cannot write a file there")
     try:

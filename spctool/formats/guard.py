@@ -20,8 +20,10 @@ Hostile or corrupt input must neither escape the directories a user named nor ex
 * :func:`refuse_input_overwrite` — an output that is, by device and inode, one of the files a command
   read (or a directory of them) is refused, whatever path (symbolic link, bind mount) reaches it;
   inside an :func:`input_scope` (one command, one batch picture) every file read by
-  :func:`read_bytes` is remembered, and :func:`refuse_read_input` refuses to replace one of them
-  without a backup (:func:`spctool.formats.atomic.write_bytes`).
+  :func:`read_bytes` is remembered, and :func:`refuse_read_input` refuses an output that is one of
+  them (a command's ``-o FILE``, a batch picture's outputs; the explicit in-place updates —
+  ``--in-place``, ``convert --force SRC SRC``, ``make-maplets`` adding to LMRKLIST.TXT — keep a
+  ``.bak`` or are the command's purpose).
 
 Operating-system refusals (permission denied, EIO) are re-raised as
 :class:`~spctool.errors.SpcEnvironmentError` naming the user's path (exit 3).
