@@ -608,8 +608,10 @@ def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, st
     if own:
         from spctool.batch.scheduler import CONNECT_TIMEOUT_S
 
+        # run_batch checked that a Dask scheduler answers there (check_scheduler): this connection only
+        # waits longer than that check for a scheduler that is busy registering
         try:
-            client = Client(str(scheduler), timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
+            client = Client(str(scheduler), timeout=f"{max(CONNECT_TIMEOUT_S, 30.0)}s", set_as_default=False)
         except Exception as exc:  # noqa: BLE001 - any refusal (TLS, handshake, timeout) is one line
             raise SpcUsageError(
                 f"cannot connect to the Dask scheduler {scheduler}: {type(exc).__name__}: {_one_line(exc)}"
