@@ -16,8 +16,8 @@ read the address is checked in three steps, each refused with one line:
    msgpack message holding ``pickle-protocol``).  A server that stays silent (HTTP waits for a request),
    closes the connection or sends something else within the timeout is not a Dask scheduler: exit 2.
 
-For TLS the handshake check is left to the Dask client itself (the bytes are encrypted); its connect
-is bounded by the same timeout (:mod:`spctool.batch.driver`).
+For TLS only reachability is checked here; the handshake is left to the Dask client itself (the bytes
+are encrypted), whose connection (:mod:`spctool.batch.driver`) waits at most 30 s and fails in one line.
 """
 
 from __future__ import annotations
