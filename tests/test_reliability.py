@@ -197,6 +197,24 @@ def test_sparse_map_is_refused_before_it_is_read(tmp_path, command):
     assert "sparse file" in line and str(path) in line
 
 
+def test_few_blocks_without_holes_is_no_sparse_file(tmp_path, monkeypatch):
+    # a compressing file system (ZFS, btrfs) allocates few blocks for a full file: no holes, no refusal
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(guard, "SPARSE_MIN_BYTES", 1024)
+    full = tmp_path / "full.bin"
+    full.write_bytes(bytes(256 * 1024))
+    compressed = SimpleNamespace(st_size=256 * 1024, st_blocks=8)
+    guard._refuse_sparse(full, compressed, "a file")  # SEEK_DATA finds every byte: accepted
+    holes = tmp_path / "holes.bin"
+    with open(holes, "wb") as fh:
+        fh.truncate(256 * 1024)
+    if guard._data_bytes(holes, 256 * 1024) == 256 * 1024:
+        pytest.skip("this file system does not make sparse files")
+    with pytest.raises(SpcFormatError, match="sparse file"):
+        guard._refuse_sparse(holes, SimpleNamespace(st_size=256 * 1024, st_blocks=0), "a file")
+
+
 def test_map_longer_than_its_largest_qsz_is_refused_before_allocating(tmp_path, monkeypatch):
     from spctool.formats.maplet import read_map
 

@@ -141,6 +141,8 @@ def _refuse_sparse(p: Path, st, what: str) -> None:
     if blocks is None or st.st_size < SPARSE_MIN_BYTES:
         return
     on_disk = int(blocks) * 512
+    if on_disk * SPARSE_RATIO < st.st_size:  # few blocks: holes, or a compressing file system
+        on_disk = max(on_disk, _data_bytes(p, st.st_size))
     if on_disk * SPARSE_RATIO < st.st_size:
         raise SpcFormatError(
             p,
@@ -148,6 +150,37 @@ def _refuse_sparse(p: Path, st, what: str) -> None:
             f"{what} whose content is on disk: {st.st_size} bytes long but only {on_disk} bytes "
             "allocated (a sparse file: its holes are not data)",
         )
+
+
+def _data_bytes(p: Path, size: int) -> int:
+    """Bytes of ``p`` outside its holes (``SEEK_DATA`` / ``SEEK_HOLE``); ``size`` when the system
+    cannot tell (then a compressing file system is not mistaken for holes)."""
+    seek_data, seek_hole = getattr(os, "SEEK_DATA", None), getattr(os, "SEEK_HOLE", None)
+    if seek_data is None or seek_hole is None:
+        return size
+    total, pos = 0, 0
+    try:
+        fd = os.open(p, os.O_RDONLY)
+    except OSError:
+        return size
+    try:
+        for _ in range(100_000):
+            try:
+                start = os.lseek(fd, pos, seek_data)
+            except OSError:  # ENXIO: no data after pos
+                break
+            end = os.lseek(fd, start, seek_hole)
+            total += end - start
+            pos = end
+            if pos >= size:
+                break
+        else:
+            return size
+    except OSError:
+        return size
+    finally:
+        os.close(fd)
+    return total
 
 
 def read_stdin(what: str = "standard input", max_bytes: int | None = None, stream=None) -> bytes:
