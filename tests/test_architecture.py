@@ -35,6 +35,8 @@ FLOORS = {
     "sim": 5,
     "batch": 5,
     "figures": 5,
+    "figures_refine": 5,  # the picture of a landmark refinement (geometry --plot)
+    "figures_heights": 5,  # figures of a "Find heights" run (lithos)
     "cli": 6,
 }
 

@@ -80,6 +80,16 @@ from spctool.errors import SpcResultError, SpcUsageError
     help="Also draw every picture's register overlay and solve-pose residual plot into DIR/PLOTS/.",
 )
 @click.option("--no-figure", "no_figure", is_flag=True, help="Do not write BATCH_SUMMARY.png.")
+@click.option(
+    "--rounds",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    metavar="N",
+    help="SPC's cycle: measure every picture, refine landmarks and poses from all of them (as 'spctool "
+    "geometry'), measure again from the refined map; N rounds (DIR/ROUND1 ... DIR/ROUNDN, the refined "
+    "maps DIR/MAP2 ...; the working directory is not written).",
+)
 @options.json_option
 @options.output_option
 @pass_context
@@ -101,6 +111,7 @@ def batch_cmd(
     min_landmarks,
     plots,
     no_figure,
+    rounds,
     as_json,
     output,
 ):
@@ -135,10 +146,17 @@ def batch_cmd(
     pose change vectors and per-stage timings.  A failed picture never stops the batch; the exit
     code is 1 when any picture failed, else 0.
 
+    With --rounds N (SPC's cycle, S16 Fig. 3), round 1 is the batch above in DIR/ROUND1; then every
+    landmark position and pose is refined from all its measurements (the 'spctool geometry' solve,
+    weighed by the register tables' covariances) into a refined working directory DIR/MAP2 (its own
+    SUMFILES/, LMKFILES/, MAPFILES/; links to everything else), and round 2 measures again on it, and
+    so on.  The summary is the last round's; '# round' lines give each round's counts.
+
     Example:
 
     \b
       spctool -C demo batch --jobs 2
+      spctool -C demo batch --rounds 2 --out-dir cycle
       spctool -C demo batch PICTLIST.TXT --out-dir run1 --json > run1.json
       spctool -C demo batch --reach 50 --out-dir run50  # a-priori errors up to ~50 px
       spctool -C demo batch --scheduler tcp://127.0.0.1:8786 --out-dir run1
@@ -193,19 +211,42 @@ def batch_cmd(
                 ctx.info(f"{summary.picture} {summary.status}")
             advance()
 
-        result = run_batch(
-            workdir,
-            names,
-            batch_options,
-            out_dir=target,
-            jobs=jobs,
-            scheduler=scheduler,
-            force=force,
-            on_result=on_result,
-            on_note=ctx.note_once,
-        )
+        if rounds == 1:
+            result = run_batch(
+                workdir,
+                names,
+                batch_options,
+                out_dir=target,
+                jobs=jobs,
+                scheduler=scheduler,
+                force=force,
+                on_result=on_result,
+                on_note=ctx.note_once,
+            )
+            cycle = None
+        else:
+            from spctool.batch.rounds import run_rounds
 
-    emit(result.to_json() if as_json else result.to_text(), output)
+            cycle = run_rounds(
+                workdir,
+                names,
+                batch_options,
+                out_dir=target,
+                rounds=rounds,
+                settings=ctx.settings(),
+                jobs=jobs,
+                scheduler=scheduler,
+                force=force,
+                on_result=on_result,
+                on_note=ctx.note_once,
+            )
+            result = cycle.last
+            target = result.out_dir
+
+    if cycle is None:
+        emit(result.to_json() if as_json else result.to_text(), output)
+    else:
+        emit(_rounds_text(cycle, as_json), output)
     if not no_figure or plots:
         from spctool.cli import figures
 
@@ -225,6 +266,41 @@ def batch_cmd(
     if failed:
         shown = ", ".join(p.picture for p in failed[:5]) + (", ..." if len(failed) > 5 else "")
         raise SpcResultError(f"{len(failed)} of {len(result.pictures)} pictures failed: {shown}")
+
+
+def _rounds_text(cycle, as_json: bool) -> str:
+    """The last round's summary with one line per round (text), or every round's document (JSON)."""
+    import json
+
+    if as_json:
+        doc = cycle.last.to_json_dict()
+        doc["rounds"] = [
+            {
+                "out_dir": str(b.out_dir),
+                "counts": b.counts(),
+                "refinement": cycle.refinements[i - 1] if i else None,
+            }
+            for i, b in enumerate(cycle.batches)
+        ]
+        from spctool.jsonsafe import json_safe
+
+        return json.dumps(json_safe(doc), indent=1) + "\n"
+    lines = []
+    for i, b in enumerate(cycle.batches):
+        found = sum(p.found or 0 for p in b.pictures)
+        c = b.counts()
+        text = (
+            f"# round {i + 1} ({b.out_dir}): {c['ok']} ok, {c['no-pose']} no-pose, {c['failed']} failed; "
+            f"{found} landmarks found"
+        )
+        if i:
+            r = cycle.refinements[i - 1]
+            text += (
+                f"; map refined from round {i}: {r['landmarks_refined']} of {r['landmarks']} landmarks, "
+                f"chi2/dof {r['reduced_chi2']:.3g}"
+            )
+        lines.append(text)
+    return "\n".join(lines) + "\n" + cycle.last.to_text()
 
 
 def register(cli):

@@ -15,6 +15,8 @@ COMMANDS = {
     "register": "spctool.cli.register",
     "solve-pose": "spctool.cli.pose",
     "navigate": "spctool.cli.navigate",
+    "geometry": "spctool.cli.geometry",
+    "lithos": "spctool.cli.heights",
     "info": "spctool.cli.files",
     "validate": "spctool.cli.files",
     "convert": "spctool.cli.files",

@@ -951,6 +951,22 @@ class Camera:
         z, lead = _points(points_cam)
         return self._camera_jacobian_flat(z)[2].reshape(lead + (2, 3))
 
+    def project_camera_frame_with_jacobian(self, points_cam):
+        """(sample, line, ∂(sample, line)/∂x_C) of camera-frame vectors (N, 3): one kernel pass.
+
+        The bundle adjustment (:mod:`spctool.stages.bundle`) projects the observations of every picture
+        that shares these intrinsics at once, each with its own pose, through this call.
+        """
+        z, lead = _points(points_cam)
+        smp, lin, jac = self._camera_jacobian_flat(z)
+        return smp.reshape(lead), lin.reshape(lead), jac.reshape(lead + (2, 3))
+
+    @property
+    def intrinsics_key(self) -> tuple:
+        """Everything but the pose that the projection depends on (model code and packed constants):
+        two cameras with equal keys project camera-frame vectors identically."""
+        return (self._code,) + self._q
+
     def project_with_jacobians(self, points) -> ProjectionJacobians:
         """Pixels and every pose/point Jacobian of body-fixed points (N, 3) in one pass."""
         p, lead = _points(points)

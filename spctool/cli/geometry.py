@@ -1,0 +1,347 @@
+"""``geometry``: refine every landmark position (VLM) and picture pose from all registered pictures.
+
+SPC's GEOMETRY step (map-refinement.md §1): the working directory's measurements
+(:func:`spctool.batch.refine.gather`) → :func:`spctool.stages.bundle.solve_bundle` → the LMK, MAP and SUM
+files rewritten (:func:`spctool.batch.refine.updated_files`, atomic, ``.bak`` kept) and the reports.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from spctool.cli import options
+from spctool.cli.common import Context, emit, pass_context
+from spctool.errors import SpcResultError
+
+
+@click.command("geometry")
+@click.argument("pictures", nargs=-1, shell_complete=options.complete_picture)
+@click.option(
+    "--tables",
+    "tables",
+    metavar="DIR",
+    type=click.Path(file_okay=False, exists=True),
+    help="Folder of register tables (<PIC>.register.txt; a batch --out-dir is accepted): each measurement "
+    "weighed by its own covariance (sigma_sample, sigma_line, rho_sl).  Default: the SUM LANDMARKS rows, "
+    "weighed 1/sigma_px^2.",
+)
+@click.option(
+    "--from-batch",
+    "from_batch",
+    metavar="OUT",
+    type=click.Path(file_okay=False, exists=True),
+    help="Take the pictures, their SUMs (solved poses, measured LANDMARKS rows) and register tables from a "
+    "batch --out-dir OUT; the refined files are written to the working directory as usual.",
+)
+@options.sigma_px_option(
+    default=0.25,
+    help="1-sigma pixel noise of a SUM LANDMARKS measurement (per axis).",
+)
+@click.option(
+    "--sigma-floor-px",
+    type=click.FloatRange(min=0.0),
+    default=0.05,
+    show_default=True,
+    metavar="PX",
+    help="Added in quadrature to each register table covariance (--tables).",
+)
+@click.option(
+    "--mode",
+    type=click.Choice(["joint", "alternate"]),
+    default="joint",
+    show_default=True,
+    help="joint: one sparse bundle adjustment of every VLM and pose; alternate: SPC's alternation "
+    "(landmarks with poses fixed, then poses with landmarks fixed, repeated) for reproducing legacy runs.",
+)
+@click.option(
+    "--reject-sigma",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=5.0,
+    show_default=True,
+    metavar="K",
+    help="Flag a measurement whose normalised residual exceeds K times the robust residual scale "
+    "(the worst of each landmark per round), then refit.",
+)
+@click.option("--no-reject", is_flag=True, help="No outlier flagging.")
+@click.option(
+    "--min-pictures",
+    type=click.IntRange(min=1),
+    default=2,
+    show_default=True,
+    metavar="N",
+    help="A landmark needs N usable pictures to be refined; fewer: its VLM keeps its prior.",
+)
+@click.option(
+    "--min-parallax",
+    "min_parallax",
+    type=click.FloatRange(min=0.0),
+    default=1.0,
+    show_default=True,
+    metavar="DEG",
+    help="A landmark needs lines of sight spread by DEG degrees to be refined.",
+)
+@click.option(
+    "--ignore-in-vlm",
+    "ignore_in_vlm",
+    multiple=True,
+    metavar="PIC",
+    help="A picture whose measurements do not constrain any VLM (SPC's 'ignore image in Vlm'); its pose "
+    "is solved against the refined landmarks.  Repeatable.",
+)
+@click.option(
+    "--estimate-camera",
+    "estimate_camera",
+    metavar="TERMS",
+    default="",
+    help="Also solve camera terms, comma-separated among focal, ctr, ky, kyx, owen (K_x and K_xy stay "
+    "fixed: L15 1.1.1).",
+)
+@click.option(
+    "--camera-sigma",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    metavar="F",
+    help="A-priori 1-sigma of the camera terms (relative for focal/ky/kyx, px for ctr).  Default: none.",
+)
+@click.option(
+    "--covariance",
+    type=click.Choice(["auto", "full", "conditional"]),
+    default="auto",
+    show_default=True,
+    help="full: joint covariances (dense inverse of the reduced system); conditional: landmark and pose "
+    "covariances with the others held (large problems); auto: full up to 4,000 pose unknowns.",
+)
+@click.option("--dry-run", is_flag=True, help="Solve and report; write no SUM, LMK or MAP file.")
+@click.option(
+    "--report-dir",
+    "report_dir",
+    metavar="DIR",
+    type=click.Path(file_okay=False),
+    help="Also write RESIDUALS.txt (per measurement), LANDMARKS.txt (per landmark), LMKVECS.TXT and "
+    "geometry.json here.",
+)
+@click.option(
+    "--plot",
+    metavar="FILE.png",
+    type=click.Path(dir_okay=False),
+    help="Landmark corrections with their 1-sigma ellipses, and the rms residual per picture (PNG).",
+)
+@options.output_option
+@options.json_option
+@pass_context
+def geometry_cmd(
+    ctx: Context,
+    pictures,
+    tables,
+    from_batch,
+    sigma_px,
+    sigma_floor_px,
+    mode,
+    reject_sigma,
+    no_reject,
+    min_pictures,
+    min_parallax,
+    ignore_in_vlm,
+    estimate_camera,
+    camera_sigma,
+    covariance,
+    dry_run,
+    report_dir,
+    plot,
+    output,
+    as_json,
+):
+    """Refine landmark positions (VLM) and picture poses from every registered picture (SPC's GEOMETRY).
+
+    Reads the pictures (PICTURES, default: PICTLIST's active ones), their measured landmarks (the SUM
+    LANDMARKS rows written by register --write-sum, navigate or batch; a '*' row is not used; or the
+    register tables of --tables) and the landmarks' LMK files, and solves all VLMs and poses jointly:
+    a sparse bundle adjustment with each landmark eliminated as a 3x3 block, priors from SIGMA_VSO and
+    SIGMA_PTG (pictures) and SIGMA_LMK or SIGKM (landmarks), INIT_LITHOS PICWTS=/LMKWTS= applied.
+    The common translation, rotation and scale of the solution are fixed by the priors only: if they
+    leave one free, the command refuses (exit 1) instead of returning an arbitrary solution.
+
+    Outliers are flagged robustly and refitted; a landmark with fewer than --min-pictures usable
+    pictures or less parallax than --min-parallax keeps its VLM (status undetermined).
+
+    Writes (unless --dry-run; atomic, each replaced file kept as FILE.bak): LMK VLM, SIGMA_LMK
+    (posterior 1-sigma, km, scaled by chi2/dof when above 1), RMSLMK (rms post-fit residual in pixels)
+    and the PICTURES rows (measured sample/line, '*' = not used); the MAP header V = VLM; the SUM's
+    SCOBJ, CX/CY/CZ, SIGMA_VSO/SIGMA_PTG and a '*' on outlier LANDMARKS rows.
+
+    Output: one row per landmark (vlm_x/y/z km, dx/dy/dz_m correction, sigma_x/y/z_m, pictures used,
+    parallax_deg, rms_px, status) and a summary in the header; --json adds pictures, formal
+    uncertainty (best 80 % of landmarks, as SPC's get80), gauge and counts.
+
+    Exit codes: 0 solved; 1 not solvable as asked (free gauge, no measurements) or not converged;
+    2 bad input.
+
+    Examples:
+
+    \b
+      spctool demo --copy-to geo-demo
+      spctool -q -C geo-demo batch --out-dir geo-out
+      spctool -C geo-demo geometry --from-batch geo-out --dry-run
+      spctool -C geo-demo geometry --from-batch geo-out --mode alternate --dry-run --json
+      spctool -C geo-demo geometry --from-batch geo-out --report-dir geo-report --plot geometry.png
+    """
+    from spctool.batch import refine
+    from spctool.stages.bundle import BundleOptions, solve_bundle
+
+    terms = tuple(t.strip() for t in estimate_camera.split(",") if t.strip())
+    opts = BundleOptions(
+        mode=mode,
+        reject_outliers=not no_reject,
+        reject_sigma=reject_sigma,
+        min_pictures=min_pictures,
+        min_parallax_deg=min_parallax,
+        estimate_camera=terms,
+        camera_sigma=camera_sigma,
+        covariance=covariance,
+    )
+    wd = ctx.wd
+    inputs = refine.gather(
+        wd,
+        ctx.settings(),
+        pictures=pictures,
+        tables=tables,
+        sigma_px=sigma_px,
+        sigma_floor_px=sigma_floor_px,
+        ignore_in_vlm=ignore_in_vlm,
+        from_batch=from_batch,
+    )
+    for note in inputs.notes:
+        ctx.note_once(note)
+    prob = inputs.problem
+    ctx.info(
+        f"{len(prob.picture_names)} pictures, {len(prob.landmark_names)} landmarks, "
+        f"{int(prob.obs_use.sum())} usable measurements ({inputs.source})"
+    )
+    result = solve_bundle(prob, opts)
+    for w in result.warnings:
+        ctx.warn(w)
+    table = refine.summary_table(result, prob)
+    summary = _summary(result, prob, inputs, opts)
+    table.meta.update(summary)
+    table.comments.extend(_summary_lines(summary))
+    files = {} if dry_run else refine.updated_files(inputs, result, wd)
+    written = refine.write_back(files) if files else []
+    summary["written"] = [str(p) for p in written]
+    if written:
+        ctx.info(f"wrote {len(written)} file(s) (each replaced one kept as .bak)")
+    if report_dir:
+        _reports(Path(report_dir), result, prob, inputs, summary)
+    if plot:
+        from spctool.figures_refine import refinement_plot
+
+        used = np.array([s in ("ok", "undetermined", "ignored-in-vlm") for s in result.obs_status])
+        rb = _picture_rms(result.residual_before, prob.obs_picture, used, len(prob.picture_names))
+        ra = _picture_rms(result.residual_after, prob.obs_picture, used, len(prob.picture_names))
+        nout = np.bincount(
+            prob.obs_picture[np.array([s == "outlier" for s in result.obs_status], dtype=bool)],
+            minlength=len(prob.picture_names),
+        )
+        refinement_plot(result, rb, ra, nout).save(plot)
+    emit(json.dumps(_json_doc(table, summary), indent=1) + "\n" if as_json else table.to_text(), output)
+    if not result.converged:
+        raise SpcResultError(f"the refinement did not converge in {opts.max_iter} iterations")
+
+
+def _picture_rms(res, idx, used, n) -> np.ndarray:
+    sq = np.where(used, np.sum(res * res, axis=1) / 2.0, 0.0)
+    tot = np.bincount(idx, weights=sq, minlength=n)
+    cnt = np.bincount(idx, weights=used.astype(float), minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, np.sqrt(tot / np.maximum(cnt, 1)), np.nan)
+
+
+def _summary(result, prob, inputs, opts) -> dict:
+    from spctool.batch.refine import formal_summary
+
+    ok_l = np.array([s == "ok" for s in result.landmark_status])
+    d = np.linalg.norm(result.landmark_positions - result.landmark_positions0, axis=1) * 1000.0
+    used = np.array([s in ("ok", "undetermined", "ignored-in-vlm") for s in result.obs_status])
+    rms_b = float(np.sqrt(np.mean(result.residual_before[used] ** 2))) if used.any() else math.nan
+    rms_a = float(np.sqrt(np.mean(result.residual_after[used] ** 2))) if used.any() else math.nan
+    dp = np.linalg.norm(result.delta_position, axis=1) * 1000.0
+    return {
+        "mode": result.mode,
+        "source": inputs.source,
+        "n_pictures": len(prob.picture_names),
+        "n_landmarks": len(prob.landmark_names),
+        "n_landmarks_refined": int(ok_l.sum()),
+        "measurements": result.counts(),
+        "iterations": result.iterations,
+        "converged": result.converged,
+        "chi2": result.chi2,
+        "dof": result.dof,
+        "reduced_chi2": result.reduced_chi2,
+        "rms_before_px": rms_b,
+        "rms_after_px": rms_a,
+        "vlm_correction_rms_m": float(np.sqrt(np.mean(d[ok_l] ** 2))) if ok_l.any() else math.nan,
+        "position_change_rms_m": float(np.sqrt(np.mean(dp**2))) if dp.size else math.nan,
+        "formal_uncertainty": formal_summary(result),
+        "gauge_sigma": result.gauge_sigma,
+        "covariance": result.covariance_kind,
+        "camera_terms": {k: {t: list(v) for t, v in d2.items()} for k, d2 in result.camera_terms.items()},
+        "weights": inputs.weights,
+        "outlier_rounds": result.outlier_rounds,
+        "warnings": list(result.warnings),
+        "options": opts.as_dict(),
+        "time_s": result.timing.get("total_s", math.nan),
+    }
+
+
+def _summary_lines(s: dict) -> list[str]:
+    counts = s["measurements"]
+    f = s["formal_uncertainty"]
+    return [
+        f"geometry ({s['mode']}): {s['n_pictures']} pictures, {s['n_landmarks']} landmarks "
+        f"({s['n_landmarks_refined']} refined), measurements "
+        + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())),
+        f"{s['iterations']} iterations, {'converged' if s['converged'] else 'NOT converged'}; "
+        f"chi2/dof {s['reduced_chi2']:.3g}; rms residual {s['rms_before_px']:.4g} -> "
+        f"{s['rms_after_px']:.4g} px",
+        f"VLM corrections rms {s['vlm_correction_rms_m']:.4g} m; pose position changes rms "
+        f"{s['position_change_rms_m']:.4g} m",
+        f"formal 1-sigma of the best 80% of landmarks: rms {f['best80_rms_m']:.4g} m, max "
+        f"{f['best80_max_m']:.4g} m ({s['covariance']} covariance)",
+    ]
+
+
+def _json_doc(table, summary) -> dict:
+    doc = table.to_json_dict()
+    doc.update(summary)
+    return doc
+
+
+def _reports(folder: Path, result, prob, inputs, summary) -> None:
+    from spctool.batch import refine
+    from spctool.formats import atomic
+
+    res = refine.residuals_table(result, prob)
+    atomic.write_bytes(folder / "RESIDUALS.txt", res.to_text().encode("utf-8"), backup=True)
+    lm = refine.summary_table(result, prob)
+    atomic.write_bytes(folder / "LANDMARKS.txt", lm.to_text().encode("utf-8"), backup=True)
+    atomic.write_bytes(
+        folder / "LMKVECS.TXT", refine.lmkvecs_text(result, inputs.landmarks).encode("latin-1"), backup=True
+    )
+    from spctool.jsonsafe import json_safe
+
+    atomic.write_bytes(
+        folder / "geometry.json",
+        (json.dumps(json_safe(summary), indent=1) + "\n").encode("utf-8"),
+        backup=True,
+    )
+
+
+def register(cli):
+    cli.add_command(geometry_cmd)
+
+
+__all__ = ["geometry_cmd", "register"]

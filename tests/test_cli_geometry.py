@@ -1,0 +1,223 @@
+"""``spctool geometry`` and ``batch --rounds`` on working directories with known truth: a biased map is
+refined from the pictures (truth VLMs of tests/batch_world.py), the files are written as SPC's READ
+statements read them, and a second round measures better than the first."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from batch_world import make_world
+
+from spctool.formats.landmark import read_lmk, write_lmk
+from spctool.formats.maplet import read_map, write_map
+
+ERR_KM = 3e-5  # 3 cm: three maplet cells
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    root = tmp_path_factory.mktemp("geometry_world")
+    make_world(root, n_pictures=8, n_landmarks=9)
+    truth = {p.stem: read_lmk(p).vlm.copy() for p in sorted((root / "LMKFILES").glob("*.LMK"))}
+    return root, truth
+
+
+def _biased(pristine, dest: Path) -> dict:
+    """A copy whose LMK VLMs (and MAP V) are off by 3 cm (1σ per axis), SIGMA_LMK saying so."""
+    root, truth = pristine
+    shutil.copytree(root, dest)
+    _move_landmarks(dest, sorted(truth), np.random.default_rng(5))
+    return truth
+
+
+def _move_landmarks(root: Path, names, rng) -> None:
+    """Each LMK VLM and its MAP's V moved by ERR_KM (1σ per axis), the LMK's SIGMA_LMK saying so."""
+    for name in names:
+        p = root / "LMKFILES" / f"{name}.LMK"
+        lmk = read_lmk(p)
+        lmk = dataclasses.replace(
+            lmk, vlm=lmk.vlm + rng.normal(size=3) * ERR_KM, sigma_lmk=np.full(3, ERR_KM)
+        )
+        write_lmk(p, lmk)
+        m = read_map(root / "MAPFILES" / f"{name}.MAP")
+        m.v = lmk.vlm
+        write_map(root / "MAPFILES" / f"{name}.MAP", m)
+
+
+def _fortran_d(text: str) -> float:
+    return float(text.replace("D", "E").replace("d", "e"))
+
+
+def test_geometry_refines_a_biased_map_and_writes_what_spc_reads(pristine, run_cli, tmp_path):
+    wd = tmp_path / "wd"
+    truth = _biased(pristine, wd)
+    before = {n: read_lmk(wd / "LMKFILES" / f"{n}.LMK").vlm for n in truth}
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0  # no-pose pictures, not failed
+    sums_before = {p.name: p.read_bytes() for p in (wd / "SUMFILES").glob("*.SUM")}
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--dry-run", "--json")
+    assert res.exit_code == 0, res.stderr
+    assert {p.name: p.read_bytes() for p in (wd / "SUMFILES").glob("*.SUM")} == sums_before  # nothing written
+    assert not list((wd / "LMKFILES").glob("*.bak"))
+    doc = json.loads(res.stdout)
+    assert doc["n_landmarks_refined"] == 9 and doc["measurements"] == {"ok": 72}
+    assert doc["rms_after_px"] < 0.05 < 1.0 < doc["rms_before_px"]
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--report-dir", "rep", "--plot", "geo.png")
+    assert res.exit_code == 0, res.stderr
+    after = {n: read_lmk(wd / "LMKFILES" / f"{n}.LMK") for n in truth}
+    e0 = np.array([before[n] - truth[n] for n in truth])
+    e1 = np.array([after[n].vlm - truth[n] for n in truth])
+    rms0, rms1 = np.sqrt(np.mean(np.sum(e0**2, 1))), np.sqrt(np.mean(np.sum(e1**2, 1)))
+    # the absolute error is bounded by the landmark priors (the gauge: their mean); the relative map is exact
+    rel = e1 - e1.mean(axis=0)
+    assert rms1 < 0.5 * rms0
+    assert np.sqrt(np.mean(np.sum(rel**2, 1))) < 0.05 * rms0
+    sig = np.array([after[n].sigma_lmk for n in truth])
+    assert np.all(np.abs(e1) < 3 * sig)  # the posterior 1σ covers the error
+    assert (wd / "rep" / "RESIDUALS.txt").exists() and (wd / "geo.png").stat().st_size > 10_000
+    for n in truth:  # .bak kept; SPC's READ formats give back the numbers written
+        assert (wd / "LMKFILES" / f"{n}.LMK.bak").exists()
+        lines = (wd / "LMKFILES" / f"{n}.LMK").read_text().splitlines()
+        # LITHOS: READ(10,'(3D20.10)') VLM on line 5; SIGMA_LMK on line 9; (2D20.10) SIGKM, RMSLMK on line 4
+        vlm = [_fortran_d(lines[4][i : i + 20]) for i in (0, 20, 40)]
+        assert np.allclose(vlm, after[n].vlm, rtol=1e-10, atol=0) and lines[4][63:66] == "VLM"
+        assert np.allclose(
+            [_fortran_d(lines[8][i : i + 20]) for i in (0, 20, 40)], after[n].sigma_lmk, rtol=1e-10
+        )
+        assert 0 < _fortran_d(lines[3][20:40]) < 0.05  # RMSLMK, pixels
+        # PICTURES rows (A12,2F10.2): every picture, the measured pixel
+        k = lines.index("PICTURES")
+        rows = lines[k + 1 : k + 9]
+        assert sorted(r[:12].strip() for r in rows) == sorted(p[:-4] for p in sums_before)
+        assert all(abs(float(r[12:22])) > 0 and abs(float(r[22:32])) > 0 for r in rows)
+        # MAP header V (real*4, big-endian, bytes 16-27): the VLM
+        raw = (wd / "MAPFILES" / f"{n}.MAP").read_bytes()
+        v = struct.unpack(">3f", raw[15:27])
+        assert np.allclose(v, after[n].vlm, rtol=1e-6)
+    # the SUMs: new pose lines (3D20.10) SCOBJ, the batch's LANDMARKS rows
+    text = (wd / "SUMFILES" / "T000000001A1.SUM").read_text()
+    assert "LANDMARKS" in text and text.count("\n") > 20
+
+
+def test_batch_rounds_two_measures_better_than_one(pristine, run_cli, tmp_path):
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    assert run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle").exit_code == 0
+    truth = json.loads((wd / "TRUTH.json").read_text())
+    true_pos = {p["name"]: -np.array(p["scobj"]) for p in truth["pictures"]}
+
+    def round_stats(k):
+        doc = json.loads((tmp_path / "cycle" / f"ROUND{k}" / "BATCH_SUMMARY.json").read_text())
+        found = sum(p["found"] for p in doc["pictures"])
+        ok = [p for p in doc["pictures"] if p["status"] == "ok"]
+        err = []
+        for name in true_pos:
+            text = (tmp_path / "cycle" / f"ROUND{k}" / "SUMFILES" / f"{name}.SUM").read_text().splitlines()
+            scobj = np.array([_fortran_d(text[4][i : i + 20]) for i in (0, 20, 40)])
+            err.append(np.linalg.norm(-scobj - true_pos[name]))
+        return found, len(ok), float(np.sqrt(np.mean(np.square(err))))
+
+    f1, ok1, e1 = round_stats(1)
+    f2, ok2, e2 = round_stats(2)
+    assert f2 >= f1 and ok2 >= ok1 and ok2 == 8
+    assert e2 < e1
+    # the working directory was not written; the refined map is a working directory of its own
+    assert not list((wd / "LMKFILES").glob("*.bak"))
+    assert (tmp_path / "cycle" / "MAP2" / "GEOMETRY.json").exists()
+    assert (tmp_path / "cycle" / "MAP2" / "IMAGEFILES").is_symlink()
+    # resuming the finished cycle changes nothing
+    lmks = tmp_path / "cycle" / "MAP2" / "LMKFILES"
+    stamp = {p: p.stat().st_mtime_ns for p in lmks.iterdir()}
+    content = {p.name: p.read_bytes() for p in lmks.iterdir()}
+    run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle")
+    assert stamp == {p: p.stat().st_mtime_ns for p in lmks.iterdir()}
+    # a run killed while the refined map was being built (a .partial folder, no round 2) resumes to the
+    # same files, none lost or written twice
+    (tmp_path / "cycle" / "MAP2").rename(tmp_path / "cycle" / "MAP2.partial")
+    (tmp_path / "cycle" / "MAP2.partial" / "GEOMETRY.json").unlink()
+    shutil.rmtree(tmp_path / "cycle" / "ROUND2")
+    assert run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle").exit_code == 0
+    assert not (tmp_path / "cycle" / "MAP2.partial").exists()
+    assert content == {p.name: p.read_bytes() for p in lmks.iterdir()}
+    assert round_stats(2) == (f2, ok2, e2)
+
+
+def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
+    from spctool.formats.sumfile import read_sum, write_sum
+
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    out = tmp_path / "out"
+    run_cli("-q", "-C", wd, "batch", "--out-dir", out)
+    for p in (out / "SUMFILES").glob("*.SUM"):
+        pic = read_sum(p)
+        write_sum(p, dataclasses.replace(pic, sigma_vso=np.zeros(3), sigma_ptg=np.zeros(3)))
+    for p in (wd / "LMKFILES").glob("*.LMK"):
+        write_lmk(p, dataclasses.replace(read_lmk(p), sigma_lmk=np.zeros(3), sigkm=0.0))
+    res = run_cli("-C", wd, "geometry", "--from-batch", out)
+    assert res.exit_code == 1
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "gauge is not fixed" in err[0]
+
+
+@pytest.mark.slow
+def test_rounds_on_the_independent_world_refine_the_map(run_cli, tmp_path):
+    """Photos ray-traced by the third-party renderer (trimesh + Embree) of a faceted truth surface, eight
+    pictures, the maplets' V off by 3 cm: round 1 cannot solve a pose consistent with the map (every
+    picture no-pose); the refined map halves the VLM error and round 2 solves every picture."""
+    from spctool.formats.sumfile import read_sum, write_sum
+    from spctool.geometry.shape import embree_available
+    from spctool.sim.independent import IndependentSpec, build_world
+
+    if not embree_available():
+        pytest.skip("embreex not installed")
+    root = tmp_path / "iw"
+    doc = build_world(root, IndependentSpec(apriori_px=(6.0, 8.0, 6.0, 10.0, 7.0, 9.0, 6.0, 8.0)))
+    truth = {n: np.array(v) for n, v in doc["landmarks"].items()}
+    _move_landmarks(root, sorted(truth), np.random.default_rng(7))
+    for p in (root / "SUMFILES").glob("*.SUM"):  # the a-priori position error is 2 cm: say so
+        write_sum(p, dataclasses.replace(read_sum(p), sigma_vso=np.full(3, doc["spec"]["position_km"])))
+    e0 = np.array([read_lmk(root / "LMKFILES" / f"{n}.LMK").vlm - v for n, v in truth.items()])
+    out = tmp_path / "cycle"
+    assert run_cli("-q", "-C", root, "batch", "--rounds", "2", "--out-dir", out).exit_code == 0
+    e1 = np.array([read_lmk(out / "MAP2" / "LMKFILES" / f"{n}.LMK").vlm - v for n, v in truth.items()])
+    rms = lambda e: float(np.sqrt(np.mean(np.sum(e**2, axis=1))))  # noqa: E731
+    assert rms(e1) < 0.6 * rms(e0)
+    assert rms(e1 - e1.mean(axis=0)) < 0.2 * rms(e0)  # the map's shape; its place is the priors' (gauge)
+    counts = [json.loads((out / f"ROUND{k}" / "BATCH_SUMMARY.json").read_text()) for k in (1, 2)]
+    ok = [sum(p["status"] == "ok" for p in c["pictures"]) for c in counts]
+    found = [sum(p["found"] for p in c["pictures"]) for c in counts]
+    assert ok[1] == 8 and ok[1] > ok[0] and found[1] >= found[0]
+    err = []
+    for k in (1, 2):
+        e = [
+            np.linalg.norm(read_sum(out / f"ROUND{k}" / "SUMFILES" / f"{p['name']}.SUM").scobj - p["scobj"])
+            for p in doc["pictures"]
+        ]
+        err.append(float(np.sqrt(np.mean(np.square(e)))))
+    assert err[1] < err[0]
+
+
+def test_geometry_on_the_real_rosetta_picture_keeps_single_picture_landmarks(real, run_cli, tmp_path):
+    """One real picture (Rosetta OSIRIS, three LMKs): nothing can be triangulated, every VLM keeps its
+    prior (said once), the pose is solved against them; the LMK files are rewritten with .bak."""
+    src = real / "rosetta-67p"
+    for folder, pattern in (("SUMFILES", "*.SUM"), ("LMKFILES", "*.LMK")):
+        (tmp_path / folder).mkdir()
+        for f in src.glob(pattern):
+            shutil.copy(f, tmp_path / folder / f.name)
+    before = {f.name: read_lmk(f).vlm for f in (tmp_path / "LMKFILES").glob("*.LMK")}
+    res = run_cli("-C", tmp_path, "geometry", "--json")
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert [r["status"] for r in doc["landmarks"]] == ["undetermined"] * 3
+    assert "undetermined" in res.stderr and res.stderr.count("\n") == 1
+    for f in (tmp_path / "LMKFILES").glob("*.LMK"):
+        assert np.array_equal(read_lmk(f).vlm, before[f.name])
+    assert doc["rms_after_px"] < doc["rms_before_px"]

@@ -1,0 +1,80 @@
+"""``spctool lithos`` (LITHOS "Find heights") on a small rendered working directory with known truth
+(tests/heights_world.py): MAP and LMK rewritten atomically with a .bak, the heights closer to the
+truth; too few Sun azimuths: exit 1, one line, files unchanged."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from heights_world import make_scene, rms, write_workdir
+
+from spctool.formats.landmark import read_lmk
+from spctool.formats.maplet import read_map
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(n_pictures=4)
+
+
+def _centred(h, v):
+    return h - h[v].mean()
+
+
+def test_lithos_writes_refined_map_and_lmk(tmp_path, scene, run_cli):
+    start, truth, views = scene
+    write_workdir(tmp_path, start, views, truth)
+    before_bytes = (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes()
+    figs = tmp_path / "figs"
+    res = run_cli("-C", tmp_path, "lithos", "HW0001", "--json", "--figures", figs)
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads(res.stdout)
+    m = doc["meta"]["maplets"][0] if "meta" in doc else doc["maplets"][0]
+    assert m["status"] == "ok" and m["converged"]
+    new = read_map(tmp_path / "MAPFILES" / "HW0001.MAP")
+    assert (tmp_path / "MAPFILES" / "HW0001.MAP.bak").read_bytes() == before_bytes
+    assert (tmp_path / "LMKFILES" / "HW0001.LMK.bak").exists()
+    v = truth.valid
+    e0 = rms(_centred(start.heights, v), _centred(truth.heights, v), v)
+    e1 = rms(_centred(new.heights, v), _centred(truth.heights, v), v)
+    assert 3.0 * e1 <= e0
+    assert np.corrcoef(new.albedo[v], truth.albedo[v])[0, 1] >= 0.9
+    lmk = read_lmk(tmp_path / "LMKFILES" / "HW0001.LMK")
+    assert [p.flag for p in lmk.pictures] == [""] * 4
+    moved = [abs(p.sample - w.pixel[0]) + abs(p.line - w.pixel[1]) for p, w in zip(lmk.pictures, views)]
+    assert max(moved) > 0.0 and max(moved) < 2.0  # re-registered, and close to the true centre
+    assert (figs / "HW0001_heights.png").stat().st_size > 1000
+    assert (figs / "HW0001_rerender.png").stat().st_size > 1000
+
+
+def test_lithos_dry_run_writes_nothing(tmp_path, scene, run_cli):
+    start, _, views = scene
+    write_workdir(tmp_path, start, views)
+    before = (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes()
+    res = run_cli("-C", tmp_path, "lithos", "--dry-run", "--iterations", "1")
+    assert res.exit_code == 0, res.stderr
+    assert "HW0001" in res.stdout and "ok" in res.stdout
+    assert (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes() == before
+    assert not (tmp_path / "MAPFILES" / "HW0001.MAP.bak").exists()
+
+
+def test_lithos_too_few_sun_azimuths_exit_1_unchanged(tmp_path, scene, run_cli):
+    start, _, views = scene
+    write_workdir(tmp_path, start, views[:2])
+    before = (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes()
+    lmk_before = (tmp_path / "LMKFILES" / "HW0001.LMK").read_bytes()
+    res = run_cli("-C", tmp_path, "lithos", "HW0001")
+    assert res.exit_code == 1
+    lines = [ln for ln in res.stderr.splitlines() if "note:" not in ln]  # notes: no INIT_LITHOS
+    assert len(lines) == 1 and "HW0001" in lines[0] and "Sun azimuth" in lines[0], res.stderr
+    assert (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes() == before
+    assert (tmp_path / "LMKFILES" / "HW0001.LMK").read_bytes() == lmk_before
+    assert not (tmp_path / "MAPFILES" / "HW0001.MAP.bak").exists()
+
+
+def test_lithos_missing_landmark_exit_2(tmp_path, run_cli):
+    res = run_cli("-C", tmp_path, "lithos", "NOPE01")
+    assert res.exit_code == 2
+    assert "NOPE01" in res.stderr and "Traceback" not in res.stderr
