@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "fuzz"))
 
-from spcfuzz import FAILURES, Report, run  # noqa: E402
+from spcfuzz import FAILURES, Report, misread_classes, run  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -27,6 +27,7 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk", type=int, default=2000)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", dest="json_out", default=None)
+    ap.add_argument("--misread-mutants", type=int, default=500, help="per silent-misread class (issue #41)")
     a = ap.parse_args(argv)
     total = Report()
     t0 = time.perf_counter()
@@ -59,7 +60,17 @@ def main(argv=None) -> int:
             }
             Path(a.json_out).write_text(json.dumps(doc, indent=1, default=str))
     print(total.summary())
-    return 1 if total.n_failures else 0
+    classes = misread_classes(a.misread_mutants)
+    print(
+        "issue #41 silent-misread classes (mutants, accepted with another reading): "
+        + ", ".join(f"{k} {n}/{bad}" for k, (n, bad) in classes.items()),
+        flush=True,
+    )
+    if a.json_out:
+        doc = json.loads(Path(a.json_out).read_text()) if Path(a.json_out).exists() else {}
+        doc["misread_classes"] = classes
+        Path(a.json_out).write_text(json.dumps(doc, indent=1, default=str))
+    return 1 if total.n_failures or any(bad for _, bad in classes.values()) else 0
 
 
 if __name__ == "__main__":

@@ -411,15 +411,18 @@ def test_linescan_flag_without_block_is_refused():
 
 
 def test_sum_writer_nan_reads_back():
-    # spctool's writer emits NaN for an unknown value; NaN is legal list-directed input (gfortran reads it)
+    # spctool's writer emits NaN for an unknown sigma; NaN is legal list-directed input (gfortran reads
+    # it); a non-finite pose (SCOBJ, CX, CY, CZ) is never written (issue #41)
+    from spctool.errors import SpcUsageError
     from spctool.formats.sumfile import format_sum, parse_sum
 
     pic = parse_sum((CORPUS / "sum/CANONICAL.SUM").read_text())
     pic.sigma_vso = np.array([np.nan, 1.0, 2.0])
-    pic.scobj = np.array([np.nan, 0.0, 1.0])
     back = parse_sum(format_sum(pic))
     _same(back.sigma_vso, [None, 1.0, 2.0])
-    _same(back.scobj, [None, 0.0, 1.0])
+    pic.scobj = np.array([np.nan, 0.0, 1.0])
+    with pytest.raises(SpcUsageError, match="non-finite pose .SCOBJ"):
+        format_sum(pic)
 
 
 @pytest.mark.parametrize("kind", ["sum", "lithos", "pictlist"])

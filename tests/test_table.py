@@ -26,6 +26,7 @@ names = st.text(alphabet="ABCDEFGHJKLMNPQRSTUVWXYZ0123456789", min_size=6, max_s
         ),
         min_size=1,
         max_size=12,
+        unique_by=lambda r: r[0],  # one row per landmark (a name twice is refused when read)
     )
 )
 def test_text_and_json_round_trip(rows):
@@ -127,3 +128,36 @@ def test_csv_empty_field_and_sample_without_line_name_the_problem():
     with pytest.raises(SpcFormatError, match=r"s.txt: expected a 'line' column beside 'sample'"):
         t.pixel_columns("s.txt")
     assert LandmarkTable.parse_text("name\nB1\n").pixel_columns() is None
+
+
+def test_duplicate_landmark_rows_are_refused_naming_both_lines_or_rows(tmp_path):
+    # issue #41: the last of two rows of one landmark used to win silently
+    text = "# picture: P1\nname sample line\nAB0001 1.0 2.0\nAB0002 3.0 4.0\n\nAB0001 5.0 6.0\n"
+    expected = r"T\.txt:6: expected one row per landmark: 'AB0001' is on lines 3 and 6"
+    with pytest.raises(SpcFormatError, match=expected):
+        LandmarkTable.parse_text(text, "T.txt")
+    doc = {"landmarks": [{"name": n, "sample": k} for k, n in enumerate(["A1", "B2", "A1"])]}
+    with pytest.raises(SpcFormatError, match="'A1' is on rows 1 and 3"):
+        LandmarkTable.from_json(json.dumps(doc), "T.json")
+
+
+def test_json_integer_beyond_float_range_is_read_as_infinite(tmp_path):
+    # issue #41: an integer above ~1e308 beside floats was an internal OverflowError
+    big = "1" + "0" * 400
+    path = tmp_path / "big.json"
+    path.write_text('{"landmarks": [{"name": "A", "sample": 1.5}, {"name": "B", "sample": -' + big + "}]}")
+    t = read_table(path)
+    assert t["sample"][0] == 1.5 and t["sample"][1] == -math.inf
+
+
+def test_stdin_table_has_a_size_limit(monkeypatch):
+    import io
+
+    from spctool.formats import guard
+
+    monkeypatch.setattr(guard, "MAX_STDIN_BYTES", 1000)
+    stream = io.BytesIO(b"name sample line\n" + b"AB0001 1.0 2.0\n" * 200)
+    monkeypatch.setattr("sys.stdin", io.TextIOWrapper(stream))
+    with pytest.raises(SpcFormatError, match="<stdin>: expected a landmark table on standard input of at"):
+        read_table("-")
+    assert stream.tell() == 1001  # stopped one byte past the limit, not at the end of the stream

@@ -69,7 +69,9 @@ file concurrently; SPC's own batch updates them in a separate serial step.
 
 The rooms: :mod:`spctool.batch.inputs` (options, the data shared by a worker's pictures, the input
 fingerprints), :mod:`spctool.batch.picture` (one picture: the stages, its outputs, the done-marker),
-:mod:`spctool.batch.driver` (the run over a PICTLIST: local processes, a kept pool, a Dask cluster).
+:mod:`spctool.batch.driver` (the run over a PICTLIST: local processes, a kept pool, a Dask cluster),
+:mod:`spctool.batch.lock` (one batch at a time per output directory), :mod:`spctool.batch.scheduler`
+(a ``--scheduler`` address checked before any work).
 """
 
 #: where each public name lives; imported on first use (PEP 562), so that ``spctool.batch.refine``

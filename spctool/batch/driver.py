@@ -7,6 +7,7 @@ Specification: the package docstring (:mod:`spctool.batch`, "Parallelism").
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -31,6 +32,7 @@ from spctool.batch.inputs import (
     inputs_stamp,
     shared_inputs_sha256,
 )
+from spctool.batch.lock import out_dir_lock
 from spctool.batch.picture import (
     PictureSummary,
     _one_line,
@@ -209,6 +211,7 @@ def run_batch(
     on_result: Callable[[PictureSummary], None] | None = None,
     write_summary: bool = True,
     pool: WorkerPool | None = None,
+    on_note: Callable[[str], None] | None = None,
 ) -> BatchResult:
     """Process ``pictures`` (default: the working directory's PICTLIST) and write their outputs.
 
@@ -219,8 +222,44 @@ def run_batch(
     ``pool``: a :class:`WorkerPool` whose warm workers run the batch (``jobs`` ignored too).
     Pictures already done with the same options and input SUM are skipped unless ``force``.
     ``on_result(summary)`` is called in this process as each picture finishes (skipped ones first).
+    ``on_note(text)``: told of what the user should know that is no failure (a stale batch lock of
+    ``out_dir`` taken over).
+    One batch at a time writes ``out_dir`` (:mod:`spctool.batch.lock`); ``out_dir`` and its
+    ``SUMFILES/``, ``TABLES/``, ``PLOTS/`` may be neither the working directory nor one of its SPC
+    folders, by any path, nor symbolic links (:func:`check_out_dir`).
     Returns the summaries in picture order; raises only for bad usage (SpcUsageError) and interrupts.
     """
+    with contextlib.ExitStack() as locks:  # the out_dir lock, taken once the checks passed
+        return _run_batch(
+            workdir,
+            pictures,
+            options,
+            out_dir=out_dir,
+            jobs=jobs,
+            scheduler=scheduler,
+            force=force,
+            on_result=on_result,
+            write_summary=write_summary,
+            pool=pool,
+            locks=(locks, on_note),
+        )
+
+
+def _run_batch(
+    workdir,
+    pictures: Sequence[str] | None = None,
+    options: BatchOptions | None = None,
+    *,
+    out_dir,
+    jobs: int = 1,
+    scheduler=None,
+    force: bool = False,
+    on_result: Callable[[PictureSummary], None] | None = None,
+    write_summary: bool = True,
+    pool: WorkerPool | None = None,
+    locks: tuple = (None, None),
+) -> BatchResult:
+    """:func:`run_batch`; ``locks``: (an ExitStack that holds the out_dir lock, the note callback)."""
     options = options if options is not None else BatchOptions()
     workdir = Path(workdir).resolve()
     out_dir = Path(out_dir).resolve()
@@ -228,8 +267,13 @@ def run_batch(
         raise SpcUsageError(
             f"--out-dir must differ from the working directory ({workdir}): the batch reads SUMFILES/ there"
         )
+    check_out_dir(workdir, out_dir)
     if scheduler is not None and pool is not None:
         raise SpcUsageError("a batch runs on a Dask scheduler or on a worker pool, not both")
+    if isinstance(scheduler, str):  # checked before any work: form, reachability, a Dask handshake
+        from spctool.batch.scheduler import check_scheduler
+
+        scheduler = str(check_scheduler(scheduler))
     if pool is not None:
         if pool.closed:
             raise SpcUsageError("the worker pool is closed")
@@ -243,6 +287,9 @@ def run_batch(
     fingerprint = options.fingerprint()
     stamp = inputs_stamp(workdir, options, fingerprint)  # workers reuse data of unchanged files
     out_dir.mkdir(parents=True, exist_ok=True)
+    check_out_dir(workdir, out_dir)  # again: the directory may have been made just now
+    if locks[0] is not None:
+        locks[0].enter_context(out_dir_lock(out_dir, locks[1]))
     tick = on_result or (lambda s: None)
     t0 = time.perf_counter()
 
@@ -292,6 +339,42 @@ def run_batch(
     if write_summary:
         result.write_summary()
     return result
+
+
+#: the working directory's folders a batch reads (never written: :func:`check_out_dir`)
+SPC_FOLDERS = ("SUMFILES", "IMAGEFILES", "LMKFILES", "MAPFILES", "SHAPEFILES", "NOMINALS")
+#: the folders a batch writes under out_dir (never followed when they are symbolic links)
+OUT_FOLDERS = ("SUMFILES", "TABLES", "PLOTS")
+
+
+def check_out_dir(workdir: Path, out_dir: Path) -> None:
+    """SpcUsageError (one line naming both paths) when writing the batch's outputs under ``out_dir``
+    could replace an input: ``out_dir`` is the working directory or one of its SPC folders by device
+    and inode (a bind mount, a second path), or ``out_dir/SUMFILES`` (``TABLES``, ``PLOTS``) is a
+    symbolic link (never followed) or one of the working directory's folders; also a name that is not
+    valid UTF-8 (the summary records it)."""
+    try:
+        str(out_dir).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(out_dir).decode("utf-8", errors="backslashreplace")
+        raise SpcUsageError(
+            f"--out-dir {shown}: the name is not valid UTF-8 (the batch summary records it); choose another"
+        ) from None
+    if guard.same_file(out_dir, workdir):
+        raise SpcUsageError(
+            f"--out-dir {out_dir} must differ from the working directory {workdir} (same device and "
+            "inode): the batch reads SUMFILES/ there"
+        )
+    inputs = [workdir] + [workdir / d for d in SPC_FOLDERS]
+    guard.refuse_input_overwrite(out_dir, inputs, "--out-dir")
+    for sub in OUT_FOLDERS:
+        path = out_dir / sub
+        if path.is_symlink():
+            raise SpcUsageError(
+                f"{path} is a symbolic link to {path.resolve()}: the batch does not follow links in "
+                "its output tree; remove it or choose another --out-dir"
+            )
+        guard.refuse_input_overwrite(path, inputs, "output folder")
 
 
 def _lost(picture: str, exc: BaseException) -> PictureSummary:
@@ -531,11 +614,15 @@ def _run_dask(scheduler, workdir, out_dir, names, todo, options, fingerprint, st
         raise SpcUsageError("--scheduler needs Dask distributed: pip install 'spctool[dask]'") from None
     own = not hasattr(scheduler, "submit")
     if own:
+        from spctool.batch.scheduler import CONNECT_TIMEOUT_S
+
+        # run_batch checked that a Dask scheduler answers there (check_scheduler): this connection only
+        # waits longer than that check for a scheduler that is busy registering
         try:
-            client = Client(str(scheduler), timeout="30s", set_as_default=False)
-        except (OSError, TimeoutError) as exc:
+            client = Client(str(scheduler), timeout=f"{max(CONNECT_TIMEOUT_S, 30.0)}s", set_as_default=False)
+        except Exception as exc:  # noqa: BLE001 - any refusal (TLS, handshake, timeout) is one line
             raise SpcUsageError(
-                f"cannot connect to the Dask scheduler {scheduler}: {_one_line(exc)}"
+                f"cannot connect to the Dask scheduler {scheduler}: {type(exc).__name__}: {_one_line(exc)}"
             ) from None
     else:
         client = scheduler

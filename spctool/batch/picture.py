@@ -29,7 +29,7 @@ from spctool.batch.inputs import (
     picture_inputs,
     shared_inputs_sha256,
 )
-from spctool.errors import SpcError, SpcFormatError
+from spctool.errors import SpcError, SpcFormatError, SpcUsageError
 from spctool.formats import atomic, guard
 from spctool.formats.sumfile import with_measured_landmarks, with_pose
 from spctool.formats.workdir import WorkDir
@@ -199,6 +199,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     out.input_sha256 = hashlib.sha256(raw).hexdigest()
     out.inputs_sha256 = shared.inputs_sha256
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
+    guard.check_finite_header(pic, sum_path, "sum")  # a NaN pose in, never a NaN pose out
     out.photo_name = pic.name
     camera = Camera.from_picture(pic, shared.settings)
     photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
@@ -428,9 +429,26 @@ def clear_outputs(out_dir, picture: str) -> None:
         atomic.remove_stale_temps(paths[key])  # left by a run killed at the rename step
 
 
+def _refuse_input_folder(paths: dict[str, Path], wd: WorkDir | None) -> None:
+    """SpcUsageError naming both paths when a picture's output folder is a symbolic link (the output
+    tree's links are never followed) or, by device and inode, the working directory's SUMFILES/ or
+    TABLES/ (checked again per picture: a link made while the batch runs is caught too)."""
+    inputs = [] if wd is None else [wd.root / "SUMFILES", wd.root / "IMAGEFILES", wd.root]
+    for key in ("sum", "marker"):
+        folder = paths[key].parent
+        if folder.is_symlink():
+            raise SpcUsageError(
+                f"{folder} is a symbolic link: the batch does not follow links in its output tree"
+            )
+        guard.refuse_input_overwrite(folder, inputs, "output folder")
+
+
 def write_outcome(out_dir, outcome: PictureOutcome, fingerprint: str) -> None:
     """Write a picture's outputs atomically, the done-marker last (only when it did not fail)."""
     paths = output_paths(out_dir, outcome.summary.picture)
+    _refuse_input_folder(paths, outcome.workdir)  # before anything is removed (clear_outputs)
+    for path in paths.values():  # none is a file this picture read, by any path (guard.input_scope)
+        guard.refuse_read_input(path)
     clear_outputs(out_dir, outcome.summary.picture)
     if outcome.sum_text is not None:
         atomic.write_text(paths["sum"], outcome.sum_text)
@@ -542,14 +560,15 @@ def process_picture(
     A failure to write the outputs is reported as the picture's failure too.  ``timings["write_s"]``
     (writing, in the returned summary only: the marker is written before it is known).
     """
-    with _one_numba_thread():
-        outcome = navigate_picture(workdir, picture, options, stamp=stamp)
-    clock = time.perf_counter()
-    try:
-        write_outcome(out_dir, outcome, fingerprint)
-    except (OSError, SpcError) as exc:  # a full disk, a read-only out_dir: this picture fails
-        outcome.summary.status = "failed: " + _one_line(f"cannot write the outputs: {exc}")
-    outcome.summary.timings["write_s"] = time.perf_counter() - clock
+    with guard.input_scope():  # the picture's inputs are never replaced by its outputs
+        with _one_numba_thread():
+            outcome = navigate_picture(workdir, picture, options, stamp=stamp)
+        clock = time.perf_counter()
+        try:
+            write_outcome(out_dir, outcome, fingerprint)
+        except (OSError, SpcError) as exc:  # a full disk, a read-only out_dir: this picture fails
+            outcome.summary.status = "failed: " + _one_line(f"cannot write the outputs: {exc}")
+        outcome.summary.timings["write_s"] = time.perf_counter() - clock
     return outcome.summary
 
 

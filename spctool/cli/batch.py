@@ -174,7 +174,14 @@ def batch_cmd(
     workdir = Path(ctx.workdir)
     if not workdir.is_dir():
         raise SpcUsageError(f"{workdir}: no such working directory")
+    if scheduler is not None:  # before any work: malformed exit 2 at once, unreachable within the timeout
+        from spctool.batch.scheduler import check_scheduler
+
+        check_scheduler(scheduler)
     target = Path(out_dir) if out_dir else workdir / "BATCH"
+    from spctool.batch.driver import check_out_dir
+
+    check_out_dir(workdir.resolve(), target.resolve())  # before any work: never an input folder
     if reach_px is not None and schedule != "two-pass":
         raise SpcUsageError(f"--reach applies to --schedule two-pass, not {schedule}")
     pose = options.pose_options(sigma_px, no_prior, min_landmarks, prior_scale)
@@ -220,6 +227,7 @@ def batch_cmd(
                 scheduler=scheduler,
                 force=force,
                 on_result=on_result,
+                on_note=ctx.note_once,
             )
             cycle = None
         else:
@@ -236,6 +244,7 @@ def batch_cmd(
                 scheduler=scheduler,
                 force=force,
                 on_result=on_result,
+                on_note=ctx.note_once,
             )
             result = cycle.last
             target = result.out_dir

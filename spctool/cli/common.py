@@ -18,7 +18,7 @@ import click
 
 from spctool.cli.options import picture_thresholds
 from spctool.errors import SpcFormatError, SpcUsageError
-from spctool.formats import atomic
+from spctool.formats import atomic, guard
 from spctool.formats.workdir import WorkDir
 
 
@@ -60,11 +60,13 @@ pass_context = click.make_pass_decorator(Context, ensure=True)
 
 def emit(text: str, output: str | None = None, *, overwrite: bool = True) -> None:
     """Write ``text`` to ``output`` atomically (an existing file is kept as ``.bak``), or to stdout when
-    ``output`` is None or '-'."""
+    ``output`` is None or '-'.  An ``output`` that is a file this command read (by device and inode:
+    a link or a second path to it too) is refused naming both (:func:`guard.refuse_read_input`)."""
     if output is None or output == "-":
         sys.stdout.write(text)
         sys.stdout.flush()
     else:
+        guard.refuse_read_input(output)
         atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite, backup=True)
 
 
@@ -185,6 +187,7 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
     adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
+    guard.check_finite_header(pic, path, "sum")  # SPC reads NaN; no stage can use a NaN pose or camera
     settings = ctx.settings()
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)

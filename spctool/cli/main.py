@@ -13,6 +13,7 @@ when one of their commands runs: ``spctool info`` does not pay for numba, nor
 from __future__ import annotations
 
 import importlib
+import io
 import os
 import sys
 import traceback
@@ -24,6 +25,7 @@ from spctool import __version__
 from spctool.cli.commands import COMMAND_MODULES, COMMANDS  # noqa: F401 (tests take both from here)
 from spctool.cli.common import Context
 from spctool.errors import EXIT_CODES, SpcEnvironmentError, SpcError, SpcUsageError
+from spctool.formats.guard import input_scope
 
 
 class SpcGroup(click.Group):
@@ -42,9 +44,15 @@ class SpcGroup(click.Group):
         args = list(sys.argv[1:] if args is None else args)
         debug = "--debug" in args[: _first_command_index(self, args)]
         cwd = os.getcwd()  # -C changes directory (like git -C); restored for callers in this process
+        closed = sys.stdout is None  # started with standard output closed (>&-)
+        if closed:
+            sys.stdout = _ClosedStdout()
         try:
-            return self._main(args, prog_name, complete_var, standalone_mode, debug, extra)
+            with input_scope():  # the files this command reads are never replaced without a .bak
+                return self._main(args, prog_name, complete_var, standalone_mode, debug, extra)
         finally:
+            if closed:
+                sys.stdout = None
             try:
                 os.chdir(cwd)
             except OSError:
@@ -99,6 +107,22 @@ class SpcGroup(click.Group):
         if standalone_mode:
             sys.exit(rv if isinstance(rv, int) else 0)
         return rv
+
+
+class _ClosedStdout(io.TextIOBase):
+    """Standard output when the process started without one (``>&-``): writing to it is the
+    environment error "standard output is closed" (exit 3, one line), never a silent loss."""
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, text) -> int:
+        if not text:
+            return 0
+        raise SpcEnvironmentError("<stdout>", "standard output is closed (redirect it to a file or use -o)")
+
+    def isatty(self) -> bool:
+        return False
 
 
 def _first_command_index(group, args):

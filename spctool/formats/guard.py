@@ -11,7 +11,19 @@ Hostile or corrupt input must neither escape the directories a user named nor ex
   reader forever, ``/dev/zero`` would be read until memory runs out, a directory is not a file;
   the size is checked against a cap before a byte is read;
 * :func:`check_allocation` — an array size computed from a header or a specification is checked
-  against a cap before it is allocated.
+  against a cap before it is allocated;
+* a file is read only for what it really holds: a large *sparse* file (a 432 MB MAP of 4 KB on disk,
+  holes reading as zeros) is refused before a byte is read, and standard input is read with a size
+  limit (:func:`read_stdin`);
+* :func:`check_finite` — a pose, vector or camera value read from a text file must be finite (Fortran
+  reads ``NaN`` and ``Infinity``; no stage can use them and no writer may pass them on);
+* :func:`refuse_input_overwrite` — an output that is, by device and inode, one of the files a command
+  read (or a directory of them) is refused, whatever path (symbolic link, bind mount) reaches it;
+  inside an :func:`input_scope` (one command, one batch picture) every file read by
+  :func:`read_bytes` is remembered, and :func:`refuse_read_input` refuses an output that is one of
+  them (a command's ``-o FILE``, a batch picture's outputs; the explicit in-place updates —
+  ``--in-place``, ``convert --force SRC SRC``, ``make-maplets`` adding to LMRKLIST.TXT — keep a
+  ``.bak`` or are the command's purpose).
 
 Operating-system refusals (permission denied, EIO) are re-raised as
 :class:`~spctool.errors.SpcEnvironmentError` naming the user's path (exit 3).
@@ -19,9 +31,11 @@ Operating-system refusals (permission denied, EIO) are re-raised as
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import stat
+import threading
 from pathlib import Path
 
 from spctool.errors import SpcEnvironmentError, SpcFormatError, SpcUsageError
@@ -29,17 +43,31 @@ from spctool.errors import SpcEnvironmentError, SpcFormatError, SpcUsageError
 __all__ = [
     "MAX_INPUT_BYTES",
     "MAX_NAME_LENGTH",
+    "MAX_STDIN_BYTES",
     "check_allocation",
+    "check_finite",
+    "check_finite_header",
+    "first_nonfinite",
     "check_name",
     "check_regular",
     "is_valid_name",
     "read_bytes",
+    "read_stdin",
+    "input_scope",
+    "refuse_input_overwrite",
+    "refuse_read_input",
+    "same_file",
 ]
 
 #: longest picture/landmark name accepted (SPC's are 12 and 6 characters; other missions' a few more)
 MAX_NAME_LENGTH = 64
 #: largest input file read whole (bytes): far above any SPC file (a Q = 1024 ICQ is ~230 MB)
 MAX_INPUT_BYTES = int(os.environ.get("SPCTOOL_MAX_INPUT_BYTES", 8 * 1024**3))
+#: largest standard input read (bytes): a landmark table or a list, never a photo
+MAX_STDIN_BYTES = int(os.environ.get("SPCTOOL_MAX_STDIN_BYTES", 256 * 1024**2))
+#: a file larger than this whose allocated blocks cover less than 1/SPARSE_RATIO of its size is refused
+SPARSE_MIN_BYTES = 16 * 1024**2
+SPARSE_RATIO = 8
 #: plain identifier: letters, digits, ``_ - + .``; not starting with ``.`` or ``-``
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+\-]*\Z")
 
@@ -102,7 +130,178 @@ def check_regular(path, what: str = "a file", max_bytes: int | None = None) -> i
         raise SpcFormatError(
             p, None, f"{what} of at most {limit} bytes, found {st.st_size} bytes (SPCTOOL_MAX_INPUT_BYTES)"
         )
+    _refuse_sparse(p, st, what)
     return st.st_size
+
+
+def _refuse_sparse(p: Path, st, what: str) -> None:
+    """A large file that is mostly holes (allocated blocks far below its size) holds zeros its header
+    pretends are data: refused before it is read (the memory would be spent on nothing)."""
+    blocks = getattr(st, "st_blocks", None)
+    if blocks is None or st.st_size < SPARSE_MIN_BYTES:
+        return
+    on_disk = int(blocks) * 512
+    if on_disk * SPARSE_RATIO < st.st_size:  # few blocks: holes, or a compressing file system
+        on_disk = max(on_disk, _data_bytes(p, st.st_size))
+    if on_disk * SPARSE_RATIO < st.st_size:
+        raise SpcFormatError(
+            p,
+            None,
+            f"{what} whose content is on disk: {st.st_size} bytes long but only {on_disk} bytes "
+            "allocated (a sparse file: its holes are not data)",
+        )
+
+
+def _data_bytes(p: Path, size: int) -> int:
+    """Bytes of ``p`` outside its holes (``SEEK_DATA`` / ``SEEK_HOLE``); ``size`` when the system
+    cannot tell (then a compressing file system is not mistaken for holes)."""
+    seek_data, seek_hole = getattr(os, "SEEK_DATA", None), getattr(os, "SEEK_HOLE", None)
+    if seek_data is None or seek_hole is None:
+        return size
+    total, pos = 0, 0
+    try:
+        fd = os.open(p, os.O_RDONLY)
+    except OSError:
+        return size
+    try:
+        for _ in range(100_000):
+            try:
+                start = os.lseek(fd, pos, seek_data)
+            except OSError:  # ENXIO: no data after pos
+                break
+            end = os.lseek(fd, start, seek_hole)
+            total += end - start
+            pos = end
+            if pos >= size:
+                break
+        else:
+            return size
+    except OSError:
+        return size
+    finally:
+        os.close(fd)
+    return total
+
+
+def read_stdin(what: str = "standard input", max_bytes: int | None = None, stream=None) -> bytes:
+    """Standard input (``stream``: its binary buffer by default), at most ``max_bytes`` (default
+    :data:`MAX_STDIN_BYTES`): read in chunks, refused with one line as soon as it is longer."""
+    import sys
+
+    limit = MAX_STDIN_BYTES if max_bytes is None else int(max_bytes)
+    if stream is None:
+        if sys.stdin is None:
+            raise SpcUsageError(f"{what}: standard input is closed")
+        stream = getattr(sys.stdin, "buffer", sys.stdin)
+    chunks, total = [], 0
+    while True:
+        try:
+            chunk = stream.read(min(1 << 20, limit + 1 - total))
+        except OSError as exc:
+            raise SpcEnvironmentError.from_oserror(exc, "<stdin>") from None
+        if not chunk:
+            break
+        if isinstance(chunk, str):
+            chunk = chunk.encode("utf-8", errors="surrogateescape")
+        chunks.append(chunk)
+        total += len(chunk)
+        if total > limit:
+            raise SpcFormatError(
+                "<stdin>", None, f"{what} of at most {limit} bytes (SPCTOOL_MAX_STDIN_BYTES)"
+            )
+    return b"".join(chunks)
+
+
+def check_finite(values, path, where, what: str) -> None:
+    """SpcFormatError naming ``path`` and ``where`` (a line) when a value of ``values`` is NaN or
+    infinite: ``what`` (e.g. "SCOBJ") must be finite numbers."""
+    import math
+
+    for k, v in enumerate(values):
+        try:
+            ok = math.isfinite(float(v))
+        except (TypeError, ValueError, OverflowError):
+            continue  # not a number: the parser's own checks speak for it
+        if not ok:
+            raise SpcFormatError(path, where, f"finite numbers ({what}), found {v!r} for value {k + 1}")
+
+
+#: the header keys whose values a stage uses as pose, vector or camera (per format: SUM, NOM, LMK)
+FINITE_KEYS = {
+    "sum": ("npx", "mmfl", "scobj", "cx", "cy", "cz", "sz", "kmatrix", "distortion", "vso", "ptg"),
+    "nom": ("frame", "scobj", "vso", "cx", "cy", "cz", "ptg"),
+    "lmk": ("size", "vlm", "ux", "uy", "uz"),
+}
+_ATTRS = {"vso": "sigma_vso", "ptg": "sigma_ptg", "frame": "frame_vector"}
+
+
+def first_nonfinite(obj, keys) -> tuple[int | None, str] | None:
+    """(line, label) of the first header value of a parsed SUM, NOM or LMK (``obj._source.header``,
+    its slots in file order) among ``keys`` that is NaN or infinite — the values a stage would use —
+    or None.  Values changed since parsing (or an object built in memory) are checked on the object
+    itself (line None)."""
+    import math
+
+    import numpy as np
+
+    header = getattr(getattr(obj, "_source", None), "header", None) or []
+    line = 1
+    for slot in header:
+        if slot.key in keys and slot.values is not None:
+            for v in slot.values:
+                if isinstance(v, float) and not math.isfinite(v):
+                    return line, (slot.tag or slot.key.upper())
+        line += 0 if slot.text is None else slot.text.count("\n") + 1
+    for key in keys:
+        value = getattr(obj, _ATTRS.get(key, key), None)
+        if value is None or isinstance(value, str):
+            continue
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            continue
+        if not np.all(np.isfinite(arr)):
+            return None, key.upper()
+    return None
+
+
+def check_finite_header(obj, path, kind: str) -> None:
+    """SpcFormatError naming ``path`` and the line when a pose, vector or camera value of ``obj`` (a
+    parsed SUM, NOM or LMK: ``kind``) is NaN or infinite (:func:`first_nonfinite`).  SPC's Fortran
+    reads such a file (list-directed READ takes ``NaN``), so the readers do too; a stage refuses it."""
+    found = first_nonfinite(obj, FINITE_KEYS[kind])
+    if found is not None:
+        line, label = found
+        raise SpcFormatError(path, line, f"finite numbers ({label}), found NaN or Infinity")
+
+
+def _identity(path) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+def same_file(a, b) -> bool:
+    """True when ``a`` and ``b`` are the same file or directory (device and inode, links followed)."""
+    ia = _identity(a)
+    return ia is not None and ia == _identity(b)
+
+
+def refuse_input_overwrite(output, inputs, what: str = "output") -> None:
+    """SpcUsageError naming both paths when ``output`` (a file or a directory) is, by device and inode,
+    one of ``inputs`` (files or directories: a symbolic link or a bind mount leading to them is seen
+    through).  A path that does not exist yet is no input."""
+    out_id = _identity(output)
+    if out_id is None:
+        return
+    for src in inputs:
+        if src is not None and _identity(src) == out_id:
+            raise SpcUsageError(
+                f"{what} {output} is the input {src} (same device and inode): refusing to overwrite "
+                "what was read; choose another path"
+            )
 
 
 def read_bytes(path, what: str = "a file", max_bytes: int | None = None) -> bytes:
@@ -112,6 +311,7 @@ def read_bytes(path, what: str = "a file", max_bytes: int | None = None) -> byte
     try:
         with open(p, "rb") as fh:
             data = fh.read(size + 1)
+            _note_input(p, os.fstat(fh.fileno()))
     except IsADirectoryError:
         raise SpcFormatError(p, None, f"{what}, found a directory") from None
     except OSError as exc:
@@ -165,7 +365,10 @@ def landmark_geometry_problem(obj) -> str | None:
 
 
 def check_landmark_geometry(obj, path):
-    """``obj`` when :func:`landmark_geometry_problem` finds nothing, else SpcFormatError naming ``path``."""
+    """``obj`` when :func:`landmark_geometry_problem` finds nothing, else SpcFormatError naming ``path``
+    (and, for a NaN or Infinity in a parsed LMK header, its line: :func:`check_finite_header`)."""
+    if getattr(getattr(obj, "_source", None), "header", None):
+        check_finite_header(obj, path, "lmk")
     problem = landmark_geometry_problem(obj)
     if problem is not None:
         raise SpcFormatError(path, None, problem)
@@ -179,3 +382,52 @@ def _human(nbytes: float) -> str:
             return f"{value:.0f} {unit}" if unit == "bytes" else f"{value:.1f} {unit}"
         value /= 1024
     return f"{value:.1f} EiB"  # pragma: no cover
+
+
+# ------------------------------------------------------------------------------------------------
+# the files read by one command (or one batch picture): never replaced without a backup
+
+_READ: dict[tuple[int, int], str] = {}
+_SCOPE = {"depth": 0}
+_SCOPE_LOCK = threading.Lock()
+#: most files remembered in one scope (a batch picture reads a few dozen)
+_MAX_REMEMBERED = 200_000
+
+
+@contextlib.contextmanager
+def input_scope():
+    """Remember the files :func:`read_bytes` reads inside the ``with`` body (nested scopes share one
+    record, cleared when the outermost ends)."""
+    with _SCOPE_LOCK:
+        if _SCOPE["depth"] == 0:
+            _READ.clear()
+        _SCOPE["depth"] += 1
+    try:
+        yield
+    finally:
+        with _SCOPE_LOCK:
+            _SCOPE["depth"] -= 1
+            if _SCOPE["depth"] == 0:
+                _READ.clear()
+
+
+def _note_input(path, st) -> None:
+    if _SCOPE["depth"] and len(_READ) < _MAX_REMEMBERED:
+        _READ[(st.st_dev, st.st_ino)] = os.fspath(path)
+
+
+def refuse_read_input(output) -> None:
+    """SpcUsageError naming both paths when ``output`` is, by device and inode, a file read in the
+    current :func:`input_scope` (and the path it was read by still leads to it: an inode number
+    reused by a new file is no match)."""
+    if not _READ:
+        return
+    ident = _identity(output)
+    if ident is None:
+        return
+    src = _READ.get(ident)
+    if src is not None and _identity(src) == ident:
+        raise SpcUsageError(
+            f"refusing to replace {output}: it is the input {src} (same device and inode), read by this "
+            "command; choose an output path that is not an input"
+        )

@@ -521,10 +521,12 @@ def _decode_cells(raw_h: np.ndarray, raw_a: np.ndarray, hscale: float):
 
 def read_map(path) -> Maplet:
     """Read ``MAPFILES/<NAME>.MAP``; the maplet's ``name`` is the file stem."""
-    from spctool.formats.guard import read_bytes
+    from spctool.formats.guard import MAX_QSZ, read_bytes
 
     path = Path(path)
-    data = read_bytes(path, "a MAP file")  # regular files only, size checked before reading
+    # regular files only, sparse files refused, and no more bytes than a QSZ <= MAX_QSZ maplet holds:
+    # a header cannot make this reader allocate more than the file's own (real) content
+    data = read_bytes(path, f"a MAP file (QSZ <= {MAX_QSZ})", max_bytes=map_file_size(MAX_QSZ))
     return parse_map(data, path)
 
 

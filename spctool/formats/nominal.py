@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spctool.errors import SpcFormatError
+from spctool.errors import SpcFormatError, SpcUsageError
 from spctool.formats import atomic
 from spctool.formats.fortran import Records
 from spctool.formats.rows import (
@@ -175,7 +175,14 @@ def parse_nom(text: str, path=None) -> Nominal:
 
 
 def format_nom(nom: Nominal) -> str:
-    """NOM file text; unchanged lines of a parsed file are reproduced byte for byte."""
+    """NOM file text; unchanged lines of a parsed file are reproduced byte for byte.  A non-finite
+    pose (SCOBJ, CX, CY, CZ) is never written (SpcUsageError)."""
+    for attr in ("scobj", "cx", "cy", "cz"):
+        if not np.all(np.isfinite(np.asarray(getattr(nom, attr), dtype=np.float64))):
+            raise SpcUsageError(
+                f"NOM of picture {nom.name}: refusing to write a non-finite pose ({attr.upper()} holds "
+                "NaN or Infinity)"
+            )
     src = nom._source
     slots = src.header if src is not None else [Slot(k) for k in _NOM_ORDER]
     pad = src.pad if src is not None else False

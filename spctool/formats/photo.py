@@ -280,6 +280,8 @@ def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str, warnings: list
             f"(spc-formats §7.4); the file has {size} bytes",
         )
     need = nbytes * npx * nln
+    if nbytes == 1:
+        _refuse_cut_sixteen_bit(data, path, npx, nln, size)
     if nln == 1 and nbytes == 1:
         warnings.append((None, "a one-line 8-bit .DAT: SPC's record test (xPicInpt) would read it as 16-bit"))
     if size > need:
@@ -305,6 +307,34 @@ def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str, warnings: list
         dt = ">u2" if order == "big" else "<u2"
         return np.frombuffer(data, dtype=dt).reshape(nln, npx).astype(np.uint16)
     return np.frombuffer(data, dtype=np.uint8).reshape(nln, npx).copy()
+
+
+#: byte-plane energy ratio above which 8-bit-sized DAT bytes are taken for 16-bit pixels (a cut file)
+CUT_DAT_RATIO = 20
+#: smallest image (pixels along each axis) on which the cut-file test speaks
+CUT_DAT_MIN = 64
+
+
+def _refuse_cut_sixteen_bit(data: bytes, path, npx: int, nln: int, size: int) -> None:
+    """SpcFormatError when bytes that SPC's size rule reads as 8-bit look like 16-bit pixels: a 16-bit
+    photo cut to half its size (or less) has the 8-bit size, and xPicInpt would read its high and low
+    bytes as neighbouring pixels.  SPC's own byte-plane test tells them apart: the two byte planes of
+    16-bit data differ by orders of magnitude in Laplacian energy (high bytes smooth, low bytes busy),
+    those of an 8-bit image (even and odd columns) are alike."""
+    lines = min(nln, size // (2 * npx))  # the complete 16-bit lines the bytes would hold
+    if npx < CUT_DAT_MIN or lines < CUT_DAT_MIN // 2:
+        return
+    planes = np.frombuffer(data, dtype=np.uint8, count=lines * 2 * npx).reshape(lines, npx, 2)
+    z1, z2 = dat_byte_plane_energies(planes)
+    low, high = min(z1, z2), max(z1, z2)
+    if high > 0 and high > CUT_DAT_RATIO * low:
+        raise SpcFormatError(
+            path,
+            f"byte {size}",
+            f"{2 * npx * nln} bytes for a 16-bit NPX={npx} NLN={nln} photo: the file has {size} bytes, "
+            f"which SPC's size rule reads as 8-bit, but they are 16-bit pixels (byte-plane Laplacian "
+            f"energies {z1} and {z2}, SPC's byte-order test): a 16-bit photo cut short",
+        )
 
 
 def read_dat(path, npx: int, nln: int, byte_order: str = "auto") -> Photo:
@@ -523,8 +553,10 @@ def _fits_from_bytes(data: bytes, path) -> np.ndarray:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             with fits.open(io.BytesIO(data), memmap=False) as hdul:
-                for k, hdu in enumerate(hdul):
+                for k, hdu in enumerate(hdul):  # what each header promises, before the block layout
                     _check_fits_header(hdu.header, len(data), path, k)
+                _check_fits_layout(hdul, data, path)
+                for k, hdu in enumerate(hdul):
                     arr = hdu.data
                     _check_fits_warnings(caught, path, k)
                     if arr is None or not isinstance(arr, np.ndarray) or arr.dtype.names:
@@ -582,6 +614,47 @@ def _check_fits_header(header, size: int, path, k: int) -> None:
             f"{nbytes:.0f} data bytes for an image of {' x '.join(map(str, dims))} at BITPIX {bitpix}; "
             f"the file has {size} bytes in all",
         )
+
+
+#: FITS files are made of 2880-byte blocks (FITS standard 4.0, section 3.1)
+FITS_BLOCK = 2880
+
+
+def _check_fits_layout(hdul, data: bytes, path) -> None:
+    """The file is whole 2880-byte blocks, every HDU header has an END card, and the HDUs (each
+    header, then its data padded to a block) end exactly where the file ends, or where zero-filled
+    blocks after them begin: bytes inserted, removed or appended anywhere else shift that sum
+    (astropy alone reads such a file, shifted)."""
+    size = len(data)
+    hdul.readall()
+    end = 0
+    for k in range(len(hdul)):
+        info = hdul.fileinfo(k)
+        if info is None:  # pragma: no cover - an HDU not from the file
+            continue
+        head_bytes = info["datLoc"] - info["hdrLoc"]
+        if info["hdrLoc"] != end or head_bytes <= 0 or head_bytes % FITS_BLOCK:
+            raise SpcFormatError(
+                path,
+                f"byte {info['hdrLoc']}",
+                f"HDU {k} to start at byte {end} with a header of whole {FITS_BLOCK}-byte blocks "
+                f"(the header spans bytes {info['hdrLoc']}-{info['datLoc']})",
+            )
+        if not _has_end_card(data[info["hdrLoc"] : info["datLoc"]]):
+            raise SpcFormatError(path, f"HDU {k}", "an END card closing the header")
+        end = info["datLoc"] + info["datSpan"]
+    if size % FITS_BLOCK or end > size or data[end:].strip(b"\0"):
+        raise SpcFormatError(
+            path,
+            f"byte {min(end, size)}",
+            f"a FITS file of whole {FITS_BLOCK}-byte blocks ending after its last HDU at byte {end}; the "
+            f"file has {size} bytes (bytes inserted, removed or appended)",
+        )
+
+
+def _has_end_card(head: bytes) -> bool:
+    """True when the header bytes hold an 80-byte card ``END`` (followed by blanks)."""
+    return any(head[i : i + 80].rstrip(b" ") == b"END" for i in range(0, len(head) - 79, 80))
 
 
 def _check_fits_warnings(caught, path, k: int) -> None:

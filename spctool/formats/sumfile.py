@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spctool.errors import SpcFormatError
+from spctool.errors import SpcFormatError, SpcUsageError
 from spctool.formats import atomic
 from spctool.formats.fortran import (
     Records,
@@ -706,7 +706,9 @@ def _sum_line(pic: Picture, slot: Slot, padded: bool) -> str:
 
 
 def format_sum(pic: Picture) -> str:
-    """SUM file text.  Unchanged lines of a parsed file are reproduced byte for byte."""
+    """SUM file text.  Unchanged lines of a parsed file are reproduced byte for byte.  A non-finite
+    pose (SCOBJ, CX, CY, CZ) is never written (SpcUsageError)."""
+    _refuse_nonfinite_pose(pic, "SUM", ("scobj", "cx", "cy", "cz"))
     src = pic._source
     if src is None:
         slots = [Slot(k) for k in _SUM_ORDER]
@@ -764,6 +766,16 @@ def format_sum(pic: Picture) -> str:
     if src is not None:
         out.extend(src.after_end)
     return join_lines(out, src.final_newline if src is not None else True)
+
+
+def _refuse_nonfinite_pose(obj, kind: str, attrs) -> None:
+    """SpcUsageError when a pose value of ``obj`` to be written is NaN or infinite."""
+    for attr in attrs:
+        if not np.all(np.isfinite(np.asarray(getattr(obj, attr), dtype=np.float64))):
+            raise SpcUsageError(
+                f"{kind} of picture {obj.name}: refusing to write a non-finite pose ({attr.upper()} "
+                "holds NaN or Infinity)"
+            )
 
 
 def read_sum(path) -> Picture:

@@ -17,7 +17,6 @@ import io
 import json
 import math
 import re
-import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -224,6 +223,7 @@ class LandmarkTable:
         header: list[str] | None = None
         delimited = False
         rows: list[list[str]] = []
+        linenos: list[tuple[int, None]] = []
         for lineno, raw in enumerate(text.splitlines(), start=1):
             line = raw.strip()
             if not line:
@@ -250,6 +250,7 @@ class LandmarkTable:
             if len(parts) != len(header):
                 raise SpcFormatError(path, lineno, f"expected {len(header)} columns, found {len(parts)}")
             rows.append(parts)
+            linenos.append((lineno, None))
         if header is None:
             raise SpcFormatError(path, None, "expected a landmark table (header line with a 'name' column)")
         cols = {}
@@ -257,6 +258,7 @@ class LandmarkTable:
             values = [_parse_value(r[j]) for r in rows]
             if key == "name":
                 values = [str(r[j]) for r in rows]
+                _refuse_duplicates(values, [n for n, _ in linenos], path, "line")
             cols[key] = values
         return cls(cols, picture, command, comments)
 
@@ -291,6 +293,9 @@ class LandmarkTable:
         if not all(isinstance(r, dict) for r in doc["landmarks"]):
             raise SpcFormatError(path, None, "expected a JSON object per row of the 'landmarks' list")
         rows = [{k: (math.nan if v is None else v) for k, v in r.items()} for r in doc["landmarks"]]
+        if all("name" in r for r in rows):
+            names = [str(r["name"]) for r in rows]
+            _refuse_duplicates(names, range(1, len(rows) + 1), path, "row")
         meta = {
             k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")
         }
@@ -299,6 +304,21 @@ class LandmarkTable:
 
 #: column names read case-insensitively (a spreadsheet's "Name, Sample, Line")
 _KNOWN_LOWER = {"name", "sample", "line", "status"}
+
+
+def _refuse_duplicates(names, places, path, unit: str) -> None:
+    """SpcFormatError naming both places (``unit`` "line" or "row") of the first name given twice: a
+    landmark measured twice in one table is ambiguous (which pixel?), never resolved silently."""
+    first: dict[str, int] = {}
+    for name, place in zip(names, places):
+        key = name.strip()
+        if key in first:
+            raise SpcFormatError(
+                path,
+                place if unit == "line" else None,
+                f"one row per landmark: {key!r} is on {unit}s {first[key]} and {place}",
+            )
+        first[key] = place
 
 
 def _split_csv(line: str, path, lineno: int) -> list[str]:
@@ -330,8 +350,8 @@ def _scalar(v):
 def _as_float(v) -> float:
     try:
         return float(v)
-    except OverflowError:
-        return math.copysign(math.inf, v)
+    except OverflowError:  # an integer beyond float's range (copysign would convert it too)
+        return math.inf if v > 0 else -math.inf
 
 
 def _column(values):
@@ -347,15 +367,15 @@ def _column(values):
     if values and all(
         (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)) or v is None
         for v in values
-    ):
-        return np.asarray([math.nan if v is None else v for v in values], np.float64)
+    ):  # an integer beyond float's range (JSON 1e400 written out) is infinite, not an OverflowError
+        return np.asarray([math.nan if v is None else _as_float(v) for v in values], np.float64)
     return ["" if v is None else str(v) if not isinstance(v, str) else v for v in values]
 
 
 def read_table(path) -> LandmarkTable:
     """Read a landmark table (text or JSON) from ``path``; ``-`` is stdin."""
     if str(path) == "-":
-        text = sys.stdin.read()
+        text = guard.read_stdin("a landmark table on standard input").decode("utf-8", errors="replace")
         name = "<stdin>"
     else:
         p = Path(path)

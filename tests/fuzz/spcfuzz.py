@@ -611,6 +611,85 @@ def run(n: int, workers: int = 2, master: int = 19, time_limit: float = TIME_LIM
     return total
 
 
+# ------------------------------------------------------------------------------------------------
+# the silent-misread classes of issue #41, each attacked directly
+
+
+#: the classes: a 16-bit DAT cut short, a FITS photo with bytes inserted or removed, a landmark table
+#: (text or JSON) with a row given twice
+MISREAD_CLASSES = ("dat-cut", "fits-shifted", "table-dup-row", "table-json-dup-row")
+
+
+def misread_classes(n: int, master: int = 41) -> dict[str, tuple[int, int]]:
+    """For each of :data:`MISREAD_CLASSES`, ``n`` seeded mutants read in this process: (mutants,
+    accepted with a reading other than the seed's).  Every mutant must be refused (or read the same)."""
+    import numpy as np
+
+    from spctool.errors import SpcError
+    from spctool.formats.photo import read_dat, read_photo
+    from spctool.formats.table import LandmarkTable, read_table
+
+    rng = random.Random(f"{master}:misread")
+    out: dict[str, tuple[int, int]] = {}
+    dat = (DEMO / "IMAGEFILES" / f"{PIC}.DAT").read_bytes()
+    side = 768  # the demo photo: 768 x 768, 16-bit
+    fits_path = DEMO / "IMAGEFILES" / "P000000003A1.FITS"
+    fits = fits_path.read_bytes()
+    fits_data = read_photo(fits_path).data
+    names = sorted(p.stem for p in (DEMO / "LMKFILES").glob("*.LMK"))
+    rows = [f"{n} {100 + 7 * k:.2f} {200 + 3 * k:.2f}" for k, n in enumerate(names)]
+
+    def accepted(path, reader, same) -> bool:
+        try:
+            got = reader(path)
+        except SpcError:
+            return False
+        return not same(got)
+
+    with tempfile.TemporaryDirectory(prefix="spcmisread-") as tmp:
+        path = Path(tmp) / "m"
+        bad = 0
+        for k in range(n):  # a cut anywhere from 30 % to just before the last line (then SPC pads it)
+            cut = len(dat) // 2 if k == 0 else int(len(dat) * rng.uniform(0.3, 1 - 1.0 / side))
+            path.write_bytes(dat[:cut])
+            bad += accepted(path, lambda p: read_dat(p, side, side), lambda got: False)
+        out["dat-cut"] = (n, bad)
+        bad = 0
+        for _ in range(n):
+            pos = rng.randrange(len(fits) + 1)
+            count = rng.choice([1, 2, 7, 80, 100, 2879, 2881])
+            if rng.random() < 0.5:
+                data = fits[:pos] + bytes(rng.randrange(256) for _ in range(count)) + fits[pos:]
+            else:
+                data = fits[:pos] + fits[pos + count :]
+            path = Path(tmp) / "m.fits"
+            path.write_bytes(data)
+            bad += accepted(
+                path,
+                read_photo,
+                lambda got: got.data.shape == fits_data.shape and np.array_equal(got.data, fits_data),
+            )
+        out["fits-shifted"] = (n, bad)
+        for label, as_json in (("table-dup-row", False), ("table-json-dup-row", True)):
+            bad = 0
+            for _ in range(n):
+                body = list(rows)
+                body.insert(rng.randrange(len(body) + 1), body[rng.randrange(len(body))])
+                if as_json:
+                    parts = [r.split() for r in body]
+                    table = LandmarkTable.from_rows(
+                        [{"name": a, "sample": float(b), "line": float(c)} for a, b, c in parts]
+                    )
+                    text = table.to_json()
+                else:
+                    text = "name sample line\n" + "\n".join(body) + "\n"
+                path = Path(tmp) / ("m.json" if as_json else "m.txt")
+                path.write_text(text)
+                bad += accepted(path, read_table, lambda got: False)
+            out[label] = (n, bad)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--mutants", type=int, default=2000)

@@ -7,7 +7,7 @@ The long run (>= 20,000 mutants) is ``python benchmarks/fuzz_long.py``.
 import os
 
 import pytest
-from spcfuzz import FAILURES, mutate, run, seeds
+from spcfuzz import FAILURES, MISREAD_CLASSES, misread_classes, mutate, run, seeds
 
 N_MUTANTS = int(os.environ.get("SPCTOOL_FUZZ_MUTANTS", "2000"))
 
@@ -29,3 +29,10 @@ def test_ci_fuzz_has_no_failures():
     assert report.mutants == N_MUTANTS
     assert report.runs >= 2 * N_MUTANTS
     assert {k: report.counts[k] for k in FAILURES} == dict.fromkeys(FAILURES, 0), report.summary()
+
+
+def test_issue_41_misread_classes_are_all_refused():
+    # a 16-bit DAT cut short, a FITS with bytes inserted or removed, a landmark table row given twice
+    found = misread_classes(40)
+    assert set(found) == set(MISREAD_CLASSES)
+    assert {k: v[1] for k, v in found.items()} == dict.fromkeys(MISREAD_CLASSES, 0), found
