@@ -461,7 +461,11 @@ def test_bad_rows():
     lines = rosetta_lines()
     j = lines.index("LIMB FITS")
     lines.insert(j + 1, "BB0001    571.13    533.56")
-    assert err("\n".join(lines)).startswith(f"SUMFILES/X.SUM:{j + 2}: expected 3 numbers (limb fit), found 2")
+    # two numbers in SPC's columns (GIANT writes no third): LITHOS's (A6,3F10.2) reads the blank field as 0
+    pic = parse_sum("\n".join(lines))
+    assert pic.limb_fits[0]._key() == ("BB0001", 571.13, 533.56, 0.0) and not pic._source.warnings
+    lines[j + 1] = "BB0001    571.13"
+    assert err("\n".join(lines)).startswith(f"SUMFILES/X.SUM:{j + 2}: expected 3 numbers (limb fit), found 1")
     lines = rosetta_lines()
     lines.insert(i + 1, "LANDMARKS")
     assert err("\n".join(lines)).startswith(f"SUMFILES/X.SUM:{i + 2}: unexpected second LANDMARKS")
