@@ -169,26 +169,80 @@ def test_corpus_is_there_and_every_case_cites_its_fortran():
         assert Path(str(p)[: -len(".json")]).exists()
 
 
+def _rows(items, fields):
+    return [[getattr(it, f) for f in fields] for it in items]
+
+
+def _same_rows(got, want):
+    """Section rows: names and flags equal, numbers equal to the last bit."""
+    assert [[x for x in r if isinstance(x, str)] for r in got] == [
+        [x for x in r if isinstance(x, str)] for r in want
+    ]
+    _same(
+        [[x for x in r if not isinstance(x, str)] for r in got],
+        [[x for x in r if not isinstance(x, str)] for r in want],
+    )
+
+
+def _check_rows(obj, doc, mode, sections):
+    """Section rows in both modes (issue #40): under --spc-columns LITHOS's numbers (``expect``); by default
+    the writer's (``as_written``, where they differ), each differing row warned once."""
+    from spctool.formats.rows import column_notes
+
+    want = doc["expect"] if mode == "spc-columns" else {**doc["expect"], **doc.get("as_written", {})}
+    for key, fields in sections.items():
+        if key in want:
+            _same_rows(_rows(getattr(obj, key), fields), want[key])
+    warned = sorted(ln for ln, _ in column_notes(obj._source.warnings))
+    assert warned == (doc.get("warned_lines", []) if mode == "default" else [])
+
+
+SUM_ROWS = {"landmarks": ("name", "sample", "line", "flag"), "limb_fits": ("name", "sample", "line", "value")}
+LMK_ROWS = {
+    "pictures": ("name", "sample", "line", "flag"),
+    "overlaps": ("name", "offset"),
+    "limb_fits": ("name", "sample", "line", "value"),
+}
+
+
+@pytest.mark.parametrize("mode", ["default", "spc-columns"])
 @pytest.mark.parametrize("case", CASES, ids=[f"{p.parent.name}/{p.name[:-5]}" for p in CASES])
-def test_corpus_case(case):
+def test_corpus_case(case, mode):
+    """Every case read as SPC reads it, in both row modes (rows as written / --spc-columns)."""
+    from spctool.errors import SpcFormatError
+    from spctool.formats.rows import spc_columns_mode
+
     doc = json.loads(case.read_text())
     path = Path(str(case)[: -len(".json")])
+    if mode == "spc-columns" and "spc_stops_at_line" in doc:  # LITHOS's READ stops: refused, naming the line
+        with spc_columns_mode(), pytest.raises(SpcFormatError) as info:
+            _read_case(doc, path)
+        assert info.value.where == doc["spc_stops_at_line"] and "LITHOS's READ stops" in str(info.value)
+        mode = "default"
+    with spc_columns_mode(mode == "spc-columns"):
+        _read_case(doc, path, mode)
+
+
+def _read_case(doc, path, mode="default"):
     want = doc["expect"]
     kind = doc["kind"]
     if kind == "sum":
         from spctool.formats.sumfile import read_sum
 
         pic = read_sum(path)
+        _check_rows(pic, doc, mode, SUM_ROWS)
         assert (pic.npx, pic.nln) == (want["npx"], want["nln"])
         _same(pic.thrsh, want["thrsh"])
         _same([pic.mmfl, *pic.ctr], [want["mmfl"], *want["ctr"]])
-        for key in ("scobj", "cx", "cy", "cz", "sz", "kmatrix"):
-            _same(getattr(pic, key), want[key])
+        for key in ("scobj", "cx", "cy", "cz", "sz", "kmatrix", "sigma_vso", "sigma_ptg"):
+            if key in want:
+                _same(getattr(pic, key), want[key])
         _same(np.zeros(4) if pic.distortion is None else pic.distortion, want["distortion"])
     elif kind == "lmk":
         from spctool.formats.landmark import read_lmk
 
         lmk = read_lmk(path)
+        _check_rows(lmk, doc, mode, LMK_ROWS)
         assert lmk.qsz == want["qsz"]
         _same(lmk.horizon, want["horizon"])
         _same([lmk.scale, lmk.sigkm, lmk.rmslmk], [want["scale"], want["sigkm"], want["rmslmk"]])

@@ -200,7 +200,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     out.inputs_sha256 = shared.inputs_sha256
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
     out.photo_name = pic.name
-    camera = Camera.from_picture(pic, shared.settings)
+    camera = Camera.from_picture(pic, shared.settings, picture_name=picture)  # getmm(PICNM)
     photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
     if photo.data.shape != (pic.nln, pic.npx):
         raise SpcFormatError(

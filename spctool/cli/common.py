@@ -124,13 +124,17 @@ def resolve_landmarks(ctx: Context, specs=(), table: str | None = None) -> list:
         p = Path(spec)
         if p.is_file() and p.suffix.upper() == ".LMK":
             direct.append(ctx.wd.read_landmark(str(p)))
+            warn_row_columns(ctx, p, direct[-1])
         elif p.is_file():
             names += read_table(p).names
         else:
             names.append(spec)
     if not specs and not table:
         names = ctx.wd.landmark_names()
-    return direct + [ctx.wd.read_landmark(n) for n in names]
+    named = [ctx.wd.read_landmark(n) for n in names]
+    for n, lmk in zip(names, named):
+        warn_row_columns(ctx, ctx.wd.lmk_path(n) if not Path(n).is_file() else n, lmk)
+    return direct + named
 
 
 # ------------------------------------------------------------------------------------------------
@@ -185,10 +189,20 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
     adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
+    warn_row_columns(ctx, path, pic)
     settings = ctx.settings()
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)
-    camera = Camera.from_picture(pic, settings)
+    # SPC chooses the DISTORT= model by the picture it was asked for (getmm(PICNM)), the SUM file
+    # being SUMFILES/<PICNM>.SUM -- not by SUM line 1, which a renamed or copied picture leaves behind
+    asked = picture if sum_path and picture and Path(picture).suffix.upper() != ".SUM" else Path(path).stem
+    if asked.strip() != pic.name.strip() and ("line1", str(path)) not in ctx._said:
+        ctx._said.add(("line1", str(path)))
+        ctx.warn(
+            f"{path}:1: line 1 names picture {pic.name.strip()!r} but it is the SUM of {asked.strip()!r}: "
+            f"the DISTORT= model is chosen for {asked.strip()!r}, as SPC's getmm does"
+        )
+    camera = Camera.from_picture(pic, settings, picture_name=asked)
     if camera.model.upper() == "NONE":
         where = (
             f"no INIT_LITHOS.TXT in {ctx.wd.root}"
@@ -197,6 +211,21 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         )
         ctx.note_once(f"{pic.name}: projected without a distortion model ({where})")
     return LoadedPicture(path, pic, settings, camera)
+
+
+def warn_row_columns(ctx: Context, path, obj) -> None:
+    """One warning per file whose section rows are not in SPC's columns (issue #40): the first such row
+    with both readings, and how many more there are (``validate`` lists every row)."""
+    from spctool.formats.rows import column_notes, spc_columns
+
+    notes = column_notes(getattr(getattr(obj, "_source", None), "warnings", None))
+    key = ("columns", str(path))
+    if not notes or key in ctx._said or spc_columns():
+        return
+    ctx._said.add(key)
+    line, text = notes[0]
+    more = f" (and {len(notes) - 1} more rows)" if len(notes) > 1 else ""
+    ctx.warn(f"{path}:{line}: {text}{more}")
 
 
 def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, required: bool = True):

@@ -370,7 +370,7 @@ def column_notes(warnings) -> list[tuple[int | None, str]]:
 
 def _show(values, flag: str | None) -> str:
     text = ", ".join(f"{v:.10g}" for v in values)
-    return text + (f" flag {flag!r}" if flag else "")
+    return text + ("" if flag is None else f" flag {flag!r}" if flag else " no flag")
 
 
 def read_section_row(
@@ -433,13 +433,15 @@ def read_section_row(
         same = lith_vals is not None and lith_vals == meant and (not has_flag or flag == lith_flag)
         if same:
             return meant, rest, None
+        flags = has_flag and flag != lith_flag
         lithos = (
-            f"LITHOS reads {_show(lith_vals, lith_flag)}"
+            f"LITHOS reads {_show(lith_vals, lith_flag if flags else None)}"
             if stop is None
             else f"LITHOS's READ stops at column {stop.column} ({stop.field!r})"
         )
         note = (
-            f"{what} {COLUMNS_NOTE} {fmt}: spctool reads {_show(meant, flag)} as written; {lithos} "
+            f"{what} {COLUMNS_NOTE} {fmt}: spctool reads {_show(meant, flag if flags else None)} as written; "
+            f"{lithos} "
             "(--spc-columns reads as LITHOS)"
         )
         return meant, rest, note
@@ -456,7 +458,7 @@ def read_section_row(
         raise SpcFormatError(
             path,
             lineno,
-            f"{error.expected} (LITHOS's READ {fmt} gives {_show(lith_vals, lith_flag)}; "
+            f"{error.expected} (LITHOS's READ {fmt} gives {_show(lith_vals, None)}; "
             "--spc-columns reads it so)",
         )
     return lith_vals, line[end:], None
