@@ -224,6 +224,14 @@ def test_corpus_case(case, mode):
 
 
 def _read_case(doc, path, mode="default"):
+    from spctool.errors import SpcFormatError
+
+    if "refused" in doc:  # SPC would read nothing sensible: spctool refuses with one line naming the file
+        with pytest.raises(SpcFormatError) as info:
+            _read_case({k: v for k, v in doc.items() if k != "refused"}, path, mode)
+        assert str(info.value).startswith(str(path)) and doc["refused"]["contains"] in str(info.value)
+        assert "\n" not in str(info.value)
+        return
     want = doc["expect"]
     kind = doc["kind"]
     if kind == "sum":
@@ -292,9 +300,9 @@ def _read_case(doc, path, mode="default"):
         names = lst.active_names if kind == "pictlist" else lst.names
         assert names == want["active_names"]
     elif kind == "dat":
-        from spctool.formats.photo import read_dat
+        from spctool.formats.photo import read_photo
 
-        photo = read_dat(path, doc["npx"], doc["nln"])
+        photo = read_photo(path, npx=doc["npx"], nln=doc["nln"])
         assert photo.data.tolist() == want["dn"]
     else:  # pragma: no cover - a new kind needs its check here
         raise AssertionError(kind)
@@ -516,3 +524,63 @@ def test_project_command_uses_the_pushbroom_model(run_cli, real, tmp_path):
     assert row["status"] == "ok"
     r = run_cli("-C", tmp_path, "project", "X123456789A1", "--inverse", "500", "900")
     assert r.exit_code == 2 and "line-scan" in r.stderr
+
+
+# ---------------------------------------------------------------------------------------------------------
+# issue #40: a GIANT-written SUM (Summary.write layout) through info, validate, project and solve-pose, in
+# both row modes; the numbers LITHOS reads from GIANT's 27-column rows are in sum/GIANT.SUM.json
+
+
+@pytest.fixture
+def giant_workdir(real, tmp_path):
+    (tmp_path / "SUMFILES").mkdir()
+    (tmp_path / "LMKFILES").mkdir()
+    shutil.copy(CORPUS / "sum/GIANT.SUM", tmp_path / "SUMFILES/W48230079013.SUM")
+    for name in ("FA0115", "FC0098", "GD0036"):
+        shutil.copy(real / f"rosetta-67p/{name}.LMK", tmp_path / "LMKFILES")
+    return tmp_path
+
+
+def test_giant_sum_info_validate_project(run_cli, giant_workdir, real, tmp_path):
+    path = giant_workdir / "SUMFILES/W48230079013.SUM"
+    assert not path.read_bytes().endswith(b"\n")  # GIANT writes no newline after END FILE
+    r = run_cli("info", path)
+    assert r.exit_code == 0 and "3 landmarks, 1 limb fits" in r.stdout
+    r = run_cli("validate", path)
+    assert r.exit_code == 0 and "valid sum" in r.stdout
+    warned = [ln for ln in r.stderr.splitlines() if "not in SPC's columns" in ln]
+    assert [int(w.split(":")[1]) for w in warned] == [15, 16, 17, 19]
+    assert "spctool reads 533.53, 475.22 as written; LITHOS reads 533.53, 475.2" in warned[0]
+    assert "spctool reads 530.12, 470.87, 0 as written; LITHOS reads 530.12, 470.8, 0.07" in warned[3]
+    # the header reads as the SPC-written original of the same picture: identical projections
+    giant = _project(run_cli, giant_workdir)
+    (tmp_path / "spc/SUMFILES").mkdir(parents=True)
+    (tmp_path / "spc/LMKFILES").mkdir()
+    shutil.copy(real / "rosetta-67p/W48230079013.SUM", tmp_path / "spc/SUMFILES")
+    for name in ("FA0115", "FC0098", "GD0036"):
+        shutil.copy(real / f"rosetta-67p/{name}.LMK", tmp_path / "spc/LMKFILES")
+    assert giant == _project(run_cli, tmp_path / "spc")
+
+
+@pytest.mark.parametrize("mode", ["default", "spc-columns"])
+def test_giant_sum_solve_pose_uses_each_modes_rows(run_cli, giant_workdir, real, mode):
+    from spctool.formats.landmark import read_lmk
+    from spctool.formats.sumfile import read_sum
+    from spctool.geometry.camera import Camera
+
+    doc = json.loads((CORPUS / "sum/GIANT.SUM.json").read_text())
+    rows = (doc["as_written"] if mode == "default" else doc["expect"])["landmarks"]
+    flag = ["--spc-columns"] if mode == "spc-columns" else []
+    out = giant_workdir / "new.SUM"
+    r = run_cli(*flag, "-C", giant_workdir, "solve-pose", "W48230079013", "--no-prior", "--output", out)
+    assert r.exit_code == 0, r.stderr
+    notes = [ln for ln in r.stderr.splitlines() if "not in SPC's columns" in ln]
+    assert len(notes) == (1 if mode == "default" else 0)  # a stage warns once per file
+    if notes:
+        assert "W48230079013.SUM:15:" in notes[0] and "(and 3 more rows)" in notes[0]
+    # three landmarks, no prior: the solved pose reprojects the rows this mode read, exactly
+    pic = read_sum(out)
+    pts = np.array([read_lmk(real / f"rosetta-67p/{n}.LMK").vlm for n, *_ in rows])
+    s, ln = Camera.from_picture(pic).project(pts)
+    np.testing.assert_allclose(np.stack([s, ln], axis=-1), [r[1:3] for r in rows], atol=1e-3)
+    assert out.read_text().endswith("END FILE")  # the rewrite keeps GIANT's missing final newline
