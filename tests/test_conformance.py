@@ -162,7 +162,7 @@ def _same(got, want, rel=0.0):
 def test_corpus_is_there_and_every_case_cites_its_fortran():
     assert len(CASES) >= 30
     kinds = {json.loads(p.read_text())["kind"] for p in CASES}
-    assert kinds >= {"sum", "nom", "lmk", "lithos", "map", "icq", "pictlist", "lmrklist", "dat"}
+    assert kinds >= {"sum", "nom", "lmk", "lithos", "map", "icq", "pictlist", "lmrklist", "lmrklistx", "dat"}
     for p in CASES:
         doc = json.loads(p.read_text())
         assert doc["fortran"] and ("READ" in doc["fortran"] or "read" in doc["fortran"]), p.name
@@ -299,6 +299,14 @@ def _read_case(doc, path, mode="default"):
         lst = read_pictlist(path) if kind == "pictlist" else read_lmrklist(path)
         names = lst.active_names if kind == "pictlist" else lst.names
         assert names == want["active_names"]
+    elif kind == "lmrklistx":
+        from spctool.formats.lists import read_lmrklistx
+
+        xlist = read_lmrklistx(path)
+        got = [[e.name, e.qsz, e.npictures, *e.vlm, e.scale] for e in xlist]
+        assert [g[:3] for g in got] == [w[:3] for w in want["entries"]]
+        _same([g[3:] for g in got], [w[3:] for w in want["entries"]])
+        assert sorted({ln for ln, _ in xlist._source.warnings}) == doc.get("warned_lines", [])
     elif kind == "dat":
         from spctool.formats.photo import read_photo
 
