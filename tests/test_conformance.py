@@ -251,6 +251,12 @@ def _read_case(doc, path, mode="default"):
 
         lmk = read_lmk(path)
         _check_rows(lmk, doc, mode, LMK_ROWS)
+        if "spc_hflag" in doc:  # LITHOS's (A6,3X,A1) flag, where spctool reads the writer's and warns
+            assert lmk.hflag in "TF" and lmk.hflag != doc["spc_hflag"]
+            assert any(
+                f"finds {'a blank' if not doc['spc_hflag'].strip() else repr(doc['spc_hflag'])}" in w
+                for _, w in lmk._source.warnings
+            )
         assert lmk.qsz == want["qsz"]
         _same(lmk.horizon, want["horizon"])
         _same([lmk.scale, lmk.sigkm, lmk.rmslmk], [want["scale"], want["sigkm"], want["rmslmk"]])
@@ -262,6 +268,7 @@ def _read_case(doc, path, mode="default"):
         nom = read_nom(path)
         for key, value in want.items():
             _same(getattr(nom, key), value)
+        assert [ln for ln, _ in nom._source.warnings] == doc.get("warned_lines", [])
     elif kind == "lithos":
         from spctool.formats.lithos import read_lithos
 
@@ -314,6 +321,13 @@ def _read_case(doc, path, mode="default"):
         assert photo.data.tolist() == want["dn"]
     else:  # pragma: no cover - a new kind needs its check here
         raise AssertionError(kind)
+    if (
+        "spc_differs_at_lines" in doc
+    ):  # SPC reads these lines otherwise (or stops): spctool warns, one line each
+        from spctool.cli.files import spc_warnings
+
+        obj = {"lmk": locals().get("lmk"), "sum": locals().get("pic")}[kind]
+        assert sorted({ln for ln, _ in spc_warnings(obj)}) == doc["spc_differs_at_lines"]
 
 
 def test_spctool_writers_produce_files_spc_reads(tmp_path):

@@ -653,9 +653,14 @@ def test_nom_dynamics_and_edit(tmp_path):
 
 def test_nom_errors():
     lines = CANONICAL_NOM.split("\n")
+    # no END FILE: LITHOS reads the 8 lines by position -- read alike, warned, rewritten without one
+    short = "\n".join(lines[:-2])
+    nom = parse_nom(short, "N.NOM")
+    assert nom == parse_nom(CANONICAL_NOM) and [ln for ln, _ in nom._source.warnings] == [8]
+    assert format_nom(nom) == short
     with pytest.raises(SpcFormatError) as info:
-        parse_nom("\n".join(lines[:-2]), "N.NOM")
-    assert str(info.value) == "N.NOM:8: expected END FILE line, found end of file"
+        parse_nom("\n".join(lines[:5]), "N.NOM")
+    assert str(info.value) == "N.NOM:5: expected CY on line 6, found end of file"
     bad = list(lines)
     bad[5] = "    0.0000000000D+00    0.0000000000D+00   CY"
     with pytest.raises(SpcFormatError) as info:

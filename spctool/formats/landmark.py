@@ -274,6 +274,16 @@ def parse_lmk(text: str, path=None) -> Landmark:
         found = rest[0] if rest else "nothing"
         raise SpcFormatError(path, 1, f"expected HFLAG T or F after the name, found {found!r}")
     hflag = rest[0]
+    line1_notes = []
+    if line[9:10] != hflag:  # LITHOS reads line 1 (A6,3X,A1): the flag is column 10 (issue #40 item 8)
+        col10 = repr(line[9:10]) if line[9:10].strip() else "a blank"
+        line1_notes.append(
+            (
+                1,
+                f"HFLAG {hflag!r} in column {line.index(hflag, 6) + 1}: LITHOS reads line 1 (A6,3X,A1) and "
+                f"finds {col10} in column 10; spctool reads {hflag!r}",
+            )
+        )
     extra_text = line[6:].split(hflag, 1)[1]
     bigmap_extra = None
     if extra_text.strip():
@@ -382,7 +392,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
         pad_header=majority_padded(lines[1:9], True),
         pad_body=majority_padded([lines[0]] + lines[9 : i + 1], False),
     )
-    source.warnings.extend(notes)
+    source.warnings.extend(line1_notes + notes)
     missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
     if missing:
         # globalCoverage.f KOUNT: READ (A80) until PICTURES, then until MAP OVERLAPS, then LIMB FITS
