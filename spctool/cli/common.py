@@ -30,6 +30,7 @@ class Context:
     debug: bool = False
     explicit_workdir: bool = False  # -C DIR given (the process runs in DIR, like git -C)
     _said: set = field(default_factory=set)
+    _later: list = field(default_factory=list)
 
     @property
     def wd(self) -> WorkDir:
@@ -47,6 +48,17 @@ class Context:
         """A warning on stderr (``spctool: warning: …``): a result that must not pass unnoticed."""
         if self.verbosity >= 0:
             click.echo(f"spctool: warning: {message}", err=True)
+
+    def warn_later(self, message: str) -> None:
+        """A warning about how an input was read, said once when the command has succeeded (a command
+        that fails says only its one error line)."""
+        if message not in self._later:
+            self._later.append(message)
+
+    def flush_later(self) -> None:
+        for message in self._later:
+            self.warn(message)
+        self._later.clear()
 
     def note_once(self, message: str) -> None:
         """A one-time note on stderr (e.g. 'no shape: occlusion skipped'), silenced by -q."""
@@ -198,7 +210,7 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
     asked = picture if sum_path and picture and Path(picture).suffix.upper() != ".SUM" else Path(path).stem
     if asked.strip() != pic.name.strip() and ("line1", str(path)) not in ctx._said:
         ctx._said.add(("line1", str(path)))
-        ctx.warn(
+        ctx.warn_later(
             f"{path}:1: line 1 names picture {pic.name.strip()!r} but it is the SUM of {asked.strip()!r}: "
             f"the DISTORT= model is chosen for {asked.strip()!r}, as SPC's getmm does"
         )
@@ -225,7 +237,7 @@ def warn_row_columns(ctx: Context, path, obj) -> None:
     ctx._said.add(key)
     line, text = notes[0]
     more = f" (and {len(notes) - 1} more rows)" if len(notes) > 1 else ""
-    ctx.warn(f"{path}:{line}: {text}{more}")
+    ctx.warn_later(f"{path}:{line}: {text}{more}")
 
 
 def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, required: bool = True):

@@ -199,5 +199,14 @@ def cli(ctx, workdir, settings, verbose, quiet, debug, spc_columns):
             ctx.call_on_close(disarm)
 
 
+@cli.result_callback()
+def _said_after_success(result, **_params):
+    """Warnings about how the inputs were read (rows off SPC's columns ...), once the command succeeded."""
+    obj = click.get_current_context().obj
+    if obj is not None:
+        obj.flush_later()
+    return result
+
+
 if __name__ == "__main__":  # pragma: no cover
     cli()
