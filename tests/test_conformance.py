@@ -12,6 +12,8 @@ import shutil
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from spctool.formats.lithos import parse_lithos
 
@@ -606,3 +608,63 @@ def test_giant_sum_solve_pose_uses_each_modes_rows(run_cli, giant_workdir, real,
     s, ln = Camera.from_picture(pic).project(pts)
     np.testing.assert_allclose(np.stack([s, ln], axis=-1), [r[1:3] for r in rows], atol=1e-3)
     assert out.read_text().endswith("END FILE")  # the rewrite keeps GIANT's missing final newline
+
+
+# ---------------------------------------------------------------------------------------------------------
+# issue #40: section rows as LITHOS reads them -- gfortran's formatted READ, and a writer whose rows it reads
+
+
+def test_formatted_read_gives_gfortrans_numbers_on_600_random_rows():
+    """fortran.formatted_read against gfortran 12 (oracle/rows_gfortran.json, oracle/rowread.f90): the
+    same numbers to the last bit, the same flag, and the READ stops on the same rows."""
+    from spctool.formats.fortran import FormattedReadError, formatted_read
+
+    doc = json.loads((CORPUS / "oracle/rows_gfortran.json").read_text())
+    assert len(doc["cases"]) == 600 and 100 < sum(c.get("stops", False) for c in doc["cases"]) < 500
+    for case in doc["cases"]:
+        if case.get("stops"):
+            with pytest.raises(FormattedReadError):
+                formatted_read(case["row"], case["format"])
+            continue
+        got = formatted_read(case["row"], case["format"])
+        nums = [v for v in got if isinstance(v, float)]
+        want = [float(v) if isinstance(v, str) else v for v in case["values"]]  # 'nan' / 'inf' as text
+        _same(nums, [None if w != w else w for w in want])
+        if "flag" in case:
+            assert got[-1] == case["flag"], case["row"]
+
+
+ROW_VALUES = st.one_of(
+    st.floats(-1e4, 1e4, allow_nan=False),
+    st.floats(-1e13, 1e13, allow_nan=False),
+    st.sampled_from([-99999.995, -99999.994, 999999.995, 999999.994, 9999999.994, 9999999.995, -1e6, 1e300]),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(ROW_VALUES, min_size=3, max_size=3), st.sampled_from(["", "*"]))
+def test_row_writer_never_writes_a_row_lithos_misreads(values, flag):
+    """Item 9: every SUM / LMK row spctool writes is read by LITHOS's formatted READ as the value written
+    (F10.2 / F12.3 rounding; an E field where Fw.d would overflow) and by spctool identically, no warning."""
+    from spctool.formats.fortran import formatted_read
+    from spctool.formats.landmark import LandmarkLimb, LandmarkPicture, MapOverlap, _row
+    from spctool.formats.rows import read_section_row, row_text
+
+    rows = [
+        ("(A6,2F10.2,1X,A1)", 2, 6, row_text("AB0001", 6, values[:2], (10, 2), flag), 2),
+        ("(A12,2F10.2,1X,A1)", 2, 12, _row("pictures", LandmarkPicture("X1234567A1", *values[:2], flag)), 2),
+        ("(A6,2X,3F12.3)", 3, 8, _row("overlaps", MapOverlap("AB0002", np.array(values))), 3),
+        ("(A12,3F10.2)", 3, 12, _row("limbs", LandmarkLimb("X123456810A1", *values)), 2),
+    ]
+    for fmt, count, start, text, decimals in rows:
+        width = 12 if "F12" in fmt else 10
+        flagged = "1X,A1" in fmt
+        assert len(text) == start + count * width + (2 if flag and flagged else 0)  # LITHOS's columns
+        lithos = [v for v in formatted_read(text, fmt) if isinstance(v, float)]
+        for got, v in zip(lithos, values):
+            if abs(v) < 10 ** (width - 2 - decimals) - 1:  # fits Fw.d: gfortran's rounding of the value
+                assert got == float(f"{v:.{decimals}f}"), (text, v)
+            else:  # an E field: 4+ significant digits
+                assert abs(got - v) <= 5e-4 * abs(v), (text, v)
+        ours, rest, note = read_section_row(text, fmt, count, start, path=None, lineno=1, what="numbers")
+        assert note is None and ours == lithos and rest.strip() == (flag if flagged else "")

@@ -470,7 +470,7 @@ def spc_field(value: float, width: int, decimals: int) -> str:
     gfortran's ``Fw.d`` when it fits (a value filling all ``w`` columns abuts the previous field: a
     formatted READ still separates it; spctool reads such rows in SPC's columns too); NaN and Infinity as
     gfortran writes them; a value too large for ``Fw.d`` (gfortran would write asterisks) in the
-    ``E`` form with as many digits as fit after a blank (``F`` input accepts an exponent).
+    ``E`` form with as many digits as fit after a blank (``F`` input accepts an exponent; ``-1.6208E7``).
     """
     value = float(value)
     if value != value:
@@ -481,8 +481,9 @@ def spc_field(value: float, width: int, decimals: int) -> str:
     text = format_f(value, width, decimals)
     if not text.startswith("*"):
         return text
-    for digits in range(max(width - 7, 0), -1, -1):
-        text = f"{value:.{digits}E}"
+    for digits in range(max(width - 4, 0), -1, -1):
+        mantissa, exponent = f"{value:.{digits}E}".split("E")
+        text = f"{mantissa}E{int(exponent)}"  # the shortest exponent F input reads: E7, E-7, E300
         if len(text) <= width - 1:
             return text.rjust(width)
     raise ValueError(f"{value!r} does not fit a {width}-column field")
