@@ -373,6 +373,35 @@ def _show(values, flag: str | None) -> str:
     return text + ("" if flag is None else f" flag {flag!r}" if flag else " no flag")
 
 
+_CANONICAL_FIELD = re.compile(r" +[+-]?\d+\.\d+\Z")
+_FORMATS: dict[str, tuple] = {}
+
+
+def _parsed_format(fmt: str) -> tuple:
+    items = _FORMATS.get(fmt)
+    if items is None:
+        items = _FORMATS[fmt] = parse_format(fmt)
+    return items
+
+
+def _canonical_row(line: str, items, has_flag: bool):
+    """``(values, rest, None)`` for a row exactly as gfortran writes it (each ``F`` field a blank-led
+    ``ddd.dd`` filling its columns, then nothing or `` X``), where list-directed and formatted READs agree
+    without being run; else None."""
+    pos, values = 0, []
+    for kind, width, _ in items[:-2] if has_flag else items:
+        if kind == "F":
+            text = line[pos : pos + width]
+            if len(text) != width or _CANONICAL_FIELD.match(text) is None:
+                return None
+            values.append(float(text))
+        pos += width
+    rest = line[pos:]
+    if rest.strip() and not (has_flag and rest[0] == " " and len(rest.rstrip()) == 2):
+        return None
+    return values, rest, None
+
+
 def read_section_row(
     line: str,
     fmt: str,
@@ -396,9 +425,12 @@ def read_section_row(
     :func:`spc_columns` LITHOS's reading is returned (``rest`` is the ``A1`` flag) and a row where its
     READ stops is an error.
     """
-    items = parse_format(fmt)
+    items = _parsed_format(fmt)
     f_items = [k for k, _, _ in items if k == "F"]
     has_flag = items[-1][0] == "A" and len(items) > 1 and items[-2][0] == "X"
+    canonical = _canonical_row(line, items, has_flag)
+    if canonical is not None:  # every field blank-led 'ddd.dd' in its columns: both readings are these
+        return canonical
     try:
         fixed = formatted_read(line, items)
         lith_vals = [v for (k, _, _), v in zip([it for it in items if it[0] != "X"], fixed) if k == "F"]
