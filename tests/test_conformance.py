@@ -683,3 +683,25 @@ def test_row_writer_never_writes_a_row_lithos_misreads(values, flag):
                 assert abs(got - v) <= 5e-4 * abs(v), (text, v)
         ours, rest, note = read_section_row(text, fmt, count, start, path=None, lineno=1, what="numbers")
         assert note is None and ours == lithos and rest.strip() == (flag if flagged else "")
+
+
+def test_distort_model_chosen_by_the_picture_asked_for(run_cli, owen_workdir, real):
+    """Issue #40 item 2: a copied picture (SUMFILES/H0LD00000001.SUM whose line 1 still says W48230079013)
+    gets the DISTORT= model of the name SPC's getmm(PICNM) is called with -- H0LD00000001 -- and the
+    line-1 mismatch is warned once."""
+    (owen_workdir / "INIT_LITHOS.TXT").write_text(ISSUE_LITHOS.replace("HOLD########", "H0LD########"))
+    shutil.copy(owen_workdir / "SUMFILES/W48230079013.SUM", owen_workdir / "SUMFILES/H0LD00000001.SUM")
+    r = run_cli("-C", owen_workdir, "project", "H0LD00000001", "--json")
+    assert r.exit_code == 0, r.stderr
+    got = {row["name"]: (row["sample"], row["line"]) for row in json.loads(r.stdout)["landmarks"]}
+    sum_text = (real / "rosetta-67p/W48230079013.SUM").read_text()
+    for name, (s, ln) in got.items():
+        vlm = _dvals((real / f"rosetta-67p/{name}.LMK").read_text().split("\n")[4], 3)
+        es, el = _owen_pixel(sum_text, vlm, ISSUE_P)  # the OWEN model of H0LD########, not the pinhole
+        assert abs(s - es) < 1e-9 and abs(ln - el) < 1e-9, (name, s - es, ln - el)
+    warned = [ln for ln in r.stderr.splitlines() if "line 1 names picture" in ln]
+    assert len(warned) == 1 and "'W48230079013'" in warned[0] and "'H0LD00000001'" in warned[0]
+    # the original name: no such template, the plain pinhole, no warning
+    r = run_cli("-C", owen_workdir, "project", "W48230079013", "--json")
+    assert r.exit_code == 0 and "line 1 names" not in r.stderr
+    assert _project(run_cli, owen_workdir) != got
