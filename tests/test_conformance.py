@@ -576,7 +576,10 @@ def test_giant_sum_info_validate_project(run_cli, giant_workdir, real, tmp_path)
     assert [int(w.split(":")[1]) for w in warned] == [15, 16, 17, 19]
     assert "spctool reads 533.53, 475.22 as written; LITHOS reads 533.53, 475.2" in warned[0]
     assert "spctool reads 530.12, 470.87, 0 as written; LITHOS reads 530.12, 470.8, 0.07" in warned[3]
-    # the header reads as the SPC-written original of the same picture: identical projections
+    # the header reads as the SPC-written original of the same picture: identical projections; project does
+    # not use the LANDMARKS rows, so it says nothing of their columns
+    r = run_cli("-C", giant_workdir, "project", "W48230079013", "--json")
+    assert r.exit_code == 0 and "SPC's columns" not in r.stderr
     giant = _project(run_cli, giant_workdir)
     (tmp_path / "spc/SUMFILES").mkdir(parents=True)
     (tmp_path / "spc/LMKFILES").mkdir()
@@ -599,9 +602,9 @@ def test_giant_sum_solve_pose_uses_each_modes_rows(run_cli, giant_workdir, real,
     r = run_cli(*flag, "-C", giant_workdir, "solve-pose", "W48230079013", "--no-prior", "--output", out)
     assert r.exit_code == 0, r.stderr
     notes = [ln for ln in r.stderr.splitlines() if "not in SPC's columns" in ln]
-    assert len(notes) == (1 if mode == "default" else 0)  # a stage warns once per file
+    assert len(notes) == (1 if mode == "default" else 0)  # the stage that uses the rows warns once per file
     if notes:
-        assert "W48230079013.SUM:15:" in notes[0] and "(and 3 more rows)" in notes[0]
+        assert "W48230079013.SUM:15:" in notes[0] and "(and 2 more rows)" in notes[0]  # its LANDMARKS rows
     # three landmarks, no prior: the solved pose reprojects the rows this mode read, exactly
     pic = read_sum(out)
     pts = np.array([read_lmk(real / f"rosetta-67p/{n}.LMK").vlm for n, *_ in rows])

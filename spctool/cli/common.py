@@ -136,17 +136,13 @@ def resolve_landmarks(ctx: Context, specs=(), table: str | None = None) -> list:
         p = Path(spec)
         if p.is_file() and p.suffix.upper() == ".LMK":
             direct.append(ctx.wd.read_landmark(str(p)))
-            warn_row_columns(ctx, p, direct[-1])
         elif p.is_file():
             names += read_table(p).names
         else:
             names.append(spec)
     if not specs and not table:
         names = ctx.wd.landmark_names()
-    named = [ctx.wd.read_landmark(n) for n in names]
-    for n, lmk in zip(names, named):
-        warn_row_columns(ctx, ctx.wd.lmk_path(n) if not Path(n).is_file() else n, lmk)
-    return direct + named
+    return direct + [ctx.wd.read_landmark(n) for n in names]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -201,7 +197,6 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
     adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
-    warn_row_columns(ctx, path, pic)
     settings = ctx.settings()
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)
@@ -225,12 +220,14 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
     return LoadedPicture(path, pic, settings, camera)
 
 
-def warn_row_columns(ctx: Context, path, obj) -> None:
-    """One warning per file whose section rows are not in SPC's columns (issue #40): the first such row
-    with both readings, and how many more there are (``validate`` lists every row)."""
+def warn_row_columns(ctx: Context, path, obj, what: str = "") -> None:
+    """One warning per file whose section rows are not in SPC's columns (issue #40), said by the stage that
+    uses the rows: the first such row with both readings, and how many more there are (``validate`` lists
+    every row); ``what`` keeps the rows of one section (``"landmark sample, line"``)."""
     from spctool.formats.rows import column_notes, spc_columns
 
     notes = column_notes(getattr(getattr(obj, "_source", None), "warnings", None))
+    notes = [(line, text) for line, text in notes if what in text]
     key = ("columns", str(path))
     if not notes or key in ctx._said or spc_columns():
         return
