@@ -13,7 +13,11 @@ only the lines whose values changed.  What that takes, for every format module:
   (:func:`exponent_letter`, :func:`decimals_of`), gfortran ``Iw`` / ``Fw.d`` / ``Dw.d`` fields that stay
   separable (:func:`int_field`, :func:`fixed_field`, :func:`d_fields`, :func:`row_text`);
 * rewriting: :class:`Slot` (one parsed header line), :class:`RowPool` and :func:`emit_rows` (a section row
-  whose values are unchanged keeps its original text), :func:`fields_equal`.
+  whose values are unchanged keeps its original text), :func:`fields_equal`;
+* section rows in LITHOS's fixed columns (issue #40): :func:`read_section_row` reads a row both ways --
+  list-directed (what its writer meant) and with LITHOS's formatted READ (:func:`fortran.formatted_read`)
+  -- and says when they differ; :func:`spc_columns` / :func:`spc_columns_mode` (``--spc-columns``) take
+  LITHOS's reading; :func:`spc_field` writes a field LITHOS reads back (``row_text``).
 """
 
 from __future__ import annotations
