@@ -708,3 +708,14 @@ def test_distort_model_chosen_by_the_picture_asked_for(run_cli, owen_workdir, re
     r = run_cli("-C", owen_workdir, "project", "W48230079013", "--json")
     assert r.exit_code == 0 and "line 1 names" not in r.stderr
     assert _project(run_cli, owen_workdir) != got
+
+
+def test_a_sum_file_outside_sumfiles_keeps_its_line1_name(run_cli, owen_workdir):
+    """A SUM given by a path outside SUMFILES/ (named as its user likes) is not SPC's SUMFILES/<PICNM>.SUM:
+    its line-1 name chooses the model, nothing is warned."""
+    (owen_workdir / "INIT_LITHOS.TXT").write_text(ISSUE_LITHOS.replace("HOLD########", "W###########"))
+    shutil.copy(owen_workdir / "SUMFILES/W48230079013.SUM", owen_workdir / "new.SUM")
+    r = run_cli("-C", owen_workdir, "project", "new.SUM", "--json")
+    assert r.exit_code == 0 and "line 1 names" not in r.stderr
+    by_path = {row["name"]: (row["sample"], row["line"]) for row in json.loads(r.stdout)["landmarks"]}
+    assert by_path == _project(run_cli, owen_workdir)  # the OWEN model of W###########, as for the original

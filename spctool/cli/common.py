@@ -201,8 +201,15 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)
     # SPC chooses the DISTORT= model by the picture it was asked for (getmm(PICNM)), the SUM file
-    # being SUMFILES/<PICNM>.SUM -- not by SUM line 1, which a renamed or copied picture leaves behind
-    asked = picture if sum_path and picture and Path(picture).suffix.upper() != ".SUM" else Path(path).stem
+    # being SUMFILES/<PICNM>.SUM -- not by SUM line 1, which a renamed or copied picture leaves behind.
+    # The picture asked for: PICTURE given as a name; a SUM file given as SUMFILES/<name>.SUM; else
+    # (a SUM file elsewhere, named as its user likes) the name on its line 1.
+    if picture and Path(picture).suffix.upper() != ".SUM":
+        asked = picture
+    elif Path(path).parent.name.upper() == "SUMFILES":
+        asked = Path(path).stem
+    else:
+        asked = pic.name
     if asked.strip() != pic.name.strip() and ("line1", str(path)) not in ctx._said:
         ctx._said.add(("line1", str(path)))
         ctx.warn_later(
