@@ -72,6 +72,7 @@ __all__ = [
     "spc_columns",
     "spc_columns_mode",
     "spc_field",
+    "use_spc_columns",
     "source_path",
     "split_lines",
     "tag_line",
@@ -365,6 +366,11 @@ def spc_columns_mode(on: bool = True):
         yield
     finally:
         _SPC_COLUMNS.reset(token)
+
+
+def use_spc_columns(on: bool) -> None:
+    """Read section rows in SPC's columns (``on``) from now on in this context (a batch worker process)."""
+    _SPC_COLUMNS.set(bool(on))
 
 
 def column_notes(warnings) -> list[tuple[int | None, str]]:
