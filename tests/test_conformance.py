@@ -12,6 +12,8 @@ import shutil
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from spctool.formats.lithos import parse_lithos
 
@@ -144,7 +146,7 @@ def test_photo_search_follows_find_picfile(tmp_path):
 from pathlib import Path  # noqa: E402
 
 CORPUS = Path(__file__).resolve().parent.parent / "fixtures" / "conformance"
-CASES = sorted(p for p in CORPUS.glob("*/*.json"))
+CASES = sorted(p for p in CORPUS.glob("*/*.json") if p.parent.name != "oracle")  # oracle/: programs, rows
 
 
 def _same(got, want, rel=0.0):
@@ -162,33 +164,101 @@ def _same(got, want, rel=0.0):
 def test_corpus_is_there_and_every_case_cites_its_fortran():
     assert len(CASES) >= 30
     kinds = {json.loads(p.read_text())["kind"] for p in CASES}
-    assert kinds >= {"sum", "nom", "lmk", "lithos", "map", "icq", "pictlist", "lmrklist", "dat"}
+    assert kinds >= {"sum", "nom", "lmk", "lithos", "map", "icq", "pictlist", "lmrklist", "lmrklistx", "dat"}
     for p in CASES:
         doc = json.loads(p.read_text())
         assert doc["fortran"] and ("READ" in doc["fortran"] or "read" in doc["fortran"]), p.name
         assert Path(str(p)[: -len(".json")]).exists()
 
 
+def _rows(items, fields):
+    return [[getattr(it, f) for f in fields] for it in items]
+
+
+def _same_rows(got, want):
+    """Section rows: names and flags equal, numbers equal to the last bit."""
+    assert [[x for x in r if isinstance(x, str)] for r in got] == [
+        [x for x in r if isinstance(x, str)] for r in want
+    ]
+    _same(
+        [[x for x in r if not isinstance(x, str)] for r in got],
+        [[x for x in r if not isinstance(x, str)] for r in want],
+    )
+
+
+def _check_rows(obj, doc, mode, sections):
+    """Section rows in both modes (issue #40): under --spc-columns LITHOS's numbers (``expect``); by default
+    the writer's (``as_written``, where they differ), each differing row warned once."""
+    from spctool.formats.rows import column_notes
+
+    want = doc["expect"] if mode == "spc-columns" else {**doc["expect"], **doc.get("as_written", {})}
+    for key, fields in sections.items():
+        if key in want:
+            _same_rows(_rows(getattr(obj, key), fields), want[key])
+    warned = sorted(ln for ln, _ in column_notes(obj._source.warnings))
+    assert warned == (doc.get("warned_lines", []) if mode == "default" else [])
+
+
+SUM_ROWS = {"landmarks": ("name", "sample", "line", "flag"), "limb_fits": ("name", "sample", "line", "value")}
+LMK_ROWS = {
+    "pictures": ("name", "sample", "line", "flag"),
+    "overlaps": ("name", "offset"),
+    "limb_fits": ("name", "sample", "line", "value"),
+}
+
+
+@pytest.mark.parametrize("mode", ["default", "spc-columns"])
 @pytest.mark.parametrize("case", CASES, ids=[f"{p.parent.name}/{p.name[:-5]}" for p in CASES])
-def test_corpus_case(case):
+def test_corpus_case(case, mode):
+    """Every case read as SPC reads it, in both row modes (rows as written / --spc-columns)."""
+    from spctool.errors import SpcFormatError
+    from spctool.formats.rows import spc_columns_mode
+
     doc = json.loads(case.read_text())
     path = Path(str(case)[: -len(".json")])
+    if mode == "spc-columns" and "spc_stops_at_line" in doc:  # LITHOS's READ stops: refused, naming the line
+        with spc_columns_mode(), pytest.raises(SpcFormatError) as info:
+            _read_case(doc, path)
+        assert info.value.where == doc["spc_stops_at_line"] and "LITHOS's READ stops" in str(info.value)
+        mode = "default"
+    with spc_columns_mode(mode == "spc-columns"):
+        _read_case(doc, path, mode)
+
+
+def _read_case(doc, path, mode="default"):
+    from spctool.errors import SpcFormatError
+
+    if "refused" in doc:  # SPC would read nothing sensible: spctool refuses with one line naming the file
+        with pytest.raises(SpcFormatError) as info:
+            _read_case({k: v for k, v in doc.items() if k != "refused"}, path, mode)
+        assert str(info.value).startswith(str(path)) and doc["refused"]["contains"] in str(info.value)
+        assert "\n" not in str(info.value)
+        return
     want = doc["expect"]
     kind = doc["kind"]
     if kind == "sum":
         from spctool.formats.sumfile import read_sum
 
         pic = read_sum(path)
+        _check_rows(pic, doc, mode, SUM_ROWS)
         assert (pic.npx, pic.nln) == (want["npx"], want["nln"])
         _same(pic.thrsh, want["thrsh"])
         _same([pic.mmfl, *pic.ctr], [want["mmfl"], *want["ctr"]])
-        for key in ("scobj", "cx", "cy", "cz", "sz", "kmatrix"):
-            _same(getattr(pic, key), want[key])
+        for key in ("scobj", "cx", "cy", "cz", "sz", "kmatrix", "sigma_vso", "sigma_ptg"):
+            if key in want:
+                _same(getattr(pic, key), want[key])
         _same(np.zeros(4) if pic.distortion is None else pic.distortion, want["distortion"])
     elif kind == "lmk":
         from spctool.formats.landmark import read_lmk
 
         lmk = read_lmk(path)
+        _check_rows(lmk, doc, mode, LMK_ROWS)
+        if "spc_hflag" in doc:  # LITHOS's (A6,3X,A1) flag, where spctool reads the writer's and warns
+            assert lmk.hflag in "TF" and lmk.hflag != doc["spc_hflag"]
+            assert any(
+                f"finds {'a blank' if not doc['spc_hflag'].strip() else repr(doc['spc_hflag'])}" in w
+                for _, w in lmk._source.warnings
+            )
         assert lmk.qsz == want["qsz"]
         _same(lmk.horizon, want["horizon"])
         _same([lmk.scale, lmk.sigkm, lmk.rmslmk], [want["scale"], want["sigkm"], want["rmslmk"]])
@@ -200,6 +270,7 @@ def test_corpus_case(case):
         nom = read_nom(path)
         for key, value in want.items():
             _same(getattr(nom, key), value)
+        assert [ln for ln, _ in nom._source.warnings] == doc.get("warned_lines", [])
     elif kind == "lithos":
         from spctool.formats.lithos import read_lithos
 
@@ -237,13 +308,28 @@ def test_corpus_case(case):
         lst = read_pictlist(path) if kind == "pictlist" else read_lmrklist(path)
         names = lst.active_names if kind == "pictlist" else lst.names
         assert names == want["active_names"]
-    elif kind == "dat":
-        from spctool.formats.photo import read_dat
+    elif kind == "lmrklistx":
+        from spctool.formats.lists import read_lmrklistx
 
-        photo = read_dat(path, doc["npx"], doc["nln"])
+        xlist = read_lmrklistx(path)
+        got = [[e.name, e.qsz, e.npictures, *e.vlm, e.scale] for e in xlist]
+        assert [g[:3] for g in got] == [w[:3] for w in want["entries"]]
+        _same([g[3:] for g in got], [w[3:] for w in want["entries"]])
+        assert sorted({ln for ln, _ in xlist._source.warnings}) == doc.get("warned_lines", [])
+    elif kind == "dat":
+        from spctool.formats.photo import read_photo
+
+        photo = read_photo(path, npx=doc["npx"], nln=doc["nln"])
         assert photo.data.tolist() == want["dn"]
     else:  # pragma: no cover - a new kind needs its check here
         raise AssertionError(kind)
+    if (
+        "spc_differs_at_lines" in doc
+    ):  # SPC reads these lines otherwise (or stops): spctool warns, one line each
+        from spctool.cli.files import spc_warnings
+
+        obj = {"lmk": locals().get("lmk"), "sum": locals().get("pic")}[kind]
+        assert sorted({ln for ln, _ in spc_warnings(obj)}) == doc["spc_differs_at_lines"]
 
 
 def test_spctool_writers_produce_files_spc_reads(tmp_path):
@@ -465,3 +551,174 @@ def test_project_command_uses_the_pushbroom_model(run_cli, real, tmp_path):
     assert row["status"] == "ok"
     r = run_cli("-C", tmp_path, "project", "X123456789A1", "--inverse", "500", "900")
     assert r.exit_code == 2 and "line-scan" in r.stderr
+
+
+# ---------------------------------------------------------------------------------------------------------
+# issue #40: a GIANT-written SUM (Summary.write layout) through info, validate, project and solve-pose, in
+# both row modes; the numbers LITHOS reads from GIANT's 27-column rows are in sum/GIANT.SUM.json
+
+
+@pytest.fixture
+def giant_workdir(real, tmp_path):
+    (tmp_path / "SUMFILES").mkdir()
+    (tmp_path / "LMKFILES").mkdir()
+    shutil.copy(CORPUS / "sum/GIANT.SUM", tmp_path / "SUMFILES/W48230079013.SUM")
+    for name in ("FA0115", "FC0098", "GD0036"):
+        shutil.copy(real / f"rosetta-67p/{name}.LMK", tmp_path / "LMKFILES")
+    return tmp_path
+
+
+def test_giant_sum_info_validate_project(run_cli, giant_workdir, real, tmp_path):
+    path = giant_workdir / "SUMFILES/W48230079013.SUM"
+    assert not path.read_bytes().endswith(b"\n")  # GIANT writes no newline after END FILE
+    r = run_cli("info", path)
+    assert r.exit_code == 0 and "3 landmarks, 1 limb fits" in r.stdout
+    r = run_cli("validate", path)
+    assert r.exit_code == 0 and "valid sum" in r.stdout
+    warned = [ln for ln in r.stderr.splitlines() if "not in SPC's columns" in ln]
+    assert [int(w.split(":")[1]) for w in warned] == [15, 16, 17, 19]
+    assert "spctool reads 533.53, 475.22 as written; LITHOS reads 533.53, 475.2" in warned[0]
+    assert "spctool reads 530.12, 470.87, 0 as written; LITHOS reads 530.12, 470.8, 0.07" in warned[3]
+    # the header reads as the SPC-written original of the same picture: identical projections; project does
+    # not use the LANDMARKS rows, so it says nothing of their columns
+    r = run_cli("-C", giant_workdir, "project", "W48230079013", "--json")
+    assert r.exit_code == 0 and "SPC's columns" not in r.stderr
+    giant = _project(run_cli, giant_workdir)
+    (tmp_path / "spc/SUMFILES").mkdir(parents=True)
+    (tmp_path / "spc/LMKFILES").mkdir()
+    shutil.copy(real / "rosetta-67p/W48230079013.SUM", tmp_path / "spc/SUMFILES")
+    for name in ("FA0115", "FC0098", "GD0036"):
+        shutil.copy(real / f"rosetta-67p/{name}.LMK", tmp_path / "spc/LMKFILES")
+    assert giant == _project(run_cli, tmp_path / "spc")
+
+
+@pytest.mark.parametrize("mode", ["default", "spc-columns"])
+def test_giant_sum_solve_pose_uses_each_modes_rows(run_cli, giant_workdir, real, mode):
+    from spctool.formats.landmark import read_lmk
+    from spctool.formats.sumfile import read_sum
+    from spctool.geometry.camera import Camera
+
+    doc = json.loads((CORPUS / "sum/GIANT.SUM.json").read_text())
+    rows = (doc["as_written"] if mode == "default" else doc["expect"])["landmarks"]
+    flag = ["--spc-columns"] if mode == "spc-columns" else []
+    out = giant_workdir / "new.SUM"
+    r = run_cli(*flag, "-C", giant_workdir, "solve-pose", "W48230079013", "--no-prior", "--output", out)
+    assert r.exit_code == 0, r.stderr
+    notes = [ln for ln in r.stderr.splitlines() if "not in SPC's columns" in ln]
+    assert len(notes) == (1 if mode == "default" else 0)  # the stage that uses the rows warns once per file
+    if notes:
+        assert "W48230079013.SUM:15:" in notes[0] and "(and 2 more rows)" in notes[0]  # its LANDMARKS rows
+    # three landmarks, no prior: the solved pose reprojects the rows this mode read, exactly
+    pic = read_sum(out)
+    pts = np.array([read_lmk(real / f"rosetta-67p/{n}.LMK").vlm for n, *_ in rows])
+    s, ln = Camera.from_picture(pic).project(pts)
+    np.testing.assert_allclose(np.stack([s, ln], axis=-1), [r[1:3] for r in rows], atol=1e-3)
+    assert out.read_text().endswith("END FILE")  # the rewrite keeps GIANT's missing final newline
+
+
+# ---------------------------------------------------------------------------------------------------------
+# issue #40: section rows as LITHOS reads them -- gfortran's formatted READ, and a writer whose rows it reads
+
+
+def test_formatted_read_gives_gfortrans_numbers_on_600_random_rows():
+    """fortran.formatted_read against gfortran 12 (oracle/rows_gfortran.json, oracle/rowread.f90): the
+    same numbers to the last bit, the same flag, and the READ stops on the same rows."""
+    from spctool.formats.fortran import FormattedReadError, formatted_read
+    from spctool.formats.rows import read_section_row, spc_columns_mode
+
+    doc = json.loads((CORPUS / "oracle/rows_gfortran.json").read_text())
+    assert len(doc["cases"]) == 600 and 100 < sum(c.get("stops", False) for c in doc["cases"]) < 500
+    for case in doc["cases"]:
+        if case.get("stops"):
+            with pytest.raises(FormattedReadError):
+                formatted_read(case["row"], case["format"])
+            continue
+        got = formatted_read(case["row"], case["format"])
+        nums = [v for v in got if isinstance(v, float)]
+        want = [float(v) if isinstance(v, str) else v for v in case["values"]]  # 'nan' / 'inf' as text
+        _same(nums, [None if w != w else w for w in want])
+        if "flag" in case:
+            assert got[-1] == case["flag"], case["row"]
+        # --spc-columns: a section row read exactly so (rows.read_section_row, its fast path included)
+        count, start = {
+            "(A6,2F": (2, 6),
+            "(A6,3F": (3, 6),
+            "(A12,2": (2, 12),
+            "(A6,2X": (3, 8),
+            "(A12,3": (3, 12),
+        }[case["format"][:6]]
+        with spc_columns_mode():
+            vals, rest, _ = read_section_row(
+                case["row"], case["format"], count, start, path=None, lineno=1, what=""
+            )
+        _same(vals, [None if w != w else w for w in want])
+        assert rest.strip() == case.get("flag", "").strip()
+
+
+ROW_VALUES = st.one_of(
+    st.floats(-1e4, 1e4, allow_nan=False),
+    st.floats(-1e13, 1e13, allow_nan=False),
+    st.sampled_from([-99999.995, -99999.994, 999999.995, 999999.994, 9999999.994, 9999999.995, -1e6, 1e300]),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(ROW_VALUES, min_size=3, max_size=3), st.sampled_from(["", "*"]))
+def test_row_writer_never_writes_a_row_lithos_misreads(values, flag):
+    """Item 9: every SUM / LMK row spctool writes is read by LITHOS's formatted READ as the value written
+    (F10.2 / F12.3 rounding; an E field where Fw.d would overflow) and by spctool identically, no warning."""
+    from spctool.formats.fortran import formatted_read
+    from spctool.formats.landmark import LandmarkLimb, LandmarkPicture, MapOverlap, _row
+    from spctool.formats.rows import read_section_row, row_text
+
+    rows = [
+        ("(A6,2F10.2,1X,A1)", 2, 6, row_text("AB0001", 6, values[:2], (10, 2), flag), 2),
+        ("(A12,2F10.2,1X,A1)", 2, 12, _row("pictures", LandmarkPicture("X1234567A1", *values[:2], flag)), 2),
+        ("(A6,2X,3F12.3)", 3, 8, _row("overlaps", MapOverlap("AB0002", np.array(values))), 3),
+        ("(A12,3F10.2)", 3, 12, _row("limbs", LandmarkLimb("X123456810A1", *values)), 2),
+    ]
+    for fmt, count, start, text, decimals in rows:
+        width = 12 if "F12" in fmt else 10
+        flagged = "1X,A1" in fmt
+        assert len(text) == start + count * width + (2 if flag and flagged else 0)  # LITHOS's columns
+        lithos = [v for v in formatted_read(text, fmt) if isinstance(v, float)]
+        for got, v in zip(lithos, values):
+            if abs(v) < 10 ** (width - 2 - decimals) - 1:  # fits Fw.d: gfortran's rounding of the value
+                assert got == float(f"{v:.{decimals}f}"), (text, v)
+            else:  # an E field: 4+ significant digits
+                assert abs(got - v) <= 5e-4 * abs(v), (text, v)
+        ours, rest, note = read_section_row(text, fmt, count, start, path=None, lineno=1, what="numbers")
+        assert note is None and ours == lithos and rest.strip() == (flag if flagged else "")
+
+
+def test_distort_model_chosen_by_the_picture_asked_for(run_cli, owen_workdir, real):
+    """Issue #40 item 2: a copied picture (SUMFILES/H0LD00000001.SUM whose line 1 still says W48230079013)
+    gets the DISTORT= model of the name SPC's getmm(PICNM) is called with -- H0LD00000001 -- and the
+    line-1 mismatch is warned once."""
+    (owen_workdir / "INIT_LITHOS.TXT").write_text(ISSUE_LITHOS.replace("HOLD########", "H0LD########"))
+    shutil.copy(owen_workdir / "SUMFILES/W48230079013.SUM", owen_workdir / "SUMFILES/H0LD00000001.SUM")
+    r = run_cli("-C", owen_workdir, "project", "H0LD00000001", "--json")
+    assert r.exit_code == 0, r.stderr
+    got = {row["name"]: (row["sample"], row["line"]) for row in json.loads(r.stdout)["landmarks"]}
+    sum_text = (real / "rosetta-67p/W48230079013.SUM").read_text()
+    for name, (s, ln) in got.items():
+        vlm = _dvals((real / f"rosetta-67p/{name}.LMK").read_text().split("\n")[4], 3)
+        es, el = _owen_pixel(sum_text, vlm, ISSUE_P)  # the OWEN model of H0LD########, not the pinhole
+        assert abs(s - es) < 1e-9 and abs(ln - el) < 1e-9, (name, s - es, ln - el)
+    warned = [ln for ln in r.stderr.splitlines() if "line 1 names picture" in ln]
+    assert len(warned) == 1 and "'W48230079013'" in warned[0] and "'H0LD00000001'" in warned[0]
+    # the original name: no such template, the plain pinhole, no warning
+    r = run_cli("-C", owen_workdir, "project", "W48230079013", "--json")
+    assert r.exit_code == 0 and "line 1 names" not in r.stderr
+    assert _project(run_cli, owen_workdir) != got
+
+
+def test_a_sum_file_outside_sumfiles_keeps_its_line1_name(run_cli, owen_workdir):
+    """A SUM given by a path outside SUMFILES/ (named as its user likes) is not SPC's SUMFILES/<PICNM>.SUM:
+    its line-1 name chooses the model, nothing is warned."""
+    (owen_workdir / "INIT_LITHOS.TXT").write_text(ISSUE_LITHOS.replace("HOLD########", "W###########"))
+    shutil.copy(owen_workdir / "SUMFILES/W48230079013.SUM", owen_workdir / "new.SUM")
+    r = run_cli("-C", owen_workdir, "project", "new.SUM", "--json")
+    assert r.exit_code == 0 and "line 1 names" not in r.stderr
+    by_path = {row["name"]: (row["sample"], row["line"]) for row in json.loads(r.stdout)["landmarks"]}
+    assert by_path == _project(run_cli, owen_workdir)  # the OWEN model of W###########, as for the original

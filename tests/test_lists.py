@@ -187,14 +187,15 @@ def test_lmrklistx_errors():
         "LIST.TXT:1: expected 6 numbers (QSZ, pictures, VLM(3), SCALE), found 5"
     )
     assert err(parse_lmrklistx, "AB0001 49.5 212 0.5 0.1 0.2 0.1\nEND\n").startswith(
-        "LIST.TXT:1: expected integers QSZ and picture count"
+        "LIST.TXT:1: expected 6 numbers (QSZ, pictures, VLM(3), SCALE): value 1 '49.5' is not a Fortran "
+        "integer"
     )
     assert (
         err(parse_lmrklistx, "AB0001 49 212 0.5 0.1 0.2 0.1\n")
         == "LIST.TXT:1: expected END line, found end of file"
     )
     assert err(parse_lmrklistx, "AB0001 49 212 0.5 O.1 0.2 0.1\nEND\n").startswith(
-        "LIST.TXT:1: expected 6 numbers (QSZ, pictures, VLM(3), SCALE), found 3 then 'O.1'"
+        "LIST.TXT:1: expected 6 numbers (QSZ, pictures, VLM(3), SCALE): value 4 'O.1' is not a Fortran real"
     )
 
 
@@ -244,6 +245,7 @@ def test_lmrklist_property(names):
 )
 def test_lmrklistx_property(entries, data):
     text = format_lmrklistx(LandmarkListX(entries))
+    assert all(len(line) <= 80 for line in text.split("\n"))  # bigmap reads LINE (A80)
     back = parse_lmrklistx(text)
     assert list(back) == entries
     assert format_lmrklistx(back) == text

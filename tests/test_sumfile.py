@@ -461,7 +461,11 @@ def test_bad_rows():
     lines = rosetta_lines()
     j = lines.index("LIMB FITS")
     lines.insert(j + 1, "BB0001    571.13    533.56")
-    assert err("\n".join(lines)).startswith(f"SUMFILES/X.SUM:{j + 2}: expected 3 numbers (limb fit), found 2")
+    # two numbers in SPC's columns (GIANT writes no third): LITHOS's (A6,3F10.2) reads the blank field as 0
+    pic = parse_sum("\n".join(lines))
+    assert pic.limb_fits[0]._key() == ("BB0001", 571.13, 533.56, 0.0) and not pic._source.warnings
+    lines[j + 1] = "BB0001    571.13"
+    assert err("\n".join(lines)).startswith(f"SUMFILES/X.SUM:{j + 2}: expected 3 numbers (limb fit), found 1")
     lines = rosetta_lines()
     lines.insert(i + 1, "LANDMARKS")
     assert err("\n".join(lines)).startswith(f"SUMFILES/X.SUM:{i + 2}: unexpected second LANDMARKS")
@@ -649,9 +653,14 @@ def test_nom_dynamics_and_edit(tmp_path):
 
 def test_nom_errors():
     lines = CANONICAL_NOM.split("\n")
+    # no END FILE: LITHOS reads the 8 lines by position -- read alike, warned, rewritten without one
+    short = "\n".join(lines[:-2])
+    nom = parse_nom(short, "N.NOM")
+    assert nom == parse_nom(CANONICAL_NOM) and [ln for ln, _ in nom._source.warnings] == [8]
+    assert format_nom(nom) == short
     with pytest.raises(SpcFormatError) as info:
-        parse_nom("\n".join(lines[:-2]), "N.NOM")
-    assert str(info.value) == "N.NOM:8: expected END FILE line, found end of file"
+        parse_nom("\n".join(lines[:5]), "N.NOM")
+    assert str(info.value) == "N.NOM:5: expected CY on line 6, found end of file"
     bad = list(lines)
     bad[5] = "    0.0000000000D+00    0.0000000000D+00   CY"
     with pytest.raises(SpcFormatError) as info:

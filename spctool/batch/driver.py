@@ -43,6 +43,7 @@ from spctool.batch.picture import (
 )
 from spctool.errors import SpcUsageError
 from spctool.formats import atomic, guard
+from spctool.formats.rows import spc_columns, use_spc_columns
 from spctool.formats.workdir import WorkDir
 from spctool.jsonsafe import json_safe
 from spctool.workers import start_method
@@ -555,7 +556,7 @@ def _new_pool(workers: int, method: str, initargs: tuple):
         max_workers=workers,
         mp_context=multiprocessing.get_context(method),
         initializer=_init_guarded_worker,
-        initargs=(os.getpid(), tied, initargs),
+        initargs=(os.getpid(), tied, initargs, spc_columns()),  # --spc-columns reaches spawned workers
     )
 
 
@@ -563,8 +564,9 @@ def _new_pool(workers: int, method: str, initargs: tuple):
 PARENT_POLL_S = 0.5
 
 
-def _init_guarded_worker(parent_pid: int, tied: bool, initargs: tuple) -> None:
+def _init_guarded_worker(parent_pid: int, tied: bool, initargs: tuple, columns: bool = False) -> None:
     _watch_parent(parent_pid, tied)
+    use_spc_columns(columns)  # the worker reads section rows as its parent does (--spc-columns)
     _init_worker(*initargs)
 
 

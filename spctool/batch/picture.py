@@ -201,7 +201,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
     guard.check_finite_header(pic, sum_path, "sum")  # a NaN pose in, never a NaN pose out
     out.photo_name = pic.name
-    camera = Camera.from_picture(pic, shared.settings)
+    camera = Camera.from_picture(pic, shared.settings, picture_name=picture)  # getmm(PICNM)
     photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
     if photo.data.shape != (pic.nln, pic.npx):
         raise SpcFormatError(

@@ -30,6 +30,7 @@ class Context:
     debug: bool = False
     explicit_workdir: bool = False  # -C DIR given (the process runs in DIR, like git -C)
     _said: set = field(default_factory=set)
+    _later: list = field(default_factory=list)
 
     @property
     def wd(self) -> WorkDir:
@@ -47,6 +48,17 @@ class Context:
         """A warning on stderr (``spctool: warning: …``): a result that must not pass unnoticed."""
         if self.verbosity >= 0:
             click.echo(f"spctool: warning: {message}", err=True)
+
+    def warn_later(self, message: str) -> None:
+        """A warning about how an input was read, said once when the command has succeeded (a command
+        that fails says only its one error line)."""
+        if message not in self._later:
+            self._later.append(message)
+
+    def flush_later(self) -> None:
+        for message in self._later:
+            self.warn(message)
+        self._later.clear()
 
     def note_once(self, message: str) -> None:
         """A one-time note on stderr (e.g. 'no shape: occlusion skipped'), silenced by -q."""
@@ -191,7 +203,23 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
     settings = ctx.settings()
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)
-    camera = Camera.from_picture(pic, settings)
+    # SPC chooses the DISTORT= model by the picture it was asked for (getmm(PICNM)), the SUM file
+    # being SUMFILES/<PICNM>.SUM -- not by SUM line 1, which a renamed or copied picture leaves behind.
+    # The picture asked for: PICTURE given as a name; a SUM file given as SUMFILES/<name>.SUM; else
+    # (a SUM file elsewhere, named as its user likes) the name on its line 1.
+    if picture and Path(picture).suffix.upper() != ".SUM":
+        asked = picture
+    elif Path(path).parent.name.upper() == "SUMFILES":
+        asked = Path(path).stem
+    else:
+        asked = pic.name
+    if asked.strip() != pic.name.strip() and ("line1", str(path)) not in ctx._said:
+        ctx._said.add(("line1", str(path)))
+        ctx.warn_later(
+            f"{path}:1: line 1 names picture {pic.name.strip()!r} but it is the SUM of {asked.strip()!r}: "
+            f"the DISTORT= model is chosen for {asked.strip()!r}, as SPC's getmm does"
+        )
+    camera = Camera.from_picture(pic, settings, picture_name=asked)
     if camera.model.upper() == "NONE":
         where = (
             f"no INIT_LITHOS.TXT in {ctx.wd.root}"
@@ -200,6 +228,23 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         )
         ctx.note_once(f"{pic.name}: projected without a distortion model ({where})")
     return LoadedPicture(path, pic, settings, camera)
+
+
+def warn_row_columns(ctx: Context, path, obj, what: str = "") -> None:
+    """One warning per file whose section rows are not in SPC's columns (issue #40), said by the stage that
+    uses the rows: the first such row with both readings, and how many more there are (``validate`` lists
+    every row); ``what`` keeps the rows of one section (``"landmark sample, line"``)."""
+    from spctool.formats.rows import column_notes, spc_columns
+
+    notes = column_notes(getattr(getattr(obj, "_source", None), "warnings", None))
+    notes = [(line, text) for line, text in notes if what in text]
+    key = ("columns", str(path))
+    if not notes or key in ctx._said or spc_columns():
+        return
+    ctx._said.add(key)
+    line, text = notes[0]
+    more = f" (and {len(notes) - 1} more rows)" if len(notes) > 1 else ""
+    ctx.warn_later(f"{path}:{line}: {text}{more}")
 
 
 def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, required: bool = True):

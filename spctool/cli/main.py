@@ -167,8 +167,16 @@ EPILOG = "Exit codes (every command):\n\n\b\n" + "\n".join(
 @click.option("-v", "--verbose", count=True, help="More messages on stderr (repeatable).")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
 @click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
+@click.option(
+    "--spc-columns",
+    "spc_columns",
+    is_flag=True,
+    help="Read section rows (SUM LANDMARKS / LIMB FITS, LMK PICTURES / MAP OVERLAPS / LIMB FITS) exactly "
+    "as LITHOS's formatted READs do, in their fixed columns, to reproduce a legacy run. Default: a row "
+    "not in SPC's columns is read as its writer meant, with a warning giving both readings.",
+)
 @click.pass_context
-def cli(ctx, workdir, settings, verbose, quiet, debug):
+def cli(ctx, workdir, settings, verbose, quiet, debug, spc_columns):
     """spctool — surface-feature optical navigation the SPC way.
 
     Stages chain through landmark tables (text or --json); with -C DIR, relative paths are
@@ -203,12 +211,25 @@ def cli(ctx, workdir, settings, verbose, quiet, debug):
         debug=debug,
         explicit_workdir=workdir is not None,
     )
+    if spc_columns:
+        from spctool.formats.rows import spc_columns_mode
+
+        ctx.with_resource(spc_columns_mode(True))
     if not ctx.resilient_parsing:  # not while completing
         from spctool.cli.jit import first_run_note
 
         disarm = first_run_note(ctx.obj, ctx.invoked_subcommand)
         if disarm is not None:
             ctx.call_on_close(disarm)
+
+
+@cli.result_callback()
+def _said_after_success(result, **_params):
+    """Warnings about how the inputs were read (rows off SPC's columns ...), once the command succeeded."""
+    obj = click.get_current_context().obj
+    if obj is not None:
+        obj.flush_later()
+    return result
 
 
 if __name__ == "__main__":  # pragma: no cover

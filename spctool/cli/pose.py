@@ -17,7 +17,14 @@ import click
 import numpy as np
 
 from spctool.cli import options
-from spctool.cli.common import Context, check_sum_picture, emit_table, load_picture, pass_context
+from spctool.cli.common import (
+    Context,
+    check_sum_picture,
+    emit_table,
+    load_picture,
+    pass_context,
+    warn_row_columns,
+)
 from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
 
 # ------------------------------------------------------------------------------------------------
@@ -321,11 +328,11 @@ def solve_pose_cmd(
     loaded = load_picture(ctx, picture, sum_path)
     check_sum_picture(picture, sum_path, loaded, any_picture)
     src_path, pic, _, camera = loaded
-    meas = (
-        measurements_from_table(measurements, pic.name, any_picture)
-        if measurements
-        else measurements_from_sum(pic)
-    )
+    if measurements:
+        meas = measurements_from_table(measurements, pic.name, any_picture)
+    else:  # the SUM's LANDMARKS rows are the measurements: rows off SPC's columns are said (issue #40)
+        warn_row_columns(ctx, src_path, pic, "(landmark sample, line)")
+        meas = measurements_from_sum(pic)
     if weights == "surface" and meas.covariance is None:
         raise SpcUsageError(
             "--weights surface needs a landmark table with sigma_sample, sigma_line and rho_sl columns "

@@ -35,9 +35,12 @@ from spctool.formats.rows import (
     join_lines,
     majority_padded,
     pad80,
+    read_section_row,
     row_text,
     scan_row,
     source_path,
+    spc_columns,
+    spc_field,
     split_lines,
     tag_line,
 )
@@ -271,6 +274,16 @@ def parse_lmk(text: str, path=None) -> Landmark:
         found = rest[0] if rest else "nothing"
         raise SpcFormatError(path, 1, f"expected HFLAG T or F after the name, found {found!r}")
     hflag = rest[0]
+    line1_notes = []
+    if line[9:10] != hflag:  # LITHOS reads line 1 (A6,3X,A1): the flag is column 10 (issue #40 item 8)
+        col10 = repr(line[9:10]) if line[9:10].strip() else "a blank"
+        line1_notes.append(
+            (
+                1,
+                f"HFLAG {hflag!r} in column {line.index(hflag, 6) + 1}: LITHOS reads line 1 (A6,3X,A1) and "
+                f"finds {col10} in column 10; spctool reads {hflag!r}",
+            )
+        )
     extra_text = line[6:].split(hflag, 1)[1]
     bigmap_extra = None
     if extra_text.strip():
@@ -306,6 +319,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
     section_text: dict[str, str] = {}
     rows: dict[str, list[tuple[tuple, str]]] = {"pictures": [], "overlaps": [], "limbs": []}
     pictures: list[LandmarkPicture] = []
+    notes: list[tuple[int, str]] = []  # rows not in LITHOS's columns (rows.read_section_row)
     overlaps: list[MapOverlap] = []
     limbs: list[LandmarkLimb] = []
     state = None
@@ -325,7 +339,17 @@ def parse_lmk(text: str, path=None) -> Landmark:
             pname = ln[:12].strip()
             if not pname:
                 raise SpcFormatError(path, i + 1, "expected a picture name in columns 1-12")
-            v, r = scan_row(ln[12:], 2, 10, path=path, lineno=i + 1, what="numbers (picture sample, line)")
+            v, r, note = read_section_row(
+                ln,
+                "(A12,2F10.2,1X,A1)",
+                2,
+                12,
+                path=path,
+                lineno=i + 1,
+                what="numbers (picture sample, line)",
+            )
+            if note is not None:
+                notes.append((i + 1, note))
             flag = r.strip()
             if len(flag) > 1:
                 raise SpcFormatError(path, i + 1, f"expected at most a 1-character flag, found {flag!r}")
@@ -336,14 +360,18 @@ def parse_lmk(text: str, path=None) -> Landmark:
             oname = ln[:6].strip()
             if not oname:
                 raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
-            v, r = scan_row(ln[8:], 3, 12, path=path, lineno=i + 1, what="numbers (map overlap offset)")
-            if r.strip() or ln[6:8].strip():
+            v, r, note = read_section_row(
+                ln, "(A6,2X,3F12.3)", 3, 8, path=path, lineno=i + 1, what="numbers (map overlap offset)"
+            )
+            if note is not None:
+                notes.append((i + 1, note))
+            if r.strip() or (ln[6:8].strip() and not spc_columns()):  # LITHOS's 2X skips columns 7-8
                 raise SpcFormatError(path, i + 1, "expected a name and 3 numbers (map overlap)")
             ov = MapOverlap(oname, np.array(v))
             overlaps.append(ov)
             rows["overlaps"].append((ov._key(), ln))
         elif state == "limbs":
-            lf = parse_limb_row(ln, path, i + 1, name_width=12)
+            lf = parse_limb_row(ln, path, i + 1, name_width=12, notes=notes)
             limb = LandmarkLimb(lf.name, lf.sample, lf.line, lf.value)
             limbs.append(limb)
             rows["limbs"].append((limb._key(), ln))
@@ -364,6 +392,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
         pad_header=majority_padded(lines[1:9], True),
         pad_body=majority_padded([lines[0]] + lines[9 : i + 1], False),
     )
+    source.warnings.extend(line1_notes + notes)
     missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
     if missing:
         # globalCoverage.f KOUNT: READ (A80) until PICTURES, then until MAP OVERLAPS, then LIMB FITS
@@ -428,7 +457,7 @@ def _row(kind: str, item) -> str:
     if kind == "pictures":
         return row_text(item.name, 12, (item.sample, item.line), (10, 2), item.flag)
     if kind == "overlaps":
-        offsets = "".join(fixed_field(v, 12, 3) for v in item.offset)
+        offsets = "".join(spc_field(v, 12, 3) for v in item.offset)
         return row_text(item.name, 6, (), (12, 3)) + "  " + offsets
     return row_text(item.name, 12, (item.sample, item.line, item.value), (10, 2))
 

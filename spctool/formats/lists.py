@@ -18,14 +18,12 @@ import numpy as np
 
 from spctool.errors import SpcFormatError
 from spctool.formats import atomic
-from spctool.formats.fortran import format_d
+from spctool.formats.fortran import format_d, is_number, read_internal
 from spctool.formats.rows import (
     RowPool,
     as_shaped,
     float_tuple,
-    is_integral,
     join_lines,
-    scan_numbers,
     source_path,
     split_lines,
 )
@@ -320,28 +318,55 @@ class LandmarkListX:
 
 
 def parse_lmrklistx(text: str, path=None) -> LandmarkListX:
-    """Parse LMRKLISTX text up to the required ``END`` line."""
-    # mirrors bigmap (LMKLX=): (A6) name then a list-directed READ of the rest; NAME(1:3)='END' ends
+    """Parse LMRKLISTX text up to the required ``END`` line, as bigmap (``LMKLX=.TRUE.``) reads it:
+    ``READ(69,FMT='(A80)') LINE``; ``IF(LINE(1:3).EQ.'END')`` ends the list;
+    ``READ(LINE(7:80),*) K0,J,(V1(K),K=1,3),S1``; ``NAME=LINE(1:6)``.
+
+    So: text past column 80 is not read (a warning when it holds something); the six values are read
+    list-directed, with ``r*c`` repeats, ``NaN`` and text after them (a warning when that text is a
+    number); a null item or ``/`` keeps the previous line's value (bigmap's variable, warned; refused on
+    the first line, where it is undefined).  Where bigmap stops -- a blank line, a ``#`` line, a QSZ or
+    picture count that is not an integer -- the line is refused.
+    """
     path = source_path(path)
     lines, final = split_lines(text)
     layout: list[tuple[str, tuple | None, str]] = []
     entries: list[LandmarkListXEntry] = []
+    warnings: list[tuple[int, str]] = []
+    what = "numbers (QSZ, pictures, VLM(3), SCALE)"
+    previous = None
     for i, line in enumerate(lines):
-        name = line[:6].strip()
-        if line[:1] != "#" and line[:3] == "END":  # the list end test of every SPC list: columns 1-3
-            return LandmarkListX(entries, _ListSource(layout, line, lines[i + 1 :], final))
-        if line.startswith("#") or not line.strip():
-            layout.append(("other", None, line))
-            continue
+        record = line[:80]  # CHARACTER*80 LINE
+        if record[:3] == "END":
+            src = _ListSource(layout, line, lines[i + 1 :], final)
+            src.warnings = warnings
+            return LandmarkListX(entries, src)
+        if not record.strip() or record.startswith("#"):
+            found = "a blank line" if not record.strip() else "a '#' line"
+            raise SpcFormatError(
+                path,
+                i + 1,
+                f"expected a maplet line or END, found {found}: bigmap reads every line up to END as "
+                "NAME + READ(LINE(7:80),*) QSZ, pictures, VLM(3), SCALE and stops here",
+            )
+        name = record[:6].strip()
         if not name:
             raise SpcFormatError(path, i + 1, "expected a landmark name in columns 1-6")
-        vals, _ = scan_numbers(
-            line[6:], 6, path=path, lineno=i + 1, what="numbers (QSZ, pictures, VLM(3), SCALE)"
-        )
-        if not (is_integral(vals[0]) and is_integral(vals[1])):
+        res = read_internal(record[6:], "iirrrr", previous, path=path, line=i + 1, what=what)
+        if any(v is None for v in res.values):
             raise SpcFormatError(
-                path, i + 1, f"expected integers QSZ and picture count, found {vals[0]!r}, {vals[1]!r}"
+                path, i + 1, f"expected 6 {what}: a null item or '/' on line 1 leaves a value undefined"
             )
+        if res.nulls or res.slash:
+            warnings.append((i + 1, "a null item or '/': bigmap keeps the previous line's value there"))
+        if any(is_number(t) for t in res.rest.replace(",", " ").split()[:1]):
+            warnings.append((i + 1, f"text after the 6 values is not read by bigmap ({res.rest.strip()!r})"))
+        if line[80:].strip():
+            warnings.append((i + 1, f"text past column 80 is not read by bigmap ({line[80:].strip()!r})"))
+        vals = res.values
+        if any(v != v for v in vals[2:]):
+            warnings.append((i + 1, "NaN in VLM or SCALE: bigmap's distance test never skips this maplet"))
+        previous = list(vals)
         entry = LandmarkListXEntry(name, int(vals[0]), int(vals[1]), np.array(vals[2:5]), vals[5])
         entries.append(entry)
         layout.append(("entry", entry._key(), line))

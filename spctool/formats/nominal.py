@@ -40,10 +40,11 @@ __all__ = ["Nominal", "parse_nom", "read_nom", "format_nom", "write_nom"]
 @dataclass
 class _NomSource:
     header: list[Slot]
-    end_line: str
+    end_line: str | None  # None: the file has no END FILE line (kept so on rewrite)
     after_end: list[str]
     final_newline: bool
     pad: bool
+    warnings: list = field(default_factory=list)
 
 
 _NOM_ORDER = ["name", "frame", "scobj", "vso", "cx", "cy", "cz", "ptg"]
@@ -150,14 +151,24 @@ def parse_nom(text: str, path=None) -> Nominal:
     while i < n and not lines[i].startswith("END FILE"):
         extra.append(lines[i])
         i += 1
+    notes = []
     if i >= n:
-        raise SpcFormatError(path, n, "expected END FILE line, found end of file")
+        # LITHOS reads the eight lines by position (READ(unit,*) each) and never looks for END FILE there:
+        # the file reads the same without it (issue #40 item 8); the lines after SIGMA_PTG stay DYNAMICS
+        notes.append(
+            (
+                n,
+                "no END FILE line: SPC reads the NOM's 8 lines by position and is unaffected; a reader that "
+                "scans for END FILE would run past the end of the file",
+            )
+        )
     source = _NomSource(
         header=header,
-        end_line=lines[i],
+        end_line=lines[i] if i < n else None,
         after_end=lines[i + 1 :],
         final_newline=final,
         pad=majority_padded(lines[: i + 1], False),
+        warnings=notes,
     )
     return Nominal(
         name=name,
@@ -202,7 +213,8 @@ def format_nom(nom: Nominal) -> str:
             numbers = d_fields(vals, exponent_letter(slot.text))
             out.append(tag_line(numbers, slot.tag or _NOM_TAGS[slot.key], padded))
     out.extend(nom.extra_lines)
-    out.append(src.end_line if src is not None else "END FILE")
+    if src is None or src.end_line is not None:
+        out.append(src.end_line if src is not None else "END FILE")
     if src is not None:
         out.extend(src.after_end)
     return join_lines(out, src.final_newline if src is not None else True)

@@ -296,13 +296,15 @@ def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str, warnings: list
             buf = np.frombuffer(data, dtype=np.uint8).reshape(nln, npx, 2)
             z1, z2 = dat_byte_plane_energies(buf)
             order = "little" if z1 > z2 else "big"
-            if z1 == z2:
-                warnings.append(
-                    (
-                        None,
-                        "SPC's byte-order test ties (equal Laplacian energy in both byte planes): "
-                        "xPicInpt then sets no DN (all zero); spctool reads MSB first",
-                    )
+            if z1 == z2 and any(data):
+                # xPicInpt sets no DN on a tie (its IF tests > and <): SPC sees an all-zero picture, which
+                # is no reading of this file at all -- refused with one line (issue #40 item 6)
+                raise SpcFormatError(
+                    path,
+                    None,
+                    "a 16-bit .DAT whose byte order SPC's test can tell (xPicInpt: the byte plane with more "
+                    "Laplacian energy is the low byte); here both planes tie -- e.g. 8-bit data x257 -- so "
+                    "SPC assigns no DN at all (rewrite it as 8-bit, or give the byte order explicitly)",
                 )
         dt = ">u2" if order == "big" else "<u2"
         return np.frombuffer(data, dtype=dt).reshape(nln, npx).astype(np.uint16)
@@ -734,6 +736,7 @@ def read_photo(
     """
     path = Path(path)
     data = _read_bytes(path)
+    notes: list = []
     fmt = detect_format(path, data[:16], have_size=npx is not None and nln is not None)
     if fmt == "fits":
         arr = _fits_from_bytes(data, path)
@@ -744,10 +747,12 @@ def read_photo(
             raise SpcFormatError(path, "byte 0", "a PGM magic number P5 or P2")
         arr = _pgm_from_bytes(data, path)
     else:
-        arr = _dat_from_bytes(data, path, npx, nln, byte_order)
+        arr = _dat_from_bytes(data, path, npx, nln, byte_order, notes)
     if flip_rows:
         arr = np.ascontiguousarray(arr[::-1])
-    return Photo(arr, name=path.stem)
+    photo = Photo(arr, name=path.stem)
+    photo.__dict__["_spc_warnings"] = notes  # validate prints how SPC reads the .DAT differently
+    return photo
 
 
 def format_photo(photo: Photo | np.ndarray, fmt: str, *, flip_rows: bool = False, header=None) -> bytes:

@@ -13,26 +13,43 @@ only the lines whose values changed.  What that takes, for every format module:
   (:func:`exponent_letter`, :func:`decimals_of`), gfortran ``Iw`` / ``Fw.d`` / ``Dw.d`` fields that stay
   separable (:func:`int_field`, :func:`fixed_field`, :func:`d_fields`, :func:`row_text`);
 * rewriting: :class:`Slot` (one parsed header line), :class:`RowPool` and :func:`emit_rows` (a section row
-  whose values are unchanged keeps its original text), :func:`fields_equal`.
+  whose values are unchanged keeps its original text), :func:`fields_equal`;
+* section rows in LITHOS's fixed columns (issue #40): :func:`read_section_row` reads a row both ways --
+  list-directed (what its writer meant) and with LITHOS's formatted READ (:func:`fortran.formatted_read`)
+  -- and says when they differ; :func:`spc_columns` / :func:`spc_columns_mode` (``--spc-columns``) take
+  LITHOS's reading; :func:`spc_field` writes a field LITHOS reads back (``row_text``).
 """
 
 from __future__ import annotations
 
 import os
 import re
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
 
 from spctool.errors import SpcFormatError
-from spctool.formats.fortran import format_d, format_f, format_i, is_number, parse_number
+from spctool.formats.fortran import (
+    FormattedReadError,
+    format_d,
+    format_f,
+    format_i,
+    formatted_read,
+    is_number,
+    parse_format,
+    parse_number,
+)
 
 __all__ = [
     "TOKEN",
     "RowPool",
     "Slot",
     "as_shaped",
+    "COLUMNS_NOTE",
     "check_tag",
+    "column_notes",
     "d_fields",
     "decimals_of",
     "emit_rows",
@@ -50,7 +67,12 @@ __all__ = [
     "same_value",
     "scan_fixed_fields",
     "scan_numbers",
+    "read_section_row",
     "scan_row",
+    "spc_columns",
+    "spc_columns_mode",
+    "spc_field",
+    "use_spc_columns",
     "source_path",
     "split_lines",
     "tag_line",
@@ -294,7 +316,7 @@ def row_text(name: str, width: int, values, decimals_width: tuple[int, int], fla
     if len(name) > width:
         raise ValueError(f"name {name!r} is longer than {width} characters")
     w, d = decimals_width
-    text = name.ljust(width) + "".join(fixed_field(v, w, d) for v in values)
+    text = name.ljust(width) + "".join(spc_field(v, w, d) for v in values)  # LITHOS's columns (#40)
     if flag:
         text += " " + flag
     return text
@@ -315,3 +337,195 @@ def fixed_field(value: float, width: int, decimals: int) -> str:
     if not text.startswith(" "):
         text = " " + f"{float(value):.{decimals}f}"
     return text
+
+
+# ---------------------------------------------------------------------------------------------------------
+# section rows in SPC's columns (issue #40): LITHOS reads a LANDMARKS / PICTURES / MAP OVERLAPS / LIMB FITS
+# row with a formatted READ -- (A6,2F10.2,1X,A1), (A6,3F10.2), (A12,2F10.2,1X,A1), (A6,2X,3F12.3),
+# (A12,3F10.2) [BIN] -- not list-directed.  A row whose numbers sit in those columns reads the same both
+# ways; a row that does not (single blanks, no decimal point, tabs, GIANT's 27-column rows) is read by
+# spctool as its writer meant, with a warning giving LITHOS's reading, unless --spc-columns asks for
+# LITHOS's reading itself.
+
+_SPC_COLUMNS: ContextVar[bool] = ContextVar("spc_columns", default=False)
+
+#: the phrase every row-column warning carries (a stage finds its warnings by it)
+COLUMNS_NOTE = "not in SPC's columns"
+
+
+def spc_columns() -> bool:
+    """True while section rows are read exactly as LITHOS reads them (``--spc-columns``)."""
+    return _SPC_COLUMNS.get()
+
+
+@contextmanager
+def spc_columns_mode(on: bool = True):
+    """Read section rows in SPC's fixed columns (``on``) or as their writer meant, inside the block."""
+    token = _SPC_COLUMNS.set(bool(on))
+    try:
+        yield
+    finally:
+        _SPC_COLUMNS.reset(token)
+
+
+def use_spc_columns(on: bool) -> None:
+    """Read section rows in SPC's columns (``on``) from now on in this context (a batch worker process)."""
+    _SPC_COLUMNS.set(bool(on))
+
+
+def column_notes(warnings) -> list[tuple[int | None, str]]:
+    """The row-column warnings among a parsed file's ``(line, text)`` warnings."""
+    return [(ln, text) for ln, text in warnings or () if COLUMNS_NOTE in text]
+
+
+def _show(values, flag: str | None) -> str:
+    text = ", ".join(f"{v:.10g}" for v in values)
+    return text + ("" if flag is None else f" flag {flag!r}" if flag else " no flag")
+
+
+_CANONICAL_FIELD = re.compile(r" +[+-]?\d+\.\d+\Z")
+_FORMATS: dict[str, tuple] = {}
+
+
+def _parsed_format(fmt: str) -> tuple:
+    items = _FORMATS.get(fmt)
+    if items is None:
+        items = _FORMATS[fmt] = parse_format(fmt)
+    return items
+
+
+def _canonical_row(line: str, items, has_flag: bool):
+    """``(values, rest, None)`` for a row exactly as gfortran writes it (each ``F`` field a blank-led
+    ``ddd.dd`` filling its columns, then nothing or `` X``), where list-directed and formatted READs agree
+    without being run; else None."""
+    pos, values = 0, []
+    for kind, width, _ in items[:-2] if has_flag else items:
+        if kind == "F":
+            text = line[pos : pos + width]
+            if len(text) != width or _CANONICAL_FIELD.match(text) is None:
+                return None
+            values.append(float(text))
+        pos += width
+    rest = line[pos:]
+    if rest.strip() and not (has_flag and rest[0] == " " and len(rest.rstrip()) == 2):
+        return None
+    return values, rest, None
+
+
+def read_section_row(
+    line: str,
+    fmt: str,
+    count: int,
+    start: int,
+    *,
+    path,
+    lineno: int,
+    what: str,
+    short_ok: bool = False,
+) -> tuple[list[float], str, str | None]:
+    """Numbers of one section row: ``(values, rest, note)``.
+
+    ``fmt`` is LITHOS's READ format of the row, ``count`` its number of ``F`` items and ``start`` the
+    column (0-based) where they begin.  The writer's reading is list-directed from ``start`` (``rest`` is
+    the text after the numbers: the flag); ``short_ok`` lets a row hold ``count - 1`` numbers, the last
+    then 0 (GIANT's two-number LIMB FITS rows).  LITHOS's reading is :func:`formatted_read` of ``fmt``.
+    Both equal: no note.  They differ: the writer's numbers, and ``note`` gives both readings.  Only
+    LITHOS's succeeds: its numbers when every field holds a number with its point (fields that abut, as
+    gfortran writes a full field), else the list-directed error naming LITHOS's reading.  Under
+    :func:`spc_columns` LITHOS's reading is returned (``rest`` is the ``A1`` flag) and a row where its
+    READ stops is an error.
+    """
+    items = _parsed_format(fmt)
+    f_items = [k for k, _, _ in items if k == "F"]
+    has_flag = items[-1][0] == "A" and len(items) > 1 and items[-2][0] == "X"
+    canonical = _canonical_row(line, items, has_flag)
+    if canonical is not None:  # every field blank-led 'ddd.dd' in its columns: both readings are these
+        return canonical
+    try:
+        fixed = formatted_read(line, items)
+        lith_vals = [v for (k, _, _), v in zip([it for it in items if it[0] != "X"], fixed) if k == "F"]
+        lith_flag = fixed[-1].strip() if has_flag else ""
+        stop = None
+    except FormattedReadError as exc:
+        lith_vals, lith_flag, stop = None, "", exc
+    if spc_columns():
+        if stop is not None:
+            raise SpcFormatError(
+                path,
+                lineno,
+                f"expected {what} in SPC's columns {fmt} (--spc-columns): LITHOS's READ stops at column "
+                f"{stop.column} ({stop.field!r})",
+            )
+        return lith_vals, (" " + lith_flag if lith_flag else ""), None
+    assert len(f_items) == count
+    try:
+        meant, rest = scan_numbers(line[start:], count, path=path, lineno=lineno, what=what)
+    except SpcFormatError as exc:
+        meant = None
+        error = exc
+        if short_ok:
+            try:
+                part, rest = scan_numbers(line[start:], count - 1, path=path, lineno=lineno, what=what)
+            except SpcFormatError:
+                part = None
+            if part is not None and not rest.strip():
+                meant = part + [0.0]
+    if meant is not None:
+        flag = rest.strip() if has_flag else None
+        same = lith_vals is not None and lith_vals == meant and (not has_flag or flag == lith_flag)
+        if same:
+            return meant, rest, None
+        flags = has_flag and flag != lith_flag
+        lithos = (
+            f"LITHOS reads {_show(lith_vals, lith_flag if flags else None)}"
+            if stop is None
+            else f"LITHOS's READ stops at column {stop.column} ({stop.field!r})"
+        )
+        note = (
+            f"{what} {COLUMNS_NOTE} {fmt}: spctool reads {_show(meant, flag if flags else None)} as written; "
+            f"{lithos} "
+            "(--spc-columns reads as LITHOS)"
+        )
+        return meant, rest, note
+    if lith_vals is None:
+        raise error
+    pos, filled = 0, True
+    for kind, width, _ in items:
+        if kind == "F":
+            text = line[pos : pos + width]
+            filled = filled and len(text) == width and "." in text and bool(text.strip())
+        pos += width
+    end = sum(w for k, w, _ in (items[:-2] if has_flag else items))
+    if not filled:  # a missing or unpointed field: the writer's numbers are unknown -- refused, as before
+        raise SpcFormatError(
+            path,
+            lineno,
+            f"{error.expected} (LITHOS's READ {fmt} gives {_show(lith_vals, None)}; "
+            "--spc-columns reads it so)",
+        )
+    return lith_vals, line[end:], None
+
+
+def spc_field(value: float, width: int, decimals: int) -> str:
+    """A ``Fw.d`` field exactly ``width`` columns wide that LITHOS's formatted READ reads back.
+
+    gfortran's ``Fw.d`` when it fits (a value filling all ``w`` columns abuts the previous field: a
+    formatted READ still separates it; spctool reads such rows in SPC's columns too); NaN and Infinity as
+    gfortran writes them; a value too large for ``Fw.d`` (gfortran would write asterisks) in the
+    ``E`` form with as many digits as fit after a blank (``F`` input accepts an exponent; ``-1.6208E7``).
+    """
+    value = float(value)
+    if value != value:
+        return "NaN".rjust(width)
+    if value in (float("inf"), float("-inf")):
+        word = ("-" if value < 0 else "") + ("Infinity" if width >= 8 + (value < 0) else "Inf")
+        return word.rjust(width)
+    text = format_f(value, width, decimals)
+    if not text.startswith("*"):
+        return text
+    for digits in range(max(width - 4, 0), -1, -1):
+        mantissa, exponent = f"{value:.{digits}E}".split("E")
+        text = f"{mantissa}E{int(exponent)}"  # the shortest exponent F input reads: E7, E-7, E300
+        if len(text) <= width - 1:
+            return text.rjust(width)
+    raise ValueError(f"{value!r} does not fit a {width}-column field")

@@ -47,8 +47,8 @@ from spctool.formats.rows import (
     join_lines,
     majority_padded,
     pad80,
+    read_section_row,
     row_text,
-    scan_row,
     source_path,
     split_lines,
     tag_line,
@@ -588,7 +588,7 @@ def parse_sum(text: str, path=None) -> Picture:
                     f"expected a landmark row or LIMB FITS in columns 1-9 (LMCOUNT), "
                     f"found {ln.strip()[:20]!r}",
                 )
-            lm = _parse_sum_landmark(ln, path, i + 1)
+            lm = _parse_sum_landmark(ln, path, i + 1, warnings)
             landmarks.append(lm)
             landmark_rows.append((lm._key(), ln))
         elif state == "limbs":
@@ -598,7 +598,7 @@ def parse_sum(text: str, path=None) -> Picture:
                     i + 1,
                     f"expected a limb row or END FILE in columns 1-8 (LMCOUNT), found {ln.strip()[:20]!r}",
                 )
-            lf = parse_limb_row(ln, path, i + 1, name_width=6)
+            lf = parse_limb_row(ln, path, i + 1, name_width=6, notes=warnings)
             limbs.append(lf)
             limb_rows.append((lf._key(), ln))
         else:  # pragma: no cover - header loop stops only at a section line
@@ -645,28 +645,50 @@ def parse_sum(text: str, path=None) -> Picture:
     )
 
 
-def _parse_sum_landmark(line: str, path, lineno: int) -> SumLandmark:
-    """``(A6,2F10.2)`` or ``(A6,2F10.2,1X,A1)``."""
+def _parse_sum_landmark(line: str, path, lineno: int, notes: list | None = None) -> SumLandmark:
+    """``(A6,2F10.2)`` or ``(A6,2F10.2,1X,A1)`` (:func:`~spctool.formats.rows.read_section_row`; a row not in
+    those columns appends ``(lineno, warning)`` to ``notes``)."""
     name = line[:6].strip()
     if not name:
         raise SpcFormatError(path, lineno, "expected a landmark name in columns 1-6")
-    vals, rest = scan_row(line[6:], 2, 10, path=path, lineno=lineno, what="numbers (landmark sample, line)")
+    vals, rest, note = read_section_row(
+        line, SUM_LANDMARK_FORMAT, 2, 6, path=path, lineno=lineno, what="numbers (landmark sample, line)"
+    )
     flag = rest.strip()
     if len(flag) > 1:
         raise SpcFormatError(
             path, lineno, f"expected at most a 1-character flag after sample, line; found {flag!r}"
         )
+    if note is not None and notes is not None:
+        notes.append((lineno, note))
     return SumLandmark(name, vals[0], vals[1], flag)
 
 
-def parse_limb_row(line: str, path, lineno: int, name_width: int):
-    """``(A6,3F10.2)`` (SUM) or ``(A12,3F10.2)`` (LMK): name, sample, line, value."""
+#: LITHOS's READ formats of the SUM section rows [BIN]
+SUM_LANDMARK_FORMAT = "(A6,2F10.2,1X,A1)"
+SUM_LIMB_FORMAT = "(A6,3F10.2)"
+
+
+def parse_limb_row(line: str, path, lineno: int, name_width: int, notes: list | None = None):
+    """``(A6,3F10.2)`` (SUM) or ``(A12,3F10.2)`` (LMK): name, sample, line, value.  A row of two numbers
+    (GIANT writes no third) reads as LITHOS's formatted READ does, the third 0 as written."""
     name = line[:name_width].strip()
     if not name:
         raise SpcFormatError(path, lineno, f"expected a name in columns 1-{name_width}")
-    vals, rest = scan_row(line[name_width:], 3, 10, path=path, lineno=lineno, what="numbers (limb fit)")
+    vals, rest, note = read_section_row(
+        line,
+        f"(A{name_width},3F10.2)",
+        3,
+        name_width,
+        path=path,
+        lineno=lineno,
+        what="numbers (limb fit)",
+        short_ok=True,
+    )
     if rest.strip():
         raise SpcFormatError(path, lineno, f"expected 3 numbers (limb fit), found trailing {rest.strip()!r}")
+    if note is not None and notes is not None:
+        notes.append((lineno, note))
     return LimbFit(name, vals[0], vals[1], vals[2])
 
 

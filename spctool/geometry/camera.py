@@ -596,11 +596,14 @@ class Camera:
     # ---- construction ---------------------------------------------------------------------------
 
     @classmethod
-    def from_picture(cls, picture, settings=None) -> Camera:
+    def from_picture(cls, picture, settings=None, *, picture_name: str | None = None) -> Camera:
         """Camera of a SUM ``Picture``; ``settings`` (INIT_LITHOS) supplies a matching ``DISTORT=`` model.
 
-        The legacy SUM ``DISTORTION`` values (``picture.distortion``, None when the line is absent)
-        are applied as well (spc-formats.md §2.5 step 4).
+        The model is the one for ``picture_name`` -- the picture SPC was asked for, whose SUM file is
+        SUMFILES/<name>.SUM: getmm (xCommon.f) is called with that PICNM, not with SUM line 1 (a renamed
+        or copied picture) -- else for the name on line 1.  The legacy SUM ``DISTORTION`` values
+        (``picture.distortion``, None when the line is absent) are applied as well (spc-formats.md §2.5
+        step 4).
         """
         model, coef = "NONE", np.zeros(0)
         if getattr(picture, "is_linescan", False):
@@ -610,7 +613,7 @@ class Camera:
                 "(its projection is spctool.geometry.linescan.project_linescan)"
             )
         if settings is not None:
-            dm = settings.distortion_for(picture.name)
+            dm = settings.distortion_for(picture_name if picture_name is not None else picture.name)
             # getmm (xCommon.f): the last matching template wins, and its TYPE is compared exactly
             # (IF(TYPE(JD).EQ.'OWEN') ...); a name it does not know ('owen', ' OWEN', PINHOLE, OPENCV) falls
             # through to the plain pinhole z = MMFL*(z1/z3, z2/z3), without P0
