@@ -221,3 +221,21 @@ def test_geometry_on_the_real_rosetta_picture_keeps_single_picture_landmarks(rea
     for f in (tmp_path / "LMKFILES").glob("*.LMK"):
         assert np.array_equal(read_lmk(f).vlm, before[f.name])
     assert doc["rms_after_px"] < doc["rms_before_px"]
+
+
+def test_geometry_says_once_when_landmark_rows_are_off_spc_columns(real, run_cli, tmp_path):
+    """A LANDMARKS row written with single blanks is read as its writer meant, and geometry (a stage
+    using the rows) says so once for the file (issue #40's rule)."""
+    src = real / "rosetta-67p"
+    for folder, pattern in (("SUMFILES", "*.SUM"), ("LMKFILES", "*.LMK")):
+        (tmp_path / folder).mkdir()
+        for f in src.glob(pattern):
+            shutil.copy(f, tmp_path / folder / f.name)
+    sum_path = tmp_path / "SUMFILES" / "W48230079013.SUM"
+    text = sum_path.read_text().replace("FA0115    533.53    475.22", "FA0115 533.53 475.22")
+    text = text.replace("FC0098    513.55    501.38", "FC0098 513.55 501.38")
+    sum_path.write_text(text)
+    res = run_cli("-C", tmp_path, "geometry", "--dry-run")
+    assert res.exit_code == 0, res.stderr
+    said = [ln for ln in res.stderr.splitlines() if "W48230079013.SUM" in ln]
+    assert len(said) == 1 and "1 more" in said[0]

@@ -56,12 +56,14 @@ class RefineInputs:
 
     problem: BundleProblem
     pictures: dict  # name -> Picture (SUM)
-    sum_paths: dict  # name -> Path
+    sum_paths: dict  # name -> Path (where the refined SUM is written)
     landmarks: dict  # name -> Landmark (LMK)
     lmk_paths: dict  # name -> Path
     source: str  # "sum" or "tables"
     notes: list[str] = field(default_factory=list)
     weights: dict = field(default_factory=dict)
+    #: (SUM read, Picture) of the pictures whose LANDMARKS rows were the measurements
+    row_sources: list = field(default_factory=list)
 
 
 def _weights(settings) -> dict:
@@ -176,7 +178,7 @@ def gather(
         if not tables_dir.is_dir():
             raise SpcUsageError(f"{tables}: not a folder of register tables")
     notes: list[str] = []
-    pics, sum_paths, cams = {}, {}, []
+    pics, sum_paths, cams, row_sources = {}, {}, [], []
     obs_pic, obs_name, obs_pix, obs_use, obs_cov = [], [], [], [], []
     for j, name in enumerate(names):  # file reads per picture; the numerics are vectorised later
         path = wd.sum_path(name)
@@ -194,6 +196,7 @@ def gather(
                 notes.append(
                     f"picture {name}: no register table in {tables_dir}: its SUM LANDMARKS rows used"
                 )
+            row_sources.append((src, pic))
             lm_names = [lm.name.strip() for lm in pic.landmarks]
             pix = np.array([[lm.sample, lm.line] for lm in pic.landmarks], dtype=np.float64).reshape(-1, 2)
             usable = np.array([lm.flag.strip() != "*" for lm in pic.landmarks], dtype=bool)
@@ -272,7 +275,15 @@ def gather(
         vlm_pictures=np.array([n not in ignore for n in names], dtype=bool),
     )
     return RefineInputs(
-        problem, pics, sum_paths, lmks, lmk_paths, "tables" if tables_dir else "sum", notes, weights
+        problem,
+        pics,
+        sum_paths,
+        lmks,
+        lmk_paths,
+        "tables" if tables_dir else "sum",
+        notes,
+        weights,
+        row_sources,
     )
 
 

@@ -15,7 +15,7 @@ import click
 import numpy as np
 
 from spctool.cli import options
-from spctool.cli.common import Context, emit, pass_context
+from spctool.cli.common import Context, emit, pass_context, warn_row_columns
 from spctool.errors import SpcResultError
 
 
@@ -217,6 +217,8 @@ def geometry_cmd(
     )
     for note in inputs.notes:
         ctx.note_once(note)
+    for src, pic in inputs.row_sources:  # SUM LANDMARKS rows off SPC's columns are said (issue #40)
+        warn_row_columns(ctx, src, pic, "(landmark sample, line)")
     prob = inputs.problem
     ctx.info(
         f"{len(prob.picture_names)} pictures, {len(prob.landmark_names)} landmarks, "
