@@ -239,3 +239,24 @@ def test_geometry_says_once_when_landmark_rows_are_off_spc_columns(real, run_cli
     assert res.exit_code == 0, res.stderr
     said = [ln for ln in res.stderr.splitlines() if "W48230079013.SUM" in ln]
     assert len(said) == 1 and "1 more" in said[0]
+
+
+def test_batch_cycle_chains_geometry_and_lithos(pristine, run_cli, tmp_path):
+    """measure → geometry → lithos (every refined maplet, two worker processes) → measure: the refined
+    maplets' re-renderings match the photos better, and the second round solves every picture."""
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    assert run_cli("-C", wd, "batch", "--lithos", "--out-dir", tmp_path / "x").exit_code == 2
+    res = run_cli(
+        "-q", "-C", wd, "batch", "--rounds", "2", "--lithos", "-j", "2", "--out-dir", tmp_path / "c"
+    )
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads((tmp_path / "c" / "MAP2" / "GEOMETRY.json").read_text())
+    heights = doc["heights"]
+    assert [h["name"] for h in heights] == sorted(pristine[1])
+    assert all(h["status"] in ("ok", "worse", "unsolvable") for h in heights)
+    written = [h for h in heights if h["written"]]
+    assert written and all(h["ncc_after"] >= h["ncc_before"] for h in written)
+    assert "heights solved and written" in res.stdout.splitlines()[1]
+    summary = json.loads((tmp_path / "c" / "ROUND2" / "BATCH_SUMMARY.json").read_text())
+    assert all(p["status"] == "ok" for p in summary["pictures"])

@@ -14,6 +14,10 @@ input working directory is never written: each refined map is a working director
     OUT/ROUND2/         the second batch, on OUT/MAP2
     ...
 
+With ``lithos`` the refinement goes on, as SPC's cycle does, with the maplets' heights and albedo
+(:mod:`spctool.batch.heights`: LITHOS "Find heights" on every refined landmark, in parallel over
+maplets) before the next round measures; each maplet's outcome is in ``GEOMETRY.json``.
+
 The LMK and MAP files of a round are written once, by the reduction.  A killed run resumes: each
 round's batch skips the pictures its done-markers cover, and a refined map is built in a temporary
 folder renamed into place when complete (a half-built one is removed and built again), so nothing is
@@ -101,6 +105,12 @@ def refined_workdir(workdir: Path, round_dir: Path, target: Path, settings, refi
         if path.is_symlink() or path.exists():
             path.unlink()
         atomic.write_bytes(path, data)
+    heights = None
+    if refine_kw.get("lithos"):
+        from spctool.batch.heights import refine_heights
+
+        refined = [n for n, st in zip(result.landmark_names, result.landmark_status) if st == "ok"]
+        heights = refine_heights(tmp, refined, jobs=int(refine_kw.get("jobs", 1)))
     summary = {
         "round_dir": str(round_dir),
         "pictures": len(inputs.problem.picture_names),
@@ -111,6 +121,8 @@ def refined_workdir(workdir: Path, round_dir: Path, target: Path, settings, refi
         "converged": result.converged,
         "warnings": list(result.warnings) + list(inputs.notes),
     }
+    if heights is not None:
+        summary["heights"] = heights
     atomic.write_bytes(
         tmp / "GEOMETRY.json", (json.dumps(json_safe(summary), indent=1) + "\n").encode("utf-8")
     )

@@ -82,6 +82,13 @@ from spctool.errors import SpcResultError, SpcUsageError
 )
 @click.option("--no-figure", "no_figure", is_flag=True, help="Do not write BATCH_SUMMARY.png.")
 @click.option(
+    "--lithos",
+    is_flag=True,
+    help="With --rounds: after each refinement of the landmarks and poses, also solve every refined "
+    "maplet's heights and albedo (as 'spctool lithos', in parallel over maplets with --jobs) before the "
+    "next round measures.",
+)
+@click.option(
     "--rounds",
     type=click.IntRange(min=1),
     default=1,
@@ -113,6 +120,7 @@ def batch_cmd(
     min_landmarks,
     plots,
     no_figure,
+    lithos,
     rounds,
     as_json,
     output,
@@ -172,6 +180,8 @@ def batch_cmd(
     from spctool.stages.register import RegisterOptions
 
     workdir = Path(ctx.workdir)
+    if lithos and rounds < 2:
+        raise SpcUsageError("--lithos refines the map between rounds: give --rounds 2 or more")
     if not workdir.is_dir():
         raise SpcUsageError(f"{workdir}: no such working directory")
     if scheduler is not None:  # before any work: malformed exit 2 at once, unreachable within the timeout
@@ -240,6 +250,7 @@ def batch_cmd(
                 out_dir=target,
                 rounds=rounds,
                 settings=ctx.settings(),
+                refine_kw={"lithos": lithos, "jobs": jobs},
                 jobs=jobs,
                 scheduler=scheduler,
                 force=force,
@@ -304,6 +315,9 @@ def _rounds_text(cycle, as_json: bool) -> str:
                 f"; map refined from round {i}: {r['landmarks_refined']} of {r['landmarks']} landmarks, "
                 f"chi2/dof {r['reduced_chi2']:.3g}"
             )
+            if "heights" in r:
+                wrote = sum(h["written"] for h in r["heights"])
+                text += f"; heights solved and written for {wrote} of {len(r['heights'])} maplets"
         lines.append(text)
     return "\n".join(lines) + "\n" + cycle.last.to_text()
 
