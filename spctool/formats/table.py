@@ -258,7 +258,15 @@ class LandmarkTable:
             values = [_parse_value(r[j]) for r in rows]
             if key == "name":
                 values = [str(r[j]) for r in rows]
-                _refuse_duplicates(values, [n for n, _ in linenos], path, "line")
+                # one row per landmark — per landmark and picture in a table with a picture column
+                # (simulate's truth rows, geometry's residuals)
+                pic = header.index("picture") if "picture" in header else None
+                keys = (
+                    values
+                    if pic is None
+                    else [f"{v.strip()} in picture {r[pic]}" for v, r in zip(values, rows)]
+                )
+                _refuse_duplicates(keys, [n for n, _ in linenos], path, "line")
             cols[key] = values
         return cls(cols, picture, command, comments)
 
@@ -295,6 +303,8 @@ class LandmarkTable:
         rows = [{k: (math.nan if v is None else v) for k, v in r.items()} for r in doc["landmarks"]]
         if all("name" in r for r in rows):
             names = [str(r["name"]) for r in rows]
+            if all("picture" in r for r in rows):
+                names = [f"{n.strip()} in picture {r['picture']}" for n, r in zip(names, rows)]
             _refuse_duplicates(names, range(1, len(rows) + 1), path, "row")
         meta = {
             k: v for k, v in doc.items() if k not in ("command", "picture", "spctool_version", "landmarks")
