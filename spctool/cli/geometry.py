@@ -194,7 +194,7 @@ def geometry_cmd(
       spctool -C geo-demo geometry --from-batch geo-out --report-dir geo-report --plot geometry.png
     """
     from spctool.batch import refine
-    from spctool.stages.bundle import BundleOptions, solve_bundle
+    from spctool.stages.bundle import BundleOptions, group_rms, solve_bundle
 
     terms = tuple(t.strip() for t in estimate_camera.split(",") if t.strip())
     opts = BundleOptions(
@@ -245,8 +245,8 @@ def geometry_cmd(
         from spctool.figures_refine import refinement_plot
 
         used = np.array([s in ("ok", "undetermined", "ignored-in-vlm") for s in result.obs_status])
-        rb = _picture_rms(result.residual_before, prob.obs_picture, used, len(prob.picture_names))
-        ra = _picture_rms(result.residual_after, prob.obs_picture, used, len(prob.picture_names))
+        rb = group_rms(result.residual_before, prob.obs_picture, used, len(prob.picture_names))
+        ra = group_rms(result.residual_after, prob.obs_picture, used, len(prob.picture_names))
         nout = np.bincount(
             prob.obs_picture[np.array([s == "outlier" for s in result.obs_status], dtype=bool)],
             minlength=len(prob.picture_names),
@@ -255,14 +255,6 @@ def geometry_cmd(
     emit(json.dumps(_json_doc(table, summary), indent=1) + "\n" if as_json else table.to_text(), output)
     if not result.converged and mode == "joint":  # the alternation's stop is SPC's, and said above
         raise SpcResultError(f"the refinement did not converge in {opts.max_iter} iterations")
-
-
-def _picture_rms(res, idx, used, n) -> np.ndarray:
-    sq = np.where(used, np.sum(res * res, axis=1) / 2.0, 0.0)
-    tot = np.bincount(idx, weights=sq, minlength=n)
-    cnt = np.bincount(idx, weights=used.astype(float), minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(cnt > 0, np.sqrt(tot / np.maximum(cnt, 1)), np.nan)
 
 
 def _summary(result, prob, inputs, opts) -> dict:

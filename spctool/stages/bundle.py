@@ -81,6 +81,7 @@ __all__ = [
     "BundleProblem",
     "BundleResult",
     "solve_bundle",
+    "group_rms",
     "so3_right_jacobian_inv_batch",
 ]
 
@@ -274,11 +275,11 @@ class BundleResult:
     def landmark_rms_px(self) -> np.ndarray:
         """Post-fit rms residual (px, per axis) over each landmark's used measurements (NaN if none)."""
         used = np.array([s == "ok" for s in self.obs_status])
-        return _group_rms(self.residual_after, self._obs_landmark, used, len(self.landmark_names))
+        return group_rms(self.residual_after, self._obs_landmark, used, len(self.landmark_names))
 
     def picture_rms_px(self) -> np.ndarray:
         used = np.array([s in ("ok", "ignored-in-vlm") for s in self.obs_status])
-        return _group_rms(self.residual_after, self._obs_picture, used, len(self.picture_names))
+        return group_rms(self.residual_after, self._obs_picture, used, len(self.picture_names))
 
     _obs_picture: np.ndarray = field(default=None, repr=False)
     _obs_landmark: np.ndarray = field(default=None, repr=False)
@@ -290,7 +291,8 @@ class BundleResult:
         return out
 
 
-def _group_rms(res, idx, used, n) -> np.ndarray:
+def group_rms(res, idx, used, n) -> np.ndarray:
+    """rms residual per axis (px) of the ``used`` rows of ``res`` (K, 2) grouped by ``idx`` into ``n``."""
     sq = np.where(used, np.sum(res * res, axis=1) / 2.0, 0.0)
     tot = np.bincount(idx, weights=sq, minlength=n)
     cnt = np.bincount(idx, weights=used.astype(float), minlength=n)
