@@ -347,13 +347,23 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     converged = False
     if opts.reject_outliers:  # a robust fit first; what stands out there is flagged before the plain fits
         k0 = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
-        s = _robust_prepass(bundle, s, k0, hold, opts, fit, stats)
+        s, plain = _robust_prepass(bundle, s, k0, hold, opts, fit, stats)
         rho0, c0 = _normalised(bundle, s, k0)
-        status[k0[rho0 > opts.reject_sigma * (c0 if opts.robust_scale else 1.0)]] = "outlier"
+        bad0 = k0[rho0 > opts.reject_sigma * (c0 if opts.robust_scale else 1.0)]
+        status[bad0] = "outlier"
         keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
+        # the pre-pass's first fit, with the measurements' own weights and nothing flagged, is already
+        # the plain fit: not done twice
+        skip_first = plain is not None and bad0.size == 0
+        converged = bool(plain)
+    else:
+        skip_first = False
     while True:
         k_idx = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
-        s, converged = fit(bundle, s, k_idx, hold, opts, stats)
+        if skip_first:
+            skip_first = False
+        else:
+            s, converged = fit(bundle, s, k_idx, hold, opts, stats)
         if not opts.reject_outliers or rounds >= opts.max_reject_rounds:
             break
         new = _flag_outliers(bundle, s, k_idx, opts)
@@ -492,20 +502,23 @@ def _normalised(bundle: _Bundle, s, k_idx) -> tuple[np.ndarray, float]:
     return rho, c
 
 
-def _robust_prepass(bundle: _Bundle, s, k_idx, hold, opts, fit, stats) -> dict:
+def _robust_prepass(bundle: _Bundle, s, k_idx, hold, opts, fit, stats) -> tuple[dict, bool | None]:
     """Iteratively reweighted fits with Cauchy weights 1/(1 + (ρ/(k·c/2))²): a few gross errors then
     cannot drag the poses and landmarks, so that the outlier test that follows sees them alone.  The
-    final fits use the measurements' own weights (the factors are reset)."""
-    s, _ = fit(bundle, s, k_idx, hold, opts, stats)
+    final fits use the measurements' own weights (the factors are reset).  Returns the state and, when
+    no reweighting was needed (the first, plain fit stands), whether that fit converged, else None."""
+    s, converged = fit(bundle, s, k_idx, hold, opts, stats)
+    plain = converged
     for _ in range(4):
         rho, c = _normalised(bundle, s, k_idx)
         if not np.any(rho > opts.reject_sigma * c):
             break
+        plain = None
         half = 0.5 * opts.reject_sigma * (c if opts.robust_scale else 1.0)
         bundle.robust[k_idx] = 1.0 / (1.0 + (rho / half) ** 2)
         s, _ = fit(bundle, s, k_idx, hold, opts, stats)
     bundle.robust[:] = 1.0
-    return s
+    return s, plain
 
 
 def _flag_outliers(bundle: _Bundle, s, k_idx, opts) -> np.ndarray:
