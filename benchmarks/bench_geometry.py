@@ -13,10 +13,11 @@ Lines:
   solved by Ceres Solver 2.x through the ``pyceres`` wheel (SPARSE_SCHUR, Levenberg–Marquardt, function
   tolerance 1e-10).  pyceres has no reprojection cost of its own, and Ceres's Schur solvers need each
   residual block to touch one landmark, so the cost is one Python cost function per measurement; their
-  evaluation dominates Ceres's total (82 s of 84 s on 200 pictures).  The peer figure is therefore
+  evaluation dominates Ceres's total (16.7 s of 17.0 s on 200 pictures, quiet machine).  The peer figure
+  is therefore
   Ceres's own time *without* residual and Jacobian evaluation (``Summary``: total − residual −
   Jacobian evaluation): what its C++ linear algebra and minimiser cost.  The comparison runs on a
-  200-picture problem (≈ 26,000 measurements) to keep the Python callbacks near a minute; spctool's time
+  200-picture problem (25,389 measurements) to keep the Python callbacks under a minute; spctool's time
   on that problem (its own evaluation included) is the line beside it, with the largest VLM difference
   between the two solutions.
 * ``geometry demo command``: ``spctool geometry --from-batch OUT --dry-run`` on the demo after a batch,
