@@ -133,7 +133,9 @@ def test_batch_rounds_two_measures_better_than_one(pristine20, run_cli, tmp_path
 
     f1, ok1, e1 = round_stats(1)
     f2, ok2, e2 = round_stats(2)
-    print(f"round 1: {f1} found, {ok1} ok, pose error {1e5 * e1:.2f} cm; round 2: {f2}, {ok2}, {1e5 * e2:.2f} cm")
+    print(
+        f"round 1: {f1} found, {ok1} ok, pose error {1e5 * e1:.2f} cm; round 2: {f2}, {ok2}, {1e5 * e2:.2f}"
+    )
     assert f2 >= f1 and ok2 >= ok1 and ok2 == 20
     assert e2 < e1
     # the working directory was not written; the refined map is a working directory of its own
