@@ -311,7 +311,7 @@ def _run(ctx: Context, stage: str, kw: dict):
                 cast.append(name)
             advance()
     if cast:
-        ctx.note_once(cast_shadow_note(cast, thresholds[0]))
+        ctx.info(cast_shadow_note(cast, thresholds[0]))  # the default adapting to the photo: -v
 
     columns = [
         "name",

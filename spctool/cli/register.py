@@ -561,6 +561,20 @@ def correlate_cmd(ctx: Context, **kw):
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
 
+def _say_adapted(ctx, adapted) -> None:
+    """What the run adapted to the data by design (:attr:`RegisterResult.adapted`): said with -v, since
+    nothing needs doing; a schedule the user named that had to be shortened is a note with the way out."""
+    named = any(
+        click.get_current_context().get_parameter_source(p) is click.core.ParameterSource.COMMANDLINE
+        for p in ("schedule", "steps")
+    )
+    for kind, text in adapted:
+        if kind == "spacing-cap" and named:
+            ctx.note_once(f"{text}; --no-spacing-cap runs them as given")
+        else:
+            ctx.info(text)
+
+
 # ------------------------------------------------------------------------------------------------
 # register
 
@@ -713,10 +727,10 @@ def register_cmd(ctx: Context, **kw):
     the correlation surface keeps up to 0.05 px of bias) and moves by secant steps.  A schedule is fitted to
     each maplet: a step at spacing L searches +-K*L cells and works only while K*L <= Q + 1, Q the
     maplet's half-width (Shoemaker et al. 2016: L = 10 for 99x99 maplets; a 49x49 maplet: L <= 5), so
-    coarser steps are replaced by one step at the largest L that fits, with a note on stderr
-    (--no-spacing-cap runs them as given).  --space image correlates the maplet rendered into the
-    photo (with cast shadows) against the photo itself, so the search is not limited by the maplet's
-    extent (as in the Retina system, Wright et al. 2016).
+    coarser steps are replaced by one step at the largest L that fits (said with -v, or in a note when
+    you named --schedule or --steps; --no-spacing-cap runs them as given).  --space image correlates
+    the maplet rendered into the photo (with cast shadows) against the photo itself, so the search is
+    not limited by the maplet's extent (as in the Retina system, Wright et al. 2016).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
@@ -778,6 +792,7 @@ def register_cmd(ctx: Context, **kw):
         result = inp.run(run_register, opts, adv)
     for w in result.warnings:
         ctx.note_once(w)
+    _say_adapted(ctx, result.adapted)
 
     out_dir = Path(kw["out_dir"]) if kw["out_dir"] else None
     written = 0
@@ -797,6 +812,7 @@ def register_cmd(ctx: Context, **kw):
         "passes": result.passes,
         "options": opts.as_dict(),
         "warnings": list(result.warnings),
+        "adapted": [text for _, text in result.adapted],
     }
     if result.pose is not None:
         meta["pose"] = result.pose.pose_dict()
