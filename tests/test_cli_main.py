@@ -81,3 +81,15 @@ def test_the_command_line_keeps_openblas_to_one_thread_unless_told():
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
     assert probe(env) == ["False", "1"]
     assert probe({**env, "OPENBLAS_NUM_THREADS": "4"}) == ["False", "4"]
+
+
+def test_a_global_option_after_the_command_gets_a_hint():
+    """-q/-v/-C/--debug after a subcommand: the one error line says they are global and where they go."""
+    run = CliRunner().invoke
+    r = run(cli, ["info", "-q", "x.SUM"])
+    assert r.exit_code == 2
+    assert "-q is a global option: put it before the command, 'spctool -q info ...'" in r.stderr
+    r = run(cli, ["info", "--verbose", "x.SUM"])
+    assert "--verbose is a global option" in r.stderr
+    r = run(cli, ["info", "--no-such", "x.SUM"])
+    assert r.exit_code == 2 and "global option" not in r.stderr and "info --help'" in r.stderr
