@@ -28,7 +28,16 @@ def test_demo_copy_to(run_cli, tmp_path):
     copied = sorted(p.relative_to(tmp_path / "d") for p in (tmp_path / "d").rglob("*") if p.is_file())
     assert copied == demo_files()
     r = run_cli("demo", "--copy-to", tmp_path / "d")
-    assert r.exit_code == 2 and "not empty" in r.stderr
+    assert r.exit_code == 2 and "not empty" in r.stderr and "--force" in r.stderr
+    # --force: the demo's files again, each one that was changed kept as .bak, other files untouched
+    (tmp_path / "d" / "LMRKLIST.TXT").write_text("changed\n")
+    (tmp_path / "d" / "mine.txt").write_text("mine\n")
+    r = run_cli("demo", "--copy-to", tmp_path / "d", "--force")
+    assert r.exit_code == 0, r.stderr
+    assert (tmp_path / "d" / "LMRKLIST.TXT").read_bytes() == (demo_path() / "LMRKLIST.TXT").read_bytes()
+    assert (tmp_path / "d" / "LMRKLIST.TXT.bak").read_text() == "changed\n"
+    assert (tmp_path / "d" / "mine.txt").read_text() == "mine\n"
+    assert sorted(p.name for p in (tmp_path / "d").glob("*.bak")) == ["LMRKLIST.TXT.bak"]
 
 
 def test_attitude_error_inverts_the_solver_update():
