@@ -194,10 +194,18 @@ class Figure:
         return buf.getvalue()
 
     def save(self, path) -> None:
-        """Write the PNG atomically (temporary file + rename)."""
+        """Write the PNG atomically (temporary file + rename); a different picture already at ``path``
+        is kept as ``path.bak`` first (an analyst may keep the panels of an earlier run), the same
+        picture is left as it is."""
+        from pathlib import Path
+
         from spctool.formats import atomic
 
-        atomic.write_bytes(path, self.png())
+        data = self.png()
+        path = Path(path)
+        if path.is_file() and path.read_bytes() == data:
+            return
+        atomic.write_bytes(path, data, backup=True)
 
 
 class _Canvas:

@@ -268,7 +268,7 @@ def test_correlate_panel_peak_sits_at_the_table_offset(request, tmp_path):
     assert res.exit_code == 0, res.output
     t = LandmarkTable.parse_text(res.stdout)
     assert t["status"] == ["ok"]
-    geo, px = _geometry(tmp_path / "p" / f"{LMK}_{PIC}_panel.png")
+    geo, px = _geometry(tmp_path / "p" / f"{LMK}_{PIC}_correlate-panel.png")
     assert px.shape[1] > 600 and px.shape[0] > 250 and px.std() > 5
     # offset_x runs along UX = surface rows, offset_y along UY = columns, in cells; grid index = K + offset/n
     k = 5

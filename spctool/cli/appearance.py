@@ -150,10 +150,11 @@ def _write_image(
             np.asarray(image, dtype=np.float64),
             fmt="fits",
             header=_fits_header(row, stage, maplet, popts, eopts, thresholds),
+            backup=True,  # an image already there is kept as .bak
         )
     else:
         k = int(zoom)
-        write_photo(path, np.repeat(np.repeat(_to_8bit(image), k, axis=0), k, axis=1), fmt=fmt)
+        write_photo(path, np.repeat(np.repeat(_to_8bit(image), k, axis=0), k, axis=1), fmt=fmt, backup=True)
     return path
 
 

@@ -261,10 +261,11 @@ def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space
         for k, v in (("OFFSET0", corr.offset[0]), ("OFFSET1", corr.offset[1])):
             if math.isfinite(float(v)):
                 hdr[k] = (float(v), "offset along array axis 0/1, full-resolution cells or px")
-        write_photo(path, np.asarray(corr.surface, dtype=np.float64), fmt="fits", header=hdr)
+        write_photo(path, np.asarray(corr.surface, dtype=np.float64), fmt="fits", header=hdr, backup=True)
     else:
         k = int(zoom)
-        write_photo(path, np.repeat(np.repeat(surface_to_8bit(corr.surface), k, axis=0), k, axis=1), fmt=fmt)
+        image = np.repeat(np.repeat(surface_to_8bit(corr.surface), k, axis=0), k, axis=1)
+        write_photo(path, image, fmt=fmt, backup=True)
     return path
 
 
@@ -303,8 +304,9 @@ def write_panels(out_dir: Path, inp, result, opts) -> int:
     return written
 
 
-def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
-    """DIR/LANDMARK_PICTURE_panel.png of landmark ``i``'s correlation step ``st``
+def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift, suffix: str = "panel"):
+    """DIR/LANDMARK_PICTURE_SUFFIX.png of landmark ``i``'s correlation step ``st`` (``correlate``'s
+    suffix is its own, so that its panels never replace those of ``register`` in the same folder)
     (:func:`spctool.figures.landmark_panel`): predicted | extracted | surface (maplet space; the
     prediction is redrawn with ``camera``), or template | photo window at the template's placement |
     surface (image space).  ``shift``: the (dsample, dline) reported for the landmark."""
@@ -360,8 +362,8 @@ def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
         )
     else:
         return None
-    path = out_dir / f"{name}_{inp.pic.name}_panel.png"
-    fig.save(path)
+    path = out_dir / f"{name}_{inp.pic.name}_{suffix}.png"
+    fig.save(path)  # a different picture already there is kept as .bak
     return path
 
 
@@ -523,7 +525,9 @@ def correlate_cmd(ctx: Context, **kw):
                 written += 1
             if kw["panels"]:
                 Path(kw["panels"]).mkdir(parents=True, exist_ok=True)
-                write_panel(Path(kw["panels"]), inp, i, st, inp.camera, opts, st.status, shift)
+                write_panel(
+                    Path(kw["panels"]), inp, i, st, inp.camera, opts, st.status, shift, "correlate-panel"
+                )
             if kw["sheet"]:
                 from spctool.figures import surface_tile
 
