@@ -219,8 +219,8 @@ def _all_examples() -> list[tuple[str, int, str]]:
 
 
 def _slow_example(ex: str) -> bool:
-    """Examples that build the s16-50m Monte Carlo scene (about a minute each)."""
-    return "--preset s16-50m" in ex
+    """Examples of a minute or more: the s16-50m Monte Carlo scene, the example world of simulate."""
+    return "--preset s16-50m" in ex or ex in NEEDS and "spctool simulate world.toml WORLD" in [ex, *NEEDS[ex]]
 
 
 def test_needs_are_earlier_lines_of_the_same_help():
@@ -233,6 +233,7 @@ def test_needs_are_earlier_lines_of_the_same_help():
             assert all(n in earlier for n in needed), (ex, needed)
 
 
+@pytest.mark.slow
 def test_every_example_in_printed_order_on_one_copy(base, tmp_path):
     """All help examples, in the order printed, in one directory that starts without the demo."""
     work = _fresh(base, tmp_path, with_demo=False)
