@@ -112,10 +112,156 @@ def compile_bytecode(package: Path | None = None) -> tuple[int, str]:
     return done, note
 
 
+class CompileProgress:
+    """Shows numba compiling, while it does: on a terminal, a status (in the command's progress bar when
+    one is on screen, else a line of its own) refreshed every half second with the kernels compiled so
+    far, the one compiling now and the seconds spent, so that no stretch of compilation is silent;
+    ``note`` (if any) is printed once, on stderr, at the first compilation (also when not a terminal).
+
+    Only the process that armed it reports (a forked worker compiles silently), and its refresh thread
+    runs only while a kernel compiles (a command forks its workers between compilations)."""
+
+    def __init__(self, ctx: Context, note: str = "", live: bool | None = None):
+        import os
+        import threading
+
+        self.ctx = ctx
+        self.note = note
+        self.live = (sys.stderr.isatty() and ctx.verbosity >= 0) if live is None else live
+        self.pid = os.getpid()
+        self.depth = 0
+        self.done: set = set()
+        self.stack: list = []  # the kernels compiling now, outermost first
+        self.spent = 0.0  # seconds of finished compilation
+        self.started = None  # perf_counter of the compilation under way
+        self._stop = threading.Event()
+        self._thread = None
+        self._lock = threading.Lock()
+        self._listener = None
+
+    # the numba event listener ------------------------------------------------------------------
+    def _on_start(self, event) -> None:
+        import os
+
+        if os.getpid() != self.pid:
+            return
+        d = event.data.get("dispatcher")
+        name = _kernel_name(d)
+        with self._lock:
+            self.depth += 1
+            if self.depth == 1:
+                self.started = time.perf_counter()
+                if self.note:
+                    self.ctx.note_once(self.note)
+                if self.live:
+                    self._start_thread()
+            self.stack.append(name)
+
+    def _on_end(self, event) -> None:
+        import os
+
+        if os.getpid() != self.pid:
+            return
+        name = _kernel_name(event.data.get("dispatcher"))
+        stop = False
+        with self._lock:
+            self.depth = max(0, self.depth - 1)
+            if self.stack:
+                self.stack.pop()
+            if name:
+                self.done.add(name)
+            if self.depth == 0 and self.started is not None:
+                self.spent += time.perf_counter() - self.started
+                self.started = None
+                stop = True
+        if stop:
+            self._stop_thread()
+
+    # the display ---------------------------------------------------------------------------------
+    def text(self) -> str:
+        elapsed = self.spent + (time.perf_counter() - self.started if self.started is not None else 0.0)
+        current = next((n for n in reversed(self.stack) if n), "")
+        now = f", now {current}" if self.started is not None and current else ""
+        return f"compiling kernels (once): {len(self.done)} done{now}, {elapsed:.0f} s"
+
+    def _show(self, text: str | None) -> None:
+        from spctool.cli.common import ACTIVE_BARS
+
+        if ACTIVE_BARS:
+            ACTIVE_BARS[-1](text)
+        elif text:
+            sys.stderr.write("\r\x1b[Kspctool: " + text[: max(20, _columns() - 10)])
+            sys.stderr.flush()
+        else:
+            sys.stderr.write("\r\x1b[K")
+            sys.stderr.flush()
+
+    def _start_thread(self) -> None:
+        import threading
+
+        self._stop.clear()
+
+        def tick():
+            while not self._stop.wait(0.5):
+                self._show(self.text())
+
+        self._thread = threading.Thread(target=tick, name="spctool-compile-progress", daemon=True)
+        self._thread.start()
+
+    def _stop_thread(self) -> None:
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self._stop.set()
+            thread.join()
+            self._show(None)
+
+    # arm / disarm --------------------------------------------------------------------------------
+    def arm(self):
+        """Listen to numba's compilations; returns the function that stops listening."""
+        from numba.core import event as numba_event
+
+        owner = self
+
+        class Listener(numba_event.Listener):
+            def on_start(self, event) -> None:
+                owner._on_start(event)
+
+            def on_end(self, event) -> None:
+                owner._on_end(event)
+
+        self._listener = Listener()
+        numba_event.register("numba:compile", self._listener)
+
+        def disarm() -> None:
+            try:
+                numba_event.unregister("numba:compile", self._listener)
+            except ValueError:  # already gone
+                pass
+            self._stop_thread()
+
+        return disarm
+
+
+def _kernel_name(dispatcher) -> str:
+    """'module.function' of one of spctool's kernels, short ('correlate._k_ncc'); '' for numba's own."""
+    func = getattr(dispatcher, "py_func", None)
+    module = getattr(func, "__module__", "") or ""
+    if not module.startswith("spctool."):
+        return ""
+    return f"{module.rsplit('.', 1)[-1].lstrip('_')}.{func.__name__}"
+
+
+def _columns() -> int:
+    import shutil
+
+    return shutil.get_terminal_size((80, 20)).columns
+
+
 def first_run_note(ctx: Context, command: str | None, args=None):
-    """Arm one stderr note (silenced by -q), printed when ``command`` starts compiling kernels it
-    has no cache for.  Returns the function that disarms it (call it when the command ends), or None
-    when nothing was armed."""
+    """Arm, for a command whose kernels are not all in numba's cache, one stderr note (silenced by -q)
+    printed when it really starts compiling, and the live :class:`CompileProgress` on a terminal.
+    Returns the function that disarms them (call it when the command ends), or None when nothing was
+    armed."""
     args = sys.argv[1:] if args is None else args
     if not command or command not in COMMAND_FAMILIES or ctx.verbosity < 0:
         return None
@@ -124,32 +270,12 @@ def first_run_note(ctx: Context, command: str | None, args=None):
     cold = cold_families(COMMAND_FAMILIES[command])
     if not cold:
         return None
-    from numba.core import event as numba_event  # numba only for commands with cold kernels
-
-    class NoteOnCompile(numba_event.Listener):
-        """Prints the note at the first ``numba:compile`` start (a cache miss), then stays quiet."""
-
-        def on_start(self, event) -> None:
-            ctx.note_once(message)  # once: note_once remembers it
-
-        def on_end(self, event) -> None:
-            pass
-
     message = (
         f"compiling spctool's numba kernels ({', '.join(cold)}) on first use: this run spends a few "
         f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
         "'spctool warmup' compiles them all now)"
     )
-    listener = NoteOnCompile()
-    numba_event.register("numba:compile", listener)
-
-    def disarm() -> None:
-        try:
-            numba_event.unregister("numba:compile", listener)
-        except ValueError:  # already gone
-            pass
-
-    return disarm
+    return CompileProgress(ctx, message).arm()
 
 
 @click.command("warmup")
@@ -177,6 +303,9 @@ def warmup_cmd(ctx: Context):
 
     before = cold_families(FAMILIES)
     passed = []  # one bool per step
+    disarm = CompileProgress(ctx).arm()  # on a terminal: what compiles now, live
+    ctx_close = click.get_current_context().call_on_close
+    ctx_close(disarm)
     with tempfile.TemporaryDirectory(prefix="spctool-warmup-") as tmp:
         root = copy_demo(Path(tmp) / "demo")
         pic = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))[0]
