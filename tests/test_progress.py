@@ -118,3 +118,34 @@ def test_compile_bytecode_writes_what_is_stale_and_says_what_it_could_not(tmp_pa
     monkeypatch.setattr(compileall, "compile_file", lambda *a, **k: False)  # e.g. a read-only install
     done, note = jit.compile_bytecode(pkg)
     assert done == 0 and note.startswith("3 module(s) under ") and str(pkg) in note
+
+
+def test_compile_progress_shows_what_compiles_while_it_compiles(monkeypatch):
+    """On a terminal the compilation is never silent: the status names the kernel compiling now (the
+    innermost of spctool's), counts those done, and is cleared when the compilation ends."""
+    import time
+    import types
+
+    from numba.core import event
+
+    def compiling(module, name):
+        k = types.SimpleNamespace(py_func=types.SimpleNamespace(__module__=module, __name__=name))
+        return event.trigger_event("numba:compile", data={"dispatcher": k})
+
+    shown = []
+    cp = jit.CompileProgress(Context(), note="", live=True)
+    monkeypatch.setattr(cp, "_show", shown.append)
+    disarm = cp.arm()
+    try:
+        with compiling("spctool.stages.correlate", "_k_ncc"):
+            with compiling("numba.misc.quicksort", "run"):
+                time.sleep(0.65)
+            with compiling("spctool.geometry._raykernels", "trace"):
+                time.sleep(0.6)
+    finally:
+        disarm()
+    texts = [t for t in shown if t]
+    assert any("0 done, now correlate._k_ncc" in t for t in texts)  # numba's own kernels are not named
+    assert any("now raykernels.trace" in t for t in texts)
+    assert shown[-1] is None  # cleared at the end
+    assert cp.done == {"correlate._k_ncc", "raykernels.trace"} and cp.depth == 0

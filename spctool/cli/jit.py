@@ -145,8 +145,7 @@ class CompileProgress:
 
         if os.getpid() != self.pid:
             return
-        d = event.data.get("dispatcher")
-        name = _kernel_name(d)
+        name = _kernel_name((event.data or {}).get("dispatcher"))
         with self._lock:
             self.depth += 1
             if self.depth == 1:
@@ -162,7 +161,7 @@ class CompileProgress:
 
         if os.getpid() != self.pid:
             return
-        name = _kernel_name(event.data.get("dispatcher"))
+        name = _kernel_name((event.data or {}).get("dispatcher"))
         stop = False
         with self._lock:
             self.depth = max(0, self.depth - 1)
