@@ -294,6 +294,14 @@ def test_register_panels_and_solve_pose_plot(request, tmp_path):
     assert res.exit_code == 0, res.output
     geo, px = _geometry(out)
     assert px.shape[1] > sc.camera.npx and px.std() > 5 and geo["magnify"] >= 1
+    # one reference vector per magnification, drawn at that magnification in its set's colour
+    for when, mag, colour in (
+        ("before", geo["magnify"], figures.BEFORE),
+        ("after", geo["magnify_after"], figures.AFTER),
+    ):
+        ref, length, x, y = geo[f"reference_{when}"]
+        assert length == pytest.approx(ref * mag * geo["zoom"]) and 10 <= length <= 330
+        assert _near(px, (x + length / 2, y), colour)
 
 
 def test_predict_and_extract_sheets(request, tmp_path):
