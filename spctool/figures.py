@@ -537,17 +537,26 @@ def landmark_panel(
 # a page of small images
 
 
-def contact_sheet(tiles, *, title: str = "", columns: int | None = None, tile: int = 160) -> Figure:
+def contact_sheet(
+    tiles, *, title: str = "", columns: int | None = None, tile: int = 160, key: str = ""
+) -> Figure:
     """``tiles``: (caption, values, valid or None) — or (caption, rgb uint8 (h, w, 3)) — each upscaled
-    nearest-neighbour to about ``tile`` px and captioned, in a grid under ``title``."""
+    nearest-neighbour to about ``tile`` px and captioned, in a grid under ``title``; ``key`` (a line
+    under the title) explains what the captions and colours show."""
     tiles = list(tiles)
     n = max(1, len(tiles))
     cols = columns or max(1, min(n, int(math.ceil(math.sqrt(n * 1.3)))))
     rows = int(math.ceil(n / cols))
-    pad, cap, head = 10, 18, 30 if title else 6
+    pad, cap, head = 10, 18, (30 if title else 6) + (20 if key else 0)
     cv = _Canvas(pad + cols * (tile + pad), head + rows * (tile + cap + pad) + pad)
+    if key:  # as wide as it needs: a sheet of a few tiles is widened to show it whole
+        need = int(cv.text_width(key, 12)) + 2 * pad
+        if need > cv.image.width:
+            cv = _Canvas(need, cv.image.height)
     if title:
         cv.text((pad, 6), title, 16)
+    if key:
+        cv.text((pad, 30), key, 12)
     for k, t in enumerate(tiles):
         r, c = divmod(k, cols)
         x, y = pad + c * (tile + pad), head + r * (tile + cap + pad)

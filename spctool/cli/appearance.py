@@ -356,7 +356,12 @@ def _run(ctx: Context, stage: str, kw: dict):
         from spctool import figures
 
         title = f"{pic.name}  {stage} maplet images ({len(tiles)}), North up"
-        figures.contact_sheet(tiles, title=title).save(kw["sheet"])
+        dark = "not lit" if stage == "predicted" else "no data (off the photo, or below THRSH T1)"
+        key = (
+            "caption: landmark, rho = correlation of prediction and extraction at zero offset "
+            f"(1: identical up to brightness), status; dark red: {dark}"
+        )
+        figures.contact_sheet(tiles, title=title, key=key).save(kw["sheet"])
         ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 

@@ -560,7 +560,11 @@ def correlate_cmd(ctx: Context, **kw):
         title = (
             f"{inp.pic.name}  correlation surfaces, spacing {kw['spacing']} (viridis per tile; red = peak)"
         )
-        contact_sheet(tiles, title=title).save(kw["sheet"])
+        key = (
+            "caption: landmark, rho = the surface's peak correlation (1: identical up to brightness), "
+            "status"
+        )
+        contact_sheet(tiles, title=title, key=key).save(kw["sheet"])
         ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 
