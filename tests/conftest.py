@@ -6,10 +6,16 @@ and so does any explicit ``-m`` selection (``pytest -m slow``: only those).
 """
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+
+# the cache of derived values (spctool.formats.derived) of the tests' processes and of the commands
+# they start: one folder per test run's machine user, never the user's own ~/.cache/spctool
+_CACHE = Path(tempfile.gettempdir()) / f"spctool-test-cache-{os.getuid()}"
+os.environ.setdefault("SPCTOOL_CACHE_DIR", str(_CACHE))
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "fixtures" / "real"

@@ -354,30 +354,38 @@ class _Shape:
         :func:`approximate_diameter`, which is exact for any body whose diameter is a double-normal
         pair reached from its directional extremes and never more than 0.2 % short in the worst case.
         Bodies with more vertices first try the exact search on the vertices far enough from the
-        centroid to end a diameter (a few on any elongated body).
+        centroid to end a diameter (a few on any elongated body).  The value is kept on disk per vertex
+        array (:mod:`spctool.formats.derived`), so a command on a known shape does not recompute it.
         """
-        pts = np.ascontiguousarray(self._verts, dtype=np.float64)
-        if pts.shape[0] > EXACT_DIAMETER_POINTS:
-            # both ends of the diameter D lie at least D_lo − R from the centroid (R the largest
-            # distance from it, D_lo ≤ D the directional lower bound): on elongated bodies that leaves
-            # a few points, searched exactly, without the convex hull (0.2 s on a q = 64 ICQ)
-            d_lo = approximate_diameter(pts)
-            r = np.sqrt(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))
-            far = pts[r >= d_lo - float(r.max())]
-            if far.shape[0] <= EXACT_DIAMETER_POINTS:
-                return max(d_lo, float(_rk.farthest_pair(np.ascontiguousarray(far))))
-        pts = np.unique(pts, axis=0)
-        if 4 < pts.shape[0] <= 200_000:
-            try:
-                from scipy.spatial import ConvexHull
+        from spctool.formats import derived
 
-                pts = pts[ConvexHull(pts).vertices]
-            except Exception:  # flat or degenerate vertex sets: fall back to all vertices
-                pass
-        pts = np.ascontiguousarray(pts)
-        if pts.shape[0] <= EXACT_DIAMETER_POINTS:
-            return float(_rk.farthest_pair(pts))
-        return approximate_diameter(pts)
+        pts = np.ascontiguousarray(self._verts, dtype=np.float64)
+        return float(derived.cached("max-diameter-v1", pts, lambda: _max_diameter(pts)))
+
+
+def _max_diameter(pts: np.ndarray) -> float:
+    """:attr:`_Shape.max_diameter` of the vertices ``pts`` (n, 3), computed."""
+    if pts.shape[0] > EXACT_DIAMETER_POINTS:
+        # both ends of the diameter D lie at least D_lo − R from the centroid (R the largest
+        # distance from it, D_lo ≤ D the directional lower bound): on elongated bodies that leaves
+        # a few points, searched exactly, without the convex hull (0.2 s on a q = 64 ICQ)
+        d_lo = approximate_diameter(pts)
+        r = np.sqrt(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))
+        far = pts[r >= d_lo - float(r.max())]
+        if far.shape[0] <= EXACT_DIAMETER_POINTS:
+            return max(d_lo, float(_rk.farthest_pair(np.ascontiguousarray(far))))
+    pts = np.unique(pts, axis=0)
+    if 4 < pts.shape[0] <= 200_000:
+        try:
+            from scipy.spatial import ConvexHull
+
+            pts = pts[ConvexHull(pts).vertices]
+        except Exception:  # flat or degenerate vertex sets: fall back to all vertices
+            pass
+    pts = np.ascontiguousarray(pts)
+    if pts.shape[0] <= EXACT_DIAMETER_POINTS:
+        return float(_rk.farthest_pair(pts))
+    return approximate_diameter(pts)
 
 
 #: above this many candidate points :attr:`_Shape.max_diameter` switches to :func:`approximate_diameter`
