@@ -1,12 +1,13 @@
 """Compiled kernels on first use: the one-line note, and ``spctool warmup``.
 
 spctool's hot loops are numba kernels compiled on their first call and cached on disk (next to the
-module, or in ``NUMBA_CACHE_DIR``).  On a fresh install the first command that needs them spends
-20–30 s compiling with nothing else to show, so :func:`first_run_note` checks, before a command runs,
+module, or in ``NUMBA_CACHE_DIR``).  On a fresh install the first command that needs them spends up
+to a minute compiling, so :func:`first_run_note` checks, before a command runs,
 whether the kernels that command uses have a cached index file (numba's own cache locator says where)
 and, when one is missing, arms one note on stderr that is printed when numba really starts compiling
 (its ``numba:compile`` event).  A command that refuses its input before any kernel runs therefore
-prints its one error line and nothing else.  ``spctool warmup`` compiles every kernel the
+prints its one error line and nothing else; on a terminal :class:`CompileProgress` then shows, every
+half second, which kernel compiles and how many are done.  ``spctool warmup`` compiles every kernel the
 commands use by running the shipped demo through lithos-select, register (maplet and image space),
 solve-pose, a small render and make-maplets, so that later commands start at once.
 """
@@ -52,8 +53,8 @@ COMMAND_FAMILIES = {
     "batch": _PIPELINE,
     "montecarlo": ("camera", "maplet", "render"),
 }
-#: what the README quotes: a cold `spctool demo` compiles for about this long on one core
-COMPILE_SECONDS = "30 s"
+#: a cold `spctool demo` compiles for about this long on one core (48 s of CPU measured, docs/benchmarks.md)
+COMPILE_SECONDS = "50 s"
 
 
 def _index_path(module: str, name: str) -> Path | None:
@@ -283,12 +284,13 @@ def warmup_cmd(ctx: Context):
     """Compile and cache every numba kernel now, so that later commands start at once.
 
     spctool's inner loops are compiled on their first use and cached on disk (next to the installed
-    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends 20-30 s
-    compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
+    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends up to a
+    minute compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
     install under PYTHONDONTWRITEBYTECODE otherwise compiles them from source in every command, about
     0.2 s), then runs the shipped demo working directory through lithos-select, register in
     maplet and in image space, solve-pose, a render of a small window and make-maplets, all in a
-    temporary directory, and prints one line per step with its time.  Run it once after installing
+    temporary directory, and prints one line per step with its time (on a terminal, while a step
+    compiles, which kernel compiles and how many are done).  Run it once after installing
     (or after upgrading spctool or numba).  Exit code 0, or 1 when a step failed.
 
     Example:
