@@ -1114,6 +1114,7 @@ def _broyden_reference(jac, f, dc, df):
     return jac, np.linalg.solve(g, f), eig
 
 
+@pytest.mark.slow
 def test_broyden_step_matches_lapack_on_random_systems():
     from spctool.stages.register import _broyden_step
 
