@@ -52,3 +52,25 @@ def test_the_shape_diameter_is_kept_and_equals_its_computation(monkeypatch, tmp_
     assert len(list((tmp_path / "derived").glob("max-diameter-v1-*.json"))) == 1
     monkeypatch.setattr(shape_mod, "_max_diameter", lambda pts: pytest.fail("recomputed"))
     assert shape_mod.PatchShape(icq).max_diameter == computed  # read back, bit for bit
+
+
+def test_the_numpy_diameter_parts_equal_the_kernels_bit_for_bit():
+    """The diameter's numpy searches (no kernel to compile on a first run) return what the numba
+    kernels return, to the last bit, ties and indices included."""
+    from spctool.geometry import _raykernels as rk
+    from spctool.geometry import shape as shape_mod
+
+    rng = np.random.default_rng(5)
+    for n in (2, 3, 40, 700):
+        for points in (
+            rng.normal(size=(n, 3)),
+            np.round(rng.uniform(-1, 1, size=(n, 3))),  # many ties
+            rng.normal(size=(n, 3)) * [3.0, 2.0, 0.5],
+        ):
+            p = np.ascontiguousarray(points)
+            assert shape_mod.farthest_pair(p) == float(rk.farthest_pair(p))
+            dirs = rng.normal(size=(64, 3))
+            dirs = np.ascontiguousarray(dirs / np.linalg.norm(dirs, axis=1)[:, None])
+            kernel = rk.directional_extremes(p, dirs, 16)
+            for ours, theirs in zip(shape_mod.directional_extremes(p, dirs), kernel):
+                assert np.array_equal(ours, theirs)
