@@ -93,3 +93,26 @@ def test_a_global_option_after_the_command_gets_a_hint():
     assert "--verbose is a global option" in r.stderr
     r = run(cli, ["info", "--no-such", "x.SUM"])
     assert r.exit_code == 2 and "global option" not in r.stderr and "info --help'" in r.stderr
+
+
+_CFFI_PROBE = """
+import sys
+import spctool.cli.main
+from numba.core.typing import cffi_utils
+print(cffi_utils.SUPPORTED, "pycparser" in sys.modules)
+"""
+
+
+def test_the_command_line_keeps_numba_from_building_cffi_s_parser():
+    """numba's typing builds cffi's C parser when cffi is installed (0.06-0.24 s of every start): the
+    command line keeps cffi out (spctool.cli's docstring) unless SPCTOOL_CFFI=1."""
+    import os
+
+    def probe(**extra):
+        env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_CFFI"} | extra
+        run = subprocess.run([sys.executable, "-c", _CFFI_PROBE], capture_output=True, text=True, env=env)
+        return run.stdout.split()
+
+    assert probe() == ["False", "False"]
+    installed = subprocess.run([sys.executable, "-c", "import cffi"], capture_output=True).returncode == 0
+    assert probe(SPCTOOL_CFFI="1") == [str(installed), str(installed)]
