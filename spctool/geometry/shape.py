@@ -373,7 +373,7 @@ def _max_diameter(pts: np.ndarray) -> float:
         r = np.sqrt(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))
         far = pts[r >= d_lo - float(r.max())]
         if far.shape[0] <= EXACT_DIAMETER_POINTS:
-            return max(d_lo, float(_rk.farthest_pair(np.ascontiguousarray(far))))
+            return max(d_lo, farthest_pair(far))
     pts = np.unique(pts, axis=0)
     if 4 < pts.shape[0] <= 200_000:
         try:
@@ -384,7 +384,7 @@ def _max_diameter(pts: np.ndarray) -> float:
             pass
     pts = np.ascontiguousarray(pts)
     if pts.shape[0] <= EXACT_DIAMETER_POINTS:
-        return float(_rk.farthest_pair(pts))
+        return farthest_pair(pts)
     return approximate_diameter(pts)
 
 
