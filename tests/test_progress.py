@@ -149,3 +149,32 @@ def test_compile_progress_shows_what_compiles_while_it_compiles(monkeypatch):
     assert any("now raykernels.trace" in t for t in texts)
     assert shown[-1] is None  # cleared at the end
     assert cp.done == {"correlate._k_ncc", "raykernels.trace"} and cp.depth == 0
+
+
+def test_a_first_interactive_demo_compiles_registration_in_a_helper(monkeypatch):
+    """demo and navigate trace rays first: on a terminal, with both families cold and two cores, a
+    second process compiles register's kernels meanwhile; never off a terminal, for other commands,
+    or with SPCTOOL_NO_HELPER=1; the helper is ended with the command."""
+    assert jit.start_helper("demo", ["camera", "maplet", "rays"], interactive=False) is None
+    assert jit.start_helper("register", ["camera", "maplet", "rays"], interactive=True) is None
+    assert jit.start_helper("demo", ["camera", "rays"], interactive=True) is None
+    monkeypatch.setenv("SPCTOOL_NO_HELPER", "1")
+    assert jit.start_helper("navigate", ["maplet", "rays"], interactive=True) is None
+    monkeypatch.delenv("SPCTOOL_NO_HELPER")
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    helper = jit.start_helper("demo", ["camera", "maplet", "rays"], interactive=True)
+    assert helper is not None and helper.args[0]
+    jit.stop_helper(helper)
+    assert helper.poll() is not None
+
+
+def test_the_helper_s_work_registers_demo_landmarks(tmp_path, monkeypatch):
+    """What the helper runs: register of three demo landmarks in a temporary copy (quiet, no files
+    left behind; here the kernels are cached already, so it only loads them)."""
+    import os
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    cwd = os.getcwd()
+    assert jit.precompile_registration() is True
+    assert os.getcwd() == cwd and list(tmp_path.iterdir()) == []

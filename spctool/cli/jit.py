@@ -50,6 +50,7 @@ COMMAND_FAMILIES = {
     "simulate": ("camera", "rays", "render"),
     "make-maplets": ("rays",),
     "demo": _PIPELINE,
+    "navigate": _PIPELINE,
     "batch": _PIPELINE,
     "montecarlo": ("camera", "maplet", "render"),
 }
@@ -276,7 +277,77 @@ def first_run_note(ctx: Context, command: str | None, args=None):
         f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
         "'spctool warmup' compiles them all now)"
     )
-    return CompileProgress(ctx, message).arm()
+    disarm = CompileProgress(ctx, message).arm()
+    helper = start_helper(command, cold)
+    if helper is None:
+        return disarm
+
+    def disarm_both() -> None:
+        disarm()
+        stop_helper(helper)
+
+    return disarm_both
+
+
+#: commands that trace rays first (lithos-select's occlusion) and register after, in one process: on a
+#: first run a second process compiles the registration kernels meanwhile
+HELPED = ("demo", "navigate")
+
+
+def start_helper(command: str, cold, *, interactive: bool | None = None):
+    """On a terminal, for a :data:`HELPED` command whose ray and registration kernels are both cold and
+    a machine of two cores or more, start a second Python process that compiles the registration
+    kernels (register of three demo landmarks, :func:`precompile_registration`) while this one traces
+    rays: numba's cache is shared by the two (its files are written whole and renamed), so this
+    process later loads what the other compiled.  Returns the process, or None."""
+    import os
+    import subprocess
+
+    interactive = sys.stderr.isatty() if interactive is None else interactive
+    if command not in HELPED or not {"rays", "maplet"} <= set(cold) or not interactive:
+        return None
+    if (os.cpu_count() or 1) < 2 or os.environ.get("SPCTOOL_NO_HELPER") == "1":
+        return None
+    code = "from spctool.cli.jit import precompile_registration; precompile_registration()"
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-c", code],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    except OSError:  # no helper: this process compiles everything itself, as before
+        return None
+
+
+def stop_helper(helper) -> None:
+    """End the helper if it still runs (the command is over; what it compiled so far is cached)."""
+    if helper.poll() is None:
+        helper.terminate()
+        try:
+            helper.wait(timeout=5)
+        except Exception:
+            helper.kill()
+
+
+def precompile_registration() -> bool:
+    """Compile and cache register's kernels (maplet space) on three landmarks of the shipped demo;
+    True when that register ran to its end (exit code 0)."""
+    import os
+
+    from spctool.cli.main import cli
+    from spctool.sim.demo import copy_demo
+
+    with tempfile.TemporaryDirectory(prefix="spctool-precompile-") as tmp:
+        root = copy_demo(Path(tmp) / "demo")
+        pic = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))[0]
+        names = sorted(p.stem for p in (root / "LMKFILES").glob("*.LMK"))[:3]
+        args = ["-q", "-C", str(root), "register", pic, *names, "-o", os.devnull]
+        try:
+            rv = cli.main(args=args, prog_name="spctool", standalone_mode=False)
+        except SystemExit as exc:
+            rv = exc.code
+        return rv in (0, None)
 
 
 @click.command("warmup")
