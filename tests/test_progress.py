@@ -176,5 +176,5 @@ def test_the_helper_s_work_registers_demo_landmarks(tmp_path, monkeypatch):
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     cwd = os.getcwd()
-    assert jit.precompile_registration() is True
+    assert jit.precompile_registration(cli) is True
     assert os.getcwd() == cwd and list(tmp_path.iterdir()) == []

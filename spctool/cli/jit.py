@@ -308,7 +308,10 @@ def start_helper(command: str, cold, *, interactive: bool | None = None):
         return None
     if (os.cpu_count() or 1) < 2 or os.environ.get("SPCTOOL_NO_HELPER") == "1":
         return None
-    code = "from spctool.cli.jit import precompile_registration; precompile_registration()"
+    code = (
+        "from spctool.cli.main import cli; from spctool.cli.jit import precompile_registration; "
+        "precompile_registration(cli)"
+    )
     try:
         return subprocess.Popen(
             [sys.executable, "-c", code],
@@ -330,12 +333,12 @@ def stop_helper(helper) -> None:
             helper.kill()
 
 
-def precompile_registration() -> bool:
-    """Compile and cache register's kernels (maplet space) on three landmarks of the shipped demo;
-    True when that register ran to its end (exit code 0)."""
+def precompile_registration(cli) -> bool:
+    """Compile and cache register's kernels (maplet space): ``cli`` (the ``spctool`` group, passed in:
+    this module is below it) registers three landmarks of the shipped demo in a temporary copy; True
+    when that register ran to its end (exit code 0)."""
     import os
 
-    from spctool.cli.main import cli
     from spctool.sim.demo import copy_demo
 
     with tempfile.TemporaryDirectory(prefix="spctool-precompile-") as tmp:
