@@ -194,10 +194,18 @@ class Figure:
         return buf.getvalue()
 
     def save(self, path) -> None:
-        """Write the PNG atomically (temporary file + rename)."""
+        """Write the PNG atomically (temporary file + rename); a different picture already at ``path``
+        is kept as ``path.bak`` first (an analyst may keep the panels of an earlier run), the same
+        picture is left as it is."""
+        from pathlib import Path
+
         from spctool.formats import atomic
 
-        atomic.write_bytes(path, self.png())
+        data = self.png()
+        path = Path(path)
+        if path.is_file() and path.read_bytes() == data:
+            return
+        atomic.write_bytes(path, data, backup=True)
 
 
 class _Canvas:
@@ -529,17 +537,26 @@ def landmark_panel(
 # a page of small images
 
 
-def contact_sheet(tiles, *, title: str = "", columns: int | None = None, tile: int = 160) -> Figure:
+def contact_sheet(
+    tiles, *, title: str = "", columns: int | None = None, tile: int = 160, key: str = ""
+) -> Figure:
     """``tiles``: (caption, values, valid or None) — or (caption, rgb uint8 (h, w, 3)) — each upscaled
-    nearest-neighbour to about ``tile`` px and captioned, in a grid under ``title``."""
+    nearest-neighbour to about ``tile`` px and captioned, in a grid under ``title``; ``key`` (a line
+    under the title) explains what the captions and colours show."""
     tiles = list(tiles)
     n = max(1, len(tiles))
     cols = columns or max(1, min(n, int(math.ceil(math.sqrt(n * 1.3)))))
     rows = int(math.ceil(n / cols))
-    pad, cap, head = 10, 18, 30 if title else 6
+    pad, cap, head = 10, 18, (30 if title else 6) + (20 if key else 0)
     cv = _Canvas(pad + cols * (tile + pad), head + rows * (tile + cap + pad) + pad)
+    if key:  # as wide as it needs: a sheet of a few tiles is widened to show it whole
+        need = int(cv.text_width(key, 12)) + 2 * pad
+        if need > cv.image.width:
+            cv = _Canvas(need, cv.image.height)
     if title:
         cv.text((pad, 6), title, 16)
+    if key:
+        cv.text((pad, 30), key, 12)
     for k, t in enumerate(tiles):
         r, c = divmod(k, cols)
         x, y = pad + c * (tile + pad), head + r * (tile + cap + pad)
@@ -651,13 +668,18 @@ def pose_plot(
     magnify: float | None = None,
     magnify_after: float | None = None,
     shape=None,
+    label: bool | None = None,
 ) -> Figure:
     """solve-pose residuals (measured − predicted, px) before (orange) and after (blue) the solve,
     drawn from each measured pixel toward the predicted one, over the photo (``photo`` None: a grey
     frame of ``shape`` (lines, samples)), with one histogram of the residual lengths before and one
     after.  The two sets have their own magnification (default: each median drawn ≈ 40 px, after at
     least as magnified as before), both stated in the title and legend.  Rows whose status is not ok
-    are marked by an × in their status colour.  ``extra['tips_before']`` / ``extra['tips_after']``:
+    are marked by an × in their status colour.  Landmark names are written beside their pixels when
+    ``label`` (default: up to 80 landmarks); a legend in the overlay's style explains every mark, and
+    one reference vector per magnification gives the scale (``extra['reference_before']``,
+    ``extra['reference_after']``: residual px, drawn length, start x, y).
+    ``extra['tips_before']`` / ``extra['tips_after']``:
     canvas tips of the vectors; ``extra['hist']``: ((edges, counts) before, (edges, counts) after);
     ``extra['magnify_after']``."""
     if photo is not None:
@@ -676,16 +698,21 @@ def pose_plot(
     rgb = upscale(rgb, z)[::step, ::step]
     zoom = z / step
     head, side, pad = 56, 360, 20
-    cv = _Canvas(rgb.shape[1] + side + 2 * pad, max(rgb.shape[0], 640) + head + 10)
+    n_marks = len(set(str(s) for s in status) - {"ok"})
+    cv = _Canvas(rgb.shape[1] + side + 2 * pad, max(rgb.shape[0], 660 + 19 * n_marks) + head + 10)
     cv.paste(rgb, (0, head))
     fig = Figure(cv.image, 0.0, float(head), zoom, mag, extra={"magnify_after": mag_a})
     tips_b = np.full(m.shape, np.nan)
     tips_a = np.full(m.shape, np.nan)
     shown = [k for k in range(len(status)) if np.all(np.isfinite(m[k]))]
-    for k in shown:  # marks first, then the vectors on top (PIL draws one primitive at a time)
-        cv.cross(
-            fig.xy(*m[k]), *((3, WHITE, 1) if ok[k] else (4, status_colour(status[k]), 2)), diagonal=not ok[k]
-        )
+    if label is None:
+        label = len(status) <= 80
+    for k in shown:  # marks and names first, then the vectors on top (PIL draws one primitive at a time)
+        p = fig.xy(*m[k])
+        if label:
+            colour = WHITE if ok[k] else status_colour(status[k])
+            cv.text((p[0] + 7, p[1] + 4), str(names[k]), 11, fill=colour)
+        cv.cross(p, *((3, WHITE, 1) if ok[k] else (4, status_colour(status[k]), 2)), diagonal=not ok[k])
     for res, colour, tips, f in ((rb, BEFORE, tips_b, mag), (ra, AFTER, tips_a, mag_a)):
         for k in shown:
             if ok[k] and np.all(np.isfinite(res[k])):
@@ -707,11 +734,27 @@ def pose_plot(
     ha = _residual_histogram(cv, ra[ok], x, head + 250, side - 50, AFTER, "after the solve")
     fig.extra["hist"] = (hb, ha)
     items = [
-        (BEFORE, f"before (a-priori pose) x{fmt(mag)}", "line"),
-        (AFTER, f"after (solved) x{fmt(mag_a)}", "line"),
+        (WHITE, "measured pixel (landmark name beside it)", "cross"),
+        (BEFORE, f"residual before (a-priori pose) x{fmt(mag)}", "line"),
+        (AFTER, f"residual after (solved pose) x{fmt(mag_a)}", "line"),
     ]
     items += [(status_colour(s), f"{s} (not used)", "xmark") for s in sorted(set(status) - {"ok"})]
-    cv.legend((x - 30, head + 470), items)
+    lx, ly = x - 30, head + 470
+    lw, lh = cv.legend((lx, ly), items, bg=(200, 200, 200))  # grey: the white mark shows
+    # reference vectors, one per magnification: a round residual drawn as the plot draws it
+    y = ly + lh + 6
+    room = side - 40
+    for colour, f, when in ((BEFORE, mag, "before"), (AFTER, mag_a, "after")):
+        ref = nice_number(min(80.0, room) / (f * zoom))
+        while ref * f * zoom > room:  # nice_number may round up past the room
+            ref = nice_number(ref / 2.0)
+        length = ref * f * zoom
+        cv.draw.rectangle([lx, y, lx + max(lw, length + 12), y + 34], fill=WHITE, outline=BLACK)
+        cv.arrow((lx + 6, y + 10), (lx + 6 + length, y + 10), colour, width=2, head=6)
+        cv.text((lx + 6, y + 18), f"{fmt(ref)} px residual {when} (x{fmt(f)})", 12)
+        # (residual in px, drawn length, the arrow's start x, y) in canvas px
+        fig.extra[f"reference_{when}"] = (float(ref), float(length), float(lx + 6), float(y + 10))
+        y += 40
     return fig
 
 

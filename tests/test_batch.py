@@ -203,6 +203,7 @@ def test_single_pass_batch_equals_the_register_chain(world, tmp_path):
 # parallelism
 
 
+@pytest.mark.slow
 def test_two_processes_give_identical_outputs(world, reference, tmp_path):
     root, _ = world
     ref_out, ref = reference
@@ -220,6 +221,7 @@ print(json.dumps({"method": r.start_method, "mode": r.mode, "failed": len(r.fail
 """
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork is chosen on Linux only")
 def test_forked_workers_of_a_fresh_process_give_identical_outputs(world, reference, tmp_path):
     # a fresh, single-threaded process that has not started numba's threading layer forks its
@@ -519,6 +521,7 @@ def _crash_on_p3(workdir, out_dir, picture, options, fingerprint, token):
     return PictureSummary(picture=picture, status="ok")
 
 
+@pytest.mark.slow
 def test_worker_death_names_the_culprit_and_completes_the_rest(tmp_path):
     # up to 2 * jobs pictures are in flight: every suspect of a death is retried alone, so only the
     # picture that kills its worker is reported lost and all the others complete exactly once
@@ -543,6 +546,7 @@ def test_worker_death_names_the_culprit_and_completes_the_rest(tmp_path):
             assert s.status == "ok"
 
 
+@pytest.mark.slow
 def test_worker_pool_death_closes_the_pool_and_the_batch_completes(tmp_path):
     names = [f"P{k}" for k in range(7)]
     got: dict[int, PictureSummary] = {}
@@ -565,6 +569,7 @@ def _pids(pool) -> set[int]:
     return {p.pid for p in pool.executor._processes.values()}
 
 
+@pytest.mark.slow
 def test_worker_pool_runs_batch_after_batch_with_the_same_warm_workers(world, reference, tmp_path):
     root, _ = world
     ref_out, ref = reference
@@ -585,6 +590,7 @@ def test_worker_pool_runs_batch_after_batch_with_the_same_warm_workers(world, re
         run_batch(root, out_dir=tmp_path / "c", pool=pool)
 
 
+@pytest.mark.slow
 def test_worker_pool_usage_errors(world, tmp_path):
     root, _ = world
     with pytest.raises(SpcUsageError, match="at least 1"):
@@ -596,6 +602,7 @@ def test_worker_pool_usage_errors(world, tmp_path):
         assert one.workers == 1 and not one.failed
 
 
+@pytest.mark.slow
 def test_worker_pool_whose_worker_died_between_batches_is_replaced(world, reference, tmp_path):
     import signal
 

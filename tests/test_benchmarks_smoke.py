@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
 _CHILD = r"""
@@ -30,6 +32,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_benchmark_modules_declare_their_lines_and_the_general_path_line_runs():
     import spctool.stages.render as rmod
 

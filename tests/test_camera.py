@@ -636,6 +636,7 @@ END
         ("LITHOS", [0, 0, 1.2e-3, 0, -3e-9, 0, 0]),  # the INIT_LITHOS OWEN entry of the test above
     ],
 )
+@pytest.mark.slow
 def test_grid_seeded_inverse_equals_newton(model, coef):
     """pixel_to_direction_grid (exact inverses on a coarse grid; bicubic interpolation where it checks
     exact to 1e-7 px, else one Newton step per point) gives pixel_to_direction's rays within 1e-6 px

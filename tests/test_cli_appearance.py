@@ -181,16 +181,19 @@ def test_missing_photo_and_maplet(workdir, tmp_path):
 
 def test_auto_shadows_are_said_on_stderr(tmp_path, run_cli):
     """The shipped demo's photos carry their cast shadows above THRSH T1 = 1 DN: with the default
-    ``--shadows auto`` the landmarks whose maplets cast enough shadow are predicted with them, and one
-    note names them and T1; ``--shadows spc`` keeps SPC's rule and says nothing."""
+    ``--shadows auto`` the landmarks whose maplets cast enough shadow are predicted with them, and -v
+    says so in one line naming them and T1 (the default adapting: no note without -v);
+    ``--shadows spc`` keeps SPC's rule and says nothing."""
     from spctool.sim.demo import copy_demo
 
     root = copy_demo(tmp_path / "demo")
     pic = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))[0]
     for command in ("predict", "extract"):
-        res = run_cli("-C", root, command, pic)
+        plain = run_cli("-C", root, command, pic)
+        assert plain.exit_code == 0 and "cast shadows" not in plain.stderr
+        res = run_cli("-v", "-C", root, command, pic)
         assert res.exit_code == 0
         notes = [ln for ln in res.stderr.splitlines() if "predicted with their cast shadows" in ln]
         assert len(notes) == 1 and "B02176" in notes[0] and "T1 = 1 DN" in notes[0], res.stderr
-        quiet = run_cli("-C", root, command, pic, "--shadows", "spc")
+        quiet = run_cli("-v", "-C", root, command, pic, "--shadows", "spc")
         assert quiet.exit_code == 0 and "cast shadows" not in quiet.stderr

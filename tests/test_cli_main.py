@@ -81,3 +81,38 @@ def test_the_command_line_keeps_openblas_to_one_thread_unless_told():
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
     assert probe(env) == ["False", "1"]
     assert probe({**env, "OPENBLAS_NUM_THREADS": "4"}) == ["False", "4"]
+
+
+def test_a_global_option_after_the_command_gets_a_hint():
+    """-q/-v/-C/--debug after a subcommand: the one error line says they are global and where they go."""
+    run = CliRunner().invoke
+    r = run(cli, ["info", "-q", "x.SUM"])
+    assert r.exit_code == 2
+    assert "-q is a global option: put it before the command, 'spctool -q info ...'" in r.stderr
+    r = run(cli, ["info", "--verbose", "x.SUM"])
+    assert "--verbose is a global option" in r.stderr
+    r = run(cli, ["info", "--no-such", "x.SUM"])
+    assert r.exit_code == 2 and "global option" not in r.stderr and "info --help'" in r.stderr
+
+
+_CFFI_PROBE = """
+import sys
+import spctool.cli.main
+from numba.core.typing import cffi_utils
+print(cffi_utils.SUPPORTED, "pycparser" in sys.modules)
+"""
+
+
+def test_the_command_line_keeps_numba_from_building_cffi_s_parser():
+    """numba's typing builds cffi's C parser when cffi is installed (0.06-0.24 s of every start): the
+    command line keeps cffi out (spctool.cli's docstring) unless SPCTOOL_CFFI=1."""
+    import os
+
+    def probe(**extra):
+        env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_CFFI"} | extra
+        run = subprocess.run([sys.executable, "-c", _CFFI_PROBE], capture_output=True, text=True, env=env)
+        return run.stdout.split()
+
+    assert probe() == ["False", "False"]
+    installed = subprocess.run([sys.executable, "-c", "import cffi"], capture_output=True).returncode == 0
+    assert probe(SPCTOOL_CFFI="1") == [str(installed), str(installed)]

@@ -60,6 +60,7 @@ def test_json_report(run_cli, scene_file):
     assert other["landmarks"][0]["sample_mean"] != row["sample_mean"]
 
 
+@pytest.mark.slow
 def test_image_space_reproducible_across_jobs(run_cli, scene_file):
     args = (
         "montecarlo",

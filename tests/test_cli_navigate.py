@@ -17,7 +17,8 @@ def _examples():
 def test_help_examples_run_on_the_demo(run_cli, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     examples = _examples()
-    assert len(examples) >= 3 and examples[0].startswith("spctool demo --copy-to")
+    assert len(examples) >= 3 and all(ex.startswith("spctool -C demo navigate") for ex in examples)
+    assert run_cli("demo", "--copy-to", "demo").exit_code == 0  # as spctool --help's first example
     for line in examples:
         res = run_cli(*shlex.split(line)[1:])
         assert res.exit_code == 0, (line, res.stderr)

@@ -962,6 +962,7 @@ def test_alignment_kernel_sums_equal_sequential_numpy_sums_bitwise(seed, o0, o1)
     min_valid=st.sampled_from([1, 4, 25]),
     holes=st.sampled_from([0.0, 0.2, 0.6]),
 )
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None)
 def test_ncc_kernel_equals_its_bd3e756_version_bit_for_bit(seed, half, shape, origin, min_valid, holes):
     """The rewritten NCC kernel (unsigned indices, one array per prefix and box sum) keeps every sum's

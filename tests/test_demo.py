@@ -28,7 +28,16 @@ def test_demo_copy_to(run_cli, tmp_path):
     copied = sorted(p.relative_to(tmp_path / "d") for p in (tmp_path / "d").rglob("*") if p.is_file())
     assert copied == demo_files()
     r = run_cli("demo", "--copy-to", tmp_path / "d")
-    assert r.exit_code == 2 and "not empty" in r.stderr
+    assert r.exit_code == 2 and "not empty" in r.stderr and "--force" in r.stderr
+    # --force: the demo's files again, each one that was changed kept as .bak, other files untouched
+    (tmp_path / "d" / "LMRKLIST.TXT").write_text("changed\n")
+    (tmp_path / "d" / "mine.txt").write_text("mine\n")
+    r = run_cli("demo", "--copy-to", tmp_path / "d", "--force")
+    assert r.exit_code == 0, r.stderr
+    assert (tmp_path / "d" / "LMRKLIST.TXT").read_bytes() == (demo_path() / "LMRKLIST.TXT").read_bytes()
+    assert (tmp_path / "d" / "LMRKLIST.TXT.bak").read_text() == "changed\n"
+    assert (tmp_path / "d" / "mine.txt").read_text() == "mine\n"
+    assert sorted(p.name for p in (tmp_path / "d").glob("*.bak")) == ["LMRKLIST.TXT.bak"]
 
 
 def test_attitude_error_inverts_the_solver_update():
@@ -69,3 +78,24 @@ def test_picture_errors_hand_case(tmp_path):
 def test_truth_of_the_shipped_demo():
     truth = read_truth(demo_path())
     assert len(truth["pictures"]) == 4 and len(truth["landmarks"]) == 12
+
+
+def test_default_register_on_every_demo_picture_prints_no_note(run_cli):
+    """The shipped demo fits the defaults (issue 42): a plain `register` of each picture says nothing
+    on stderr and registers its landmarks (all 12, but for B02631 in P000000002A1, an edge peak of
+    the capped first step at L = 5 that --first-phases 2 or --acquire-reach 40 registers); with -v it
+    says how the defaults adapted to the demo's 49x49 maplets."""
+    root = demo_path()
+    pictures = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))
+    assert len(pictures) == 4
+    for pic in pictures:
+        r = run_cli("-C", root, "register", pic, "--json")
+        assert r.exit_code == 0, r.stderr
+        assert r.stderr == "", f"{pic}: {r.stderr}"
+        doc = json.loads(r.stdout)
+        assert doc["registered"] == (11 if pic == "P000000002A1" else 12), pic
+        assert any("spacings above L = 5 skipped" in a for a in doc["adapted"]), pic
+    verbose = run_cli("-v", "-C", root, "register", pictures[0], "-o", "-")
+    assert "spacings above L = 5 skipped, one step at 5 instead" in verbose.stderr
+    named = run_cli("-C", root, "register", pictures[0], "--schedule", "s16", "-o", "-")
+    assert "note:" in named.stderr and "--no-spacing-cap runs them as given" in named.stderr

@@ -1,15 +1,21 @@
-"""Every ``--help`` example and every README example runs, as written, in a shell (issue 16).
+"""Every ``--help`` example and every README example runs, as written, in a shell (issues 16, 42).
 
 The examples are parsed out of each command's help text (the lines after ``Example:`` /
 ``Examples:``) and out of README.md's code blocks; they are written with the names of the demo that
 ships with spctool (``spctool demo --copy-to demo``: pictures ``P000000001A1`` …, landmarks
-``B01980`` …).  Each command's examples run in order, one shell line each, in a fresh directory
-holding:
+``B01980`` …).  Every help example runs twice, one shell line each:
 
-* ``demo/`` — a copy of the demo working directory, with ``sel.txt`` and ``reg.txt`` (the README
-  session's lithos-select and register tables) inside it, since ``-C demo`` makes relative paths
-  relative to ``demo/`` (like ``git -C``);
-* ``fixtures`` — a link to the checkout's ``fixtures/`` (real mission files), read only.
+* **in printed order on one copy** (``spctool --help`` first, then each command in the order
+  ``spctool --help`` lists them), starting from a directory with no demo: the first example copies
+  it and makes ``demo/sel.txt`` and ``demo/reg.txt``, so a later example that breaks the demo for the
+  ones after it (as make-maplets appending 74 maplets to its LMRKLIST did) fails them;
+* **each on a fresh copy**, so that no example silently needs an earlier one: a directory holding
+  ``demo/`` (a copy of the demo working directory, with ``sel.txt`` and ``reg.txt``, the README
+  session's lithos-select and register tables, inside it, since ``-C demo`` makes relative paths
+  relative to ``demo/`` like ``git -C``) — or no ``demo/`` for an example that copies it there — and
+  ``fixtures``, a link to the checkout's ``fixtures/`` (real mission files), read only.  An example
+  that reads what an earlier line of the same help writes (``shape.obj``, ``world.toml``) runs after
+  those lines, listed in :data:`NEEDS` (checked to be earlier lines of the same help).
 
 ``spctool`` on the PATH is this checkout's command line.  A non-zero exit status fails the test with
 the example and its stderr; ``| jq`` filters must not print ``null``.  The only examples not
@@ -39,6 +45,20 @@ NOT_RUN = {
     "pip install -e .": "installs the package (the suite runs this checkout's spctool)",
     "pip install -e '.[test]'": "installs the package (the suite runs this checkout's spctool)",
     "pytest": "runs this test suite itself",
+}
+
+
+#: examples that read a file an earlier line of the same help writes: those lines, run first
+NEEDS = {
+    "spctool convert shape.obj SHAPE.TXT": ["spctool convert demo/SHAPEFILES/SHAPE.TXT shape.obj"],
+    "spctool convert --flip-rows P1.fits upside_down.png": [
+        "spctool convert --sum demo/SUMFILES/P000000001A1.SUM demo/IMAGEFILES/P000000001A1.DAT P1.fits"
+    ],
+    "spctool simulate world.toml WORLD": ["spctool simulate --example > world.toml"],
+    "spctool -C WORLD lithos-select P000000001A1": [
+        "spctool simulate --example > world.toml",
+        "spctool simulate world.toml WORLD",
+    ],
 }
 
 
@@ -189,19 +209,60 @@ def test_not_run_examples_still_exist():
     assert not stale, stale
 
 
-@pytest.mark.parametrize("command", [None, *_commands()], ids=lambda c: c or "spctool")
-def test_help_examples_run(command, base, tmp_path):
-    examples = help_examples(_command_help(command))
-    # examples that make their own copy of the demo start without one
-    work = _fresh(base, tmp_path, with_demo=not any("--copy-to demo" in ex for ex in examples))
+def _all_examples() -> list[tuple[str, int, str]]:
+    """(command or '', index in its help, example) of every help example, in printed order."""
+    return [
+        (name or "", k, ex)
+        for name in [None, *_commands()]
+        for k, ex in enumerate(help_examples(_command_help(name)))
+    ]
+
+
+def _slow_example(ex: str) -> bool:
+    """Examples of a minute or more: the s16-50m Monte Carlo scene, the example world of simulate."""
+    return "--preset s16-50m" in ex or ex in NEEDS and "spctool simulate world.toml WORLD" in [ex, *NEEDS[ex]]
+
+
+def test_needs_are_earlier_lines_of_the_same_help():
+    examples = _all_examples()
+    for ex, needed in NEEDS.items():
+        where = [(c, k) for c, k, e in examples if e == ex]
+        assert where, f"NEEDS names an example that is no more: {ex}"
+        for c, k in where:
+            earlier = [e for c2, k2, e in examples if c2 == c and k2 < k]
+            assert all(n in earlier for n in needed), (ex, needed)
+
+
+@pytest.mark.slow
+def test_every_example_in_printed_order_on_one_copy(base, tmp_path):
+    """All help examples, in the order printed, in one directory that starts without the demo."""
+    work = _fresh(base, tmp_path, with_demo=False)
     env = _env(base)
     ran = 0
-    for ex in examples:
+    for command, _, ex in _all_examples():
         if ex in NOT_RUN:
             continue
-        _run(ex, work, env, f"'spctool {command or ''} --help' example")
+        _run(ex, work, env, f"'spctool {command} --help' example (in printed order, on one copy)")
         ran += 1
-    assert ran or not examples
+    assert ran >= 50
+
+
+@pytest.mark.parametrize(
+    "command,index,example",
+    [
+        pytest.param(
+            *e, id=f"{e[0] or 'spctool'}-{e[1]}", marks=[pytest.mark.slow] if _slow_example(e[2]) else []
+        )
+        for e in _all_examples()
+        if e[2] not in NOT_RUN
+    ],
+)
+def test_each_example_on_a_fresh_copy(command, index, example, base, tmp_path):
+    work = _fresh(base, tmp_path, with_demo="--copy-to demo" not in example)
+    env = _env(base)
+    for needed in NEEDS.get(example, []):
+        _run(needed, work, env, f"'spctool {command} --help' example needed by {example!r}")
+    _run(example, work, env, f"'spctool {command} --help' example {index} (alone, on a fresh copy)")
 
 
 def test_readme_examples_run(base, tmp_path):

@@ -268,7 +268,7 @@ def test_correlate_panel_peak_sits_at_the_table_offset(request, tmp_path):
     assert res.exit_code == 0, res.output
     t = LandmarkTable.parse_text(res.stdout)
     assert t["status"] == ["ok"]
-    geo, px = _geometry(tmp_path / "p" / f"{LMK}_{PIC}_panel.png")
+    geo, px = _geometry(tmp_path / "p" / f"{LMK}_{PIC}_correlate-panel.png")
     assert px.shape[1] > 600 and px.shape[0] > 250 and px.std() > 5
     # offset_x runs along UX = surface rows, offset_y along UY = columns, in cells; grid index = K + offset/n
     k = 5
@@ -294,6 +294,14 @@ def test_register_panels_and_solve_pose_plot(request, tmp_path):
     assert res.exit_code == 0, res.output
     geo, px = _geometry(out)
     assert px.shape[1] > sc.camera.npx and px.std() > 5 and geo["magnify"] >= 1
+    # one reference vector per magnification, drawn at that magnification in its set's colour
+    for when, mag, colour in (
+        ("before", geo["magnify"], figures.BEFORE),
+        ("after", geo["magnify_after"], figures.AFTER),
+    ):
+        ref, length, x, y = geo[f"reference_{when}"]
+        assert length == pytest.approx(ref * mag * geo["zoom"]) and 10 <= length <= 330
+        assert _near(px, (x + length / 2, y), colour)
 
 
 def test_predict_and_extract_sheets(request, tmp_path):

@@ -30,7 +30,8 @@ pytest.importorskip("trimesh")
 from spctool.geometry.shape import embree_available  # noqa: E402
 from spctool.sim.independent import load_picture  # noqa: E402
 
-pytestmark = pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+# the worlds take a minute or two to ray-trace: slow (CI runs them, tests/conftest.py)
+pytestmark = [pytest.mark.skipif(not embree_available(), reason="embreex not installed"), pytest.mark.slow]
 
 ISSUE_TWO_PASS_RMS, ISSUE_ONE_PASS_RMS, ISSUE_MAX = 0.03, 0.05, 0.1
 

@@ -268,6 +268,7 @@ def _cfg(**kw):
     return mc.MonteCarloConfig(space=space, plan=plan, **kw)
 
 
+@pytest.mark.slow
 def test_run_is_reproducible_whatever_jobs_and_chunks(scene):
     cfg = _cfg(samples=4, seed=11, sigma_scale=0.2)
     one = mc.run(scene, cfg, jobs=1)
@@ -284,6 +285,7 @@ def test_run_is_reproducible_whatever_jobs_and_chunks(scene):
     assert not _same(other.apriori, one.apriori)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["fork", "spawn"])
 def test_workers_started_either_way_give_the_same_samples(scene, monkeypatch, method):
     if method not in mp.get_all_start_methods():

@@ -118,3 +118,63 @@ def test_compile_bytecode_writes_what_is_stale_and_says_what_it_could_not(tmp_pa
     monkeypatch.setattr(compileall, "compile_file", lambda *a, **k: False)  # e.g. a read-only install
     done, note = jit.compile_bytecode(pkg)
     assert done == 0 and note.startswith("3 module(s) under ") and str(pkg) in note
+
+
+def test_compile_progress_shows_what_compiles_while_it_compiles(monkeypatch):
+    """On a terminal the compilation is never silent: the status names the kernel compiling now (the
+    innermost of spctool's), counts those done, and is cleared when the compilation ends."""
+    import time
+    import types
+
+    from numba.core import event
+
+    def compiling(module, name):
+        k = types.SimpleNamespace(py_func=types.SimpleNamespace(__module__=module, __name__=name))
+        return event.trigger_event("numba:compile", data={"dispatcher": k})
+
+    shown = []
+    cp = jit.CompileProgress(Context(), note="", live=True)
+    monkeypatch.setattr(cp, "_show", shown.append)
+    disarm = cp.arm()
+    try:
+        with compiling("spctool.stages.correlate", "_k_ncc"):
+            with compiling("numba.misc.quicksort", "run"):
+                time.sleep(0.65)
+            with compiling("spctool.geometry._raykernels", "trace"):
+                time.sleep(0.6)
+    finally:
+        disarm()
+    texts = [t for t in shown if t]
+    assert any("0 done, now correlate._k_ncc" in t for t in texts)  # numba's own kernels are not named
+    assert any("now raykernels.trace" in t for t in texts)
+    assert shown[-1] is None  # cleared at the end
+    assert cp.done == {"correlate._k_ncc", "raykernels.trace"} and cp.depth == 0
+
+
+def test_a_first_interactive_demo_compiles_registration_in_a_helper(monkeypatch):
+    """demo and navigate trace rays first: on a terminal, with both families cold and two cores, a
+    second process compiles register's kernels meanwhile; never off a terminal, for other commands,
+    or with SPCTOOL_NO_HELPER=1; the helper is ended with the command."""
+    assert jit.start_helper("demo", ["camera", "maplet", "rays"], interactive=False) is None
+    assert jit.start_helper("register", ["camera", "maplet", "rays"], interactive=True) is None
+    assert jit.start_helper("demo", ["camera", "rays"], interactive=True) is None
+    monkeypatch.setenv("SPCTOOL_NO_HELPER", "1")
+    assert jit.start_helper("navigate", ["maplet", "rays"], interactive=True) is None
+    monkeypatch.delenv("SPCTOOL_NO_HELPER")
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    helper = jit.start_helper("demo", ["camera", "maplet", "rays"], interactive=True)
+    assert helper is not None and helper.args[0]
+    jit.stop_helper(helper)
+    assert helper.poll() is not None
+
+
+def test_the_helper_s_work_registers_demo_landmarks(tmp_path, monkeypatch):
+    """What the helper runs: register of three demo landmarks in a temporary copy (quiet, no files
+    left behind; here the kernels are cached already, so it only loads them)."""
+    import os
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    cwd = os.getcwd()
+    assert jit.precompile_registration(cli) is True
+    assert os.getcwd() == cwd and list(tmp_path.iterdir()) == []

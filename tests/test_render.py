@@ -441,6 +441,7 @@ def test_facet_shading_is_per_triangle_lambert():
     assert np.max(np.abs(smooth.radiance.ravel()[inner] - want[inner])) > 0.05
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("angle", [0.0, 20.0, 45.0, 90.0, 135.0, 200.0, 260.0, 315.0, 333.0])
 def test_upwind_max_bounds_every_cell_a_ray_passes(angle):
     """_upwind_max (the shadow march's early end) is a true bound: rays from random points of a cell,

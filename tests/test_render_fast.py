@@ -122,6 +122,7 @@ def _lit_case(seed, n=24, azimuth=None, el=None, rough=None, holes=None, m=4000,
     return lit, np.isfinite(t)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(16))
 def test_lit_from_never_declares_a_blocked_ray_lit(seed):
     """Shadow rays from random points just above random terrains: wherever lit_from says "lit", the exact

@@ -435,6 +435,7 @@ def test_raster_small_patches_chunks_and_fine_supersampling(q, ss, chunk):
     assert_same_rendering(got, ref)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(3))
 def test_a_hinted_cell_never_moves_a_hit_at_nodes_edges_and_grid_lines(seed):
     """Rays aimed at the grid's nodes and edges (and along its lines, du = 0), each hinted with the cell

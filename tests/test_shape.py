@@ -716,6 +716,7 @@ def test_triangulated_icq_agrees_with_patches_inside_cells():
     assert np.all(np.abs(a.point[~in_cell]).max(axis=1) <= 0.5 * (1 + 2 * SPC_PATCH_EPS / 4) + 1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not embree_available(), reason="embreex not installed")
 def test_embree_agrees_with_numba_on_bennu49k():
     v, f = read_obj(BENNU_49K)

@@ -207,6 +207,7 @@ def test_maplets_are_the_smoothed_truth(small):
         np.testing.assert_allclose(m.heights, nodes / k, atol=0.51 * hscale + 1e-9)
 
 
+@pytest.mark.slow
 def test_reproducible_bit_for_bit(small, tmp_path):
     spec_path, res = small
     again = simulate(spec_path, tmp_path / "again")

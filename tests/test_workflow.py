@@ -42,8 +42,9 @@ def test_readme_session_registers_every_demo_landmark(session):
     assert reg.exit_code == 0, reg.stderr
     t = LandmarkTable.parse_text(reg.stdout)
     assert len(t) == 12 and t["status"] == ["ok"] * 12
-    # the 49x49 maplets cannot take S16's L = 10: the schedule is capped and a note says so
-    assert "spacings above L = 5 skipped" in reg.stderr and "49x49" in reg.stderr
+    # the 49x49 maplets cannot take S16's L = 10: the default schedule is fitted to them, silently
+    # (said with -v; tests/test_demo.py), so a newcomer's first register prints no note
+    assert "note:" not in reg.stderr and "spacings above" not in reg.stderr
     pose = run(
         "-C", demo, "solve-pose", PIC1, "--measurements", root / "reg.txt", "--output", root / "new.SUM"
     )

@@ -150,10 +150,11 @@ def _write_image(
             np.asarray(image, dtype=np.float64),
             fmt="fits",
             header=_fits_header(row, stage, maplet, popts, eopts, thresholds),
+            backup=True,  # an image already there is kept as .bak
         )
     else:
         k = int(zoom)
-        write_photo(path, np.repeat(np.repeat(_to_8bit(image), k, axis=0), k, axis=1), fmt=fmt)
+        write_photo(path, np.repeat(np.repeat(_to_8bit(image), k, axis=0), k, axis=1), fmt=fmt, backup=True)
     return path
 
 
@@ -311,7 +312,7 @@ def _run(ctx: Context, stage: str, kw: dict):
                 cast.append(name)
             advance()
     if cast:
-        ctx.note_once(cast_shadow_note(cast, thresholds[0]))
+        ctx.info(cast_shadow_note(cast, thresholds[0]))  # the default adapting to the photo: -v
 
     columns = [
         "name",
@@ -355,7 +356,12 @@ def _run(ctx: Context, stage: str, kw: dict):
         from spctool import figures
 
         title = f"{pic.name}  {stage} maplet images ({len(tiles)}), North up"
-        figures.contact_sheet(tiles, title=title).save(kw["sheet"])
+        dark = "not lit" if stage == "predicted" else "no data (off the photo, or below THRSH T1)"
+        key = (
+            "caption: landmark, rho = correlation of prediction and extraction at zero offset "
+            f"(1: identical up to brightness), status; dark red: {dark}"
+        )
+        figures.contact_sheet(tiles, title=title, key=key).save(kw["sheet"])
         ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
 

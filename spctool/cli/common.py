@@ -86,6 +86,11 @@ def emit_table(table, *, as_json: bool, output: str | None = None) -> None:
     emit(table.to_json() if as_json else table.to_text(), output)
 
 
+#: the ``status(text)`` functions of the progress bars on screen, innermost last (what the first-use
+#: kernel compilation writes into: :mod:`spctool.cli.jit`)
+ACTIVE_BARS: list = []
+
+
 @contextmanager
 def progress(ctx: Context, description: str, total: int | None, *, threaded: bool = True):
     """A rich progress bar on a TTY; silent otherwise (and with -q).  Yields
@@ -110,15 +115,26 @@ def progress(ctx: Context, description: str, total: int | None, *, threaded: boo
         console=Console(stderr=True),  # stdout may be a pipe or file carrying the table
     ) as bar:
         task = bar.add_task(description, total=total)
+        shown = {"description": description}
 
         def advance(n=1, description=None):
             if description is not None:
+                shown["description"] = description
                 bar.update(task, description=description)
             bar.advance(task, n)
             if not threaded:
                 bar.refresh()
 
-        yield advance
+        def status(text: str | None) -> None:
+            """A second part of the bar's text (None: none), e.g. the kernels being compiled."""
+            bar.update(task, description=shown["description"] + (f" [dim]· {text}" if text else ""))
+            bar.refresh()
+
+        ACTIVE_BARS.append(status)
+        try:
+            yield advance
+        finally:
+            ACTIVE_BARS.remove(status)
 
 
 def resolve_landmarks(ctx: Context, specs=(), table: str | None = None) -> list:

@@ -2,11 +2,12 @@
 
 spctool's hot loops are numba kernels compiled on their first call and cached on disk (next to the
 module, or in ``NUMBA_CACHE_DIR``).  On a fresh install the first command that needs them spends
-20–30 s compiling with nothing else to show, so :func:`first_run_note` checks, before a command runs,
+about half a minute compiling, so :func:`first_run_note` checks, before a command runs,
 whether the kernels that command uses have a cached index file (numba's own cache locator says where)
 and, when one is missing, arms one note on stderr that is printed when numba really starts compiling
 (its ``numba:compile`` event).  A command that refuses its input before any kernel runs therefore
-prints its one error line and nothing else.  ``spctool warmup`` compiles every kernel the
+prints its one error line and nothing else; on a terminal :class:`CompileProgress` then shows, every
+half second, which kernel compiles and how many are done.  ``spctool warmup`` compiles every kernel the
 commands use by running the shipped demo through lithos-select, register (maplet and image space),
 solve-pose, a small render and make-maplets, so that later commands start at once.
 """
@@ -49,10 +50,12 @@ COMMAND_FAMILIES = {
     "simulate": ("camera", "rays", "render"),
     "make-maplets": ("rays",),
     "demo": _PIPELINE,
+    "navigate": _PIPELINE,
     "batch": _PIPELINE,
     "montecarlo": ("camera", "maplet", "render"),
 }
-#: what the README quotes: a cold `spctool demo` compiles for about this long on one core
+#: a cold `spctool demo` compiles for about this long on one core (27 s of CPU measured at load 4,
+#: docs/benchmarks.md)
 COMPILE_SECONDS = "30 s"
 
 
@@ -112,10 +115,155 @@ def compile_bytecode(package: Path | None = None) -> tuple[int, str]:
     return done, note
 
 
+class CompileProgress:
+    """Shows numba compiling, while it does: on a terminal, a status (in the command's progress bar when
+    one is on screen, else a line of its own) refreshed every half second with the kernels compiled so
+    far, the one compiling now and the seconds spent, so that no stretch of compilation is silent;
+    ``note`` (if any) is printed once, on stderr, at the first compilation (also when not a terminal).
+
+    Only the process that armed it reports (a forked worker compiles silently), and its refresh thread
+    runs only while a kernel compiles (a command forks its workers between compilations)."""
+
+    def __init__(self, ctx: Context, note: str = "", live: bool | None = None):
+        import os
+        import threading
+
+        self.ctx = ctx
+        self.note = note
+        self.live = (sys.stderr.isatty() and ctx.verbosity >= 0) if live is None else live
+        self.pid = os.getpid()
+        self.depth = 0
+        self.done: set = set()
+        self.stack: list = []  # the kernels compiling now, outermost first
+        self.spent = 0.0  # seconds of finished compilation
+        self.started = None  # perf_counter of the compilation under way
+        self._stop = threading.Event()
+        self._thread = None
+        self._lock = threading.Lock()
+        self._listener = None
+
+    # the numba event listener ------------------------------------------------------------------
+    def _on_start(self, event) -> None:
+        import os
+
+        if os.getpid() != self.pid:
+            return
+        name = _kernel_name((event.data or {}).get("dispatcher"))
+        with self._lock:
+            self.depth += 1
+            if self.depth == 1:
+                self.started = time.perf_counter()
+                if self.note:
+                    self.ctx.note_once(self.note)
+                if self.live:
+                    self._start_thread()
+            self.stack.append(name)
+
+    def _on_end(self, event) -> None:
+        import os
+
+        if os.getpid() != self.pid:
+            return
+        name = _kernel_name((event.data or {}).get("dispatcher"))
+        stop = False
+        with self._lock:
+            self.depth = max(0, self.depth - 1)
+            if self.stack:
+                self.stack.pop()
+            if name:
+                self.done.add(name)
+            if self.depth == 0 and self.started is not None:
+                self.spent += time.perf_counter() - self.started
+                self.started = None
+                stop = True
+        if stop:
+            self._stop_thread()
+
+    # the display ---------------------------------------------------------------------------------
+    def text(self) -> str:
+        elapsed = self.spent + (time.perf_counter() - self.started if self.started is not None else 0.0)
+        current = next((n for n in reversed(self.stack) if n), "")
+        now = f", now {current}" if self.started is not None and current else ""
+        return f"compiling kernels (once): {len(self.done)} done{now}, {elapsed:.0f} s"
+
+    def _show(self, text: str | None) -> None:
+        from spctool.cli.common import ACTIVE_BARS
+
+        if ACTIVE_BARS:
+            ACTIVE_BARS[-1](text)
+        elif text:
+            sys.stderr.write("\r\x1b[Kspctool: " + text[: max(20, _columns() - 10)])
+            sys.stderr.flush()
+        else:
+            sys.stderr.write("\r\x1b[K")
+            sys.stderr.flush()
+
+    def _start_thread(self) -> None:
+        import threading
+
+        self._stop.clear()
+
+        def tick():
+            while not self._stop.wait(0.5):
+                self._show(self.text())
+
+        self._thread = threading.Thread(target=tick, name="spctool-compile-progress", daemon=True)
+        self._thread.start()
+
+    def _stop_thread(self) -> None:
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self._stop.set()
+            thread.join()
+            self._show(None)
+
+    # arm / disarm --------------------------------------------------------------------------------
+    def arm(self):
+        """Listen to numba's compilations; returns the function that stops listening."""
+        from numba.core import event as numba_event
+
+        owner = self
+
+        class Listener(numba_event.Listener):
+            def on_start(self, event) -> None:
+                owner._on_start(event)
+
+            def on_end(self, event) -> None:
+                owner._on_end(event)
+
+        self._listener = Listener()
+        numba_event.register("numba:compile", self._listener)
+
+        def disarm() -> None:
+            try:
+                numba_event.unregister("numba:compile", self._listener)
+            except ValueError:  # already gone
+                pass
+            self._stop_thread()
+
+        return disarm
+
+
+def _kernel_name(dispatcher) -> str:
+    """'module.function' of one of spctool's kernels, short ('correlate._k_ncc'); '' for numba's own."""
+    func = getattr(dispatcher, "py_func", None)
+    module = getattr(func, "__module__", "") or ""
+    if not module.startswith("spctool."):
+        return ""
+    return f"{module.rsplit('.', 1)[-1].lstrip('_')}.{func.__name__}"
+
+
+def _columns() -> int:
+    import shutil
+
+    return shutil.get_terminal_size((80, 20)).columns
+
+
 def first_run_note(ctx: Context, command: str | None, args=None):
-    """Arm one stderr note (silenced by -q), printed when ``command`` starts compiling kernels it
-    has no cache for.  Returns the function that disarms it (call it when the command ends), or None
-    when nothing was armed."""
+    """Arm, for a command whose kernels are not all in numba's cache, one stderr note (silenced by -q)
+    printed when it really starts compiling, and the live :class:`CompileProgress` on a terminal.
+    Returns the function that disarms them (call it when the command ends), or None when nothing was
+    armed."""
     args = sys.argv[1:] if args is None else args
     if not command or command not in COMMAND_FAMILIES or ctx.verbosity < 0:
         return None
@@ -124,32 +272,85 @@ def first_run_note(ctx: Context, command: str | None, args=None):
     cold = cold_families(COMMAND_FAMILIES[command])
     if not cold:
         return None
-    from numba.core import event as numba_event  # numba only for commands with cold kernels
-
-    class NoteOnCompile(numba_event.Listener):
-        """Prints the note at the first ``numba:compile`` start (a cache miss), then stays quiet."""
-
-        def on_start(self, event) -> None:
-            ctx.note_once(message)  # once: note_once remembers it
-
-        def on_end(self, event) -> None:
-            pass
-
     message = (
         f"compiling spctool's numba kernels ({', '.join(cold)}) on first use: this run spends a few "
         f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
         "'spctool warmup' compiles them all now)"
     )
-    listener = NoteOnCompile()
-    numba_event.register("numba:compile", listener)
+    disarm = CompileProgress(ctx, message).arm()
+    helper = start_helper(command, cold)
+    if helper is None:
+        return disarm
 
-    def disarm() -> None:
+    def disarm_both() -> None:
+        disarm()
+        stop_helper(helper)
+
+    return disarm_both
+
+
+#: commands that trace rays first (lithos-select's occlusion) and register after, in one process: on a
+#: first run a second process compiles the registration kernels meanwhile
+HELPED = ("demo", "navigate")
+
+
+def start_helper(command: str, cold, *, interactive: bool | None = None):
+    """On a terminal, for a :data:`HELPED` command whose ray and registration kernels are both cold and
+    a machine of two cores or more, start a second Python process that compiles the registration
+    kernels (register of three demo landmarks, :func:`precompile_registration`) while this one traces
+    rays: numba's cache is shared by the two (its files are written whole and renamed), so this
+    process later loads what the other compiled.  Returns the process, or None."""
+    import os
+    import subprocess
+
+    interactive = sys.stderr.isatty() if interactive is None else interactive
+    if command not in HELPED or not {"rays", "maplet"} <= set(cold) or not interactive:
+        return None
+    if (os.cpu_count() or 1) < 2 or os.environ.get("SPCTOOL_NO_HELPER") == "1":
+        return None
+    code = (
+        "from spctool.cli.main import cli; from spctool.cli.jit import precompile_registration; "
+        "precompile_registration(cli)"
+    )
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-c", code],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    except OSError:  # no helper: this process compiles everything itself, as before
+        return None
+
+
+def stop_helper(helper) -> None:
+    """End the helper if it still runs (the command is over; what it compiled so far is cached)."""
+    if helper.poll() is None:
+        helper.terminate()
         try:
-            numba_event.unregister("numba:compile", listener)
-        except ValueError:  # already gone
-            pass
+            helper.wait(timeout=5)
+        except Exception:
+            helper.kill()
 
-    return disarm
+
+def precompile_registration(cli) -> bool:
+    """Compile and cache register's kernels (maplet space): ``cli`` (the ``spctool`` group, passed in:
+    this module is below it) registers three landmarks of the shipped demo in a temporary copy; True
+    when that register ran to its end (exit code 0)."""
+    import os
+
+    from spctool.sim.demo import copy_demo
+
+    with tempfile.TemporaryDirectory(prefix="spctool-precompile-") as tmp:
+        root = copy_demo(Path(tmp) / "demo")
+        pic = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))[0]
+        names = sorted(p.stem for p in (root / "LMKFILES").glob("*.LMK"))[:3]
+        args = ["-q", "-C", str(root), "register", pic, *names, "-o", os.devnull]
+        try:
+            rv = cli.main(args=args, prog_name="spctool", standalone_mode=False)
+        except SystemExit as exc:
+            rv = exc.code
+        return rv in (0, None)
 
 
 @click.command("warmup")
@@ -158,12 +359,13 @@ def warmup_cmd(ctx: Context):
     """Compile and cache every numba kernel now, so that later commands start at once.
 
     spctool's inner loops are compiled on their first use and cached on disk (next to the installed
-    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends 20-30 s
-    compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
+    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends about
+    half a minute compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
     install under PYTHONDONTWRITEBYTECODE otherwise compiles them from source in every command, about
     0.2 s), then runs the shipped demo working directory through lithos-select, register in
     maplet and in image space, solve-pose, a render of a small window and make-maplets, all in a
-    temporary directory, and prints one line per step with its time.  Run it once after installing
+    temporary directory, and prints one line per step with its time (on a terminal, while a step
+    compiles, which kernel compiles and how many are done).  Run it once after installing
     (or after upgrading spctool or numba).  Exit code 0, or 1 when a step failed.
 
     Example:
@@ -177,6 +379,9 @@ def warmup_cmd(ctx: Context):
 
     before = cold_families(FAMILIES)
     passed = []  # one bool per step
+    disarm = CompileProgress(ctx).arm()  # on a terminal: what compiles now, live
+    ctx_close = click.get_current_context().call_on_close
+    ctx_close(disarm)
     with tempfile.TemporaryDirectory(prefix="spctool-warmup-") as tmp:
         root = copy_demo(Path(tmp) / "demo")
         pic = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))[0]

@@ -75,7 +75,14 @@ class SpcGroup(click.Group):
             if debug:
                 traceback.print_exc()
             hint = ""
-            if isinstance(exc, click.UsageError) and exc.ctx is not None:
+            misplaced = isinstance(exc, click.NoSuchOption) and exc.option_name in GLOBAL_OPTIONS
+            if misplaced and exc.ctx is not None:
+                rest = exc.ctx.command_path.split(" ", 1)[-1]
+                hint = (
+                    f" ({exc.option_name} is a global option: put it before the command, "
+                    f"'spctool {exc.option_name} {rest} ...')"
+                )
+            elif isinstance(exc, click.UsageError) and exc.ctx is not None:
                 hint = f" (see '{exc.ctx.command_path} --help')"
             click.echo(f"spctool: error: {_one_line(exc.format_message())}{hint}", err=True)
             sys.exit(exc.exit_code)
@@ -123,6 +130,10 @@ class _ClosedStdout(io.TextIOBase):
 
     def isatty(self) -> bool:
         return False
+
+
+#: the group's own options: given after a subcommand, they get a hint instead of a bare "no such option"
+GLOBAL_OPTIONS = ("-C", "--settings", "-v", "--verbose", "-q", "--quiet", "--debug", "--spc-columns")
 
 
 def _first_command_index(group, args):

@@ -120,7 +120,6 @@ def navigate_cmd(ctx: Context, **kw):
     Example:
 
     \b
-      spctool demo --copy-to demo
       spctool -C demo navigate P000000001A1
       spctool -C demo navigate P000000001A1 --json -o nav.json --output new.SUM
       spctool -C demo navigate P000000002A1 --single-pass --space image

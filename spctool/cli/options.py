@@ -545,6 +545,7 @@ panels_option = click.option(
     type=click.Path(file_okay=False),
     default=None,
     metavar="DIR",
-    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark: predicted | extracted (image space: "
-    "template | photo window) | correlation surface with the sub-pixel peak, enlarged, with the figures.",
+    help="Write DIR/LANDMARK_PICTURE_panel.png per landmark (correlate: ..._correlate-panel.png): "
+    "predicted | extracted (image space: template | photo window) | correlation surface with the "
+    "sub-pixel peak, enlarged, with the figures. A different picture already there is kept as .bak.",
 )

@@ -262,10 +262,11 @@ def _write_surface(out_dir: Path, fmt: str, name: str, picture: str, step, space
         for k, v in (("OFFSET0", corr.offset[0]), ("OFFSET1", corr.offset[1])):
             if math.isfinite(float(v)):
                 hdr[k] = (float(v), "offset along array axis 0/1, full-resolution cells or px")
-        write_photo(path, np.asarray(corr.surface, dtype=np.float64), fmt="fits", header=hdr)
+        write_photo(path, np.asarray(corr.surface, dtype=np.float64), fmt="fits", header=hdr, backup=True)
     else:
         k = int(zoom)
-        write_photo(path, np.repeat(np.repeat(surface_to_8bit(corr.surface), k, axis=0), k, axis=1), fmt=fmt)
+        image = np.repeat(np.repeat(surface_to_8bit(corr.surface), k, axis=0), k, axis=1)
+        write_photo(path, image, fmt=fmt, backup=True)
     return path
 
 
@@ -304,8 +305,9 @@ def write_panels(out_dir: Path, inp, result, opts) -> int:
     return written
 
 
-def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
-    """DIR/LANDMARK_PICTURE_panel.png of landmark ``i``'s correlation step ``st``
+def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift, suffix: str = "panel"):
+    """DIR/LANDMARK_PICTURE_SUFFIX.png of landmark ``i``'s correlation step ``st`` (``correlate``'s
+    suffix is its own, so that its panels never replace those of ``register`` in the same folder)
     (:func:`spctool.figures.landmark_panel`): predicted | extracted | surface (maplet space; the
     prediction is redrawn with ``camera``), or template | photo window at the template's placement |
     surface (image space).  ``shift``: the (dsample, dline) reported for the landmark."""
@@ -361,8 +363,8 @@ def write_panel(out_dir: Path, inp, i, st, camera, opts, status, shift):
         )
     else:
         return None
-    path = out_dir / f"{name}_{inp.pic.name}_panel.png"
-    fig.save(path)
+    path = out_dir / f"{name}_{inp.pic.name}_{suffix}.png"
+    fig.save(path)  # a different picture already there is kept as .bak
     return path
 
 
@@ -524,7 +526,9 @@ def correlate_cmd(ctx: Context, **kw):
                 written += 1
             if kw["panels"]:
                 Path(kw["panels"]).mkdir(parents=True, exist_ok=True)
-                write_panel(Path(kw["panels"]), inp, i, st, inp.camera, opts, st.status, shift)
+                write_panel(
+                    Path(kw["panels"]), inp, i, st, inp.camera, opts, st.status, shift, "correlate-panel"
+                )
             if kw["sheet"]:
                 from spctool.figures import surface_tile
 
@@ -557,9 +561,27 @@ def correlate_cmd(ctx: Context, **kw):
         title = (
             f"{inp.pic.name}  correlation surfaces, spacing {kw['spacing']} (viridis per tile; red = peak)"
         )
-        contact_sheet(tiles, title=title).save(kw["sheet"])
+        key = (
+            "caption: landmark, rho = the surface's peak correlation (1: identical up to brightness), "
+            "status"
+        )
+        contact_sheet(tiles, title=title, key=key).save(kw["sheet"])
         ctx.info(f"wrote {kw['sheet']}")
     emit_table(table, as_json=kw["as_json"], output=kw["output"])
+
+
+def _say_adapted(ctx, adapted) -> None:
+    """What the run adapted to the data by design (:attr:`RegisterResult.adapted`): said with -v, since
+    nothing needs doing; a schedule the user named that had to be shortened is a note with the way out."""
+    named = any(
+        click.get_current_context().get_parameter_source(p) is click.core.ParameterSource.COMMANDLINE
+        for p in ("schedule", "steps")
+    )
+    for kind, text in adapted:
+        if kind == "spacing-cap" and named:
+            ctx.note_once(f"{text}; --no-spacing-cap runs them as given")
+        else:
+            ctx.info(text)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -714,10 +736,10 @@ def register_cmd(ctx: Context, **kw):
     the correlation surface keeps up to 0.05 px of bias) and moves by secant steps.  A schedule is fitted to
     each maplet: a step at spacing L searches +-K*L cells and works only while K*L <= Q + 1, Q the
     maplet's half-width (Shoemaker et al. 2016: L = 10 for 99x99 maplets; a 49x49 maplet: L <= 5), so
-    coarser steps are replaced by one step at the largest L that fits, with a note on stderr
-    (--no-spacing-cap runs them as given).  --space image correlates the maplet rendered into the
-    photo (with cast shadows) against the photo itself, so the search is not limited by the maplet's
-    extent (as in the Retina system, Wright et al. 2016).
+    coarser steps are replaced by one step at the largest L that fits (said with -v, or in a note when
+    you named --schedule or --steps; --no-spacing-cap runs them as given).  --space image correlates
+    the maplet rendered into the photo (with cast shadows) against the photo itself, so the search is
+    not limited by the maplet's extent (as in the Retina system, Wright et al. 2016).
 
     Columns: name, sample and line (the measured pixel when ok, else the a-priori pixel),
     apriori_sample, apriori_line, dsample and dline (measured minus a-priori), correlation (last
@@ -781,6 +803,7 @@ def register_cmd(ctx: Context, **kw):
         result = inp.run(run_register, opts, adv)
     for w in result.warnings:
         ctx.note_once(w)
+    _say_adapted(ctx, result.adapted)
 
     out_dir = Path(kw["out_dir"]) if kw["out_dir"] else None
     written = 0
@@ -800,6 +823,7 @@ def register_cmd(ctx: Context, **kw):
         "passes": result.passes,
         "options": opts.as_dict(),
         "warnings": list(result.warnings),
+        "adapted": [text for _, text in result.adapted],
     }
     if result.pose is not None:
         meta["pose"] = result.pose.pose_dict()

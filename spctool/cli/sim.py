@@ -264,12 +264,15 @@ def make_maplets_cmd(
     scale_km (cell size), qsz (half-size, cells), valid_fraction (nodes that met the shape), hmin
     and hmax (lowest and highest height, cells), status.
 
-    Example:
+    The examples run on copies of the demo: they add or replace maplets (made from the shape, so
+    coarser than the demo's own), which changes every later registration in that directory.
+
+    Examples:
 
     \b
-      spctool -C demo make-maplets --tile 0.1 --scale 0.0005 --qsz 24
-      spctool -C demo make-maplets --at AA0001 0.21 0.05 0.10 --scale 0.001 --qsz 49
-      spctool -C demo make-maplets B01980 B02176 --keep-frame --overwrite
+      spctool demo --copy-to tiles && spctool -C tiles make-maplets --tile 0.1 --scale 0.0005 --qsz 24
+      spctool demo --copy-to at && spctool -C at make-maplets --at AA0001 0.21 0.05 0.1 --scale 0.001 --qsz 49
+      spctool demo --copy-to framed && spctool -C framed make-maplets B01980 B02176 --keep-frame --overwrite
     """
     from spctool.formats.landmark import read_lmk, write_lmk
     from spctool.formats.lists import LandmarkList, read_lmrklist, write_lmrklist
@@ -519,6 +522,12 @@ def render_cmd(
     help="Copy the demo working directory to DIR (to play with) and stop.",
 )
 @click.option(
+    "--force",
+    is_flag=True,
+    help="With --copy-to: copy into a DIR that is not empty; each demo file already there that differs "
+    "is kept as FILE.bak, other files are left alone.",
+)
+@click.option(
     "--workdir",
     "workdir",
     metavar="DIR",
@@ -540,7 +549,7 @@ def render_cmd(
 @options.json_option
 @options.output_option
 @pass_context
-def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as_json, output):
+def demo_cmd(ctx: Context, copy_to, force, workdir, space, schedule, sigma_px, keep, as_json, output):
     """Run lithos-select -> register -> solve-pose on the shipped demo and print errors against truth.
 
     The demo is a small simulated SPC working directory installed with spctool (twelve maplets,
@@ -569,6 +578,7 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
       spctool demo
       spctool demo --space image --json
       spctool demo --copy-to mydemo && spctool -C mydemo lithos-select P000000001A1
+      spctool demo --copy-to mydemo --force  # a fresh demo over an old copy (replaced files: .bak)
     """
     import tempfile
 
@@ -578,9 +588,17 @@ def demo_cmd(ctx: Context, copy_to, workdir, space, schedule, sigma_px, keep, as
     from spctool.stages.register import RegisterOptions
 
     if copy_to:
-        dest = copy_demo(copy_to)
+        dest = Path(copy_to)
+        if dest.is_dir() and any(dest.iterdir()) and not force:
+            raise SpcUsageError(
+                f"--copy-to {copy_to}: directory is not empty (--force copies the demo into it, keeping "
+                "each file it replaces as FILE.bak; or name a new directory)"
+            )
+        copy_demo(dest, overwrite=force)
         click.echo(f"demo working directory copied to {dest}")
         return
+    if force:
+        raise SpcUsageError("--force goes with --copy-to DIR")
     root = Path(workdir) if workdir else demo_path()
     truth = read_truth(root)
     from spctool.stages.pose import PoseOptions

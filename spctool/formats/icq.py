@@ -677,5 +677,5 @@ def _check_seams(q: int, vertices: np.ndarray, albedo: np.ndarray | None, path) 
         raise ValueError(
             f"{path or 'ICQ shape'}: {int(bad.sum())} of {len(pairs)} seam duplicate pairs differ (up to "
             f"{diff:.3g} km), e.g. vertices {a} and {b} (0-based); an ICQ writer must write them identically "
-            "(spc-formats.md §5.2) — use seams='unify' or 'keep'"
+            "(the six faces share their edge vertices) — use seams='unify' or 'keep'"
         )

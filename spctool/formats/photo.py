@@ -277,7 +277,7 @@ def _dat_from_bytes(data: bytes, path, npx, nln, byte_order: str, warnings: list
             path,
             f"byte {size}",
             f"{npx * nln} bytes (8-bit) or {2 * npx * nln} bytes (16-bit) for NPX={npx} NLN={nln} "
-            f"(spc-formats §7.4); the file has {size} bytes",
+            f"(one or two bytes per pixel, NPX x NLN pixels); the file has {size} bytes",
         )
     need = nbytes * npx * nln
     if nbytes == 1:

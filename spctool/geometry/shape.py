@@ -354,30 +354,38 @@ class _Shape:
         :func:`approximate_diameter`, which is exact for any body whose diameter is a double-normal
         pair reached from its directional extremes and never more than 0.2 % short in the worst case.
         Bodies with more vertices first try the exact search on the vertices far enough from the
-        centroid to end a diameter (a few on any elongated body).
+        centroid to end a diameter (a few on any elongated body).  The value is kept on disk per vertex
+        array (:mod:`spctool.formats.derived`), so a command on a known shape does not recompute it.
         """
-        pts = np.ascontiguousarray(self._verts, dtype=np.float64)
-        if pts.shape[0] > EXACT_DIAMETER_POINTS:
-            # both ends of the diameter D lie at least D_lo − R from the centroid (R the largest
-            # distance from it, D_lo ≤ D the directional lower bound): on elongated bodies that leaves
-            # a few points, searched exactly, without the convex hull (0.2 s on a q = 64 ICQ)
-            d_lo = approximate_diameter(pts)
-            r = np.sqrt(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))
-            far = pts[r >= d_lo - float(r.max())]
-            if far.shape[0] <= EXACT_DIAMETER_POINTS:
-                return max(d_lo, float(_rk.farthest_pair(np.ascontiguousarray(far))))
-        pts = np.unique(pts, axis=0)
-        if 4 < pts.shape[0] <= 200_000:
-            try:
-                from scipy.spatial import ConvexHull
+        from spctool.formats import derived
 
-                pts = pts[ConvexHull(pts).vertices]
-            except Exception:  # flat or degenerate vertex sets: fall back to all vertices
-                pass
-        pts = np.ascontiguousarray(pts)
-        if pts.shape[0] <= EXACT_DIAMETER_POINTS:
-            return float(_rk.farthest_pair(pts))
-        return approximate_diameter(pts)
+        pts = np.ascontiguousarray(self._verts, dtype=np.float64)
+        return float(derived.cached("max-diameter-v1", pts, lambda: _max_diameter(pts)))
+
+
+def _max_diameter(pts: np.ndarray) -> float:
+    """:attr:`_Shape.max_diameter` of the vertices ``pts`` (n, 3), computed."""
+    if pts.shape[0] > EXACT_DIAMETER_POINTS:
+        # both ends of the diameter D lie at least D_lo − R from the centroid (R the largest
+        # distance from it, D_lo ≤ D the directional lower bound): on elongated bodies that leaves
+        # a few points, searched exactly, without the convex hull (0.2 s on a q = 64 ICQ)
+        d_lo = approximate_diameter(pts)
+        r = np.sqrt(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))
+        far = pts[r >= d_lo - float(r.max())]
+        if far.shape[0] <= EXACT_DIAMETER_POINTS:
+            return max(d_lo, farthest_pair(far))
+    pts = np.unique(pts, axis=0)
+    if 4 < pts.shape[0] <= 200_000:
+        try:
+            from scipy.spatial import ConvexHull
+
+            pts = pts[ConvexHull(pts).vertices]
+        except Exception:  # flat or degenerate vertex sets: fall back to all vertices
+            pass
+    pts = np.ascontiguousarray(pts)
+    if pts.shape[0] <= EXACT_DIAMETER_POINTS:
+        return farthest_pair(pts)
+    return approximate_diameter(pts)
 
 
 #: above this many candidate points :attr:`_Shape.max_diameter` switches to :func:`approximate_diameter`
@@ -402,7 +410,7 @@ def approximate_diameter(points, n_directions: int = 1024, refine: int = 8) -> f
     phi = np.pi * (1.0 + 5.0**0.5) * k
     dirs = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
     dirs = dirs[dirs[:, 2] >= 0.0]  # a direction and its opposite give the same extent
-    lo, hi, ilo, ihi = _rk.directional_extremes(np.ascontiguousarray(p), np.ascontiguousarray(dirs), 16)
+    lo, hi, ilo, ihi = directional_extremes(p, dirs)
     best = float(np.max(hi - lo))
     sq = np.einsum("ij,ij->i", p, p)
 
@@ -423,6 +431,55 @@ def approximate_diameter(points, n_directions: int = 1024, refine: int = 8) -> f
             a, b = a_new, b_new
         # a true pair distance: a lower bound of the diameter whatever the rounding of the search
         best = max(best, float(np.linalg.norm(p[a] - p[b])))
+    return best
+
+
+def directional_extremes(points, dirs, block: int = 2048):
+    """Per direction: (min, max) of points·dir and the first indices where they occur — what
+    ``_raykernels.directional_extremes`` returns, bit for bit (each dot product summed x, y, then z),
+    in numpy blocks of points: a value computed once per shape (and kept, :mod:`spctool.formats.derived`)
+    need not compile a kernel on a first run."""
+    p = np.asarray(points, dtype=np.float64)
+    d = np.asarray(dirs, dtype=np.float64)
+    k = d.shape[0]
+    lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
+    ilo, ihi = np.zeros(k, np.int64), np.zeros(k, np.int64)
+    for i0 in range(0, p.shape[0], block):
+        q = p[i0 : i0 + block]
+        v = (q[:, 0:1] * d[None, :, 0] + q[:, 1:2] * d[None, :, 1]) + q[:, 2:3] * d[None, :, 2]
+        jlo, jhi = np.argmin(v, axis=0), np.argmax(v, axis=0)  # first occurrence, as the kernel keeps
+        vlo, vhi = v[jlo, np.arange(k)], v[jhi, np.arange(k)]
+        better_lo, better_hi = vlo < lo, vhi > hi  # an earlier block keeps a tie
+        lo[better_lo], ilo[better_lo] = vlo[better_lo], i0 + jlo[better_lo]
+        hi[better_hi], ihi[better_hi] = vhi[better_hi], i0 + jhi[better_hi]
+    return lo, hi, ilo, ihi
+
+
+def farthest_pair(points, block: int = 256) -> float:
+    """Exact largest pairwise distance of ``points`` (n, 3) — ``_raykernels.farthest_pair``'s pruned
+    all-pairs search in numpy blocks: rows sorted by their distance r from the centroid, descending; a
+    block of rows meets only the points j with r_j > best − r (its first row's), and the search ends
+    when no pair can beat the best (r_i + r_0 ≤ best).  Each squared distance is (dx·dx + dy·dy) + dz·dz."""
+    p = np.asarray(points, dtype=np.float64)
+    n = p.shape[0]
+    if n < 2:
+        return 0.0
+    r = np.sqrt(np.sum((p - p.mean(axis=0)) ** 2, axis=1))
+    order = np.argsort(-r, kind="stable")
+    p, r = p[order], r[order]
+    best2, best = 0.0, 0.0
+    for a in range(0, n, block):
+        if r[a] + r[0] <= best:
+            break
+        m = int(np.count_nonzero(r > best - r[a]))  # r is descending: the partners are a prefix
+        if m <= a:
+            continue
+        rows, cols = p[a : min(n, a + block)], p[a:m]  # pairs (i, j >= a): each pair once or twice
+        dd = rows[:, None, :] - cols[None, :, :]
+        d2 = (dd[..., 0] * dd[..., 0] + dd[..., 1] * dd[..., 1]) + dd[..., 2] * dd[..., 2]
+        top = float(d2.max()) if d2.size else 0.0
+        if top > best2:
+            best2, best = top, math.sqrt(top)
     return best
 
 

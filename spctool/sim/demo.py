@@ -46,17 +46,24 @@ def demo_files(root: Path | None = None) -> list[Path]:
 
 
 def copy_demo(dest, *, overwrite: bool = False) -> Path:
-    """Copy the demo working directory to ``dest`` (created); refuses a non-empty ``dest`` unless
-    ``overwrite``.  Returns ``dest``.  Copied files are writable (mode 0644)."""
+    """Copy the demo working directory to ``dest`` (created); returns ``dest``.  Copied files are
+    writable (mode 0644).  A non-empty ``dest`` is refused unless ``overwrite``: then the demo's files
+    are copied into it, every existing file that differs kept as ``FILE.bak`` first (files that are not
+    the demo's are left alone)."""
     dest = Path(dest)
     if dest.exists() and not dest.is_dir():
         raise SpcUsageError(f"{dest}: exists and is not a directory")
     if dest.is_dir() and any(dest.iterdir()) and not overwrite:
-        raise SpcUsageError(f"{dest}: directory is not empty (overwrite to replace its files)")
+        raise SpcUsageError(f"{dest}: directory is not empty (copy_demo(..., overwrite=True) copies into it)")
     src = demo_path()
     for rel in demo_files(src):
         target = dest / rel
         target.parent.mkdir(parents=True, exist_ok=True)
+        if target.is_file():
+            if target.read_bytes() == (src / rel).read_bytes():
+                target.chmod(0o644)
+                continue
+            target.replace(target.with_name(target.name + ".bak"))
         shutil.copyfile(src / rel, target)
         target.chmod(0o644)
     return dest

@@ -562,7 +562,7 @@ def figure_scatter(result: MonteCarloResult, path) -> Path:
         if outside:
             d.text((x0 + pw - 4, y0 + 4), f"{outside} off axes", fill=(200, 0, 0), font=small, anchor="ra")
     path = Path(path)
-    im.save(path)
+    _save_png(im, path)
     return path
 
 
@@ -603,7 +603,7 @@ def figure_histograms(result: MonteCarloResult, path) -> Path:
             ax.polyline(xs, np.exp(-0.5 * ((xs - mu) / sd) ** 2) / (sd * math.sqrt(2 * math.pi)), (200, 0, 0))
         ax.vline(0.0, (120, 120, 120))
     path = Path(path)
-    im.save(path)
+    _save_png(im, path)
     return path
 
 
@@ -663,7 +663,7 @@ def figure_success(result: MonteCarloResult, path) -> Path:
         sel = fin & (cls == label)
         ax2.points(ae[sel, 0], ae[sel, 1], color, r=1.4)
     path = Path(path)
-    im.save(path)
+    _save_png(im, path)
     return path
 
 
@@ -677,3 +677,17 @@ def write_figures(result: MonteCarloResult, outdir, prefix: str = "montecarlo") 
         figure_histograms(result, out / f"{prefix}_histograms.png"),
         figure_success(result, out / f"{prefix}_success.png"),
     ]
+
+
+def _save_png(im, path) -> None:
+    """Write a figure atomically; a different picture already at ``path`` is kept as ``path.bak``."""
+    import io
+
+    from spctool.formats import atomic
+
+    buf = io.BytesIO()
+    im.save(buf, format="PNG")
+    data = buf.getvalue()
+    if Path(path).is_file() and Path(path).read_bytes() == data:
+        return
+    atomic.write_bytes(path, data, backup=True)

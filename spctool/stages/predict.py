@@ -298,9 +298,10 @@ def cast_shadow_note(names, t1: float) -> str:
     """The one line that says which landmarks ``shadows="auto"`` predicted with their cast shadows."""
     listed = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
     return (
-        f"{len(names)} landmark(s) predicted with their cast shadows ({listed}): the photo shows them "
-        f"above THRSH T1 = {t1:g} DN, where SPC's prediction would call them lit (--shadows spc keeps "
-        "SPC's rule)"
+        f"{len(names)} landmark(s) predicted with their cast shadows ({listed}): their shadows are "
+        f"brighter in the photo than the picture's shadow threshold (THRSH T1 = {t1:g} DN in its SUM "
+        "file), so SPC's rule would have predicted them lit; to use SPC's rule, set T1 to the photo's "
+        "shadow level or pass --shadows spc"
     )
 
 

@@ -148,14 +148,14 @@ def _cap_warnings(reg, caps, top, result):
             by_cap.setdefault(int(c), []).append(i)
     for c, idx in sorted(by_cap.items()):
         n = int(np.asarray(reg.landmarks[idx[0]].maplet.heights).shape[0])
+        k = reg.options.grid_half
         where = (
-            f"{n}x{n}-cell maplet: the search +-K*L cells must stay within its half-width + 1, {(n + 1) // 2}"
+            f"a {n}x{n}-cell maplet holds a search of +-{k}L cells only up to L = {c}"
             if reg.options.space == "maplet"
-            else "template too small in the photo for coarser bins"
+            else "the template is too small in the photo for coarser bins"
         )
-        result.warnings.append(
-            f"{len(idx)} landmark(s): spacings above L = {c} skipped ({where}; K = {reg.options.grid_half})"
-        )
+        text = f"{len(idx)} landmark(s): spacings above L = {c} skipped, one step at {c} instead ({where})"
+        result.adapted.append(("spacing-cap", text))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -178,6 +178,10 @@ class RegisterResult:
     passes: list = field(default_factory=list)  #: per align pass: dict(spacing, ok, pose_solved, …)
     last_steps: list = field(default_factory=list)  #: the last LandmarkStep of every landmark (or None)
     warnings: list = field(default_factory=list)
+    #: (kind, text) of what the run adapted to the data by design and needs no action: "spacing-cap"
+    #: (the schedule's coarser steps fitted to the maplet) and "cast-shadows" (``shadows="auto"``
+    #: predicted cast shadows the photo's THRSH T1 does not mark); the command line says them with -v
+    adapted: list = field(default_factory=list)
     options: RegisterOptions | None = None
     #: (N, 2, 2) measurement covariance of ``measured`` in px² (sample, line); NaN unless ok
     covariance: np.ndarray | None = None
@@ -346,7 +350,7 @@ def register(
     result.covariance[bad] = np.nan
     cast = reg.cast_shadow_landmarks()
     if cast:
-        result.warnings.append(cast_shadow_note(cast, reg.thresholds[0]))
+        result.adapted.append(("cast-shadows", cast_shadow_note(cast, reg.thresholds[0])))
     odd = disagreeing_shifts(result)
     if odd:
         result.warnings.append(odd)
@@ -446,6 +450,7 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             result.covariance[i] = part.covariance[0]
             result.converge_jacobian[i] = part.converge_jacobian[0]
             result.warnings.extend(part.warnings)
+            result.adapted.extend(part.adapted)
             last[i] = st
 
 
