@@ -49,6 +49,7 @@ NOT_RUN = {
 
 
 #: examples that read a file an earlier line of the same help writes: those lines, run first
+_GEO_BATCH = "spctool -q -C demo batch --out-dir geo-out"
 NEEDS = {
     "spctool convert shape.obj SHAPE.TXT": ["spctool convert demo/SHAPEFILES/SHAPE.TXT shape.obj"],
     "spctool convert --flip-rows P1.fits upside_down.png": [
@@ -59,6 +60,14 @@ NEEDS = {
         "spctool simulate --example > world.toml",
         "spctool simulate world.toml WORLD",
     ],
+    **{
+        f"spctool -C demo geometry --from-batch geo-out {rest}": [_GEO_BATCH]
+        for rest in (
+            "--dry-run",
+            "--mode alternate --dry-run --json",
+            "--report-dir geo-report --plot geometry.png",
+        )
+    },
 }
 
 

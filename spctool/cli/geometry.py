@@ -187,11 +187,10 @@ def geometry_cmd(
     Examples:
 
     \b
-      spctool demo --copy-to geo-demo
-      spctool -q -C geo-demo batch --out-dir geo-out
-      spctool -C geo-demo geometry --from-batch geo-out --dry-run
-      spctool -C geo-demo geometry --from-batch geo-out --mode alternate --dry-run --json
-      spctool -C geo-demo geometry --from-batch geo-out --report-dir geo-report --plot geometry.png
+      spctool -q -C demo batch --out-dir geo-out
+      spctool -C demo geometry --from-batch geo-out --dry-run
+      spctool -C demo geometry --from-batch geo-out --mode alternate --dry-run --json
+      spctool -C demo geometry --from-batch geo-out --report-dir geo-report --plot geometry.png
     """
     from spctool.batch import refine
     from spctool.stages.bundle import BundleOptions, group_rms, solve_bundle
