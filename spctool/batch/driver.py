@@ -505,9 +505,10 @@ class WorkerPool:
             from concurrent.futures import FIRST_COMPLETED, wait
             from concurrent.futures.process import BrokenProcessPool
 
-            started = [self.executor.submit(os.getpid) for _ in range(jobs)]
-            done, _ = wait(started, timeout=WARM_TIMEOUT_S + 60, return_when=FIRST_COMPLETED)
             try:
+                # a worker that dies at once breaks the pool while the tasks are still being submitted
+                started = [self.executor.submit(os.getpid) for _ in range(jobs)]
+                done, _ = wait(started, timeout=WARM_TIMEOUT_S + 60, return_when=FIRST_COMPLETED)
                 for fut in done:
                     fut.result()
             except BrokenProcessPool as exc:
