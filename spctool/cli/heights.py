@@ -173,7 +173,6 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     Example:
 
     \b
-      spctool demo --copy-to demo
       spctool -C demo lithos B01536 --dry-run
       spctool -C demo lithos B01536 B01595 --iterations 3 --figures lithos-figures
       spctool -C demo lithos B01980 --json -o lithos.json
