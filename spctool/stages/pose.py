@@ -64,6 +64,9 @@ times a robust scale c = max(1, median(ρ)/√(2 ln 2)) (the median of a 2-D Gau
 σ√(2 ln 2)) — or, when ``reject_px`` is given, whose pixel residual exceeds ``reject_px`` — is rejected,
 worst first, one at a time, and the pose is refitted from the a-priori pose.  Every rejection is named
 with its reason in :attr:`PoseResult.rejected`; nothing is dropped silently.
+
+Rooms: the least-squares problem itself (state, normal equations, Jacobi-scaled solve, Gauss–Newton) is
+:mod:`spctool.stages._pose_problem`; the consistency tests are :mod:`spctool.stages.pose_consistency`.
 """
 
 from __future__ import annotations
@@ -74,8 +77,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spctool.errors import SpcResultError, SpcUsageError
-from spctool.geometry.frames import apply_attitude_update, rotvec_from_rot, skew
+from spctool.errors import SpcUsageError
+from spctool.stages._pose_problem import (
+    PoseError,
+    _Prior,
+    _prior_info,
+    _Problem,
+    so3_right_jacobian_inv,
+)
 from spctool.stages.pose_consistency import (
     ChiSquareGate,
     PriorTest,
@@ -103,10 +112,6 @@ POSE_VERDICTS = ("implausible", "prior-contradicted", "inconsistent", "ok")
 _RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 #: landmark sigmas ≤ 0 are held (effectively) fixed at this 1σ (km) in "estimate" mode
 _TINY_SIGMA_KM = 1e-9
-
-
-class PoseError(SpcResultError):
-    """The pose cannot be solved: too few landmarks or degenerate geometry (exit code 1)."""
 
 
 @dataclass
@@ -465,236 +470,6 @@ class PoseResult:
             lines.append(f"rejected {r.name}: {r.reason} ({r.detail})")
         lines.extend(f"warning: {w}" for w in self.warnings)
         return lines
-
-
-# ------------------------------------------------------------------------------------------------
-# SO(3) helper
-# ------------------------------------------------------------------------------------------------
-
-
-def so3_right_jacobian_inv(theta) -> np.ndarray:
-    """J_r(θ)⁻¹ = I + ½[θ×] + (1/t² − (1 + cos t)/(2 t sin t))·[θ×]², t = |θ| (series below 1e-4 rad).
-
-    With T = Rot(−θ)·T₀ and the step T⁺ = Rot(−δθ)·T, the offset becomes θ⁺ = θ + J_r(θ)⁻¹·δθ + O(δθ²).
-    """
-    th = np.asarray(theta, dtype=np.float64)
-    t2 = float(th @ th)
-    t = math.sqrt(t2)
-    if t < 1e-4:
-        c = 1.0 / 12.0 + t2 / 720.0
-    else:
-        c = 1.0 / t2 - (1.0 + math.cos(t)) / (2.0 * t * math.sin(t))
-    k = skew(th)
-    return np.eye(3) + 0.5 * k + c * (k @ k)
-
-
-# ------------------------------------------------------------------------------------------------
-# internals
-# ------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _Prior:
-    """A-priori information on [Δp; θ]: inverse variances (0 = unconstrained component)."""
-
-    info: np.ndarray  # (6,)
-
-    @property
-    def n_equations(self) -> int:
-        return int(np.count_nonzero(self.info))
-
-
-def _prior_info(sig, n, what, warnings) -> np.ndarray:
-    if sig is None:
-        return np.zeros(n)
-    s = np.asarray(sig, dtype=np.float64).reshape(-1)
-    if s.size == 1:
-        s = np.full(n, s[0])
-    if s.shape != (n,):
-        raise SpcUsageError(f"{what} must have {n} components, got shape {np.shape(sig)}")
-    ok = np.isfinite(s) & (s > 0)
-    if not ok.all():
-        warnings.append(
-            f"{what} components {np.flatnonzero(~ok).tolist()} are not positive finite numbers:"
-            " no a-priori constraint on them"
-        )
-    info = np.zeros(n)
-    info[ok] = 1.0 / (s[ok] * s[ok])
-    return info
-
-
-@dataclass
-class _State:
-    camera: object
-    dpos: np.ndarray  # (3,)
-    theta: np.ndarray  # (3,)
-    dlmk: np.ndarray | None  # (M, 3)
-
-
-class _Problem:
-    """The least-squares problem over a fixed set of used landmarks (M of them)."""
-
-    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts: PoseOptions):
-        self.camera0 = camera0
-        self.p0 = camera0.position.copy()
-        self.t0 = np.array(camera0.rotation)
-        self.points = points  # (M, 3)
-        self.meas = meas  # (M, 2)
-        w = np.asarray(wts, dtype=np.float64)
-        if w.ndim == 2:  # per-axis weights (M, 2): diagonal Wᵢ
-            w = w[:, :, None] * np.eye(2)
-        self.wts = w  # (M, 2, 2) weight matrices Wᵢ (symmetric)
-        self.prior = prior
-        self.mode = mode
-        self.lmk_info = lmk_info  # (M, 3) inverse variances, "estimate" mode
-        self.opts = opts
-        self.pivot = points.mean(axis=0) if points.shape[0] else self.p0.copy()
-
-    # -- state helpers ------------------------------------------------------------------------------
-    def start(self) -> _State:
-        d = np.zeros_like(self.points) if self.mode == "estimate" else None
-        return _State(self.camera0, np.zeros(3), np.zeros(3), d)
-
-    def moved(self, s: _State, dx, dd, alpha) -> _State:
-        """Apply a step (δp, δθ) with the pivot retraction (module docstring).
-
-        The step is converted to t = T·(c − p), the camera-frame vector from the camera to the pivot
-        c (landmark centroid): δt = [t×]·δθ − T·δp, equal to (δp, δθ) to first order, then
-        T⁺ = Rot(−δθ)·T, t⁺ = t + δt, p⁺ = c − T⁺ᵀ·t⁺.  A finite step thus orbits the camera about
-        the landmarks instead of moving it along a straight line, which follows the nearly
-        degenerate position/attitude valley of small landmark clusters (few iterations, no halving).
-        """
-        rot0 = np.asarray(s.camera.rotation)
-        dp = alpha * dx[:3]
-        dth = alpha * dx[3:]
-        t = rot0 @ (self.pivot - s.camera.position)
-        t_new = t + np.cross(t, dth) - rot0 @ dp
-        rot = apply_attitude_update(rot0, dth)
-        pos = self.pivot - rot.T @ t_new
-        dpos = pos - self.p0
-        theta = -rotvec_from_rot(rot @ self.t0.T)
-        cam = s.camera.with_pose(position=pos, rotation=rot)
-        d = None if s.dlmk is None else s.dlmk + alpha * dd
-        return _State(cam, dpos, theta, d)
-
-    def pts(self, s: _State) -> np.ndarray:
-        return self.points if s.dlmk is None else self.points + s.dlmk
-
-    def cost(self, s: _State) -> tuple[float, float]:
-        smp, lin = s.camera.project(self.pts(s))
-        r = self.meas - np.stack([smp, lin], axis=-1)
-        chi2 = float(np.einsum("mi,mij,mj->", r, self.wts, r))
-        e = np.concatenate([s.dpos, s.theta])
-        total = chi2 + float(np.sum(self.prior.info * e * e))
-        if s.dlmk is not None:
-            total += float(np.sum(self.lmk_info * s.dlmk * s.dlmk))
-        return total, chi2
-
-    # -- linear algebra -----------------------------------------------------------------------------
-    def normal(self, s: _State):
-        """Reduced normal matrix N (6×6), right-hand side g, and the pieces needed afterwards."""
-        j = s.camera.project_with_jacobians(self.pts(s))
-        pred = np.stack([j.sample, j.line], axis=-1)
-        r = self.meas - pred
-        hx = np.concatenate([j.position, j.attitude], axis=-1)  # (M, 2, 6)
-        hw = self.wts @ hx  # Wᵢ·Hᵢ (M, 2, 6)
-        h2 = hx.reshape(-1, 6)
-        hw2 = hw.reshape(-1, 6)
-        n = hw2.T @ h2
-        g = hw2.T @ r.reshape(-1)
-        # a-priori term: residual e = [Δp; θ], de/dχ = diag(I, J_r(θ)⁻¹)
-        jp = np.eye(6)
-        jp[3:, 3:] = so3_right_jacobian_inv(s.theta)
-        e = np.concatenate([s.dpos, s.theta])
-        jpi = jp.T * self.prior.info  # Jᵀ·P₀⁻¹
-        n = n + jpi @ jp
-        g = g - jpi @ e
-        extra = {"hx": hx, "pred": pred, "r": r, "hl": j.point, "g_full": g}
-        if self.mode == "estimate":
-            hl = j.point  # (M, 2, 3)
-            hlw = self.wts @ hl
-            b = np.einsum("mki,mkj->mij", hw, hl)  # (M, 6, 3)
-            d = np.einsum("mki,mkj->mij", hlw, hl)
-            d[:, [0, 1, 2], [0, 1, 2]] += self.lmk_info
-            gl = np.einsum("mki,mk->mi", hlw, r) - self.lmk_info * s.dlmk
-            dinv = np.linalg.inv(d)
-            bdinv = b @ dinv  # (M, 6, 3)
-            n = n - np.einsum("mij,mkj->ik", bdinv, b)
-            g = g - np.einsum("mij,mj->i", bdinv, gl)
-            extra.update(b=b, dinv=dinv, gl=gl)
-        return n, g, extra
-
-    def solve_scaled(self, n, g, n_used):
-        """Δχ = N⁻¹g and N⁻¹ with Jacobi scaling; PoseError if degenerate."""
-        diag = np.diag(n).copy()
-        if not np.all(np.isfinite(n)):
-            raise PoseError(
-                f"degenerate geometry: the normal matrix of {n_used} landmark(s) is not finite"
-                " (a landmark in the camera's focal plane?)"
-            )
-        if np.any(diag <= 0.0):
-            raise PoseError(
-                f"degenerate geometry: {n_used} landmark(s) leave pose component(s) "
-                f"{np.flatnonzero(~(diag > 0)).tolist()} without information"
-            )
-        sc = 1.0 / np.sqrt(diag)
-        ns = n * sc[:, None] * sc[None, :]
-        ns = 0.5 * (ns + ns.T)
-        ev = np.linalg.eigvalsh(ns)
-        cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
-        if not cond <= self.opts.max_condition:
-            raise PoseError(
-                f"degenerate geometry: {n_used} landmark(s) give a normal-matrix condition number "
-                f"{cond:.3g} > {self.opts.max_condition:.3g} (collinear or too few landmarks, or no prior)"
-            )
-        cov = np.linalg.inv(ns) * sc[:, None] * sc[None, :]
-        cov = 0.5 * (cov + cov.T)
-        dx = cov @ g
-        return dx, cov, cond
-
-    def landmark_step(self, extra, dx):
-        if self.mode != "estimate":
-            return None
-        return np.einsum("mij,mj->mi", extra["dinv"], extra["gl"] - np.einsum("mji,j->mi", extra["b"], dx))
-
-    # -- Gauss–Newton -------------------------------------------------------------------------------
-    def fit(self):
-        opts = self.opts
-        m = self.points.shape[0]
-        s = self.start()
-        cost, _ = self.cost(s)
-        history = [cost]
-        converged = False
-        iterations = 0
-        for it in range(1, opts.max_iter + 1):
-            iterations = it
-            n, g, extra = self.normal(s)
-            dx, cov, _ = self.solve_scaled(n, g, m)
-            dd = self.landmark_step(extra, dx)
-            # predicted cost decrease /2 along the full step: (full gradient)ᵀ·(full step)
-            predicted = float(extra["g_full"] @ dx) + (0.0 if dd is None else float(np.sum(extra["gl"] * dd)))
-            alpha = 1.0
-            accepted = False
-            for _ in range(opts.max_halvings + 1):
-                trial = self.moved(s, dx, dd, alpha)
-                c_new, _ = self.cost(trial)
-                if c_new <= cost * (1.0 + 1e-12) + 1e-300:
-                    accepted = True
-                    break
-                alpha *= 0.5
-            if not accepted:
-                # numerical floor: no decrease is possible any more
-                converged = predicted <= 1e-6 * max(1.0, cost)
-                break
-            sig = np.sqrt(np.diag(cov))
-            step = float(np.max(np.abs(alpha * dx) / sig))
-            rel = abs(cost - c_new) / cost if cost > 0 else 0.0
-            s, cost = trial, c_new
-            history.append(cost)
-            if step <= opts.tol or rel <= opts.tol:
-                converged = True
-                break
-        return s, iterations, converged, history
 
 
 # ------------------------------------------------------------------------------------------------
