@@ -116,6 +116,7 @@ def test_geometry_refines_a_biased_map_and_writes_what_spc_reads(pristine, run_c
 def test_batch_rounds_two_measures_better_than_one(pristine20, run_cli, tmp_path):
     wd = tmp_path / "wd"
     _biased(pristine20, wd)
+    inputs = {p: p.read_bytes() for d in ("LMKFILES", "MAPFILES", "SUMFILES") for p in (wd / d).iterdir()}
     assert run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "cycle").exit_code == 0
     truth = json.loads((wd / "TRUTH.json").read_text())
     true_pos = {p["name"]: -np.array(p["scobj"]) for p in truth["pictures"]}
@@ -138,8 +139,10 @@ def test_batch_rounds_two_measures_better_than_one(pristine20, run_cli, tmp_path
     )
     assert f2 >= f1 and ok2 >= ok1 and ok2 == 20
     assert e2 < e1
-    # the working directory was not written; the refined map is a working directory of its own
+    # the working directory was not written (its files are hard-linked into the refined map, whose
+    # writes replace the links); the refined map is a working directory of its own
     assert not list((wd / "LMKFILES").glob("*.bak"))
+    assert inputs == {p: p.read_bytes() for p in inputs}
     assert (tmp_path / "cycle" / "MAP2" / "GEOMETRY.json").exists()
     assert (tmp_path / "cycle" / "MAP2" / "IMAGEFILES").is_symlink()
     # resuming the finished cycle changes nothing

@@ -91,20 +91,6 @@ def _scaled_sigma(sig, weight) -> np.ndarray:
     return s / math.sqrt(weight)
 
 
-def picture_names(wd: WorkDir, pictures=None) -> list[str]:
-    """The pictures named, else PICTLIST's active ones, else every SUMFILES/*.SUM (sorted)."""
-    if pictures:
-        return [p.strip() for p in pictures]
-    if wd.pictlist_path.exists():
-        from spctool.formats.lists import read_pictlist
-
-        return read_pictlist(wd.pictlist_path).active_names
-    folder = wd.root / "SUMFILES"
-    if not folder.is_dir():
-        raise SpcUsageError(f"{folder}: no SUMFILES folder and no PICTLIST.TXT: nothing to refine")
-    return sorted(p.stem for p in folder.glob("*.SUM"))
-
-
 def _table_rows(path: Path, picture: str):
     """(names, pixels (N, 2), usable (N,), covariance (N, 2, 2) or None) of a register table."""
     from spctool.formats.table import read_table
@@ -159,7 +145,7 @@ def gather(
     if not (sigma_px > 0 and math.isfinite(sigma_px)):
         raise SpcUsageError(f"--sigma-px must be a positive number, got {sigma_px}")
     weights = _weights(settings)
-    names = picture_names(wd, pictures)
+    names = [p.strip() for p in pictures] if pictures else wd.picture_names()
     batch_sums = None
     if from_batch is not None:
         batch_sums = Path(from_batch) / "SUMFILES"
@@ -169,7 +155,7 @@ def gather(
         names = [n for n in names if n in done] if not pictures else names
         tables = from_batch if tables is None else tables
     if not names:
-        raise SpcUsageError("no pictures to refine (PICTLIST has no active picture)")
+        raise SpcUsageError(f"{wd.root}: no pictures to refine (no active PICTLIST picture, no SUMFILES/)")
     tables_dir = None
     if tables is not None:
         tables_dir = Path(tables)
@@ -358,8 +344,10 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
     return out
 
 
-def write_back(files: dict) -> list[Path]:
-    """Write every file atomically, a replaced one keeping its ``.bak``; returns the paths written."""
+def write_back(files: dict, *, backup: bool = True) -> list[Path]:
+    """Write every file that changes atomically (temporary file + rename: a link or hard link at the path
+    is replaced, never written through), a replaced one keeping its ``.bak`` unless ``backup`` is false;
+    returns the paths written."""
     written = []
     for path, content in files.items():  # one atomic write per file
         data = content.encode("latin-1") if isinstance(content, str) else content
@@ -369,7 +357,7 @@ def write_back(files: dict) -> list[Path]:
             old = None
         if old == data:
             continue
-        atomic.write_bytes(path, data, overwrite=True, backup=True)
+        atomic.write_bytes(path, data, overwrite=True, backup=backup)
         written.append(Path(path))
     return written
 

@@ -98,13 +98,8 @@ def refined_workdir(workdir: Path, round_dir: Path, target: Path, settings, refi
     wd = WorkDir(tmp)
     inputs = refine.gather(wd, settings, tables=round_dir, **refine_kw.get("gather", {}))
     result = solve_bundle(inputs.problem, BundleOptions(**refine_kw.get("options", {})))
-    files = refine.updated_files(inputs, result, wd)
-    for path, content in files.items():  # new files (the links are replaced, the originals untouched)
-        path = Path(path)
-        data = content.encode("latin-1") if isinstance(content, str) else content
-        if path.is_symlink() or path.exists():
-            path.unlink()
-        atomic.write_bytes(path, data)
+    # new files: the hard links to the working directory's are replaced, the originals untouched
+    refine.write_back(refine.updated_files(inputs, result, wd), backup=False)
     heights = None
     if refine_kw.get("lithos"):
         from spctool.batch.heights import refine_heights
