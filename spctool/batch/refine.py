@@ -290,9 +290,10 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
     sig = result.landmark_sigmas
     scale = max(1.0, result.reduced_chi2) if math.isfinite(result.reduced_chi2) else 1.0
     # landmarks
-    by_lmk: dict[int, list[int]] = {}
-    for k, lidx in enumerate(prob.obs_landmark):  # group measurement indices (bookkeeping for rows)
-        by_lmk.setdefault(int(lidx), []).append(k)
+    # each landmark's measurements, in measurement order (one stable sort, no loop over measurements)
+    order = np.argsort(prob.obs_landmark, kind="stable")
+    counts = np.bincount(prob.obs_landmark, minlength=len(prob.landmark_names))
+    by_lmk = np.split(order, np.cumsum(counts)[:-1])
     for i, name in enumerate(prob.landmark_names):
         lmk = inputs.landmarks[name]
         changes = {}
@@ -303,7 +304,7 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
                 changes["rmslmk"] = float(rms[i])
         rows = list(lmk.pictures)
         where = {r.name.strip(): n for n, r in enumerate(rows)}
-        for k in by_lmk.get(i, []):
+        for k in by_lmk[i]:
             pname = prob.picture_names[prob.obs_picture[k]]
             flag = "" if status[k] in ("ok", "undetermined", "ignored-in-vlm") else "*"
             row = LandmarkPicture(pname, float(prob.obs_pixel[k, 0]), float(prob.obs_pixel[k, 1]), flag)
