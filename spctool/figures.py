@@ -13,7 +13,8 @@ stage):
 * :func:`pose_plot` — solve-pose residuals before and after as a quiver over the photo plus a
   histogram of their lengths;
 * :func:`batch_summary` — per picture of a batch: rms residual before/after, landmarks found vs selected;
-* :func:`contact_sheet` — many small images (predict/extract/correlate) upscaled and labelled on one page.
+* :func:`contact_sheet` — many small images (predict/extract/correlate) upscaled and labelled on one page;
+* :func:`selection_overlay` — ``lithos-select --overlay``: the selected maplets' outlines on the photo.
 
 Every function returns a :class:`Figure`: the Pillow image plus the mapping from SPC pixels (1-based,
 centres at integers) to canvas coordinates, so a test can check that a vector or a marker sits where
@@ -400,6 +401,72 @@ def titled(image, title: str, subtitle: str = "", head: int = 52) -> Figure:
     if subtitle:
         cv.text((8, 30), subtitle, 13)
     return Figure(cv.image, 0.0, float(head))
+
+
+# ------------------------------------------------------------------------------------------------
+# lithos-select: the selected maplets' outlines on the photo
+
+
+SELECTION_PALETTE = [
+    (255, 64, 64),
+    (64, 220, 64),
+    (80, 160, 255),
+    (255, 200, 0),
+    (255, 80, 255),
+    (0, 230, 230),
+    (255, 140, 0),
+    (180, 120, 255),
+]
+
+
+def stretch_8bit(data, thrsh) -> np.ndarray:
+    """DN -> 0..255 linearly between the SUM THRSH values (min/max of the photo if THRSH is empty)."""
+    d = np.asarray(data, dtype=np.float64)
+    lo, hi = (float(thrsh[0]), float(thrsh[1])) if thrsh is not None else (math.nan, math.nan)
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        lo, hi = float(np.nanmin(d)), float(np.nanmax(d))
+        if not hi > lo:
+            hi = lo + 1.0
+    return np.clip(np.round((d - lo) / (hi - lo) * 255.0), 0, 255).astype(np.uint8)
+
+
+def outline_pixels(camera, centres, ux, uy, half_side, per_edge: int = 8):
+    """(sample, line, in_front) of the square outlines V + a·Ux + b·Uy, |a|, |b| = half_side, as
+    (N, 4·per_edge + 1) arrays walking the boundary (closed)."""
+    t = np.linspace(-1.0, 1.0, per_edge + 1)[:-1]
+    one = np.ones_like(t)
+    a = np.concatenate([t, one, -t, -one, [-1.0]])
+    b = np.concatenate([-one, t, one, -t, [-1.0]])
+    h = np.asarray(half_side, float)[:, None, None]
+    pts = centres[:, None, :] + h * (a[None, :, None] * ux[:, None, :] + b[None, :, None] * uy[:, None, :])
+    s, ln, front = camera.project_with_mask(pts.reshape(-1, 3))
+    shape = pts.shape[:2]
+    return s.reshape(shape), ln.reshape(shape), front.reshape(shape)
+
+
+def selection_overlay(photo_data, thrsh, camera, names, centres, ux, uy, half_side, selected, sample, line):
+    """The photo stretched to 8 bits (:func:`stretch_8bit`) with each selected maplet's square outline
+    (half side ``half_side`` km, projected with ``camera``), its name and a cross at its (sample, line);
+    a Pillow image (one colour per selected maplet, cycling :data:`SELECTION_PALETTE`)."""
+    gray = stretch_8bit(photo_data, thrsh)
+    img = Image.fromarray(np.repeat(gray[:, :, None], 3, axis=2), mode="RGB")
+    draw = ImageDraw.Draw(img)
+    sel = np.flatnonzero(np.asarray(selected, bool))
+    if sel.size:
+        centres, ux, uy = (np.asarray(a, float)[sel] for a in (centres, ux, uy))
+        s, ln, front = outline_pixels(camera, centres, ux, uy, np.asarray(half_side, float)[sel])
+        for k, idx in enumerate(sel):  # drawing is per polygon in PIL; the geometry above is vectorised
+            if not front[k].all():
+                continue
+            colour = SELECTION_PALETTE[k % len(SELECTION_PALETTE)]
+            xy = list(zip((s[k] - 1.0).tolist(), (ln[k] - 1.0).tolist()))  # SPC 1-based -> PIL 0-based
+            draw.line(xy, fill=colour, width=1)
+            cs, cl = float(sample[idx]) - 1.0, float(line[idx]) - 1.0
+            if math.isfinite(cs) and math.isfinite(cl):
+                draw.line([(cs - 2, cl), (cs + 2, cl)], fill=colour)
+                draw.line([(cs, cl - 2), (cs, cl + 2)], fill=colour)
+            draw.text((float(np.min(s[k])) - 1.0, float(np.min(ln[k])) - 12.0), names[idx], fill=colour)
+    return img
 
 
 # ------------------------------------------------------------------------------------------------

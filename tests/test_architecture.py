@@ -37,6 +37,7 @@ FLOORS = {
     "figures": 5,
     "figures_refine": 5,  # the picture of a landmark refinement (geometry --plot)
     "figures_heights": 5,  # figures of a "Find heights" run (lithos)
+    "figures_register": 5,  # pictures a registration writes (surfaces, panels, overlay)
     "cli": 6,
 }
 

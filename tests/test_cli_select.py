@@ -218,7 +218,7 @@ def test_missing_landmark_is_one_line_error(workdir):
 def test_overlay_png(workdir, tmp_path):
     from PIL import Image
 
-    from spctool.cli.select import stretch_8bit
+    from spctool.figures import stretch_8bit
 
     png = tmp_path / "sel.png"
     res = invoke(workdir, "--overlay", str(png))

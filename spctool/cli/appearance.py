@@ -179,8 +179,9 @@ _NAN_COLUMNS = (
 def _run(ctx: Context, stage: str, kw: dict):
     from spctool.formats.table import LandmarkTable
     from spctool.geometry import heightfield
+    from spctool.geometry.frames import unit_vector
     from spctool.stages.extract import extract
-    from spctool.stages.predict import cast_shadow_note, predict, unit_vector
+    from spctool.stages.predict import cast_shadow_note, predict
 
     wd = ctx.wd
     inputs = load_stage_inputs(ctx, kw, photo_required=stage == "extracted")

@@ -8,85 +8,13 @@ Loads the picture (SUM), the candidate landmarks (LMRKLIST.TXT, LMKFILES/, ``--m
 
 from __future__ import annotations
 
-import io
-import math
-
 import click
-import numpy as np
 
 from spctool.cli import options
-from spctool.cli.candidates import Candidates, load_candidates
+from spctool.cli.candidates import load_candidates
 from spctool.cli.common import Context, emit_table, load_photo, load_picture, load_shape, pass_context
 from spctool.errors import SpcUsageError
 from spctool.formats import atomic
-
-# ------------------------------------------------------------------------------------------------
-# overlay
-
-
-_PALETTE = [
-    (255, 64, 64),
-    (64, 220, 64),
-    (80, 160, 255),
-    (255, 200, 0),
-    (255, 80, 255),
-    (0, 230, 230),
-    (255, 140, 0),
-    (180, 120, 255),
-]
-
-
-def stretch_8bit(data, thrsh) -> np.ndarray:
-    """DN -> 0..255 linearly between the SUM THRSH values (min/max of the photo if THRSH is empty)."""
-    d = np.asarray(data, dtype=np.float64)
-    lo, hi = (float(thrsh[0]), float(thrsh[1])) if thrsh is not None else (math.nan, math.nan)
-    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
-        lo, hi = float(np.nanmin(d)), float(np.nanmax(d))
-        if not hi > lo:
-            hi = lo + 1.0
-    return np.clip(np.round((d - lo) / (hi - lo) * 255.0), 0, 255).astype(np.uint8)
-
-
-def outline_pixels(camera, centres, ux, uy, half_side, per_edge: int = 8):
-    """(sample, line, in_front) of the square outlines V + a·Ux + b·Uy, |a|, |b| = half_side, as
-    (N, 4·per_edge + 1) arrays walking the boundary (closed)."""
-    t = np.linspace(-1.0, 1.0, per_edge + 1)[:-1]
-    one = np.ones_like(t)
-    a = np.concatenate([t, one, -t, -one, [-1.0]])
-    b = np.concatenate([-one, t, one, -t, [-1.0]])
-    h = np.asarray(half_side, float)[:, None, None]
-    pts = centres[:, None, :] + h * (a[None, :, None] * ux[:, None, :] + b[None, :, None] * uy[:, None, :])
-    s, ln, front = camera.project_with_mask(pts.reshape(-1, 3))
-    shape = pts.shape[:2]
-    return s.reshape(shape), ln.reshape(shape), front.reshape(shape)
-
-
-def render_overlay(photo_data, thrsh, camera, cand: Candidates, result) -> bytes:
-    """PNG bytes: the photo stretched to 8 bits with the selected maplets' outlines and names."""
-    from PIL import Image, ImageDraw
-
-    gray = stretch_8bit(photo_data, thrsh)
-    img = Image.fromarray(np.repeat(gray[:, :, None], 3, axis=2), mode="RGB")
-    draw = ImageDraw.Draw(img)
-    sel = np.flatnonzero(result.selected)
-    if sel.size:
-        half = (2.0 * cand.qsz[sel] + 1.0) * cand.scale[sel] / 2.0
-        s, ln, front = outline_pixels(camera, cand.centres[sel], cand.ux[sel], cand.uy[sel], half)
-        for k, idx in enumerate(sel):  # drawing is per polygon in PIL; the geometry above is vectorised
-            if not front[k].all():
-                continue
-            colour = _PALETTE[k % len(_PALETTE)]
-            xy = list(zip((s[k] - 1.0).tolist(), (ln[k] - 1.0).tolist()))  # SPC 1-based -> PIL 0-based
-            draw.line(xy, fill=colour, width=1)
-            cs, cl = result.sample[idx] - 1.0, result.line[idx] - 1.0
-            if np.isfinite(cs) and np.isfinite(cl):
-                draw.line([(cs - 2, cl), (cs + 2, cl)], fill=colour)
-                draw.line([(cs, cl - 2), (cs, cl + 2)], fill=colour)
-            draw.text((float(np.min(s[k])) - 1.0, float(np.min(ln[k])) - 12.0), cand.names[idx], fill=colour)
-    buf = io.BytesIO()
-    img.save(buf, format="PNG")
-    return buf.getvalue()
-
 
 # ------------------------------------------------------------------------------------------------
 # command
@@ -300,11 +228,23 @@ def select_cmd(
 
     if overlay:
         photo = load_photo(ctx, pic, photo_path)
-        from spctool.figures import titled
+        from spctool import figures
 
         others = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()) if s != "ok")
-        fig = titled(
-            render_overlay(photo.data, pic.thrsh, camera, cand, result),
+        fig = figures.titled(
+            figures.selection_overlay(
+                photo.data,
+                pic.thrsh,
+                camera,
+                cand.names,
+                cand.centres,
+                cand.ux,
+                cand.uy,
+                (2.0 * cand.qsz + 1.0) * cand.scale / 2.0,
+                result.selected,
+                result.sample,
+                result.line,
+            ),
             f"{pic.name}  lithos-select: {result.n_selected} of {len(result)} candidate maplets selected",
             f"outlines: selected maplets at the SUM pose; occlusion {meta['occlusion']}"
             + (f"; rejected: {others}" if others else ""),

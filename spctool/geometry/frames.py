@@ -22,6 +22,7 @@ What is here (all vectorised over leading ``...`` axes):
   ``P = V + SCALE·(x·UX + y·UY + h·UZ)`` (spc-formats.md §1.3; the map→body rotation has UX, UY, UZ
   as its **columns**, §1.2 and §8 item 7).
 * illumination-angle helpers (incidence, emission, phase cosines) with clipped ``arccos``.
+* :func:`unit_vector` — a direction normalised, refused in one line when not a finite non-zero 3-vector.
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from spctool.errors import SpcUsageError
 
 __all__ = [
     "skew",
@@ -284,3 +287,14 @@ def illumination_cosines(points, normals, sun, spacecraft_position):
     mu = np.clip(np.sum(n * e, axis=-1), -1.0, 1.0)
     cph = np.clip(np.sum(s * e, axis=-1), -1.0, 1.0)
     return mu0, mu, cph
+
+
+def unit_vector(v, name: str = "vector") -> np.ndarray:
+    """``v`` (3,) normalised; SpcUsageError if it is not a finite non-zero 3-vector."""
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,):
+        raise SpcUsageError(f"{name} must be a 3-vector, got shape {np.shape(v)}")
+    n = float(np.linalg.norm(a))
+    if not (math.isfinite(n) and n > 0.0):
+        raise SpcUsageError(f"{name} must be a finite non-zero vector, got {a.tolist()}")
+    return a / n

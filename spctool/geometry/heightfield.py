@@ -28,7 +28,7 @@ Contents
   **Sign:** SPC stores the *negated* slopes; this module returns the true derivatives
   hx = ∂h/∂x (axis 0, along UX) and hy = ∂h/∂y (axis 1, along UY), dimensionless (cells per cell).
 * :func:`normals_maplet`, :func:`normals_body` — n ∝ (−hx, −hy, 1) (L15 Eq. 3.37) and
-  normalise(−hx·UX − hy·UY + UZ) (§3.1).
+  normalise(−hx·UX − hy·UY + UZ) (§3.1); :func:`surface_cosines` — n̂·d for one maplet-frame direction.
 * :func:`sample_heights` — bilinear heights with a missing-data mask (the height-grid analogue of BRT0,
   §4.2).
 * :func:`march` / :func:`visibility` / :func:`cast_shadows` — the one-cell horizon march of §5.3;
@@ -364,3 +364,16 @@ def maplet_cast_shadows(maplet, sun_dir, tol: float = VIS_TOL, nodes=None) -> np
     return cast_shadows(
         maplet.heights, maplet.valid, maplet.ux, maplet.uy, maplet.uz, sun_dir, tol=tol, nodes=nodes
     )
+
+
+def surface_cosines(hx, hy, direction_maplet, inv_norm=None) -> np.ndarray:
+    """n̂·d for maplet-frame unit normals n̂ ∝ (−hx, −hy, 1) and one maplet-frame direction d (3,).
+
+    ``inv_norm``: 1/√(1 + hx² + hy²) if already computed (it is shared by several directions).
+    """
+    d = np.asarray(direction_maplet, dtype=np.float64)
+    hx = np.asarray(hx, dtype=np.float64)
+    hy = np.asarray(hy, dtype=np.float64)
+    if inv_norm is None:
+        inv_norm = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
+    return (d[2] - hx * d[0] - hy * d[1]) * inv_norm

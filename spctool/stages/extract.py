@@ -89,7 +89,8 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.stages.predict import surface_cosines, unit_vector
+from spctool.geometry.frames import unit_vector
+from spctool.geometry.heightfield import surface_cosines
 
 __all__ = [
     "Criteria",

@@ -45,11 +45,12 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
+from spctool.geometry.frames import unit_vector
 from spctool.photometry import phase_angle_deg
 from spctool.stages import photoclinometry as pc
 from spctool.stages import slope_integration as si
 from spctool.stages.extract import ExtractOptions, extract
-from spctool.stages.predict import pearson, unit_vector
+from spctool.stages.predict import pearson
 from spctool.stages.register import register
 from spctool.stages.registrar import RegisterOptions
 

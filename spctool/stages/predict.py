@@ -58,6 +58,7 @@ import numpy as np
 from spctool import photometry as phot
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
+from spctool.geometry.frames import unit_vector
 
 __all__ = [
     "BrightnessFit",
@@ -70,8 +71,6 @@ __all__ = [
     "pearson",
     "predict",
     "resolve_shadows",
-    "surface_cosines",
-    "unit_vector",
 ]
 
 PHOTOMETRY_MODELS = phot.MODELS  # ("spc", "mcewen", "fixed", "lambert")
@@ -169,31 +168,7 @@ class Prediction:
 
 
 # --------------------------------------------------------------------------------------------------
-# small helpers shared with extract
-
-
-def unit_vector(v, name: str = "vector") -> np.ndarray:
-    """``v`` (3,) normalised; SpcUsageError if it is not a finite non-zero 3-vector."""
-    a = np.asarray(v, dtype=np.float64).reshape(-1)
-    if a.shape != (3,):
-        raise SpcUsageError(f"{name} must be a 3-vector, got shape {np.shape(v)}")
-    n = float(np.linalg.norm(a))
-    if not (math.isfinite(n) and n > 0.0):
-        raise SpcUsageError(f"{name} must be a finite non-zero vector, got {a.tolist()}")
-    return a / n
-
-
-def surface_cosines(hx, hy, direction_maplet, inv_norm=None) -> np.ndarray:
-    """n̂·d for maplet-frame unit normals n̂ ∝ (−hx, −hy, 1) and one maplet-frame direction d (3,).
-
-    ``inv_norm``: 1/√(1 + hx² + hy²) if already computed (it is shared by several directions).
-    """
-    d = np.asarray(direction_maplet, dtype=np.float64)
-    hx = np.asarray(hx, dtype=np.float64)
-    hy = np.asarray(hy, dtype=np.float64)
-    if inv_norm is None:
-        inv_norm = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
-    return (d[2] - hx * d[0] - hy * d[1]) * inv_norm
+# small helpers shared with extract (unit_vector and surface_cosines live in geometry)
 
 
 def pearson(a, b, mask=None) -> float:
@@ -346,8 +321,8 @@ def predict(
     e_m = heightfield.to_maplet_components(e_hat, ux, uy, uz)
     s_m = heightfield.to_maplet_components(s_hat, ux, uy, uz)
     inv_norm = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
-    mu0 = surface_cosines(hx, hy, s_m, inv_norm)
-    mu = surface_cosines(hx, hy, e_m, inv_norm)
+    mu0 = heightfield.surface_cosines(hx, hy, s_m, inv_norm)
+    mu = heightfield.surface_cosines(hx, hy, e_m, inv_norm)
     alpha = float(phot.phase_angle_deg(s_hat, e_hat))
 
     valid = mvalid & usable

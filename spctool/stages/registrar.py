@@ -57,6 +57,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
+from spctool.geometry.frames import unit_vector
 from spctool.stages.correlate import (
     PEAK_METHODS,
     CorrelateOptions,
@@ -75,12 +76,7 @@ from spctool.stages.extract import (
     shadow_offsets,
 )
 from spctool.stages.pose import PoseOptions
-from spctool.stages.predict import (
-    PredictOptions,
-    predict,
-    resolve_shadows,
-    unit_vector,
-)
+from spctool.stages.predict import PredictOptions, predict, resolve_shadows
 
 __all__ = [
     "SCHEDULES",
