@@ -437,9 +437,10 @@ def _remove_common_move(pixels, reference, jac, mask) -> tuple[np.ndarray, np.nd
     return out, delta
 
 
-def _first_pass(wm: WorkingMaplet, views, pixels, opts: FindHeightsOptions, cond):
+def _first_pass(wm: WorkingMaplet, views, pixels, opts: FindHeightsOptions, cond, cache):
     """The first pass's observations (module docstring, "First pass"): (observed, pixels, registration
-    correlations, trusted (K,) pictures whose first pixel anchors the common move, the choice made)."""
+    correlations, trusted (K,) pictures whose first pixel anchors the common move, the choice made,
+    the heights pass already solved on them or None)."""
     k = len(views)
     if not opts.reregister:
         modes = ["apriori"]
@@ -452,24 +453,28 @@ def _first_pass(wm: WorkingMaplet, views, pixels, opts: FindHeightsOptions, cond
         ob = _observe(wm, views, px, rc, opts, mode == "register")
         trusted = np.array([not st.startswith("register-") for st in ob.status]) if mode == "register" \
             else np.ones(k, dtype=bool)
-        trials.append((ob, px, rc, trusted, mode))
+        trials.append([ob, px, rc, trusted, mode, None])
     if len(trials) == 1:
-        return trials[0]
-    scores = [_first_solve_misfit(t[0], wm, cond, opts) for t in trials]
+        return tuple(trials[0])
+    scores = []
+    for trial in trials:
+        trial[5], misfit = _first_solve(trial[0], wm, cond, opts, cache)
+        scores.append(misfit)
     best = int(np.nanargmin(scores)) if np.any(np.isfinite(scores)) else 0
-    return trials[best]
+    return tuple(trials[best])
 
 
-def _first_solve_misfit(ob: _Observed, wm: WorkingMaplet, cond, opts: FindHeightsOptions) -> float:
-    """rms misfit (reflectance units, over the pictures) of one heights pass on these observations:
-    pictures extracted at wrong pixels disagree with each other, whatever heights are solved."""
+def _first_solve(ob: _Observed, wm: WorkingMaplet, cond, opts: FindHeightsOptions, cache):
+    """(heights pass, rms misfit in reflectance units over the pictures) of one heights pass on these
+    observations: pictures extracted at wrong pixels disagree with each other, whatever heights are
+    solved."""
     if ob.pictures is None:
-        return math.nan
+        return None, math.nan
     step = pc.heights_pass(wm.heights, wm.albedo, wm.valid, ob.pictures, wm.heights, cond,
-                           opts.condition_weight, opts.keep_plane, None, opts.solve)
+                           opts.condition_weight, opts.keep_plane, None, opts.solve, cache)
     res = pc.residual_rms(step.cells.t1, step.cells.t2, step.albedo, ob.pictures, step.lam, wm.valid,
                           opts.solve)
-    return float(np.sqrt(np.nanmean(res * res))) if np.any(np.isfinite(res)) else math.nan
+    return step, (float(np.sqrt(np.nanmean(res * res))) if np.any(np.isfinite(res)) else math.nan)
 
 
 def _move_px(jac, history, move, used) -> float:
@@ -533,7 +538,8 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
 
     wm = WorkingMaplet.of(start, h0, a0)
     cond = si.conditioning_cells(valid, opts.condition_fraction, opts.seed)
-    ob, pixels, reg_corr, trusted, first = _first_pass(wm, views, pixels, opts, cond)
+    cache: dict = {}  # the integration's factorization, kept across the passes
+    ob, pixels, reg_corr, trusted, first, first_step = _first_pass(wm, views, pixels, opts, cond, cache)
     reference = pixels.copy()
     jac = _v_jacobians(wm, views) if opts.anchor else None
     outcomes = outcomes_of(ob)
@@ -582,8 +588,11 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
         lam = None
         if not opts.refit_lambda and it > 0 and np.all(np.isfinite(lam_by_view[ob.used])):
             lam = lam_by_view[ob.used]  # the first pass's scales
-        step = pc.heights_pass(heights, albedo, valid, ob.pictures, h0, cond, opts.condition_weight,
-                               opts.keep_plane, lam, sopts)
+        if it == 0 and first_step is not None:
+            step = first_step  # the same pass, already solved to choose the first pixels
+        else:
+            step = pc.heights_pass(heights, albedo, valid, ob.pictures, h0, cond, opts.condition_weight,
+                                   opts.keep_plane, lam, sopts, cache)
         if it == 0:
             lam_by_view[ob.used] = step.lam
         sol, lam, new_heights, new_albedo = step.cells, step.lam, step.heights, step.albedo

@@ -570,13 +570,14 @@ class PassResult:
 
 def heights_pass(heights, albedo, valid, pictures: Pictures, start_heights, conditioning,
                  weight: float = 0.025, keep_plane: bool = True, lam=None,
-                 options: SolveOptions | None = None) -> PassResult:
+                 options: SolveOptions | None = None, cache: dict | None = None) -> PassResult:
     """One pass of "Find heights" on fixed observations: HGT2SLP slopes of ``heights``
     (:func:`spctool.geometry.heightfield.slopes`), λ (:func:`fit_lambda`, unless ``lam`` is given),
     the per-cell solve, the albedo normalised to mean 1, the slopes integrated
     (:func:`spctool.stages.slope_integration.integrate_slopes`) with the ``conditioning`` cells pulled
     toward ``start_heights`` with ``weight`` and the unsolvable cells fixed there, and (``keep_plane``)
-    the starting map's best-fit plane restored."""
+    the starting map's best-fit plane restored.  ``cache``: the integration's factorization kept across
+    passes (:func:`~spctool.stages.slope_integration.integrate_slopes`)."""
     from spctool.geometry import heightfield
     from spctool.stages import slope_integration as si
 
@@ -590,7 +591,8 @@ def heights_pass(heights, albedo, valid, pictures: Pictures, start_heights, cond
     cells = solve_cells(t1, t2, a, pictures, lam, valid, options)
     new_albedo, lam = normalise_albedo(cells.albedo, lam, cells.solved)
     new_albedo = np.where(cells.flagged, a, new_albedo)
-    new_h = si.integrate_slopes(cells.t1, cells.t2, valid, conditioning, h0, weight, fixed=cells.flagged)
+    new_h = si.integrate_slopes(cells.t1, cells.t2, valid, conditioning, h0, weight, fixed=cells.flagged,
+                                cache=cache)
     if keep_plane:
         new_h = np.where(cells.flagged, h0, si.keep_plane(new_h, h0, valid))
     new_h = np.where(valid, new_h, 0.0)
