@@ -4,13 +4,13 @@ with the Sun from N, E, S, W and overhead, starting maplets made by ``make-maple
 shape model) with 512² photos and the true poses in the SUM files (``tests/lithos_sim_world.py``).
 
 Measured (2026-11-28), height rms against the truth at the maplet's resolution, start → refined:
-SM0001 0.298 → 0.049 cells (6.1×), SM0002 0.229 → 0.074 (3.1×), SM0003 0.144 → 0.047 (3.1×); albedo
-correlation 0.952, 0.967, 0.960.  Against the point-sampled truth (which holds roughness no 1 m grid
+SM0001 0.298 → 0.049 cells (6.1×), SM0002 0.229 → 0.072 (3.2×), SM0003 0.144 → 0.047 (3.0×); albedo
+correlation 0.952, 0.965, 0.960.  Against the point-sampled truth (which holds roughness no 1 m grid
 can: 0.08–0.09 cells of it) 3.1×, 2.1×, 1.8×.  What is left is mostly the starting map's best-fit
 plane (0.026–0.039 cells rms), which ``keep_plane`` keeps because the pictures' free brightness
 scales leave the tilt unobservable.  Registering every picture (a-priori poses, from the projection)
 on the starting maplets: 6 of 15 measurements ok, rms 4.9 px from the true pixels; on the refined
-maplets 15 of 15, rms 0.16 px.  Slow: the world takes ~30 s of CPU to build."""
+maplets 15 of 15, rms 0.18 px.  Slow: the world takes ~30 s of CPU to build."""
 
 from __future__ import annotations
 
@@ -77,8 +77,8 @@ def test_lithos_on_the_simulated_world(world, run_cli):
         th, ta = grids["matched"]
         e0 = float(np.sqrt(np.mean((start[n].heights - th)[v] ** 2)))
         e1 = float(np.sqrt(np.mean((new.heights - th)[v] ** 2)))
-        assert e1 * 3.0 <= e0, (n, e0, e1)  # measured 6.1x, 3.1x, 3.1x
-        assert np.corrcoef(new.albedo[v], ta[v])[0, 1] >= 0.94  # measured 0.952-0.967
+        assert e1 * 3.0 <= e0, (n, e0, e1)  # measured 6.1x, 3.2x, 3.0x
+        assert np.corrcoef(new.albedo[v], ta[v])[0, 1] >= 0.94  # measured 0.952-0.965
         # against the point-sampled truth: its roughness below the cell (0.08-0.09 cells) is a floor
         tp, _ = grids["point"]
         floor = float(np.sqrt(np.mean((th - tp)[v] ** 2)))
@@ -94,4 +94,4 @@ def test_lithos_on_the_simulated_world(world, run_cli):
     assert np.count_nonzero(np.isfinite(before)) < after.size
     rms_before = float(np.sqrt(np.nanmean(before ** 2)))
     rms_after = float(np.sqrt(np.nanmean(after ** 2)))
-    assert rms_after <= 0.25 and rms_after * 5.0 <= rms_before, (rms_before, rms_after)  # 4.9 -> 0.16 px
+    assert rms_after <= 0.25 and rms_after * 5.0 <= rms_before, (rms_before, rms_after)  # 4.9 -> 0.18 px

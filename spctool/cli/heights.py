@@ -56,7 +56,8 @@ def _row(name, result, n_pictures, wrote):
 @click.argument("landmarks", nargs=-1, metavar="[LANDMARK]...")
 @click.option("--iterations", type=click.IntRange(min=1), default=10, show_default=True, metavar="N",
               help="Outer iterations at most (heights -> slopes -> predict -> re-register -> solve).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0), default=0.01, show_default=True, metavar="CELLS",
+@click.option("--tolerance", type=click.FloatRange(min=0.0), default=0.005, show_default=True,
+              metavar="CELLS",
               help="Stop when the rms height change of an iteration is below this (maplet cells).")
 @click.option("--weight", type=click.FloatRange(min=0.0, min_open=True), default=0.025, show_default=True,
               metavar="W", help="Weight of the conditioning heights (SPC: 'always use .025').")
@@ -69,6 +70,12 @@ def _row(name, result, n_pictures, wrote):
               help="Fit each picture's brightness scale on the starting map only, not every iteration.")
 @click.option("--no-register", is_flag=True,
               help="Extract at the LMK PICTURES pixels; do not re-register on the updated heights.")
+@click.option("--first-pixels", type=click.Choice(["auto", "apriori", "register"]), default="auto",
+              show_default=True,
+              help="Where the pictures sit in the first pass: at their a-priori pixels (LMK PICTURES, "
+                   "else the projection of V: navigated pictures), registered on the starting maplet "
+                   "(poses not navigated, a start close to the truth), or auto: both tried, the one the "
+                   "pictures agree on best kept.")
 @click.option("--acquire-spacings", default="1", show_default=True, metavar="LIST",
               help="Spacings (e.g. 4,2,1) of the first registration of a picture without a PICTURES pixel "
                    "(from the projection of V with the SUM pose); 1 suits navigated pictures.")
@@ -99,7 +106,8 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     fitted; every cell's two slopes and relative albedo are solved by damped least squares from
     all pictures at once; the slopes are integrated to heights with a few conditioning heights
     pulled toward the starting map (--weight, --condition-fraction); and the loop repeats on the
-    new heights until they change by less than --tolerance cells rms.
+    new heights until they change by less than --tolerance cells rms.  Later registrations only
+    co-register the pictures: the move of V they share is removed (moving V is GEOMETRY's job).
 
     Cells seen by pictures with fewer than --min-azimuths distinct Sun azimuths keep their heights
     and albedo and are counted as flagged.  A maplet with fewer such pictures, or with fewer than
@@ -150,6 +158,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
         keep_plane=not kw["free_plane"],
         refit_lambda=not kw["fixed_lambda"],
         reregister=not kw["no_register"],
+        first_pixels=kw["first_pixels"],
         recentre=kw["recentre"],
         solve=SolveOptions(photometry=kw["photometry"], damping=kw["damping"],
                            min_azimuths=kw["min_azimuths"], azimuth_separation_deg=kw["azimuth_separation"]),

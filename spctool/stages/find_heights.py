@@ -33,7 +33,8 @@ One outer iteration, on the current heights H and albedo a:
 2. **Re-extract** the photo onto the grid at that pixel, on the current heights (the first extraction
    sits on wrong heights: parallax; :func:`spctool.stages.extract.extract` with its filters and the
    LITHOS removal criteria).  Pictures the criteria remove take no part.  The brightness model has
-   no cast shadows, so cells in the current heights' cast shadow and cells darker than
+   no cast shadows, so cells in the cast shadow of the current heights — or of an earlier pass's: a
+   cell let in and out as the heights move makes the loop cycle — and cells darker than
    ``dark_fraction`` of the picture's median are left out of that picture's equations.
 3. **λ fit, per-cell solve** (:mod:`spctool.stages.photoclinometry`), starting from the HGT2SLP
    slopes of H (:func:`spctool.geometry.heightfield.slopes`) and a; albedo normalised to mean 1.
@@ -172,7 +173,7 @@ class FindHeightsOptions:
     """
 
     iterations: int = 10
-    tolerance: float = 0.01
+    tolerance: float = 0.005
     condition_weight: float = 0.025
     condition_fraction: float = 0.02
     seed: int = 0
@@ -334,14 +335,17 @@ class _Observed:
     status: list
     extractions: list
     move: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    shadowed: np.ndarray | None = None  # (K, N, N) cells cast-shadowed in any pass so far
 
 
 def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOptions,
-             do_register: bool, reference=None, jac=None, trusted=None) -> _Observed:
+             do_register: bool, reference=None, jac=None, trusted=None, shadowed=None) -> _Observed:
     """Register (optionally) and extract every view on ``wm``; ``pixels`` (K, 2) updated in place.
     With ``reference`` and ``jac`` (:func:`_v_jacobians`) the registered pixels' common move from
     ``reference`` is removed before the extraction (:func:`_remove_common_move`), fitted on the
-    ``trusted`` pictures (default all)."""
+    ``trusted`` pictures (default all).  ``shadowed`` (K, N, N): the cells cast-shadowed in a
+    picture in the earlier passes, which stay out of its equations (a cell let in and out as the
+    heights move makes the loop cycle instead of converging: simulated world, SM0002)."""
     k = len(views)
     n = wm.heights.shape[0]
     obs = np.zeros((k, n, n))
@@ -355,6 +359,7 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
     slopes = heightfield.slopes(wm.heights, wm.valid)
     st_reg = ["ok"] * k
     move = np.zeros(3)
+    memory = np.zeros((k, n, n), dtype=bool) if shadowed is None else shadowed.copy()
     for i, view in enumerate(views) if do_register else ():
         known = bool(np.all(np.isfinite(pixels[i])))
         # no pixel yet: from the projection of V with the SUM pose (``acquire``)
@@ -387,14 +392,15 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
         used[i] = ok and bool(np.any(ext.valid))
         obs[i] = ext.image
         val[i] = ext.valid & wm.valid
-        if opts.cast_shadows:  # cells the current heights shadow carry no slope (the model has no shadows)
-            val[i] &= ~heightfield.cast_shadows(wm.heights, wm.valid, wm.ux, wm.uy, wm.uz, s_hat)
+        if opts.cast_shadows:  # cells the heights shadow carry no slope (the model has no shadows)
+            memory[i] |= heightfield.cast_shadows(wm.heights, wm.valid, wm.ux, wm.uy, wm.uz, s_hat)
+            val[i] &= ~memory[i]
         if opts.dark_fraction > 0.0 and np.any(val[i]):  # shadows above THRSH T1 (noise, a dark offset)
             val[i] &= obs[i] > opts.dark_fraction * float(np.median(obs[i][val[i]]))
     if not np.any(used):
-        return _Observed(None, used, status, exts, move)
+        return _Observed(None, used, status, exts, move, memory)
     pics = pc.Pictures(obs[used], val[used], suns[used], ems[used], alpha[used])
-    return _Observed(pics, used, status, exts, move)
+    return _Observed(pics, used, status, exts, move, memory)
 
 
 def _figures_of(t1, t2, albedo, pics: pc.Pictures, lam, valid, sopts):
@@ -582,7 +588,8 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
     for it in range(opts.iterations):
         if it > 0:
             wm = WorkingMaplet.of(start, heights, albedo)
-            ob = _observe(wm, views, pixels, reg_corr, opts, opts.reregister, reference, jac, trusted)
+            ob = _observe(wm, views, pixels, reg_corr, opts, opts.reregister, reference, jac, trusted,
+                          ob.shadowed)
             if ob.pictures is None:
                 break
         lam = None
@@ -615,7 +622,8 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
 
     # the "after" figures: register and extract once more on the final map
     wm = WorkingMaplet.of(start, heights, albedo)
-    ob_after = _observe(wm, views, pixels, reg_corr, opts, opts.reregister, reference, jac, trusted)
+    ob_after = _observe(wm, views, pixels, reg_corr, opts, opts.reregister, reference, jac, trusted,
+                        ob.shadowed)
     outcomes = outcomes_of(ob_after)
     images = {"before": before}
     if ob_after.pictures is not None:
