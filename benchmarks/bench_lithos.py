@@ -92,29 +92,11 @@ def bench_numerics():
     return t * 1e3, "ms", t <= 0.15
 
 
-_WORKER_SCENE: tuple = ()
-
-
-def _init_worker(start, views):
-    """Each worker receives the scene once (not with every task: 4 photos a maplet)."""
-    global _WORKER_SCENE
-    _WORKER_SCENE = (start, views)
-
-
-def _solve_seeded(seed: int):
-    """(solved?, CPU seconds) of :func:`find_heights` on the worker's scene, conditioning seed ``seed``."""
-    from spctool.stages.find_heights import FindHeightsOptions, find_heights
-
-    t0 = time.process_time()
-    ok = find_heights(_WORKER_SCENE[0], _WORKER_SCENE[1], FindHeightsOptions(seed=seed)).ok
-    return ok, time.process_time() - t0
-
-
 def bench_parallel_100():
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    from heights_world import solve_ok
+    from heights_world import init_worker, solve_ok, solve_seeded
 
     from spctool.workers import start_method
 
@@ -123,9 +105,9 @@ def bench_parallel_100():
     workers = os.cpu_count() or 1
     ctx = mp.get_context(start_method())
     t0 = time.perf_counter()
-    with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+    with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker,
                                 initargs=(start, views)) as pool:
-        out = list(pool.map(_solve_seeded, range(100), chunksize=5))
+        out = list(pool.map(solve_seeded, range(100), chunksize=5))
     t = time.perf_counter() - t0
     ok = [o for o, _ in out]
     cpu = sum(c for _, c in out)
