@@ -46,6 +46,16 @@ One outer iteration, on the current heights H and albedo a:
 5. The rms height change over the valid cells; the loop stops when it is below ``tolerance`` (cells)
    or after ``iterations``.
 
+**Known limit** (measured on the simulated world of ``benchmarks/validate_lithos.py``, 2026-11-28).
+The anchor stops the common drift, not the pictures' drift relative to each other: run far past
+convergence (tolerance 0.001, 20 iterations) the re-registrations keep moving the pictures apart by
+0.03–0.08 px a pass and the heights wander (SM0003: 3.1× closer to the truth at the default tolerance
+of 0.005 cells, reached in 3 iterations; 2.4× after 15).  Registering each picture on a maplet solved
+without it (leave one out) drifts as much, so this is a bias of the registration on a maplet whose
+model cannot hold the photo's sub-cell detail, not the maplet following its own picture; the default
+tolerance stops the loop before it matters (3–6 iterations on both validation worlds), and
+``reregister=False`` (``--no-register``) for navigated pictures does not drift at all.
+
 A last registration and extraction on the final heights gives the "after" figures: per picture the
 residual rms (reflectance units) and the NCC (Pearson ρ) between the re-rendered maplet and the
 extraction, beside the same figures on the starting maplet ("before").
