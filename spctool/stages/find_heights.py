@@ -48,7 +48,7 @@ One outer iteration, on the current heights H and albedo a:
 
 **Known limit** (measured on the simulated world of ``benchmarks/validate_lithos.py``, 2026-11-28).
 The anchor stops the common drift, not the pictures' drift relative to each other: run far past
-convergence (tolerance 0.001, 20 iterations) the re-registrations keep moving the pictures apart by
+convergence (tolerance 0.002, up to 20 iterations) the re-registrations keep moving the pictures apart by
 0.03–0.08 px a pass and the heights wander (SM0003: 3.1× closer to the truth at the default tolerance
 of 0.005 cells, reached in 3 iterations; 2.4× after 15).  Registering each picture on a maplet solved
 without it (leave one out) drifts as much, so this is a bias of the registration on a maplet whose
