@@ -440,16 +440,17 @@ def _v_jacobians(wm: WorkingMaplet, views) -> np.ndarray:
 def _remove_common_move(pixels, reference, jac, mask) -> tuple[np.ndarray, np.ndarray]:
     """``pixels`` (K, 2) less the pixel motion J_k·δ of the one move δ (cells along UX, UY, UZ) of the
     landmark that best explains (least squares) the pictures' offsets from ``reference`` over ``mask``:
-    what is common to the pictures is a move of V (GEOMETRY's), not a co-registration."""
-    ok = mask & np.all(np.isfinite(pixels), axis=1) & np.all(np.isfinite(reference), axis=1)
-    ok &= np.all(np.isfinite(jac), axis=(1, 2))
+    what is common to the pictures is a move of V (GEOMETRY's), not a co-registration.  The move is
+    fitted on the pictures of ``mask`` (those whose reference pixel is trusted) and removed from all."""
+    movable = np.all(np.isfinite(pixels), axis=1) & np.all(np.isfinite(jac), axis=(1, 2))
+    ok = mask & movable & np.all(np.isfinite(reference), axis=1)
     if np.count_nonzero(ok) < 2:
         return pixels, np.zeros(3)
     a = jac[ok].reshape(-1, 3)
     b = (pixels[ok] - reference[ok]).reshape(-1)
     delta, *_ = np.linalg.lstsq(a, b, rcond=1e-6)
     out = pixels.copy()
-    out[ok] -= jac[ok] @ delta
+    out[movable] -= jac[movable] @ delta  # the landmark's move shows in every picture
     return out, delta
 
 
