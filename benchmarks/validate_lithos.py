@@ -6,16 +6,20 @@
    from N, E, S, W and overhead; every picture is navigated first (``navigate --output``: its pose
    solved against the landmarks as simulated), then the starting maplets are made by ``make-maplets
    --keep-frame`` from the world's shape model (far coarser than the truth).  The truth maplet is
-   the truth patch (``TRUTHFILES/``, ``truth_factor`` times finer) sampled at the maplet's nodes.
+   the truth patch (``TRUTHFILES/``, ``truth_factor`` times finer) at the maplet's nodes, twice:
+   ``matched``, smoothed as simulate makes its own maplets (σ = 0.5 maplet cells: what a 1 m grid can
+   hold), and ``point``, sampled without smoothing (its 1/3–1 m roughness, 0.08–0.09 cells rms, is a
+   floor no maplet of this scale goes below).  Spec and helpers: ``tests/lithos_sim_world.py``.
 2. **independent** (trimesh + Embree, :mod:`spctool.sim.independent`, Lambert, faceted truth, six
    pictures with 3 px a-priori errors): every picture is navigated first against the maplets the world
    writes, which are the truth; the starting maplets are them smoothed by a Gaussian of 4 cells with
    a uniform albedo.
 
 Prints, per maplet, the height rms against the truth (cells) before and after ``lithos``, the gain,
-the albedo correlation with the truth and the mean NCC before/after; on the independent world also
-the two-pass navigation (``navigate``) of every picture against the starting and the refined maplets,
-rms distance of the registered landmarks to their true pixels.  Usage::
+the albedo correlation with the truth, the starting map's best-fit-plane error (kept by
+``keep_plane``) and the mean NCC before/after; on both worlds the two-pass navigation (``navigate``)
+of every picture against the starting and the refined maplets (same pictures), rms distance of the
+registered landmarks to their true pixels.  Usage::
 
     python benchmarks/validate_lithos.py OUTDIR            # both worlds (~5 min on a quiet machine)
     python benchmarks/validate_lithos.py OUTDIR independent
@@ -31,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # lithos_sim_world
+
 
 def _cli(*args):
     from spctool.cli.main import cli
@@ -43,30 +49,9 @@ def _cli(*args):
 
 
 def _spec(path: Path):
-    import io
-    from contextlib import redirect_stdout
+    from lithos_sim_world import spec_text
 
-    buf = io.StringIO()
-    with redirect_stdout(buf):
-        _cli("simulate", "--example")
-    text = buf.getvalue()
-    head = text[: text.index("[[pictures]]")]
-    head = head.replace("count = 12", "count = 3").replace("write_truth = false", "write_truth = true")
-    head = head.replace("scale_km = 0.0005", "scale_km = 0.001")
-    lines = head.splitlines()
-    in_albedo = False
-    for i, ln in enumerate(lines):
-        if ln.startswith("["):
-            in_albedo = ln.strip() == "[terrain.albedo]"
-        elif in_albedo and ln.startswith("contrast ="):
-            lines[i] = "contrast = 0.3"
-    pics = ""
-    for slat, slon, vlat, vlon in [(55, 20, 18, 28), (10, 65, 2, 12), (-35, 20, 18, 12), (10, -25, 2, 28),
-                                   (20, 30, 10, 20)]:
-        pics += (f"[[pictures]]\naim_lat_deg = 10.0\naim_lon_deg = 20.0\nview_lat_deg = {vlat}\n"
-                 f"view_lon_deg = {vlon}\nrange_km = 1.9\nsun_lat_deg = {slat}\nsun_lon_deg = {slon}\n"
-                 'format = "dat"\n\n')
-    path.write_text("\n".join(lines) + "\n" + pics)
+    path.write_text(spec_text(count=3, npx=768))
 
 
 def _navigate_first(root: Path, *extra):
@@ -78,26 +63,33 @@ def _navigate_first(root: Path, *extra):
             (root / new).replace(sum_path)
 
 
-def _truth_on_grid(m, t):
-    f = round(m.scale / t.scale)
-    idx = t.qsz + f * (np.arange(2 * m.qsz + 1) - m.qsz)
-    return t.heights[np.ix_(idx, idx)] / f, t.albedo[np.ix_(idx, idx)]
-
-
 def _report(root: Path, start: dict, doc: dict):
+    """Per maplet: height rms against the truth before/after and the gain, albedo correlation, mean NCC.
+    On a simulated world the truth is taken at the maplet's resolution (``matched``: as simulate makes
+    its maplets) and point-sampled (``point``, with the roughness no grid of this scale holds); the
+    starting map's best-fit plane error (``keep_plane`` keeps it) is printed beside."""
+    from lithos_sim_world import plane_rms, truth_on_grid
+
     from spctool.formats.maplet import read_map
 
     for m in doc["meta"]["maplets"] if "meta" in doc else doc["maplets"]:
         name = m["name"]
         new = read_map(root / "MAPFILES" / f"{name}.MAP")
         truth = read_map(root / "TRUTHFILES" / f"{name}.MAP")
-        th, ta = _truth_on_grid(new, truth)
         v = new.valid
-        e0 = float(np.sqrt(np.mean((start[name] - th)[v] ** 2)))
-        e1 = float(np.sqrt(np.mean((new.heights - th)[v] ** 2)))
-        corr = float(np.corrcoef(new.albedo[v], ta[v])[0, 1])
-        print(f"{root.name:12s} {name}  height rms {e0:.3f} -> {e1:.3f} cells ({e0 / e1:.1f}x)  albedo corr "
-              f"{corr:.3f}  NCC {m['ncc_before']:.3f} -> {m['ncc_after']:.3f}  {m['status']}", flush=True)
+        if round(new.scale / truth.scale) > 1:
+            grids = truth_on_grid(new, truth)
+        else:
+            grids = {"truth": (truth.heights, truth.albedo)}
+        for kind, (th, ta) in grids.items():
+            e0 = float(np.sqrt(np.mean((start[name] - th)[v] ** 2)))
+            e1 = float(np.sqrt(np.mean((new.heights - th)[v] ** 2)))
+            corr = float(np.corrcoef(new.albedo[v], ta[v])[0, 1])
+            print(f"{root.name:12s} {name} {kind:7s} height rms {e0:.3f} -> {e1:.3f} cells ({e0 / e1:.1f}x)  "
+                  f"albedo corr {corr:.3f}  start plane {plane_rms(start[name] - th, v):.3f}  "
+                  f"NCC {m['ncc_before']:.3f} -> {m['ncc_after']:.3f}  {m['status']} "
+                  f"(first pass: {m['history'][0].get('first_pixels', '-') if m['history'] else '-'})",
+                  flush=True)
 
 
 def _lithos(root: Path, *extra):
@@ -122,7 +114,12 @@ def simulated(out: Path):
     # then the maplets are remade from the shape and refined from the pictures at the solved poses
     _navigate_first(root)
     _cli("-q", "-C", root, "make-maplets", *names, "--keep-frame", "--overwrite")
+    import shutil
+
+    shutil.copytree(root, out / "simulated-start", dirs_exist_ok=True)
     _lithos(root)
+    for r in (out / "simulated-start", root):
+        _navigation(r)
 
 
 def independent(out: Path):
@@ -146,30 +143,35 @@ def independent(out: Path):
     shutil.copytree(root, out / "independent-start", dirs_exist_ok=True)
     _lithos(root, "--photometry", "lambert")
     for r in (out / "independent-start", root):
-        _navigation(r)
+        _navigation(r, "--photometry", "lambert")
 
 
-def _navigation(root: Path):
-    """Two-pass navigation of every picture (``navigate``, Lambert prediction) against the maplets of
-    ``root``; rms and max of the registered landmarks' distance to their true pixels (TRUTH.json)."""
+def _navigation(root: Path, *extra):
+    """Two-pass navigation of every picture (``navigate``; ``extra`` options, e.g. a Lambert
+    prediction) against the maplets of ``root``; rms and max of the registered landmarks' distance to
+    their true pixels (TRUTH.json: per picture on the independent world, per landmark on simulate's)."""
     import io
     from contextlib import redirect_stdout
 
     truth = json.loads((root / "TRUTH.json").read_text())
+    rows = [lm for lm in truth.get("landmarks", []) if isinstance(lm, dict)]
+    by_landmark = {lm["name"]: lm.get("pixels", {}) for lm in rows}
     errs = []
     for pic in truth["pictures"]:
+        true_px = pic.get("pixels") or {n: (p[pic["name"]]["sample"], p[pic["name"]]["line"])
+                                         for n, p in by_landmark.items() if pic["name"] in p}
         buf = io.StringIO()
         with redirect_stdout(buf):
             try:
-                _cli("-q", "-C", root, "navigate", pic["name"], "--json", "--photometry", "lambert")
+                _cli("-q", "-C", root, "navigate", pic["name"], "--json", *extra)
             except (Exception, SystemExit):  # noqa: BLE001 - a failed pose still prints its table
                 pass
         text = buf.getvalue()
         if not text.strip():
             continue
         for row in json.loads(text)["landmarks"]:
-            if row["status"] == "ok" and row["name"] in pic["pixels"]:
-                t = pic["pixels"][row["name"]]
+            if row["status"] == "ok" and row["name"] in true_px:
+                t = true_px[row["name"]]
                 errs.append(float(np.hypot(row["sample"] - t[0], row["line"] - t[1])))
     e = np.array(errs)
     rms = float(np.sqrt(np.mean(e * e)))

@@ -156,3 +156,24 @@ def solve_ok(args) -> bool:
 
     start, views, seed = args
     return find_heights(start, views, FindHeightsOptions(seed=seed)).ok
+
+
+_WORKER_SCENE: tuple = ()
+
+
+def init_worker(start, views) -> None:
+    """A worker process's scene, received once (``ProcessPoolExecutor(initializer=...)``)."""
+    global _WORKER_SCENE
+    _WORKER_SCENE = (start, views)
+
+
+def solve_seeded(seed: int):
+    """(solved?, CPU seconds) of ``find_heights`` on the worker's scene (:func:`init_worker`) with the
+    conditioning cells drawn by ``seed``."""
+    import time
+
+    from spctool.stages.find_heights import FindHeightsOptions, find_heights
+
+    t0 = time.process_time()
+    ok = find_heights(_WORKER_SCENE[0], _WORKER_SCENE[1], FindHeightsOptions(seed=seed)).ok
+    return ok, time.process_time() - t0

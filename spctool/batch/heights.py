@@ -16,32 +16,70 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from spctool.errors import SpcError
+from spctool.errors import SpcError, SpcFormatError
 
 __all__ = ["landmark_views", "refine_maplet", "refine_heights"]
 
 
-def landmark_views(wd, settings, lmk):
+def _sees(camera, pic, lmk) -> bool:
+    """V in front of the camera, inside the photo, facing it and lit (both above the maplet plane)."""
+    import numpy as np
+
+    v = np.asarray(lmk.vlm, dtype=np.float64)
+    uz = np.asarray(lmk.uz, dtype=np.float64)
+    s, ln, front = camera.project_with_mask(v[None, :])
+    e = np.asarray(camera.position, dtype=np.float64) - v
+    return bool(front[0] and 1.0 <= s[0] < pic.npx and 1.0 <= ln[0] < pic.nln and e @ uz > 0.0
+                and np.asarray(pic.sz, float) @ uz > 0.0)
+
+
+def landmark_views(wd, settings, lmk, *, thresholds=None, note=None):
     """(views, skipped names): a :class:`~spctool.stages.find_heights.PictureView` per PICTURES row of
-    the LMK not flagged ``*`` (its pixel the a-priori centre), with the picture's SUM, camera and photo."""
+    the LMK not flagged ``*`` (its pixel the a-priori centre), with the picture's SUM (finite pose
+    checked), camera (the INIT_LITHOS ``settings``' DISTORT= model of that picture name) and photo
+    (checked against the SUM's size).  An LMK without any PICTURES row tries every picture of
+    PICTLIST.TXT (else SUMFILES/) whose camera sees V lit and facing it, pixel None (the projection).
+
+    ``thresholds(pic)``: the (T1, T2) of a picture (default its SUM THRSH); ``note(message)`` is told
+    each picture left out and why (a missing or bad SUM or photo: the picture is skipped, not an error).
+    The one builder of a maplet's views for ``spctool lithos`` and ``batch --lithos``.
+    """
+    from spctool.formats import guard
     from spctool.geometry.camera import Camera
     from spctool.stages.find_heights import PictureView
 
+    say = note if note is not None else (lambda message: None)
+    explicit = bool(lmk.pictures)
+    rows = [(r.name, (float(r.sample), float(r.line))) for r in lmk.pictures if r.flag != "*"]
+    if not explicit:
+        names = wd.picture_names()
+        say(f"{lmk.name}: no PICTURES rows in its LMK: trying the {len(names)} pictures of PICTLIST.TXT "
+            "that see it")
+        rows = [(n, None) for n in names]
     views, skipped = [], []
-    for row in lmk.pictures:  # file reads per picture
-        if row.flag == "*":
-            continue
+    for name, pixel in rows:  # file reads per picture
         try:
-            pic = wd.read_picture(row.name)
+            pic = wd.read_picture(name)
+            guard.check_finite_header(pic, wd.sum_path(name), "sum")
+            camera = Camera.from_picture(pic, settings, picture_name=name)
+            if not explicit and not _sees(camera, pic, lmk):
+                continue
+            if wd.photo_path(pic.name) is None:
+                say(f"{lmk.name}: picture {name} left out (no photo in IMAGEFILES/)")
+                skipped.append(name)
+                continue
             photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)
-            camera = Camera.from_picture(pic, settings)
-        except (SpcError, OSError):
-            skipped.append(row.name)
+            if photo.data.shape != (pic.nln, pic.npx):
+                raise SpcFormatError(wd.photo_path(pic.name), None, f"{pic.npx} x {pic.nln} px (the SUM's "
+                                     f"size), found {photo.npx} x {photo.nln}")
+            thr = tuple(float(x) for x in (pic.thrsh if thresholds is None else thresholds(pic)))
+        except (SpcError, OSError) as exc:
+            say(f"{lmk.name}: picture {name} left out ({exc})")
+            skipped.append(name)
             continue
-        pixel = (float(row.sample), float(row.line))
-        if not all(math.isfinite(x) for x in pixel):
+        if pixel is not None and not all(math.isfinite(x) for x in pixel):
             pixel = None
-        views.append(PictureView(row.name, photo, camera, pic.sz, tuple(float(x) for x in pic.thrsh), pixel))
+        views.append(PictureView(name, photo, camera, pic.sz, thr, pixel))
     return views, skipped
 
 

@@ -24,59 +24,7 @@ import numpy as np
 
 from spctool.cli import options
 from spctool.cli.common import Context, emit_table, pass_context
-from spctool.errors import SpcFormatError, SpcResultError, SpcUsageError
-
-
-def _rows_of(ctx: Context, lmk):
-    """(picture name, pixel or None) of the LMK PICTURES rows not flagged '*'; without any, every
-    picture of PICTLIST.TXT (else SUMFILES/) whose camera sees V lit and facing it (pixel None: the
-    projection), with a note."""
-    rows = [(r.name, (float(r.sample), float(r.line))) for r in lmk.pictures if r.flag != "*"]
-    if rows or lmk.pictures:
-        return rows
-    names = ctx.wd.picture_names()
-    ctx.note_once(f"{lmk.name}: no PICTURES rows in its LMK: trying the {len(names)} pictures of "
-                  "PICTLIST.TXT that see it")
-    return [(n, None) for n in names]
-
-
-def _sees(camera, pic, lmk) -> bool:
-    """V in front of the camera, inside the photo, facing it and lit (both above the maplet plane)."""
-    v = np.asarray(lmk.vlm, dtype=np.float64)
-    uz = np.asarray(lmk.uz, dtype=np.float64)
-    s, ln, front = camera.project_with_mask(v[None, :])
-    e = np.asarray(camera.position, dtype=np.float64) - v
-    return bool(front[0] and 1.0 <= s[0] < pic.npx and 1.0 <= ln[0] < pic.nln and e @ uz > 0.0
-                and np.asarray(pic.sz, float) @ uz > 0.0)
-
-
-def _views(ctx: Context, lmk, kw):
-    """(views, skipped names) of the landmark's pictures (:func:`_rows_of`)."""
-    from spctool.cli.common import load_photo, load_picture
-    from spctool.cli.options import picture_thresholds
-    from spctool.stages.find_heights import PictureView
-
-    views, skipped = [], []
-    explicit = bool(lmk.pictures)
-    for name, pixel in _rows_of(ctx, lmk):
-        try:
-            pic = load_picture(ctx, name)
-            if not explicit and not _sees(pic.camera, pic.pic, lmk):
-                continue
-            photo = load_photo(ctx, pic.pic, required=False)
-        except SpcFormatError as exc:
-            ctx.note_once(f"{lmk.name}: picture {name} left out ({exc})")
-            skipped.append(name)
-            continue
-        if photo is None:
-            ctx.note_once(f"{lmk.name}: picture {name} left out (no photo in IMAGEFILES/)")
-            skipped.append(name)
-            continue
-        if pixel is not None and not all(math.isfinite(x) for x in pixel):
-            pixel = None
-        views.append(PictureView(name, photo, pic.camera, pic.pic.sz,
-                                 picture_thresholds(kw["thresholds"], pic.pic), pixel))
-    return views, skipped
+from spctool.errors import SpcResultError, SpcUsageError
 
 
 def _row(name, result, n_pictures, wrote):
@@ -108,7 +56,8 @@ def _row(name, result, n_pictures, wrote):
 @click.argument("landmarks", nargs=-1, metavar="[LANDMARK]...")
 @click.option("--iterations", type=click.IntRange(min=1), default=10, show_default=True, metavar="N",
               help="Outer iterations at most (heights -> slopes -> predict -> re-register -> solve).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0), default=0.01, show_default=True, metavar="CELLS",
+@click.option("--tolerance", type=click.FloatRange(min=0.0), default=0.005, show_default=True,
+              metavar="CELLS",
               help="Stop when the rms height change of an iteration is below this (maplet cells).")
 @click.option("--weight", type=click.FloatRange(min=0.0, min_open=True), default=0.025, show_default=True,
               metavar="W", help="Weight of the conditioning heights (SPC: 'always use .025').")
@@ -121,6 +70,12 @@ def _row(name, result, n_pictures, wrote):
               help="Fit each picture's brightness scale on the starting map only, not every iteration.")
 @click.option("--no-register", is_flag=True,
               help="Extract at the LMK PICTURES pixels; do not re-register on the updated heights.")
+@click.option("--first-pixels", type=click.Choice(["auto", "apriori", "register"]), default="auto",
+              show_default=True,
+              help="Where the pictures sit in the first pass: at their a-priori pixels (LMK PICTURES, "
+                   "else the projection of V: navigated pictures), registered on the starting maplet "
+                   "(poses not navigated, a start close to the truth), or auto: both tried, the one the "
+                   "pictures agree on best kept.")
 @click.option("--acquire-spacings", default="1", show_default=True, metavar="LIST",
               help="Spacings (e.g. 4,2,1) of the first registration of a picture without a PICTURES pixel "
                    "(from the projection of V with the SUM pose); 1 suits navigated pictures.")
@@ -151,7 +106,8 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     fitted; every cell's two slopes and relative albedo are solved by damped least squares from
     all pictures at once; the slopes are integrated to heights with a few conditioning heights
     pulled toward the starting map (--weight, --condition-fraction); and the loop repeats on the
-    new heights until they change by less than --tolerance cells rms.
+    new heights until they change by less than --tolerance cells rms.  Later registrations only
+    co-register the pictures: the move of V they share is removed (moving V is GEOMETRY's job).
 
     Cells seen by pictures with fewer than --min-azimuths distinct Sun azimuths keep their heights
     and albedo and are counted as flagged.  A maplet with fewer such pictures, or with fewer than
@@ -177,6 +133,8 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
       spctool -C demo lithos B01536 B01595 --iterations 3 --figures lithos-figures
       spctool -C demo lithos B01980 --json -o lithos.json
     """
+    from spctool.batch.heights import landmark_views
+    from spctool.cli.options import picture_thresholds
     from spctool.formats.landmark import write_lmk
     from spctool.formats.maplet import write_map
     from spctool.stages.find_heights import FindHeightsOptions, find_heights, landmark_with, maplet_with
@@ -200,6 +158,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
         keep_plane=not kw["free_plane"],
         refit_lambda=not kw["fixed_lambda"],
         reregister=not kw["no_register"],
+        first_pixels=kw["first_pixels"],
         recentre=kw["recentre"],
         solve=SolveOptions(photometry=kw["photometry"], damping=kw["damping"],
                            min_azimuths=kw["min_azimuths"], azimuth_separation_deg=kw["azimuth_separation"]),
@@ -211,7 +170,8 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     for name in names:
         lmk = ctx.wd.read_landmark(name)
         maplet = ctx.wd.read_maplet(lmk.name)
-        views, skipped = _views(ctx, lmk, kw)
+        views, skipped = landmark_views(ctx.wd, ctx.settings(), lmk, note=ctx.note_once,
+                                        thresholds=lambda pic: picture_thresholds(kw["thresholds"], pic))
         result = find_heights(maplet, views, opts)
         wrote = False
         if not result.ok:

@@ -35,6 +35,7 @@ FAMILIES = {
     ),
     "rays": (("spctool.geometry._raykernels", "trace"), ("spctool.geometry._bvhkernels", "build_patch_tree")),
     "render": (("spctool.geometry._patchkernels", "_fused_rays"),),
+    "heights": (("spctool.stages.photoclinometry", "_k_gauss_newton"),),
 }
 _PIPELINE = ("camera", "maplet", "rays")
 #: the kernel families each command needs (commands not listed compile nothing worth a note)
@@ -53,6 +54,7 @@ COMMAND_FAMILIES = {
     "navigate": _PIPELINE,
     "batch": _PIPELINE,
     "montecarlo": ("camera", "maplet", "render"),
+    "lithos": ("camera", "maplet", "heights"),
 }
 #: a cold `spctool demo` compiles for about this long on one core (27 s of CPU measured at load 4,
 #: docs/benchmarks.md)
@@ -363,10 +365,10 @@ def warmup_cmd(ctx: Context):
     half a minute compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
     install under PYTHONDONTWRITEBYTECODE otherwise compiles them from source in every command, about
     0.2 s), then runs the shipped demo working directory through lithos-select, register in
-    maplet and in image space, solve-pose, a render of a small window and make-maplets, all in a
-    temporary directory, and prints one line per step with its time (on a terminal, while a step
-    compiles, which kernel compiles and how many are done).  Run it once after installing
-    (or after upgrading spctool or numba).  Exit code 0, or 1 when a step failed.
+    maplet and in image space, solve-pose, a render of a small window, make-maplets and lithos's
+    per-cell solve, all in a temporary directory, and prints one line per step with its time (on a
+    terminal, while a step compiles, which kernel compiles and how many are done).  Run it once after
+    installing (or after upgrading spctool or numba).  Exit code 0, or 1 when a step failed.
 
     Example:
 
@@ -426,6 +428,16 @@ def warmup_cmd(ctx: Context):
                 ShapeSurface.from_model(wd.read_shape(None)), ["WARM01"], np.array([lmk.vlm]), lmk.scale, 4
             )
 
+        def heights():
+            import numpy as np
+
+            from spctool.stages import photoclinometry as pc
+
+            n = 5
+            sun = np.array([[0.5, 0.0, 0.8], [0.0, 0.5, 0.8], [-0.5, 0.0, 0.8]])
+            pics = pc.Pictures(np.ones((3, n, n)), np.ones((3, n, n), bool), sun, sun, np.zeros(3))
+            pc.solve_cells(np.zeros((n, n)), np.zeros((n, n)), np.ones((n, n)), pics, np.ones(3))
+
         def bytecode():
             done, note = compile_bytecode()
             return f"{done} module(s) compiled" + (f"; {note}" if note else "")
@@ -436,6 +448,7 @@ def warmup_cmd(ctx: Context):
             ("register (image space)", lambda: pipeline("image")),
             ("render", render_window),
             ("make-maplets", maplets),
+            ("lithos (per-cell solve)", heights),
         ):
             t0 = time.perf_counter()
             try:

@@ -7,15 +7,34 @@ pictures that see it (:class:`PictureView`: photo, camera, Sun, thresholds, a-pr
 :class:`FindHeightsOptions`, and returns a :class:`FindHeightsResult`; ``batch`` can map it over
 maplets.
 
+**First pass** (``first_pixels``).  Where the pictures sit before any heights are solved decides what
+the loop converges to.  ``"apriori"``: at their a-priori pixels (the LMK PICTURES rows, else the
+projection of V with the SUM pose) — right for navigated pictures (SPC runs LITHOS after navigation and
+GEOMETRY), whereas a coarse starting maplet registers several pixels off (simulated world of
+``benchmarks/validate_lithos.py``: 2–6 px, correlations 0.4–0.8).  ``"register"``: registered on the
+starting maplet (``acquire`` from the projection, ``register`` from a given pixel) — right when the
+poses are not navigated but the start is close to the truth.  ``"auto"`` (default) makes both first
+passes, solves one heights pass on each, and keeps the one whose pictures agree best with each other
+(lower rms misfit: pictures extracted at wrong pixels disagree whatever heights are solved).  The
+first pass's pixels are the **reference** of the later ones.
+
 One outer iteration, on the current heights H and albedo a:
 
 1. **Re-register** each picture on the current maplet (:func:`spctool.stages.register.register`, the
    ``register_steps`` schedule, by default one full-resolution step and its converged stage) from its
    last pixel; a picture that fails keeps its last pixel.  ``reregister=False`` keeps the given pixels.
+   With ``anchor`` (default) the one move of V (cells along UX, UY, UZ) that best explains the
+   pictures' offsets from their reference pixels is removed from every picture's pixel (least squares
+   through each picture's ∂pixel/∂V): a move common to the pictures is a move of the landmark —
+   GEOMETRY's business; lithos keeps V — while the pictures' offsets from each other are the
+   co-registration the albedo needs.  Without it the heights and the registrations drift together
+   (the maplet's translation is otherwise held only by the weak conditioning heights: 0.03–0.07 px a
+   pass, unbounded).  The move is reported per iteration (``v_move_cells``, ``v_move_px``).
 2. **Re-extract** the photo onto the grid at that pixel, on the current heights (the first extraction
    sits on wrong heights: parallax; :func:`spctool.stages.extract.extract` with its filters and the
    LITHOS removal criteria).  Pictures the criteria remove take no part.  The brightness model has
-   no cast shadows, so cells in the current heights' cast shadow and cells darker than
+   no cast shadows, so cells in the cast shadow of the current heights — or of an earlier pass's: a
+   cell let in and out as the heights move makes the loop cycle — and cells darker than
    ``dark_fraction`` of the picture's median are left out of that picture's equations.
 3. **λ fit, per-cell solve** (:mod:`spctool.stages.photoclinometry`), starting from the HGT2SLP
    slopes of H (:func:`spctool.geometry.heightfield.slopes`) and a; albedo normalised to mean 1.
@@ -26,6 +45,16 @@ One outer iteration, on the current heights H and albedo a:
    best-fit plane, which pins the tilt the λ ratios leave free (map-refinement.md §2, "Pitfalls").
 5. The rms height change over the valid cells; the loop stops when it is below ``tolerance`` (cells)
    or after ``iterations``.
+
+**Known limit** (measured on the simulated world of ``benchmarks/validate_lithos.py``, 2026-11-28).
+The anchor stops the common drift, not the pictures' drift relative to each other: run far past
+convergence (tolerance 0.002, up to 20 iterations) the re-registrations keep moving the pictures apart by
+0.03–0.08 px a pass and the heights wander (SM0003: 3.1× closer to the truth at the default tolerance
+of 0.005 cells, reached in 3 iterations; 2.4× after 15).  Registering each picture on a maplet solved
+without it (leave one out) drifts as much, so this is a bias of the registration on a maplet whose
+model cannot hold the photo's sub-cell detail, not the maplet following its own picture; the default
+tolerance stops the loop before it matters (3–6 iterations on both validation worlds), and
+``reregister=False`` (``--no-register``) for navigated pictures does not drift at all.
 
 A last registration and extraction on the final heights gives the "after" figures: per picture the
 residual rms (reflectance units) and the NCC (Pearson ρ) between the re-rendered maplet and the
@@ -126,6 +155,10 @@ def _default_acquire() -> RegisterOptions:
     return _default_register()
 
 
+#: where the pictures sit in the first pass (module docstring, "First pass")
+FIRST_PIXELS = ("auto", "apriori", "register")
+
+
 def _default_extract() -> ExtractOptions:
     return ExtractOptions(criteria="lithos_standard")
 
@@ -138,6 +171,7 @@ class FindHeightsOptions:
     cells); ``condition_weight`` (0.025, SPC's "always use .025") and ``condition_fraction`` (0.02 of
     the valid cells, map-refinement.md §2 "Pitfalls"), ``seed`` of their draw; ``keep_plane``;
     ``refit_lambda`` (λ refitted every pass; False: fitted on the starting map only);
+    ``first_pixels`` (``"auto"``, ``"apriori"``, ``"register"``) and ``anchor`` (module docstring);
     ``reregister`` and ``register`` (the registration options; default one spacing-1 step with the
     converged stage, maplet space), ``acquire`` (those of a picture without an a-priori pixel, from
     the projection of V: by default the same); ``extract`` (extraction options; default LITHOS
@@ -150,7 +184,7 @@ class FindHeightsOptions:
     """
 
     iterations: int = 10
-    tolerance: float = 0.01
+    tolerance: float = 0.005
     condition_weight: float = 0.025
     condition_fraction: float = 0.02
     seed: int = 0
@@ -161,6 +195,8 @@ class FindHeightsOptions:
     recentre: bool = False
     cast_shadows: bool = True
     dark_fraction: float = 0.1
+    first_pixels: str = "auto"
+    anchor: bool = True
     register: RegisterOptions = field(default_factory=_default_register)
     acquire: RegisterOptions = field(default_factory=_default_acquire)
     extract: ExtractOptions = field(default_factory=_default_extract)
@@ -178,6 +214,9 @@ class FindHeightsOptions:
             setattr(self, name, value)
         if not self.condition_weight > 0.0:
             raise SpcUsageError("condition_weight must be > 0")
+        if self.first_pixels not in FIRST_PIXELS:
+            choices = ", ".join(FIRST_PIXELS)
+            raise SpcUsageError(f"first_pixels must be one of {choices}, got {self.first_pixels!r}")
         if self.condition_fraction > 1.0 or self.min_solved_fraction > 1.0:
             raise SpcUsageError("condition_fraction and min_solved_fraction must lie in [0, 1]")
 
@@ -306,11 +345,18 @@ class _Observed:
     used: np.ndarray  # (K,) bool
     status: list
     extractions: list
+    move: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    shadowed: np.ndarray | None = None  # (K, N, N) cells cast-shadowed in any pass so far
 
 
 def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOptions,
-             do_register: bool) -> _Observed:
-    """Register (optionally) and extract every view on ``wm``; ``pixels`` (K, 2) updated in place."""
+             do_register: bool, reference=None, jac=None, trusted=None, shadowed=None) -> _Observed:
+    """Register (optionally) and extract every view on ``wm``; ``pixels`` (K, 2) updated in place.
+    With ``reference`` and ``jac`` (:func:`_v_jacobians`) the registered pixels' common move from
+    ``reference`` is removed before the extraction (:func:`_remove_common_move`), fitted on the
+    ``trusted`` pictures (default all).  ``shadowed`` (K, N, N): the cells cast-shadowed in a
+    picture in the earlier passes, which stay out of its equations (a cell let in and out as the
+    heights move makes the loop cycle instead of converging: simulated world, SM0002)."""
     k = len(views)
     n = wm.heights.shape[0]
     obs = np.zeros((k, n, n))
@@ -322,19 +368,24 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
     status = []
     exts = []
     slopes = heightfield.slopes(wm.heights, wm.valid)
+    st_reg = ["ok"] * k
+    move = np.zeros(3)
+    memory = np.zeros((k, n, n), dtype=bool) if shadowed is None else shadowed.copy()
+    for i, view in enumerate(views) if do_register else ():
+        known = bool(np.all(np.isfinite(pixels[i])))
+        # no pixel yet: from the projection of V with the SUM pose (``acquire``)
+        ropts = opts.register if known else opts.acquire
+        res = register(view.photo, view.camera, view.sun, [wm], view.thresholds, ropts,
+                       apriori=pixels[i:i + 1] if known else None, names=[wm.name or "maplet"])
+        if res.status[0] == "ok":
+            pixels[i] = res.measured[0]
+            reg_corr[i] = float(res.correlation[0])
+        else:
+            st_reg[i] = f"register-{res.status[0]}"
+    if do_register and reference is not None and jac is not None:
+        mask = np.ones(k, dtype=bool) if trusted is None else trusted
+        pixels[:], move = _remove_common_move(pixels, reference, jac, mask)
     for i, view in enumerate(views):
-        st_reg = "ok"
-        if do_register:
-            known = bool(np.all(np.isfinite(pixels[i])))
-            # no pixel yet: from the projection of V with the SUM pose (``acquire``)
-            ropts = opts.register if known else opts.acquire
-            res = register(view.photo, view.camera, view.sun, [wm], view.thresholds, ropts,
-                           apriori=pixels[i:i + 1] if known else None, names=[wm.name or "maplet"])
-            if res.status[0] == "ok":
-                pixels[i] = res.measured[0]
-                reg_corr[i] = float(res.correlation[0])
-            else:
-                st_reg = f"register-{res.status[0]}"
         center = pixels[i] if np.all(np.isfinite(pixels[i])) else None
         ext = extract(view.photo, wm, view.camera, view.sun, view.thresholds, opts.extract,
                       center_pixel=center, slopes=slopes)
@@ -347,19 +398,20 @@ def _observe(wm: WorkingMaplet, views, pixels, reg_corr, opts: FindHeightsOption
         ems[i] = heightfield.to_maplet_components(e_hat, wm.ux, wm.uy, wm.uz)
         alpha[i] = float(phase_angle_deg(s_hat, e_hat))
         # a failed re-registration keeps the previous pixel; the picture is still used
-        status.append(ext.status if ext.status != "ok" else st_reg)
+        status.append(ext.status if ext.status != "ok" else st_reg[i])
         ok = ext.status == "ok"
         used[i] = ok and bool(np.any(ext.valid))
         obs[i] = ext.image
         val[i] = ext.valid & wm.valid
-        if opts.cast_shadows:  # cells the current heights shadow carry no slope (the model has no shadows)
-            val[i] &= ~heightfield.cast_shadows(wm.heights, wm.valid, wm.ux, wm.uy, wm.uz, s_hat)
+        if opts.cast_shadows:  # cells the heights shadow carry no slope (the model has no shadows)
+            memory[i] |= heightfield.cast_shadows(wm.heights, wm.valid, wm.ux, wm.uy, wm.uz, s_hat)
+            val[i] &= ~memory[i]
         if opts.dark_fraction > 0.0 and np.any(val[i]):  # shadows above THRSH T1 (noise, a dark offset)
             val[i] &= obs[i] > opts.dark_fraction * float(np.median(obs[i][val[i]]))
     if not np.any(used):
-        return _Observed(None, used, status, exts)
+        return _Observed(None, used, status, exts, move, memory)
     pics = pc.Pictures(obs[used], val[used], suns[used], ems[used], alpha[used])
-    return _Observed(pics, used, status, exts)
+    return _Observed(pics, used, status, exts, move, memory)
 
 
 def _figures_of(t1, t2, albedo, pics: pc.Pictures, lam, valid, sopts):
@@ -370,6 +422,86 @@ def _figures_of(t1, t2, albedo, pics: pc.Pictures, lam, valid, sopts):
         pearson(pred[k], pics.observed[k], pics.valid[k] & lit[k] & valid) for k in range(len(pics))
     ])
     return ncc, rms, np.where(lit & valid[None], pred, 0.0)
+
+
+def _v_jacobians(wm: WorkingMaplet, views) -> np.ndarray:
+    """(K, 2, 3): pixels per cell that V's image moves in each picture when V moves by one cell along
+    UX, UY and UZ (central differences of the camera projection; NaN where it cannot be projected)."""
+    out = np.full((len(views), 2, 3), np.nan)
+    step = wm.scale
+    pts = np.stack([wm.v + sgn * step * u for u in (wm.ux, wm.uy, wm.uz) for sgn in (1.0, -1.0)])
+    for i, view in enumerate(views):
+        s, ln, front = view.camera.project_with_mask(pts)
+        if np.all(front):
+            out[i, 0] = 0.5 * (s[0::2] - s[1::2])
+            out[i, 1] = 0.5 * (ln[0::2] - ln[1::2])
+    return out
+
+
+def _remove_common_move(pixels, reference, jac, mask) -> tuple[np.ndarray, np.ndarray]:
+    """``pixels`` (K, 2) less the pixel motion J_k·δ of the one move δ (cells along UX, UY, UZ) of the
+    landmark that best explains (least squares) the pictures' offsets from ``reference`` over ``mask``:
+    what is common to the pictures is a move of V (GEOMETRY's), not a co-registration.  The move is
+    fitted on the pictures of ``mask`` (those whose reference pixel is trusted) and removed from all."""
+    movable = np.all(np.isfinite(pixels), axis=1) & np.all(np.isfinite(jac), axis=(1, 2))
+    ok = mask & movable & np.all(np.isfinite(reference), axis=1)
+    if np.count_nonzero(ok) < 2:
+        return pixels, np.zeros(3)
+    a = jac[ok].reshape(-1, 3)
+    b = (pixels[ok] - reference[ok]).reshape(-1)
+    delta, *_ = np.linalg.lstsq(a, b, rcond=1e-6)
+    out = pixels.copy()
+    out[movable] -= jac[movable] @ delta  # the landmark's move shows in every picture
+    return out, delta
+
+
+def _first_pass(wm: WorkingMaplet, views, pixels, opts: FindHeightsOptions, cond, cache):
+    """The first pass's observations (module docstring, "First pass"): (observed, pixels, registration
+    correlations, trusted (K,) pictures whose first pixel anchors the common move, the choice made,
+    the heights pass already solved on them or None)."""
+    k = len(views)
+    if not opts.reregister:
+        modes = ["apriori"]
+    else:
+        modes = ["apriori", "register"] if opts.first_pixels == "auto" else [opts.first_pixels]
+    trials = []
+    for mode in modes:
+        px = pixels.copy()
+        rc = np.full(k, np.nan)
+        ob = _observe(wm, views, px, rc, opts, mode == "register")
+        trusted = np.array([not st.startswith("register-") for st in ob.status]) if mode == "register" \
+            else np.ones(k, dtype=bool)
+        trials.append([ob, px, rc, trusted, mode, None])
+    if len(trials) == 1:
+        return tuple(trials[0])
+    scores = []
+    for trial in trials:
+        trial[5], misfit = _first_solve(trial[0], wm, cond, opts, cache)
+        scores.append(misfit)
+    best = int(np.nanargmin(scores)) if np.any(np.isfinite(scores)) else 0
+    return tuple(trials[best])
+
+
+def _first_solve(ob: _Observed, wm: WorkingMaplet, cond, opts: FindHeightsOptions, cache):
+    """(heights pass, rms misfit in reflectance units over the pictures) of one heights pass on these
+    observations: pictures extracted at wrong pixels disagree with each other, whatever heights are
+    solved."""
+    if ob.pictures is None:
+        return None, math.nan
+    step = pc.heights_pass(wm.heights, wm.albedo, wm.valid, ob.pictures, wm.heights, cond,
+                           opts.condition_weight, opts.keep_plane, None, opts.solve, cache)
+    res = pc.residual_rms(step.cells.t1, step.cells.t2, step.albedo, ob.pictures, step.lam, wm.valid,
+                          opts.solve)
+    return step, (float(np.sqrt(np.nanmean(res * res))) if np.any(np.isfinite(res)) else math.nan)
+
+
+def _move_px(jac, history, move, used) -> float:
+    """rms over the used pictures of the pixel motion of the landmark's summed common move (cells)"""
+    if jac is None:
+        return 0.0
+    total = np.sum([h["v_move_cells"] for h in history] + [move], axis=0)
+    px = np.einsum("kij,j->ki", jac[used], total)
+    return float(np.sqrt(np.nanmean(np.sum(px * px, axis=1)))) if px.size else 0.0
 
 
 def _scatter(values, used, fill=math.nan):
@@ -423,7 +555,11 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
                       zeros, np.zeros(valid.shape, np.int64), [], False, [])
 
     wm = WorkingMaplet.of(start, h0, a0)
-    ob = _observe(wm, views, pixels, reg_corr, opts, opts.reregister)
+    cond = si.conditioning_cells(valid, opts.condition_fraction, opts.seed)
+    cache: dict = {}  # the integration's factorization, kept across the passes
+    ob, pixels, reg_corr, trusted, first, first_step = _first_pass(wm, views, pixels, opts, cond, cache)
+    reference = pixels.copy()
+    jac = _v_jacobians(wm, views) if opts.anchor else None
     outcomes = outcomes_of(ob)
     groups_needed = sopts.min_azimuths
     if ob.pictures is not None:
@@ -456,7 +592,6 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
             h0.copy(), start.albedo.copy(), valid.copy(), zeros, n_az, [], False, outcomes,
         )
 
-    cond = si.conditioning_cells(valid, opts.condition_fraction, opts.seed)
     heights, albedo = h0.copy(), a0.copy()
     history = []
     converged = False
@@ -465,14 +600,18 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
     for it in range(opts.iterations):
         if it > 0:
             wm = WorkingMaplet.of(start, heights, albedo)
-            ob = _observe(wm, views, pixels, reg_corr, opts, opts.reregister)
+            ob = _observe(wm, views, pixels, reg_corr, opts, opts.reregister, reference, jac, trusted,
+                          ob.shadowed)
             if ob.pictures is None:
                 break
         lam = None
         if not opts.refit_lambda and it > 0 and np.all(np.isfinite(lam_by_view[ob.used])):
             lam = lam_by_view[ob.used]  # the first pass's scales
-        step = pc.heights_pass(heights, albedo, valid, ob.pictures, h0, cond, opts.condition_weight,
-                               opts.keep_plane, lam, sopts)
+        if it == 0 and first_step is not None:
+            step = first_step  # the same pass, already solved to choose the first pixels
+        else:
+            step = pc.heights_pass(heights, albedo, valid, ob.pictures, h0, cond, opts.condition_weight,
+                                   opts.keep_plane, lam, sopts, cache)
         if it == 0:
             lam_by_view[ob.used] = step.lam
         sol, lam, new_heights, new_albedo = step.cells, step.lam, step.heights, step.albedo
@@ -484,6 +623,9 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
             "residual_rms": float(np.sqrt(np.nanmean(res * res))) if np.any(np.isfinite(res)) else math.nan,
             "solved": int(np.count_nonzero(sol.solved)),
             "pictures": int(ob.used.sum()),
+            "v_move_cells": [float(x) for x in ob.move],
+            "v_move_px": _move_px(jac, history, ob.move, ob.used),
+            "first_pixels": first,
         })
         heights, albedo = new_heights, new_albedo
         if change < opts.tolerance:
@@ -492,7 +634,8 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
 
     # the "after" figures: register and extract once more on the final map
     wm = WorkingMaplet.of(start, heights, albedo)
-    ob_after = _observe(wm, views, pixels, reg_corr, opts, opts.reregister)
+    ob_after = _observe(wm, views, pixels, reg_corr, opts, opts.reregister, reference, jac, trusted,
+                        ob.shadowed)
     outcomes = outcomes_of(ob_after)
     images = {"before": before}
     if ob_after.pictures is not None:

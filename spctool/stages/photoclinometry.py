@@ -31,8 +31,10 @@ R_μ = −c₂ μ₀/(μ₀ + μ)², ∂μ₀/∂t_i = (−s_i − μ₀ t_i/|n|
 ∂n̂/∂n = (I − n̂n̂ᵀ)/|n| of map-refinement.md §2, written out).  The 3×3 normal equations of every
 cell are formed as six sums over the pictures and solved together by the adjugate, damped
 Levenberg–Marquardt style: (A + d·diag(A) + d·ε·max diag(A)) δ = b, d = ``damping`` (GIANT:
-5e-3).  Each step's slope change is capped at ``max_step`` per cell; the iterations stop early when
-no cell moves by more than 1e-9.
+5e-3).  Each step's slope change is capped at ``max_step`` per cell; a cell stops iterating when no
+component of its step exceeds 1e-9.  The iterations run in a compiled kernel, one cell at a time
+(:func:`_k_gauss_newton`; :func:`_gauss_newton_numpy` is the same steps over all cells at once with
+numpy, the reference it is tested against).
 
 A cell is **solvable** when at least ``min_azimuths`` (3) of the pictures lit and valid on it have
 Sun azimuths (in the maplet plane) at least ``azimuth_separation_deg`` apart (S16; the pictures are
@@ -53,6 +55,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+import numba
 import numpy as np
 
 from spctool import photometry as phot
@@ -374,6 +377,121 @@ def _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2) -> np.ndarray:
         ], axis=1)
 
 
+def _gauss_newton_numpy(obs, ov, pictures: Pictures, lam, x, opts: SolveOptions) -> np.ndarray:
+    """The per-cell Gauss–Newton iterations with numpy arrays over every cell at once — the reference
+    :func:`_k_gauss_newton` is tested against (same steps; the kernel stops each cell on its own once
+    its step is below 1e-9, this one when every cell's is).  ``x`` (M, 3) is updated and returned."""
+    good_pic = np.isfinite(lam) & (lam > 0.0)
+    safe_lam = np.where(good_pic, lam, 1.0)
+    w = np.where(good_pic, 1.0 / (safe_lam * safe_lam), 0.0)[:, None]  # (K, 1)
+    for _ in range(opts.iterations):
+        p, jac, lit = jacobian(x[:, 0], x[:, 1], x[:, 2], pictures, safe_lam, opts)  # (K, M), (K, M, 3)
+        wk = np.where(ov & lit, w, 0.0)
+        wr = wk * (obs - p)
+        j0, j1, j2 = jac[..., 0], jac[..., 1], jac[..., 2]
+        wj0, wj1, wj2 = wk * j0, wk * j1, wk * j2
+        # the 3x3 normal equations of every cell (symmetric: six sums over the pictures)
+        a00, a01, a02 = (wj0 * j0).sum(0), (wj0 * j1).sum(0), (wj0 * j2).sum(0)
+        a11, a12, a22 = (wj1 * j1).sum(0), (wj1 * j2).sum(0), (wj2 * j2).sum(0)
+        b0, b1, b2 = (j0 * wr).sum(0), (j1 * wr).sum(0), (j2 * wr).sum(0)
+        scale = np.maximum(np.maximum(a00, a11), a22)
+        floor = 1e-6 * scale
+        a00 = a00 + opts.damping * (a00 + floor)
+        a11 = a11 + opts.damping * (a11 + floor)
+        a22 = a22 + opts.damping * (a22 + floor)
+        step = _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        step[~(np.isfinite(step).all(axis=1) & (scale > 0.0))] = 0.0
+        slope_step = np.hypot(step[:, 0], step[:, 1])
+        shrink = np.where(slope_step > opts.max_step, opts.max_step / np.maximum(slope_step, 1e-300), 1.0)
+        step *= shrink[:, None]
+        x = x + step
+        x[:, 2] = np.clip(x[:, 2], opts.albedo_min, opts.albedo_max)
+        if not np.any(np.abs(step) > 1e-9):  # every cell converged
+            break
+    return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_gauss_newton(obs, ov, sun, em, c1, c2, lam, w, x, damping, max_step, amin, amax, iterations):
+    """The per-cell Gauss–Newton solve (module docstring) compiled, one cell at a time: the normal
+    equations of a cell summed over its K pictures, damped, solved by the adjugate, the slope step
+    capped, the albedo clipped; a cell stops when no component of its step exceeds 1e-9.  ``obs``,
+    ``ov`` (K, M); ``sun``, ``em`` (K, 3); ``c1``, ``c2``, ``lam``, ``w`` (K,); ``x`` (M, 3) in place."""
+    k_n = obs.shape[0]
+    for m in range(x.shape[0]):
+        t1 = x[m, 0]
+        t2 = x[m, 1]
+        a = x[m, 2]
+        for _ in range(iterations):
+            norm = math.sqrt(1.0 + t1 * t1 + t2 * t2)
+            inv = 1.0 / norm
+            a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            b0 = b1 = b2 = 0.0
+            for k in range(k_n):
+                if not ov[k, m]:
+                    continue
+                mu0 = (sun[k, 2] - t1 * sun[k, 0] - t2 * sun[k, 1]) * inv
+                mu = (em[k, 2] - t1 * em[k, 0] - t2 * em[k, 1]) * inv
+                if not (mu0 > 0.0 and mu > 0.0):
+                    continue
+                den = mu0 + mu
+                r = c1[k] * mu0 + c2[k] * mu0 / den
+                r_mu0 = c1[k] + c2[k] * mu / (den * den)
+                r_mu = -c2[k] * mu0 / (den * den)
+                dmu0_1 = (-sun[k, 0] - mu0 * t1 * inv) * inv
+                dmu0_2 = (-sun[k, 1] - mu0 * t2 * inv) * inv
+                dmu_1 = (-em[k, 0] - mu * t1 * inv) * inv
+                dmu_2 = (-em[k, 1] - mu * t2 * inv) * inv
+                la = lam[k] * a
+                j0 = la * (r_mu0 * dmu0_1 + r_mu * dmu_1)
+                j1 = la * (r_mu0 * dmu0_2 + r_mu * dmu_2)
+                j2 = lam[k] * r
+                wk = w[k]
+                wr = wk * (obs[k, m] - la * r)
+                a00 += wk * j0 * j0
+                a01 += wk * j0 * j1
+                a02 += wk * j0 * j2
+                a11 += wk * j1 * j1
+                a12 += wk * j1 * j2
+                a22 += wk * j2 * j2
+                b0 += j0 * wr
+                b1 += j1 * wr
+                b2 += j2 * wr
+            scale = max(a00, a11, a22)
+            floor = 1e-6 * scale
+            a00 += damping * (a00 + floor)
+            a11 += damping * (a11 + floor)
+            a22 += damping * (a22 + floor)
+            c00 = a11 * a22 - a12 * a12
+            c01 = a02 * a12 - a01 * a22
+            c02 = a01 * a12 - a02 * a11
+            c11 = a00 * a22 - a02 * a02
+            c12 = a01 * a02 - a00 * a12
+            c22 = a00 * a11 - a01 * a01
+            det = a00 * c00 + a01 * c01 + a02 * c02
+            s0 = s1 = s2 = 0.0
+            if det != 0.0 and scale > 0.0:
+                s0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+                s1 = (c01 * b0 + c11 * b1 + c12 * b2) / det
+                s2 = (c02 * b0 + c12 * b1 + c22 * b2) / det
+                if not (math.isfinite(s0) and math.isfinite(s1) and math.isfinite(s2)):
+                    s0 = s1 = s2 = 0.0
+            slope_step = math.sqrt(s0 * s0 + s1 * s1)
+            if slope_step > max_step:
+                f = max_step / slope_step
+                s0 *= f
+                s1 *= f
+                s2 *= f
+            t1 += s0
+            t2 += s1
+            a = min(max(a + s2, amin), amax)
+            if abs(s0) <= 1e-9 and abs(s1) <= 1e-9 and abs(s2) <= 1e-9:
+                break
+        x[m, 0] = t1
+        x[m, 1] = t2
+        x[m, 2] = a
+
+
 def solve_cells(t1, t2, albedo, pictures: Pictures, lam, cell_mask=None,
                 options: SolveOptions | None = None) -> CellSolution:
     """The per-cell Gauss–Newton solve of (t₁, t₂, a) from the pictures with scales ``lam`` (K,),
@@ -401,31 +519,11 @@ def solve_cells(t1, t2, albedo, pictures: Pictures, lam, cell_mask=None,
     obs = pictures.observed.reshape(len(pictures), -1)[:, idx]  # (K, M)
     ov = obs_valid.reshape(len(pictures), -1)[:, idx]
     safe_lam = np.where(good_pic, lam, 1.0)
-    w = np.where(good_pic, 1.0 / (safe_lam * safe_lam), 0.0)[:, None]  # (K, 1)
-    for _ in range(opts.iterations):
-        p, jac, lit = jacobian(x[:, 0], x[:, 1], x[:, 2], pictures, safe_lam, opts)  # (K, M), (K, M, 3)
-        wk = np.where(ov & lit, w, 0.0)
-        wr = wk * (obs - p)
-        j0, j1, j2 = jac[..., 0], jac[..., 1], jac[..., 2]
-        wj0, wj1, wj2 = wk * j0, wk * j1, wk * j2
-        # the 3x3 normal equations of every cell (symmetric: six sums over the pictures)
-        a00, a01, a02 = (wj0 * j0).sum(0), (wj0 * j1).sum(0), (wj0 * j2).sum(0)
-        a11, a12, a22 = (wj1 * j1).sum(0), (wj1 * j2).sum(0), (wj2 * j2).sum(0)
-        b0, b1, b2 = (j0 * wr).sum(0), (j1 * wr).sum(0), (j2 * wr).sum(0)
-        scale = np.maximum(np.maximum(a00, a11), a22)
-        floor = 1e-6 * scale
-        a00 = a00 + opts.damping * (a00 + floor)
-        a11 = a11 + opts.damping * (a11 + floor)
-        a22 = a22 + opts.damping * (a22 + floor)
-        step = _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
-        step[~(np.isfinite(step).all(axis=1) & (scale > 0.0))] = 0.0
-        slope_step = np.hypot(step[:, 0], step[:, 1])
-        shrink = np.where(slope_step > opts.max_step, opts.max_step / np.maximum(slope_step, 1e-300), 1.0)
-        step *= shrink[:, None]
-        x = x + step
-        x[:, 2] = np.clip(x[:, 2], opts.albedo_min, opts.albedo_max)
-        if not np.any(np.abs(step) > 1e-9):  # every cell converged
-            break
+    w = np.where(good_pic, 1.0 / (safe_lam * safe_lam), 0.0)
+    c1, c2 = photometric_constants(pictures.alpha_deg, opts)
+    _k_gauss_newton(obs, ov, pictures.sun, pictures.emission, c1, c2, safe_lam, w, x,
+                    float(opts.damping), float(opts.max_step), float(opts.albedo_min), float(opts.albedo_max),
+                    int(opts.iterations))
 
     finite = np.all(np.isfinite(x), axis=1)
     steep = np.hypot(x[:, 0], x[:, 1]) > opts.max_slope
@@ -472,13 +570,14 @@ class PassResult:
 
 def heights_pass(heights, albedo, valid, pictures: Pictures, start_heights, conditioning,
                  weight: float = 0.025, keep_plane: bool = True, lam=None,
-                 options: SolveOptions | None = None) -> PassResult:
+                 options: SolveOptions | None = None, cache: dict | None = None) -> PassResult:
     """One pass of "Find heights" on fixed observations: HGT2SLP slopes of ``heights``
     (:func:`spctool.geometry.heightfield.slopes`), λ (:func:`fit_lambda`, unless ``lam`` is given),
     the per-cell solve, the albedo normalised to mean 1, the slopes integrated
     (:func:`spctool.stages.slope_integration.integrate_slopes`) with the ``conditioning`` cells pulled
     toward ``start_heights`` with ``weight`` and the unsolvable cells fixed there, and (``keep_plane``)
-    the starting map's best-fit plane restored."""
+    the starting map's best-fit plane restored.  ``cache``: the integration's factorization kept across
+    passes (:func:`~spctool.stages.slope_integration.integrate_slopes`)."""
     from spctool.geometry import heightfield
     from spctool.stages import slope_integration as si
 
@@ -492,7 +591,8 @@ def heights_pass(heights, albedo, valid, pictures: Pictures, start_heights, cond
     cells = solve_cells(t1, t2, a, pictures, lam, valid, options)
     new_albedo, lam = normalise_albedo(cells.albedo, lam, cells.solved)
     new_albedo = np.where(cells.flagged, a, new_albedo)
-    new_h = si.integrate_slopes(cells.t1, cells.t2, valid, conditioning, h0, weight, fixed=cells.flagged)
+    new_h = si.integrate_slopes(cells.t1, cells.t2, valid, conditioning, h0, weight, fixed=cells.flagged,
+                                cache=cache)
     if keep_plane:
         new_h = np.where(cells.flagged, h0, si.keep_plane(new_h, h0, valid))
     new_h = np.where(valid, new_h, 0.0)

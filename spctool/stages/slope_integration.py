@@ -11,7 +11,8 @@ differences (:func:`spctool.geometry.heightfield.slopes`) — and C is a sparse 
 **conditioning cells** whose heights h̃ come from the starting maplet; w = 0.025 by default ("always
 use .025"; 0.01 for a first pass).  SPC relaxes iteratively (20 SLP2HGT calls a round); the normal
 equations (a sparse, symmetric positive-definite 5-point Laplacian plus the conditioning diagonal)
-are solved here at once by SuperLU (:func:`scipy.sparse.linalg.spsolve`).
+are solved here at once by SuperLU (:func:`scipy.sparse.linalg.splu`; the factorization depends on
+the masks only, so a caller's ``cache`` keeps it across passes).
 
 Cells may also be **fixed** (their height is known and kept, e.g. cells with too few pictures that keep
 their prior): they are not unknowns, and their edges to free cells pull those toward them.  A tiny
@@ -27,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import splu
 
 from spctool.errors import SpcUsageError
 
@@ -106,11 +107,16 @@ def normal_system(t1, t2, valid, conditioning, targets, weight: float = 0.025, f
 
 
 def integrate_slopes(t1, t2, valid, conditioning, targets, weight: float = 0.025, fixed=None,
-                     ridge: float = 1e-6) -> np.ndarray:
+                     ridge: float = 1e-6, cache: dict | None = None) -> np.ndarray:
     """Heights (N, N) in cells from the slopes ``t1`` (along UX, axis 0) and ``t2`` (along UY, axis 1)
     of the ``valid`` cells, conditioned at ``conditioning`` cells toward ``targets`` with weight
     ``weight``; ``fixed`` cells keep ``targets``.  Invalid cells are 0.  One sparse direct solve of
-    the normal equations (module docstring)."""
+    the normal equations (module docstring).
+
+    ``cache``: a dict kept by the caller across calls (the outer loop's passes).  The normal matrix
+    depends only on the masks and the weights, not on the slopes or targets, so its SuperLU
+    factorization (minimum-degree ordering of AᵀA + A) is made once per set of masks and kept there;
+    each later call is a back-substitution."""
     if not float(weight) > 0.0:
         raise SpcUsageError(f"conditioning weight must be > 0, got {weight}")
     valid = np.asarray(valid, dtype=bool)
@@ -119,8 +125,18 @@ def integrate_slopes(t1, t2, valid, conditioning, targets, weight: float = 0.025
     out = np.where(valid, tgt, 0.0).reshape(-1).copy()
     if free.size:
         gt = g.T.tocsr()
-        normal = (gt @ g).tocsc()
-        out[free] = spsolve(normal, gt @ d)
+        key = None
+        if cache is not None:
+            fix = np.zeros(valid.shape, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+            cond = np.asarray(conditioning, dtype=bool)
+            key = (valid.shape, valid.tobytes(), cond.tobytes(), fix.tobytes(), float(weight), float(ridge))
+        lu = cache.get(key) if cache is not None else None
+        if lu is None:
+            lu = splu((gt @ g).tocsc(), permc_spec="MMD_AT_PLUS_A")
+            if cache is not None:
+                cache.clear()  # one set of masks at a time
+                cache[key] = lu
+        out[free] = lu.solve(gt @ d)
     return out.reshape(valid.shape)
 
 
