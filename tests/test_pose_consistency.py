@@ -271,3 +271,98 @@ def test_model_error_by_hand():
     assert model_error(r, c, dof, cap=0.02) == 0.02  # capped
     assert model_error(r * 0.1, c, dof, cap=1.0) == 0.0  # within the covariances
     assert model_error(r, c, 0, cap=1.0) == 0.0
+
+
+# ------------------------------------------------------------------------------------------------
+# an error common to the picture's landmarks (Woodbury)
+
+
+def _dense_problem(problem, state):
+    """HᵀR⁻¹H, HᵀR⁻¹r and rᵀR⁻¹r with R = blkdiag(Wᵢ⁻¹) + U·C·Uᵀ inverted as a dense 2M × 2M matrix."""
+    j = state.camera.project_with_jacobians(problem.pts(state))
+    r = (problem.meas - np.stack([j.sample, j.line], axis=-1)).reshape(-1)
+    h = np.concatenate([j.position, j.attitude], axis=-1).reshape(-1, 6)
+    m = problem.meas.shape[0]
+    big = np.zeros((2 * m, 2 * m))
+    for i in range(m):
+        big[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = np.linalg.inv(problem.wts[i])
+    u = np.tile(np.eye(2), (m, 1))
+    rinv = np.linalg.inv(big + u @ problem.common_dense @ u.T)
+    return h.T @ rinv @ h, h.T @ rinv @ r, float(r @ rinv @ r)
+
+
+@pytest.mark.parametrize("common", ["full", "rank one"])
+def test_common_error_woodbury_equals_the_dense_inverse(common):
+    """The normal matrix, gradient and χ² with the common term (Woodbury, O(M)) equal those of the
+    dense 2M × 2M measurement covariance, for a full and a rank-one (Sun-aligned) C."""
+    from spctool.stages._pose_problem import _Prior, _Problem
+
+    rng = np.random.default_rng(11)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 12)
+    cov = _covs(rng, 12)
+    y = observe(truth, pts) + rng.normal(scale=0.02, size=(12, 2))
+    sun = np.array([math.cos(0.7), math.sin(0.7)])
+    c = np.array([[3e-3, 1e-3], [1e-3, 2e-3]]) if common == "full" else 0.05**2 * np.outer(sun, sun)
+    start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+    prob = _Problem(start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions(), c)
+    prob.common_dense = c
+    s = prob.start()
+    n, g, _ = prob.normal(s)
+    nd, gd, chi2d = _dense_problem(prob, s)
+    np.testing.assert_allclose(n, nd, rtol=1e-9, atol=1e-9 * np.abs(nd).max())
+    np.testing.assert_allclose(g, gd, rtol=1e-9, atol=1e-9 * np.abs(gd).max())
+    assert prob.cost(s)[1] == pytest.approx(chi2d, rel=1e-10)
+    # C = 0 is the independent problem exactly
+    plain = _Problem(start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions())
+    zero = _Problem(
+        start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions(), np.zeros((2, 2))
+    )
+    assert np.array_equal(plain.normal(s)[0], zero.normal(s)[0])
+
+
+def test_common_error_makes_the_pose_covariance_honest_over_100_seeds():
+    """Pixel errors = the peaks' covariances Cᵢ (5–30 mpx) plus one 0.03 px shift common to all 25
+    landmarks along a random 'Sun' direction: weighted with Cᵢ the NEES is far above χ²₆ (the residuals
+    cannot show the shift: the attitude absorbs it, τ stays ~0); with the common term C in the
+    measurement covariance it follows χ²₆ over 100 seeds."""
+    with_c, without = [], []
+    for seed in range(100):
+        rng = np.random.default_rng(1300 + seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 25)
+        cov = _covs(rng, 25)
+        a = rng.uniform(0.0, 2.0 * math.pi)
+        sun = np.array([math.cos(a), math.sin(a)])
+        c = 0.03**2 * np.outer(sun, sun) + 0.005**2 * np.eye(2)
+        shift = np.linalg.cholesky(c) @ rng.normal(size=2)
+        noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
+        y = observe(truth, pts) + noise + shift
+        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        kw = dict(pixel_covariances=cov, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+        res = solve_pose(start, pts, y, PoseOptions(), common_covariance=c, **kw)
+        assert res.converged and res.common_covariance is not None
+        with_c.append(nees(truth, res))
+        if seed < 30:
+            without.append(nees(truth, solve_pose(start, pts, y, PoseOptions(), **kw)))
+    with_c = np.array(with_c)
+    assert abs(with_c.mean() - 6.0) < 1.2, with_c.mean()
+    assert stats.kstest(with_c, "chi2", args=(6,)).pvalue > 1e-3
+    assert np.mean(without) > 20.0, np.mean(without)
+
+
+def test_common_error_is_checked():
+    from spctool.errors import SpcUsageError
+
+    rng = np.random.default_rng(5)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 6)
+    y = observe(truth, pts)
+    for bad in (np.eye(3), -np.eye(2), np.full((2, 2), np.nan)):
+        with pytest.raises(SpcUsageError):
+            solve_pose(truth, pts, y, common_covariance=bad)
+    with pytest.raises(SpcUsageError, match="fixed"):
+        solve_pose(
+            truth, pts, y, PoseOptions(landmark_mode="consider"), landmark_sigmas=np.full((6, 3), 1e-4),
+            common_covariance=np.eye(2) * 1e-3,
+        )

@@ -3,6 +3,19 @@ information, the state, the normal equations with the landmark blocks eliminated
 solve with its condition check, the pivot-retraction step and the Gauss–Newton loop.
 
 Conventions and equations: :mod:`spctool.stages.pose` (spc-algorithms.md §10 and errata 1–4 of §11).
+
+**A common measurement error** (issue #39): the pixel errors of one picture's landmarks need not be
+independent — a shading-model error shifts every landmark of the picture alike (along the Sun's
+azimuth), and its residuals cannot reveal it (the attitude absorbs a common shift).  With a common
+2×2 covariance C the measurement covariance of the M landmarks is R = blkdiag(W₁⁻¹ … W_M⁻¹) + U·C·Uᵀ,
+U = [I₂; …; I₂] (2M × 2), and by the Woodbury identity
+
+    R⁻¹ = W − W·U·K·Uᵀ·W,   K = (C⁻¹ + S)⁻¹ = C·(I + S·C)⁻¹,   S = Σᵢ Wᵢ
+
+(the second form needs no C⁻¹: a rank-one C, or C = 0, is fine).  So with G = Σᵢ Wᵢ·Hᵢ (2 × 6) and
+w = Σᵢ Wᵢ·rᵢ, every quantity of the weighted problem gains one rank-2 term: HᵀR⁻¹H = Σ HᵢᵀWᵢHᵢ − GᵀKG,
+HᵀR⁻¹r = Σ HᵢᵀWᵢrᵢ − GᵀKw, rᵀR⁻¹r = Σ rᵢᵀWᵢrᵢ − wᵀKw — O(M) work, never a 2M × 2M matrix
+(tests/test_pose_consistency.py compares it with the dense inverse).
 """
 
 from __future__ import annotations
@@ -87,7 +100,7 @@ class _State:
 class _Problem:
     """The least-squares problem over a fixed set of used landmarks (M of them)."""
 
-    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts):
+    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts, common=None):
         self.camera0 = camera0
         self.p0 = camera0.position.copy()
         self.t0 = np.array(camera0.rotation)
@@ -97,6 +110,12 @@ class _Problem:
         if w.ndim == 2:  # per-axis weights (M, 2): diagonal Wᵢ
             w = w[:, :, None] * np.eye(2)
         self.wts = w  # (M, 2, 2) weight matrices Wᵢ (symmetric)
+        # the common error's Woodbury kernel K = C·(I + S·C)⁻¹ (module docstring); None: independent
+        self.kernel = None
+        if common is not None and np.any(np.asarray(common) != 0.0):
+            c = np.asarray(common, dtype=np.float64)
+            k = c @ np.linalg.inv(np.eye(2) + w.sum(axis=0) @ c)
+            self.kernel = 0.5 * (k + k.T)
         self.prior = prior
         self.mode = mode
         self.lmk_info = lmk_info  # (M, 3) inverse variances, "estimate" mode
@@ -137,6 +156,9 @@ class _Problem:
         smp, lin = s.camera.project(self.pts(s))
         r = self.meas - np.stack([smp, lin], axis=-1)
         chi2 = float(np.einsum("mi,mij,mj->", r, self.wts, r))
+        if self.kernel is not None:
+            w = np.einsum("mij,mj->i", self.wts, r)
+            chi2 -= float(w @ self.kernel @ w)
         e = np.concatenate([s.dpos, s.theta])
         total = chi2 + float(np.sum(self.prior.info * e * e))
         if s.dlmk is not None:
@@ -155,6 +177,12 @@ class _Problem:
         hw2 = hw.reshape(-1, 6)
         n = hw2.T @ h2
         g = hw2.T @ r.reshape(-1)
+        if self.kernel is not None:  # the common error (module docstring): rank-2 corrections
+            gw = hw.sum(axis=0)  # G = Σ WᵢHᵢ (2, 6)
+            w = np.einsum("mij,mj->i", self.wts, r)
+            n = n - gw.T @ self.kernel @ gw
+            n = 0.5 * (n + n.T)
+            g = g - gw.T @ (self.kernel @ w)
         # a-priori term: residual e = [Δp; θ], de/dχ = diag(I, J_r(θ)⁻¹)
         jp = np.eye(6)
         jp[3:, 3:] = so3_right_jacobian_inv(s.theta)

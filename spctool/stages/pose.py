@@ -289,6 +289,7 @@ class PoseResult:
     prior_check: PriorTest | None = None  # the prior–measurement test (None: no prior)
     prior_scale: float = 1.0  # factor applied to the a-priori sigmas (estimated or given)
     model_error_px: float = 0.0  # τ added in quadrature to the per-landmark covariances (estimated)
+    common_covariance: np.ndarray | None = None  # (2, 2) px² error common to the landmarks (given)
 
     # ---- convenience ------------------------------------------------------------------------------
     @property
@@ -400,6 +401,9 @@ class PoseResult:
             "prior_check": None if self.prior_check is None else self.prior_check.as_dict(),
             "prior_scale": self.prior_scale,
             "model_error_px": self.model_error_px,
+            "common_sigma_px": None
+            if self.common_covariance is None
+            else float(np.sqrt(np.trace(self.common_covariance))),
         }
         if self.landmark_corrections is not None:
             out["landmark_corrections"] = {
@@ -448,6 +452,11 @@ class PoseResult:
         ]
         if self.model_error_px > 0:
             lines.append(f"model error {self.model_error_px:.4f} px added to the landmarks' covariances")
+        if self.common_covariance is not None and np.any(self.common_covariance != 0):
+            lines.append(
+                f"common error {np.sqrt(np.trace(self.common_covariance)):.4f} px (1 sigma, shared by the"
+                " landmarks) in the measurement covariance"
+            )
         if self.covariance_scale != 1.0:
             lines.append(
                 f"covariance scaled by cost/dof = {self.covariance_scale:.3g} (sigmas x "
@@ -654,6 +663,21 @@ def _model_error(problem, state, covs, opts, prior) -> float:
     return model_error(r, covs, dof, cap, opts.model_error_quantile)
 
 
+def _common_covariance(common, mode):
+    """The common error's 2×2 covariance checked (symmetric, finite, positive semi-definite), or None."""
+    if common is None:
+        return None
+    c = np.asarray(common, dtype=np.float64)
+    if c.shape != (2, 2) or not np.all(np.isfinite(c)):
+        raise SpcUsageError(f"common_covariance must be a finite 2x2 matrix, got shape {c.shape}")
+    c = 0.5 * (c + c.T)
+    if np.linalg.eigvalsh(c)[0] < -1e-12 * max(1.0, float(np.abs(c).max())):
+        raise SpcUsageError("common_covariance must be positive semi-definite")
+    if mode != "fixed" and np.any(c != 0.0):
+        raise SpcUsageError(f"common_covariance needs landmark_mode 'fixed', not {mode!r}")
+    return c
+
+
 def _usable_landmarks(camera, pts_all, meas_all, names):
     """(usable (N,), known position (N,), a-priori predicted pixels (N, 2), status words, rejections):
     a landmark is usable with a known position, a measured pixel and in front of the a-priori camera;
@@ -732,6 +756,7 @@ def _solve_pose(
     names=None,
     pixel_sigmas=None,
     pixel_covariances=None,
+    common_covariance=None,
 ) -> PoseResult:
     """Solve spacecraft position and attitude from N landmark measurements (module docstring).
 
@@ -745,6 +770,10 @@ def _solve_pose(
     * ``pixel_covariances`` — optional (N, 2, 2) measurement covariances in px² (sample, line), e.g.
       ``register``'s; weights Wᵢ = (Cᵢ + ``sigma_floor_px``²·I)⁻¹.  Rows that are not finite positive
       definite fall back to ``pixel_sigmas``/``sigma_px`` (named in a warning).
+    * ``common_covariance`` — optional 2×2 covariance (px²) of an error common to every landmark of the
+      picture (a shading-model error shared by its landmarks, :mod:`spctool.stages.model_error`): the
+      measurements' covariance becomes blkdiag(Wᵢ⁻¹) + U·C·Uᵀ, applied by the Woodbury identity
+      (:mod:`spctool.stages._pose_problem`), so the pose covariance includes it.  ``"fixed"`` landmarks only.
 
     Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
     """
@@ -782,6 +811,7 @@ def _solve_pose(
         info = np.zeros(6)
     prior = _Prior(info)
     prior_used = prior.n_equations > 0
+    common = _common_covariance(common_covariance, mode)
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
     usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
@@ -810,6 +840,7 @@ def _solve_pose(
             mode,
             None if lmk_info_all is None else lmk_info_all[mask],
             opts,
+            common,
         )
 
     # ---- fit, reject, refit -------------------------------------------------------------------------
@@ -915,4 +946,5 @@ def _solve_pose(
         prior_check=prior_check,
         prior_scale=float(opts.prior_scale) if prior_used else 1.0,
         model_error_px=float(tau),
+        common_covariance=None if common is None else common.copy(),
     )
