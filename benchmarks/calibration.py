@@ -9,14 +9,15 @@ space); against the truth pixels and poses this prints, per world × space:
 * ``d2`` / ``cov95`` — per landmark, mean d² = eᵀ(Cᵢ + τ²I)⁻¹e and the fraction inside the 95 % ellipse
   (target 2 ± 0.5 and 0.90–0.98), e = measured − true pixel, Cᵢ the registration's covariance, τ the
   model error the surface-weighted pose solve estimates;
-* ``d2c`` / ``cov95c`` — the same with the picture's common term C added (the covariance each landmark
-  carries when the common error is not known: Cᵢ + τ²I + C);
+* ``d2c`` / ``cov95c`` — the same with each landmark's share of the shading model's error patterns
+  (:mod:`spctool.stages.model_error`): Cᵢ + τ²I + Σₖ δᵢ⁽ᵏ⁾δᵢ⁽ᵏ⁾ᵀ;
 * ``common`` — rms over the pictures of the picture's common error ē (mean of e over its landmarks), and
   ``along`` the rms of its component along the Sun's direction in the image; ``sigc`` the rms of the
-  common term's 1σ the solve estimated (√tr C);
-* ``NEES uni`` / ``sur`` / ``sur+C`` — mean pose NEES (χ²₆: 6) of the final pose solved with uniform
-  weights (σ = 0.1 px), with the registration covariances plus τ, and with these plus the common term C
-  (Woodbury), over the pictures; ``NEES>99.9`` the count of pictures beyond χ²₆'s 99.9 % quantile (22.5).
+  patterns' mean shifts (what the sensitivity says the common error is);
+* ``NEES uni`` / ``sur`` / ``sur+C`` / ``nav`` — mean pose NEES (χ²₆: 6) of the final pose solved with
+  uniform weights (σ = 0.1 px), with the registration covariances plus τ, and with these plus the error
+  patterns as correlated modes (Woodbury), over the pictures; ``nav`` is navigate's own final pose (with
+  ``--weights``); ``>99.9`` the count of pictures beyond χ²₆'s 99.9 % quantile (22.5) for each.
 
 Run: ``python benchmarks/calibration.py [--root DIR] [--worlds facet-high,...] [--spaces maplet,image]
 [--json FILE]`` (worlds are built once into DIR, ~1 min each on one core).
@@ -25,6 +26,7 @@ Run: ``python benchmarks/calibration.py [--root DIR] [--worlds facet-high,...] [
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -120,27 +122,38 @@ def picture_figures(root, p, space, weights="uniform"):
     args = (cam, pos[ok], reg.measured[ok])
     uni = solve_pose(*args, PoseOptions(), **pkw)
     sur = solve_pose(*args, PoseOptions(), pixel_covariances=reg.covariance[ok], **pkw)
-    common_cov = getattr(reg, "common_covariance", None)
-    surc = None
-    if common_cov is not None:
-        surc = solve_pose(
-            *args, PoseOptions(), pixel_covariances=reg.covariance[ok], common_covariance=common_cov, **pkw
+    sens = res.passes[-1].sensitivity
+    if sens is None:  # navigated with uniform weights: the patterns measured here
+        from spctool.stages.navigate import _sensitivity
+
+        ro = RegisterOptions(space=space)
+        base = dataclasses.replace(ro, schedule="retina_s16", steps=None, fail_fast=True, cap_spacing=False)
+        nkw = {"names": names, "positions": pos, "patch_cache": {}}
+        p1 = res.passes[0].pose
+        cam1 = cam.with_pose(scobj=p1.scobj, rotation=p1.rotation)  # pass 2 registered with it
+        sens = _sensitivity(
+            photo, cam1, pic.sz, maplets, tuple(pic.thrsh), base, NavigateOptions(), reg, nkw, []
         )
+    modes = sens.modes[ok]
+    surc = solve_pose(*args, PoseOptions(), pixel_covariances=reg.covariance[ok], error_modes=modes, **pkw)
     c_i = reg.covariance[ok] + (sur.model_error_px**2 + PoseOptions().sigma_floor_px ** 2) * np.eye(2)
     d2 = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_i), e)
-    cc = np.zeros((2, 2)) if common_cov is None else np.asarray(common_cov, float)
-    d2c = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_i + cc), e)
+    c_ic = sens.landmark_covariances(reg.covariance[ok]) + (
+        surc.model_error_px**2 + PoseOptions().sigma_floor_px ** 2
+    ) * np.eye(2)
+    d2c = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_ic), e)
+    sc = sens.common()  # (2, k) each pattern's mean shift
     eb = e.mean(axis=0)
     return {
         "d2": d2,
         "d2c": d2c,
         "common": eb,
         "along": float(eb @ sun_px),
-        "sigc": float(np.sqrt(np.trace(cc))),
+        "sigc": float(np.sqrt(np.sum(sc * sc))),
         "tau": float(sur.model_error_px),
         "nees_uni": nees(p, uni),
         "nees_sur": nees(p, sur),
-        "nees_surc": math_nan() if surc is None else nees(p, surc),
+        "nees_surc": nees(p, surc),
         "nees_nav": nees(p, res.pose) if res.pose is not None else math_nan(),
         "status": res.status if res.pose is None else res.pose.verdict,
         "cpu_s": cpu,

@@ -278,7 +278,8 @@ def test_model_error_by_hand():
 
 
 def _dense_problem(problem, state):
-    """HᵀR⁻¹H, HᵀR⁻¹r and rᵀR⁻¹r with R = blkdiag(Wᵢ⁻¹) + U·C·Uᵀ inverted as a dense 2M × 2M matrix."""
+    """HᵀR⁻¹H, HᵀR⁻¹r and rᵀR⁻¹r with R = blkdiag(Wᵢ⁻¹) + U·Uᵀ inverted as a dense 2M × 2M matrix (U the
+    problem's error modes stacked, 2M × k; a common C: U = [L; …; L] written out here from C)."""
     j = state.camera.project_with_jacobians(problem.pts(state))
     r = (problem.meas - np.stack([j.sample, j.line], axis=-1)).reshape(-1)
     h = np.concatenate([j.position, j.attitude], axis=-1).reshape(-1, 6)
@@ -286,15 +287,21 @@ def _dense_problem(problem, state):
     big = np.zeros((2 * m, 2 * m))
     for i in range(m):
         big[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = np.linalg.inv(problem.wts[i])
-    u = np.tile(np.eye(2), (m, 1))
-    rinv = np.linalg.inv(big + u @ problem.common_dense @ u.T)
+    if problem.common_dense is not None:
+        u = np.tile(np.eye(2), (m, 1))
+        extra = u @ problem.common_dense @ u.T
+    else:
+        u = problem.modes.reshape(2 * m, -1)
+        extra = u @ u.T
+    rinv = np.linalg.inv(big + extra)
     return h.T @ rinv @ h, h.T @ rinv @ r, float(r @ rinv @ r)
 
 
-@pytest.mark.parametrize("common", ["full", "rank one"])
+@pytest.mark.parametrize("common", ["full", "rank one", "patterns"])
 def test_common_error_woodbury_equals_the_dense_inverse(common):
     """The normal matrix, gradient and χ² with the common term (Woodbury, O(M)) equal those of the
-    dense 2M × 2M measurement covariance, for a full and a rank-one (Sun-aligned) C."""
+    dense 2M × 2M measurement covariance, for a full and a rank-one (Sun-aligned) C, and for three
+    arbitrary error patterns over the landmarks (with a common C)."""
     from spctool.stages._pose_problem import _Prior, _Problem
 
     rng = np.random.default_rng(11)
@@ -305,8 +312,14 @@ def test_common_error_woodbury_equals_the_dense_inverse(common):
     sun = np.array([math.cos(0.7), math.sin(0.7)])
     c = np.array([[3e-3, 1e-3], [1e-3, 2e-3]]) if common == "full" else 0.05**2 * np.outer(sun, sun)
     start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
-    prob = _Problem(start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions(), c)
-    prob.common_dense = c
+    from spctool.stages.pose import _error_modes
+
+    patterns = rng.normal(scale=0.03, size=(12, 2, 3)) if common == "patterns" else None
+    modes = _error_modes(c, patterns, 12, "fixed")
+    prob = _Problem(
+        start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions(), modes
+    )
+    prob.common_dense = None if common == "patterns" else c
     s = prob.start()
     n, g, _ = prob.normal(s)
     nd, gd, chi2d = _dense_problem(prob, s)
@@ -316,7 +329,15 @@ def test_common_error_woodbury_equals_the_dense_inverse(common):
     # C = 0 is the independent problem exactly
     plain = _Problem(start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions())
     zero = _Problem(
-        start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions(), np.zeros((2, 2))
+        start,
+        pts,
+        y,
+        np.linalg.inv(cov),
+        _Prior(np.zeros(6)),
+        "fixed",
+        None,
+        PoseOptions(),
+        np.zeros((12, 2, 1)),
     )
     assert np.array_equal(plain.normal(s)[0], zero.normal(s)[0])
 
@@ -363,6 +384,10 @@ def test_common_error_is_checked():
             solve_pose(truth, pts, y, common_covariance=bad)
     with pytest.raises(SpcUsageError, match="fixed"):
         solve_pose(
-            truth, pts, y, PoseOptions(landmark_mode="consider"), landmark_sigmas=np.full((6, 3), 1e-4),
+            truth,
+            pts,
+            y,
+            PoseOptions(landmark_mode="consider"),
+            landmark_sigmas=np.full((6, 3), 1e-4),
             common_covariance=np.eye(2) * 1e-3,
         )

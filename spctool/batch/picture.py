@@ -327,6 +327,9 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     clock = time.perf_counter()
     new_pic = with_measured_landmarks(pic, reg.names, reg.measured, reg.ok)
     use = np.flatnonzero(ok)
+    # two-pass navigation's final weights (issue #39: the registration covariances and the shading
+    # model's error patterns, weights="surface") — the same solve as its final pass
+    sens = None if nav is None else nav.final.sensitivity
     try:
         pose = solve_pose(
             camera,
@@ -336,6 +339,8 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
             prior_sigma_position=pic.sigma_vso,
             prior_sigma_attitude=pic.sigma_ptg,
             names=[names[i] for i in use],
+            pixel_covariances=None if sens is None else reg.covariance[use],
+            error_modes=None if sens is None else sens.modes[use],
         )
     except PoseError as exc:
         pose = None

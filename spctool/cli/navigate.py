@@ -68,14 +68,7 @@ def _spacings(text: str) -> tuple:
     help="Stop after pass 1 (acquisition and one pose solve).",
 )
 @options.sigma_px_option()
-@click.option(
-    "--weights",
-    type=click.Choice(["uniform", "surface"]),
-    default="uniform",
-    show_default=True,
-    help="uniform: every landmark 1/sigma_px^2 per axis; surface: each landmark by the inverse of its "
-    "registration covariance (correlation peak) plus the model error the pose residuals show.",
-)
+@options.weights_option()
 @options.no_prior_option
 @options.prior_scale_option
 @options.min_landmarks_option
@@ -123,7 +116,7 @@ def navigate_cmd(ctx: Context, **kw):
       spctool -C demo navigate P000000001A1
       spctool -C demo navigate P000000001A1 --json -o nav.json --output new.SUM
       spctool -C demo navigate P000000002A1 --single-pass --space image
-      spctool -C demo navigate P000000003A1 --weights surface --prior-scale auto
+      spctool -C demo navigate P000000003A1 --weights uniform --prior-scale auto
     """
     from spctool.cli.register import _Inputs, _register_options
     from spctool.stages.navigate import NavigateOptions, navigate

@@ -4,18 +4,20 @@ solve with its condition check, the pivot-retraction step and the Gauss–Newton
 
 Conventions and equations: :mod:`spctool.stages.pose` (spc-algorithms.md §10 and errata 1–4 of §11).
 
-**A common measurement error** (issue #39): the pixel errors of one picture's landmarks need not be
+**Correlated measurement errors** (issue #39): the pixel errors of one picture's landmarks need not be
 independent — a shading-model error shifts every landmark of the picture alike (along the Sun's
-azimuth), and its residuals cannot reveal it (the attitude absorbs a common shift).  With a common
-2×2 covariance C the measurement covariance of the M landmarks is R = blkdiag(W₁⁻¹ … W_M⁻¹) + U·C·Uᵀ,
-U = [I₂; …; I₂] (2M × 2), and by the Woodbury identity
+azimuth), or in a pattern that varies smoothly over the picture, and the residuals cannot reveal the
+part of it a pose change absorbs.  Such errors are k *modes*: columns of U (2M × k, the block Uᵢ
+(2 × k) per landmark) with unit-variance coefficients, so the measurement covariance of the M
+landmarks is R = blkdiag(W₁⁻¹ … W_M⁻¹) + U·Uᵀ — a shift common to all landmarks with 2×2 covariance
+C is Uᵢ = L (L·Lᵀ = C) for every i.  By the Woodbury identity
 
-    R⁻¹ = W − W·U·K·Uᵀ·W,   K = (C⁻¹ + S)⁻¹ = C·(I + S·C)⁻¹,   S = Σᵢ Wᵢ
+    R⁻¹ = W − W·U·K·Uᵀ·W,   K = (I + Uᵀ·W·U)⁻¹ = (I + Σᵢ UᵢᵀWᵢUᵢ)⁻¹   (k × k),
 
-(the second form needs no C⁻¹: a rank-one C, or C = 0, is fine).  So with G = Σᵢ Wᵢ·Hᵢ (2 × 6) and
-w = Σᵢ Wᵢ·rᵢ, every quantity of the weighted problem gains one rank-2 term: HᵀR⁻¹H = Σ HᵢᵀWᵢHᵢ − GᵀKG,
-HᵀR⁻¹r = Σ HᵢᵀWᵢrᵢ − GᵀKw, rᵀR⁻¹r = Σ rᵢᵀWᵢrᵢ − wᵀKw — O(M) work, never a 2M × 2M matrix
-(tests/test_pose_consistency.py compares it with the dense inverse).
+so with G = Σᵢ UᵢᵀWᵢHᵢ (k × 6) and w = Σᵢ UᵢᵀWᵢrᵢ every quantity of the weighted problem gains one
+rank-k term: HᵀR⁻¹H = Σ HᵢᵀWᵢHᵢ − GᵀKG, HᵀR⁻¹r = Σ HᵢᵀWᵢrᵢ − GᵀKw, rᵀR⁻¹r = Σ rᵢᵀWᵢrᵢ − wᵀKw —
+O(M·k²) work, never a 2M × 2M matrix (tests/test_pose_consistency.py compares it with the dense
+inverse).
 """
 
 from __future__ import annotations
@@ -100,7 +102,7 @@ class _State:
 class _Problem:
     """The least-squares problem over a fixed set of used landmarks (M of them)."""
 
-    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts, common=None):
+    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts, modes=None):
         self.camera0 = camera0
         self.p0 = camera0.position.copy()
         self.t0 = np.array(camera0.rotation)
@@ -110,12 +112,13 @@ class _Problem:
         if w.ndim == 2:  # per-axis weights (M, 2): diagonal Wᵢ
             w = w[:, :, None] * np.eye(2)
         self.wts = w  # (M, 2, 2) weight matrices Wᵢ (symmetric)
-        # the common error's Woodbury kernel K = C·(I + S·C)⁻¹ (module docstring); None: independent
-        self.kernel = None
-        if common is not None and np.any(np.asarray(common) != 0.0):
-            c = np.asarray(common, dtype=np.float64)
-            k = c @ np.linalg.inv(np.eye(2) + w.sum(axis=0) @ c)
-            self.kernel = 0.5 * (k + k.T)
+        # correlated error modes Uᵢ (M, 2, k) and the Woodbury kernel K (module docstring); None: independent
+        self.modes = self.kernel = None
+        if modes is not None and np.asarray(modes).shape[-1] > 0 and np.any(np.asarray(modes) != 0.0):
+            u = np.asarray(modes, dtype=np.float64)
+            s_ = np.einsum("mik,mij,mjl->kl", u, w, u)
+            k = np.linalg.inv(np.eye(u.shape[2]) + 0.5 * (s_ + s_.T))
+            self.modes, self.kernel = u, 0.5 * (k + k.T)
         self.prior = prior
         self.mode = mode
         self.lmk_info = lmk_info  # (M, 3) inverse variances, "estimate" mode
@@ -157,7 +160,7 @@ class _Problem:
         r = self.meas - np.stack([smp, lin], axis=-1)
         chi2 = float(np.einsum("mi,mij,mj->", r, self.wts, r))
         if self.kernel is not None:
-            w = np.einsum("mij,mj->i", self.wts, r)
+            w = np.einsum("mik,mij,mj->k", self.modes, self.wts, r)
             chi2 -= float(w @ self.kernel @ w)
         e = np.concatenate([s.dpos, s.theta])
         total = chi2 + float(np.sum(self.prior.info * e * e))
@@ -177,9 +180,9 @@ class _Problem:
         hw2 = hw.reshape(-1, 6)
         n = hw2.T @ h2
         g = hw2.T @ r.reshape(-1)
-        if self.kernel is not None:  # the common error (module docstring): rank-2 corrections
-            gw = hw.sum(axis=0)  # G = Σ WᵢHᵢ (2, 6)
-            w = np.einsum("mij,mj->i", self.wts, r)
+        if self.kernel is not None:  # correlated errors (module docstring): rank-k corrections
+            gw = np.einsum("mik,mij->kj", self.modes, hw)  # G = Σ UᵢᵀWᵢHᵢ (k, 6)
+            w = np.einsum("mik,mij,mj->k", self.modes, self.wts, r)
             n = n - gw.T @ self.kernel @ gw
             n = 0.5 * (n + n.T)
             g = g - gw.T @ (self.kernel @ w)

@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from spctool.errors import SpcUsageError
+from spctool.stages.model_error import Sensitivity, shading_sensitivity
 from spctool.stages.pose import PoseError, PoseOptions, PoseResult, solve_pose
 from spctool.stages.register import RegisterOptions, RegisterResult, register
 
@@ -87,9 +88,13 @@ class NavigateOptions:
       thresholds, prediction/extraction options; schedule and steps are set here, and removal
       criteria apply only when given explicitly — ``criteria="default"`` means none).
     * ``pose`` — the :class:`PoseOptions` of both pose solves (outlier rejection on by default).
-    * ``weights`` — ``"uniform"`` (every landmark 1/``sigma_px``² per axis) or ``"surface"`` (each
-      landmark by the inverse of its registration covariance plus the model error the residuals show,
-      :func:`spctool.stages.pose.solve_pose` ``pixel_covariances``).
+    * ``weights`` — the final pose solve's measurement covariance: ``"surface"`` (the default, issue
+      #39: each landmark's registration covariance, plus the shading model's error patterns measured by
+      re-registering every landmark with the alternative photometric law — and in image space template
+      shading — :mod:`spctool.stages.model_error`, as correlated modes, plus the model error τ the
+      residuals show; :func:`spctool.stages.pose.solve_pose` ``pixel_covariances``/``error_modes``) or
+      ``"uniform"`` (every landmark 1/``sigma_px``² per axis, the old default).  Pass 1 of two passes
+      solves with uniform weights either way (its pose only centres pass 2's search).
     """
 
     passes: int = 2
@@ -101,7 +106,7 @@ class NavigateOptions:
     min_landmarks: int = 3
     register: RegisterOptions = field(default_factory=RegisterOptions)
     pose: PoseOptions = field(default_factory=PoseOptions)
-    weights: str = "uniform"
+    weights: str = "surface"
 
     def __post_init__(self):
         if self.weights not in ("uniform", "surface"):
@@ -160,6 +165,7 @@ class PassResult:
     pose_error: str | None
     steps: list  #: [(spacing, grid_half), …] run
     seconds: float
+    sensitivity: Sensitivity | None = None  #: the shading model's error patterns (``weights="surface"``)
 
     @property
     def found(self) -> int:
@@ -181,6 +187,7 @@ class PassResult:
             "rejected": [] if p is None else [r.as_dict() for r in p.rejected],
             "pose": None if p is None else p.pose_dict(),
             "seconds": self.seconds,
+            "model_error": None if self.sensitivity is None else self.sensitivity.as_dict(),
         }
 
 
@@ -252,7 +259,9 @@ def _cells_per_px(camera, maplets) -> float:
     return float(np.median(r)) if len(r) else 1.0
 
 
-def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig_pos, sig_att):
+def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig_pos, sig_att, sens=None):
+    """The pose from the landmarks ``reg`` measured: uniform weights, or (``sens`` given: the final pass
+    with ``weights="surface"``) their covariances and the shading model's error patterns."""
     use = np.flatnonzero(reg.ok)
     if len(use) < options.min_landmarks:
         return None, f"{len(use)} landmarks registered, fewer than {options.min_landmarks}"
@@ -265,7 +274,8 @@ def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig
             prior_sigma_position=sig_pos,
             prior_sigma_attitude=sig_att,
             names=[reg.names[i] for i in use],
-            pixel_covariances=reg.covariance[use] if options.weights == "surface" else None,
+            pixel_covariances=None if sens is None else reg.covariance[use],
+            error_modes=None if sens is None else sens.modes[use],
         )
     except PoseError as exc:
         return None, str(exc)
@@ -274,6 +284,27 @@ def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig
     if not pose.plausible:  # as batch and solve-pose: residuals far above the measurement sigma
         return pose, f"implausible fit: {pose.implausible}"
     return pose, None
+
+
+def _sensitivity(photo, camera, sun, maplets, thresholds, base, opts, reg, kw, warnings) -> Sensitivity:
+    """The shading model's error patterns of the landmarks ``reg`` measured with ``camera``
+    (:func:`spctool.stages.model_error.shading_sensitivity`, spacing 1 with ±``grid_half``)."""
+    sens = shading_sensitivity(
+        photo,
+        camera,
+        sun,
+        maplets,
+        thresholds,
+        dataclasses.replace(base, grid_half=opts.grid_half),
+        reg.measured,
+        reg.ok,
+        names=kw["names"],
+        positions=kw["positions"],
+        converge_jacobian=reg.converge_jacobian,
+        patch_cache=kw["patch_cache"],
+    )
+    warnings.extend(sens.warnings)
+    return sens
 
 
 def navigate(
@@ -359,8 +390,12 @@ def navigate(
         reg1 = fine
     else:
         reg1 = coarse
-    pose1, err1 = _solve(camera, pos, reg1, opts, prior_sigma_position, prior_sigma_attitude)
-    pass1 = PassResult(reg1, pose1 if err1 is None else None, err1, steps, time.perf_counter() - t0)
+    calibrate = opts.weights == "surface"
+    sens1 = None
+    if calibrate and opts.passes == 1:  # the final pass: the shading model's error patterns
+        sens1 = _sensitivity(photo, camera, sun, maplets, thresholds, base, opts, reg1, kw, warnings)
+    pose1, err1 = _solve(camera, pos, reg1, opts, prior_sigma_position, prior_sigma_attitude, sens1)
+    pass1 = PassResult(reg1, pose1 if err1 is None else None, err1, steps, time.perf_counter() - t0, sens1)
     passes = [pass1]
     if err1 is not None:
         warnings.append(f"pass 1: no pose ({err1})")
@@ -383,9 +418,12 @@ def navigate(
     reg2 = register(photo, cam1, sun, maplets, thresholds, ref_opts, apriori=start2, **kw)
     tick(n)
     reg2.apriori = start.copy()  # the table's a-priori pixel stays the input one
-    pose2, err2 = _solve(camera, pos, reg2, opts, prior_sigma_position, prior_sigma_attitude)
+    sens2 = None
+    if calibrate:
+        sens2 = _sensitivity(photo, cam1, sun, maplets, thresholds, base, opts, reg2, kw, warnings)
+    pose2, err2 = _solve(camera, pos, reg2, opts, prior_sigma_position, prior_sigma_attitude, sens2)
     passes.append(
-        PassResult(reg2, pose2 if err2 is None else None, err2, ref_steps, time.perf_counter() - t0)
+        PassResult(reg2, pose2 if err2 is None else None, err2, ref_steps, time.perf_counter() - t0, sens2)
     )
     if err2 is not None:
         again = int(reg2.ok.sum())

@@ -678,6 +678,25 @@ def _common_covariance(common, mode):
     return c
 
 
+def _error_modes(common, patterns, n, mode):
+    """(N, 2, k) correlated error modes (:mod:`spctool.stages._pose_problem`): the common covariance's
+    square root L (L·Lᵀ = C, every landmark alike) beside the given patterns; None without either."""
+    parts = []
+    if common is not None and np.any(common != 0.0):
+        lam, vec = np.linalg.eigh(common)
+        root = vec * np.sqrt(np.clip(lam, 0.0, None))
+        parts.append(np.broadcast_to(root, (n, 2, 2)))
+    if patterns is not None:
+        u = np.asarray(patterns, dtype=np.float64)
+        u = u[..., None] if u.ndim == 2 else u
+        if u.ndim != 3 or u.shape[:2] != (n, 2):
+            raise SpcUsageError(f"error_modes must have shape ({n}, 2, k), got {np.shape(patterns)}")
+        if mode != "fixed":
+            raise SpcUsageError(f"error_modes need landmark_mode 'fixed', not {mode!r}")
+        parts.append(np.where(np.isfinite(u), u, 0.0))
+    return np.concatenate(parts, axis=2) if parts else None
+
+
 def _usable_landmarks(camera, pts_all, meas_all, names):
     """(usable (N,), known position (N,), a-priori predicted pixels (N, 2), status words, rejections):
     a landmark is usable with a known position, a measured pixel and in front of the a-priori camera;
@@ -757,6 +776,7 @@ def _solve_pose(
     pixel_sigmas=None,
     pixel_covariances=None,
     common_covariance=None,
+    error_modes=None,
 ) -> PoseResult:
     """Solve spacecraft position and attitude from N landmark measurements (module docstring).
 
@@ -774,6 +794,10 @@ def _solve_pose(
       picture (a shading-model error shared by its landmarks, :mod:`spctool.stages.model_error`): the
       measurements' covariance becomes blkdiag(Wᵢ⁻¹) + U·C·Uᵀ, applied by the Woodbury identity
       (:mod:`spctool.stages._pose_problem`), so the pose covariance includes it.  ``"fixed"`` landmarks only.
+    * ``error_modes`` — optional (N, 2, k) px: k patterns of pixel errors over the landmarks, each with a
+      unit-variance coefficient (covariance Σₖ uₖuₖᵀ added to the measurements' covariance; e.g. the
+      shift of every landmark under another shading model, :mod:`spctool.stages.model_error`); also by
+      Woodbury, also ``"fixed"`` only.
 
     Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
     """
@@ -812,6 +836,7 @@ def _solve_pose(
     prior = _Prior(info)
     prior_used = prior.n_equations > 0
     common = _common_covariance(common_covariance, mode)
+    modes_all = _error_modes(common, error_modes, n_all, mode)
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
     usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
@@ -840,7 +865,7 @@ def _solve_pose(
             mode,
             None if lmk_info_all is None else lmk_info_all[mask],
             opts,
-            common,
+            None if modes_all is None else modes_all[mask],
         )
 
     # ---- fit, reject, refit -------------------------------------------------------------------------
