@@ -115,9 +115,9 @@ def test_an_implausible_pose_is_no_pose(monkeypatch):
 
 
 def test_surface_weights_pass_the_registration_covariances(monkeypatch):
-    """The final pass with weights="surface" (the default) hands each registered landmark's covariance
+    """The final pass with weights="surface" hands each registered landmark's covariance
     and its shading-model error shifts to the pose solve (the rows used, in order); without the
-    sensitivity (pass 1 of two, weights="uniform") none; anything else is refused."""
+    sensitivity (pass 1 of two, weights="uniform", the default) none; anything else is refused."""
     import types
 
     import numpy as np
@@ -140,10 +140,10 @@ def test_surface_weights_pass_the_registration_covariances(monkeypatch):
         return types.SimpleNamespace(converged=True, plausible=True, implausible="")
 
     monkeypatch.setattr(nav_mod, "solve_pose", fake)
-    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None, sens)
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="surface"), None, None, sens)
     np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
     np.testing.assert_array_equal(seen["modes"], shifts[[0, 2, 3]])
     nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="uniform"), None, None)
-    assert seen["cov"] is None and seen["modes"] is None and NavigateOptions().weights == "surface"
+    assert seen["cov"] is None and seen["modes"] is None and NavigateOptions().weights == "uniform"
     with pytest.raises(SpcUsageError):
         NavigateOptions(weights="inverse")

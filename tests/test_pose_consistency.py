@@ -210,9 +210,11 @@ def _covs(rng, n, lo=0.005, hi=0.03):
 def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_honest():
     """Pixel errors = the peaks' covariances Cᵢ (5–30 mpx) plus an isotropic 0.04 px model error that
     the covariances do not hold: weighted with Cᵢ alone the NEES is far above χ²₆; with the model
-    error estimated (τ ≈ 0.04 px) it follows χ²₆ over 100 seeds."""
+    error estimated (τ ≈ 0.04 px) it follows χ²₆ over 100 seeds.  With its common part too (the
+    default, ``common_model_error``: a shift τ²I shared by the landmarks, which this world does not
+    have) the covariance is larger, never smaller: NEES below χ²₆'s mean, not far below."""
     tau_true = 0.04
-    est, with_tau, without = [], [], []
+    est, with_tau, without, with_common = [], [], [], []
     for seed in range(100):
         rng = np.random.default_rng(500 + seed)
         truth = make_camera(rng)
@@ -222,9 +224,10 @@ def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_hone
         y = observe(truth, pts) + np.einsum("mij,mj->mi", np.linalg.cholesky(full), rng.normal(size=(25, 2)))
         start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
         kw = dict(pixel_covariances=cov, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
-        res = solve_pose(start, pts, y, PoseOptions(), **kw)
+        res = solve_pose(start, pts, y, PoseOptions(common_model_error=False), **kw)
         est.append(res.model_error_px)
         with_tau.append(nees(truth, res))
+        with_common.append(nees(truth, solve_pose(start, pts, y, PoseOptions(), **kw)))
         if seed < 30:
             off = solve_pose(start, pts, y, PoseOptions(model_error=False, scale_covariance=False), **kw)
             without.append(nees(truth, off))
@@ -234,6 +237,7 @@ def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_hone
     assert abs(with_tau.mean() - 6.0) < 1.2, with_tau.mean()
     assert stats.kstest(with_tau, "chi2", args=(6,)).pvalue > 1e-3
     assert np.mean(without) > 15.0, np.mean(without)
+    assert 3.0 < np.mean(with_common) < 6.0, np.mean(with_common)
 
 
 def test_model_error_is_capped_and_the_rest_left_to_the_gate():

@@ -116,7 +116,7 @@ def navigate_cmd(ctx: Context, **kw):
       spctool -C demo navigate P000000001A1
       spctool -C demo navigate P000000001A1 --json -o nav.json --output new.SUM
       spctool -C demo navigate P000000002A1 --single-pass --space image
-      spctool -C demo navigate P000000003A1 --weights uniform --prior-scale auto
+      spctool -C demo navigate P000000003A1 --weights surface --prior-scale auto
     """
     from spctool.cli.register import _Inputs, _register_options
     from spctool.stages.navigate import NavigateOptions, navigate

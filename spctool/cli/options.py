@@ -530,17 +530,17 @@ def pose_options(sigma_px: float, no_prior: bool, min_landmarks: int, prior_scal
 
 
 def weights_option(extra: str = ""):
-    """--weights of the final pose solve (navigate, batch): surface (default) or uniform."""
+    """--weights of the final pose solve (navigate, batch): uniform (default) or surface."""
     return click.option(
         "--weights",
-        type=click.Choice(["surface", "uniform"]),
-        default="surface",
+        type=click.Choice(["uniform", "surface"]),
+        default="uniform",
         show_default=True,
-        help="The final pose solve's measurement weights.  surface: each landmark by its registration "
-        "covariance, plus the shading model's error (every landmark registered again with the other "
-        "photometric law and, in image space, template shading: the shifts enter as errors shared by "
-        "the picture's landmarks), plus the model error the residuals show; uniform: every landmark "
-        "1/sigma_px^2 per axis (the old default)." + extra,
+        help="The final pose solve's measurement weights.  uniform: every landmark 1/sigma_px^2 per axis; "
+        "surface: each landmark by its registration covariance, plus the shading model's error (every "
+        "landmark registered again with the other photometric law and, in image space, template "
+        "shading: the shifts enter as errors shared by the picture's landmarks), plus the model error "
+        "the residuals show and as large a part common to them." + extra,
     )
 
 

@@ -88,13 +88,18 @@ class NavigateOptions:
       thresholds, prediction/extraction options; schedule and steps are set here, and removal
       criteria apply only when given explicitly — ``criteria="default"`` means none).
     * ``pose`` — the :class:`PoseOptions` of both pose solves (outlier rejection on by default).
-    * ``weights`` — the final pose solve's measurement covariance: ``"surface"`` (the default, issue
-      #39: each landmark's registration covariance, plus the shading model's error patterns measured by
-      re-registering every landmark with the alternative photometric law — and in image space template
-      shading — :mod:`spctool.stages.model_error`, as correlated modes, plus the model error τ the
-      residuals show; :func:`spctool.stages.pose.solve_pose` ``pixel_covariances``/``error_modes``) or
-      ``"uniform"`` (every landmark 1/``sigma_px``² per axis, the old default).  Pass 1 of two passes
-      solves with uniform weights either way (its pose only centres pass 2's search).
+    * ``weights`` — the final pose solve's measurement covariance: ``"uniform"`` (the default: every
+      landmark 1/``sigma_px``² per axis) or ``"surface"`` (issue #39: each landmark's registration
+      covariance, plus the shading model's error patterns measured by re-registering every landmark with
+      the alternative photometric law — and in image space template shading —
+      :mod:`spctool.stages.model_error`, as correlated modes, plus the model error τ the residuals show
+      and its common part; :func:`spctool.stages.pose.solve_pose` ``pixel_covariances``/
+      ``error_modes``).  Why uniform stays the default: on the demo with ``make-maplets`` maplets the
+      surface-weighted pose of two pictures is 3.5σ off in position (landmark position errors of the
+      coarse maplets, correlated over the picture, that no per-picture covariance reveals; uniform's
+      0.1 px against 0.06 px residuals covers them), and on low-Sun independent worlds the image-space
+      NEES is ~11 (docs/benchmarks.md).  Pass 1 of two passes solves with uniform weights either way
+      (its pose only centres pass 2's search).
     """
 
     passes: int = 2
@@ -106,7 +111,7 @@ class NavigateOptions:
     min_landmarks: int = 3
     register: RegisterOptions = field(default_factory=RegisterOptions)
     pose: PoseOptions = field(default_factory=PoseOptions)
-    weights: str = "surface"
+    weights: str = "uniform"
 
     def __post_init__(self):
         if self.weights not in ("uniform", "surface"):

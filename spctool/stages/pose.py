@@ -151,6 +151,11 @@ class PoseOptions:
       (Cᵢ + τ²I)⁻¹ (True), when χ² exceeds its ``model_error_quantile`` (0.9; below it the
       covariances are left as they are); τ is at most ``max_model_error_px`` (None: ``sigma_px``), a
       larger misfit is the χ² gate's.  Reported as :attr:`PoseResult.model_error_px`.
+      ``common_model_error`` (True, ``"fixed"`` landmarks): τ also as a shift common to all the
+      landmarks (covariance τ²I, through the Woodbury identity as ``common_covariance``) — the model
+      errors that leave per-landmark residuals of size τ (a maplet's heights, its photometry) shift a
+      picture's landmarks alike too, by a part the residuals cannot show (the pose absorbs it), taken
+      as large as the part they show.
     * ``prior_scale`` — factor applied to the a-priori sigmas (1); ``estimate_prior_scale``: when the
       measurements contradict the prior, widen it by the test's √(q/k) and solve again, at most
       ``max_prior_scale_steps`` times, until they agree (the factor is :attr:`PoseResult.prior_scale`).
@@ -175,6 +180,7 @@ class PoseOptions:
     sigma_floor_px: float = 0.001
     consistency_quantile: float = 0.999
     model_error: bool = True
+    common_model_error: bool = True
     max_model_error_px: float | None = None
     model_error_quantile: float = 0.9
     prior_scale: float = 1.0
@@ -289,7 +295,7 @@ class PoseResult:
     prior_check: PriorTest | None = None  # the prior–measurement test (None: no prior)
     prior_scale: float = 1.0  # factor applied to the a-priori sigmas (estimated or given)
     model_error_px: float = 0.0  # τ added in quadrature to the per-landmark covariances (estimated)
-    common_covariance: np.ndarray | None = None  # (2, 2) px² error common to the landmarks (given)
+    common_covariance: np.ndarray | None = None  # (2, 2) px² error common to the landmarks (given + τ²I)
 
     # ---- convenience ------------------------------------------------------------------------------
     @property
@@ -837,6 +843,7 @@ def _solve_pose(
     prior_used = prior.n_equations > 0
     common = _common_covariance(common_covariance, mode)
     modes_all = _error_modes(common, error_modes, n_all, mode)
+    common_used = common  # with the model error's common part once estimated
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
     usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
@@ -884,6 +891,10 @@ def _solve_pose(
                 break
             tau = new_tau
             wts_all = np.linalg.inv(base + (tau * tau) * np.eye(2))
+            if opts.common_model_error and mode == "fixed":  # its common part, as large (PoseOptions)
+                shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
+                modes_all = _error_modes(shared, error_modes, n_all, mode)
+                common_used = shared
             status[:], rejected[:], warnings[:] = (list(x) for x in before)
             problem, state, iterations, converged, history, used = _fit_rejecting(
                 build, usable, opts, prior, names, status, rejected, warnings
@@ -971,5 +982,5 @@ def _solve_pose(
         prior_check=prior_check,
         prior_scale=float(opts.prior_scale) if prior_used else 1.0,
         model_error_px=float(tau),
-        common_covariance=None if common is None else common.copy(),
+        common_covariance=None if common_used is None else np.array(common_used, dtype=np.float64),
     )
