@@ -45,7 +45,10 @@ def test_the_alternative_models():
     labels = [lab for lab, _ in alternative_models(RegisterOptions())]
     assert labels == ["photometry lambert"]
     img = alternative_models(RegisterOptions(space="image"))
-    assert [lab for lab, _ in img] == ["photometry lambert", "template-shading facet"]
+    assert [lab for lab, _ in img] == ["photometry lambert", "template-shading facet", "no cast shadows"]
+    assert not img[2][1].image_shadows and img[1][1].image_shadows
+    plain = alternative_models(RegisterOptions(space="image", image_shadows=False))
+    assert [lab for lab, _ in plain] == ["photometry lambert", "template-shading facet"]
     assert img[1][1].template_shading == "facet" and img[0][1].predict.photometry == "lambert"
     lam = RegisterOptions(predict=dataclasses.replace(RegisterOptions().predict, photometry="lambert"))
     assert alternative_models(lam)[0][1].predict.photometry == "spc"

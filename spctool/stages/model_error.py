@@ -14,13 +14,18 @@ What the data can show is how far the measurements move when the model is change
 plausible.  Each landmark is registered once more from its measured pixel, at spacing 1 (the converged
 stage, :func:`spctool.stages.register.register`), with the alternative photometric law — SPC's
 lunar-Lambert ↔ Lambert (:data:`ALTERNATIVE_LAW`) — and, in image space, the alternative template
-shading (smooth ↔ facet).  The shifts δᵢ⁽ᵏ⁾ of the landmarks form one error pattern per alternative k;
-each enters the measurement covariance of the pose solve as one mode with a unit-variance coefficient,
+shading (smooth ↔ facet) and the template without its cast shadows (a low Sun's shadows, cast by the
+maplet's heights rather than the body's, shift every landmark along the Sun: 0.03 px of common error
+at 70° incidence on the independent worlds).  The shifts δᵢ⁽ᵏ⁾ of the landmarks form one error
+pattern per alternative k; each enters the measurement covariance of the pose solve as one mode with a
+unit-variance coefficient,
 
-    R = blkdiag(Cᵢ + τ²I) + Σₖ δ⁽ᵏ⁾ δ⁽ᵏ⁾ᵀ                       (:mod:`spctool.stages._pose_problem`)
+    R = blkdiag(Cᵢ + τ²I) + U·τ²I·Uᵀ + Σₖ δ⁽ᵏ⁾ δ⁽ᵏ⁾ᵀ            (:mod:`spctool.stages._pose_problem`)
 
-— the model is taken to be wrong by about as much as two plausible models differ, in the pattern their
-difference takes (its common part along the Sun included).  Nothing is tuned to a scene: size and shape
+(τ the model error the pose residuals show beyond the patterns, U·τ²I·Uᵀ its part common to the
+landmarks: :class:`spctool.stages.pose.PoseOptions` ``common_model_error``) — the model is taken to be
+wrong by about as much as two plausible models differ, in the pattern their difference takes (its
+common part along the Sun included).  Nothing is tuned to a scene: size and shape
 are the picture's own.  Each landmark's marginal covariance is Cᵢ + τ²I + Σₖ δᵢ⁽ᵏ⁾δᵢ⁽ᵏ⁾ᵀ
 (:meth:`Sensitivity.landmark_covariances`).  A landmark the alternative does not register (or moves by
 more than ``max_shift_px``: it found other terrain) gets no shift in that pattern and is named.
@@ -76,7 +81,8 @@ class Sensitivity:
 
 def alternative_models(options) -> list[tuple[str, object]]:
     """[(label, RegisterOptions)] of the alternative models for ``options`` (module docstring): the
-    other photometric law; in image space also the other template shading."""
+    other photometric law; in image space also the other template shading and (when the templates
+    have them) no cast shadows."""
     law = options.predict.photometry
     alt = ALTERNATIVE_LAW.get(law, "lambert")
     out = [
@@ -88,6 +94,8 @@ def alternative_models(options) -> list[tuple[str, object]]:
     if options.space == "image":
         shading = ALTERNATIVE_SHADING.get(options.template_shading, "facet")
         out.append((f"template-shading {shading}", dataclasses.replace(options, template_shading=shading)))
+        if options.image_shadows:  # the template's cast shadows (the maplet's heights, not the body's)
+            out.append(("no cast shadows", dataclasses.replace(options, image_shadows=False)))
     return out
 
 
