@@ -9,8 +9,9 @@ space); against the truth pixels and poses this prints, per world × space:
 * ``d2`` / ``cov95`` — per landmark, mean d² = eᵀ(Cᵢ + τ²I)⁻¹e and the fraction inside the 95 % ellipse
   (target 2 ± 0.5 and 0.90–0.98), e = measured − true pixel, Cᵢ the registration's covariance, τ the
   model error the surface-weighted pose solve estimates;
-* ``d2c`` / ``cov95c`` — the same with each landmark's share of the shading model's error patterns
-  (:mod:`spctool.stages.model_error`): Cᵢ + τ²I + Σₖ δᵢ⁽ᵏ⁾δᵢ⁽ᵏ⁾ᵀ;
+* ``d2c`` / ``cov95c`` — the same with the marginal covariance of ``--weights surface``: each
+  landmark's share of the shading model's error patterns (:mod:`spctool.stages.model_error`) and the
+  model error with its common part, Cᵢ + Σₖ δᵢ⁽ᵏ⁾δᵢ⁽ᵏ⁾ᵀ + τ²I + τ²I;
 * ``common`` — rms over the pictures of the picture's common error ē (mean of e over its landmarks), and
   ``along`` the rms of its component along the Sun's direction in the image; ``sigc`` the rms of the
   patterns' mean shifts (what the sensitivity says the common error is);
@@ -138,9 +139,12 @@ def picture_figures(root, p, space, weights="uniform"):
     surc = solve_pose(*args, PoseOptions(), pixel_covariances=reg.covariance[ok], error_modes=modes, **pkw)
     c_i = reg.covariance[ok] + (sur.model_error_px**2 + PoseOptions().sigma_floor_px ** 2) * np.eye(2)
     d2 = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_i), e)
-    c_ic = sens.landmark_covariances(reg.covariance[ok]) + (
-        surc.model_error_px**2 + PoseOptions().sigma_floor_px ** 2
-    ) * np.eye(2)
+    common = np.zeros((2, 2)) if surc.common_covariance is None else surc.common_covariance
+    c_ic = (
+        sens.landmark_covariances(reg.covariance)[ok]
+        + (surc.model_error_px**2 + PoseOptions().sigma_floor_px**2) * np.eye(2)
+        + common
+    )
     d2c = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_ic), e)
     sc = sens.common()  # (2, k) each pattern's mean shift
     eb = e.mean(axis=0)
