@@ -43,15 +43,45 @@ def _options():
 
 def test_the_alternative_models():
     labels = [lab for lab, _ in alternative_models(RegisterOptions())]
-    assert labels == ["photometry lambert"]
+    assert labels == ["photometry lambert", "heights smoothed"]
     img = alternative_models(RegisterOptions(space="image"))
-    assert [lab for lab, _ in img] == ["photometry lambert", "template-shading facet", "no cast shadows"]
-    assert not img[2][1].image_shadows and img[1][1].image_shadows
+    assert [lab for lab, _ in img] == [
+        "photometry lambert",
+        "heights smoothed",
+        "template-shading facet",
+        "no cast shadows",
+    ]
+    assert (
+        not img[3][1].image_shadows
+        and img[2][1].image_shadows
+        and img[1][1] == RegisterOptions(space="image")
+    )
     plain = alternative_models(RegisterOptions(space="image", image_shadows=False))
-    assert [lab for lab, _ in plain] == ["photometry lambert", "template-shading facet"]
-    assert img[1][1].template_shading == "facet" and img[0][1].predict.photometry == "lambert"
+    assert [lab for lab, _ in plain] == ["photometry lambert", "heights smoothed", "template-shading facet"]
+    assert img[2][1].template_shading == "facet" and img[0][1].predict.photometry == "lambert"
     lam = RegisterOptions(predict=dataclasses.replace(RegisterOptions().predict, photometry="lambert"))
     assert alternative_models(lam)[0][1].predict.photometry == "spc"
+
+
+def test_smoothed_heights_by_hand():
+    """One height of 16 at the centre of a 5×5 maplet: the binomial [1, 2, 1]/4 twice gives 4 at the
+    centre, 2 beside it, 1 at the corners; an invalid node stays 0 and is not averaged in; the original
+    maplet is left as it was."""
+    from types import SimpleNamespace
+
+    from spctool.stages.model_error import smoothed_heights
+
+    h = np.zeros((5, 5))
+    h[2, 2] = 16.0
+    valid = np.ones((5, 5), bool)
+    m = SimpleNamespace(heights=h.copy(), valid=valid, albedo=np.ones((5, 5)))
+    s = smoothed_heights(m).heights
+    np.testing.assert_allclose(s[1:4, 1:4], [[1, 2, 1], [2, 4, 2], [1, 2, 1]])
+    assert s.sum() == pytest.approx(16.0) and np.array_equal(m.heights, h)
+    valid[0, 0] = False
+    m2 = SimpleNamespace(heights=np.where(valid, 3.0, 0.0), valid=valid, albedo=np.ones((5, 5)))
+    s2 = smoothed_heights(m2).heights
+    assert s2[0, 0] == 0.0 and np.allclose(s2[valid], 3.0)  # a constant stays constant, holes ignored
 
 
 def test_the_sensitivity_is_the_difference_of_the_two_models(lambert_scene):
@@ -64,7 +94,8 @@ def test_the_sensitivity_is_the_difference_of_the_two_models(lambert_scene):
     other = register(photo, sc.camera, sc.sun, maplets, sc.thresholds, lam, apriori=truth + 0.3)
     assert reg.ok.all() and other.ok.all()
     sens = shading_sensitivity(photo, sc.camera, sc.sun, maplets, sc.thresholds, opts, reg.measured, reg.ok)
-    assert sens.labels == ["photometry lambert"] and sens.available.all() and not sens.warnings
+    assert sens.labels == ["photometry lambert", "heights smoothed"] and not sens.warnings
+    assert sens.available.all()
     d = sens.shifts[:, :, 0]
     np.testing.assert_allclose(d, other.measured - reg.measured, atol=0.002)
     err_spc = np.linalg.norm(reg.measured - truth, axis=1)
@@ -73,9 +104,10 @@ def test_the_sensitivity_is_the_difference_of_the_two_models(lambert_scene):
     assert np.linalg.norm(d[k]) > 0.005 and err_lam[k] < err_spc[k]
     # each landmark's marginal covariance holds its share of the pattern
     cov = np.broadcast_to(1e-6 * np.eye(2), (3, 2, 2))
-    np.testing.assert_allclose(sens.landmark_covariances(cov), cov + np.einsum("ni,nj->nij", d, d))
+    u = sens.shifts
+    np.testing.assert_allclose(sens.landmark_covariances(cov), cov + np.einsum("nik,njk->nij", u, u))
     np.testing.assert_allclose(sens.common()[:, 0], d.mean(axis=0))
-    assert sens.as_dict()["landmarks"] == [3]
+    assert sens.as_dict()["landmarks"] == [3, 3]
 
 
 def test_a_landmark_the_alternative_does_not_find_gets_no_shift(lambert_scene):
@@ -94,8 +126,8 @@ def test_a_landmark_the_alternative_does_not_find_gets_no_shift(lambert_scene):
         max_shift_px=1e-9,  # every real shift is "too far": nothing is kept, each named
     )
     assert not sens.available.any() and np.all(sens.shifts == 0.0)
-    assert len(sens.warnings) == 1 and "L0" in sens.warnings[0] and "L1" not in sens.warnings[0]
+    assert len(sens.warnings) == 2 and "L0" in sens.warnings[0] and "L1" not in sens.warnings[0]
     empty = shading_sensitivity(
         photo, sc.camera, sc.sun, maplets, sc.thresholds, _options(), meas, np.zeros(3, bool)
     )
-    assert isinstance(empty, Sensitivity) and empty.shifts.shape == (3, 2, 1) and not empty.warnings
+    assert isinstance(empty, Sensitivity) and empty.shifts.shape == (3, 2, 2) and not empty.warnings
