@@ -18,7 +18,9 @@ space); against the truth pixels and poses this prints, per world × space:
 * ``NEES uni`` / ``sur`` / ``sur+C`` / ``nav`` — mean pose NEES (χ²₆: 6) of the final pose solved with
   uniform weights (σ = 0.1 px), with the registration covariances plus τ, and with these plus the error
   patterns as correlated modes (Woodbury), over the pictures; ``nav`` is navigate's own final pose (with
-  ``--weights``); ``>99.9`` the count of pictures beyond χ²₆'s 99.9 % quantile (22.5) for each.
+  ``--weights``); ``>99.9`` the count of pictures beyond χ²₆'s 99.9 % quantile (22.5) for each;
+* ``pos_m`` / ``att_urad`` — rms over the pictures of the pose error (position m, attitude µrad) with
+  uniform weights and of navigate's pose; ``cpu_s`` navigate's CPU seconds for the six pictures.
 
 Run: ``python benchmarks/calibration.py [--root DIR] [--worlds facet-high,...] [--spaces maplet,image]
 [--json FILE]`` (worlds are built once into DIR, ~1 min each on one core).
@@ -142,7 +144,7 @@ def picture_figures(root, p, space, weights="uniform"):
     common = np.zeros((2, 2)) if surc.common_covariance is None else surc.common_covariance
     c_ic = (
         sens.landmark_covariances(reg.covariance)[ok]
-        + (surc.model_error_px**2 + PoseOptions().sigma_floor_px**2) * np.eye(2)
+        + (surc.model_error_px**2 + PoseOptions().sigma_floor_px ** 2) * np.eye(2)
         + common
     )
     d2c = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_ic), e)
@@ -159,6 +161,8 @@ def picture_figures(root, p, space, weights="uniform"):
         "nees_sur": nees(p, sur),
         "nees_surc": nees(p, surc),
         "nees_nav": nees(p, res.pose) if res.pose is not None else math_nan(),
+        "err_uni": pose_error(p, uni),
+        "err_nav": pose_error(p, res.pose) if res.pose is not None else np.full(6, np.nan),
         "status": res.status if res.pose is None else res.pose.verdict,
         "cpu_s": cpu,
         "rms": float(np.sqrt(np.mean(np.sum(e * e, axis=1)))),
@@ -190,6 +194,10 @@ def summarise(rows):
         v = np.array([r[f"nees_{k}"] for r in rows])
         out[f"nees_{k}"] = float(np.mean(v))
         out[f"nees_{k}_over"] = int(np.sum(v > NEES_999))
+    for k in ("uni", "nav"):  # rms pose error over the pictures: position (m), attitude (µrad)
+        e = np.array([r[f"err_{k}"] for r in rows])
+        out[f"pos_{k}_m"] = float(np.sqrt(np.nanmean(np.sum(e[:, :3] ** 2, axis=1)))) * 1e3
+        out[f"att_{k}_urad"] = float(np.sqrt(np.nanmean(np.sum(e[:, 3:] ** 2, axis=1)))) * 1e6
     out["verdicts"] = {s: sum(r["status"] == s for r in rows) for s in sorted({r["status"] for r in rows})}
     return out
 
@@ -207,7 +215,7 @@ def main(argv=None):
     head = (
         f"{'world':12s} {'space':6s} {'rms':>6s} {'d2':>6s} {'cov95':>6s} {'d2c':>6s} {'cov95c':>6s} "
         f"{'common':>6s} {'along':>6s} {'sigc':>6s} {'tau':>6s} {'NEESuni':>7s} {'sur':>7s} {'sur+C':>7s} "
-        f"{'nav':>7s} {'>99.9':>9s}"
+        f"{'nav':>7s} {'>99.9':>9s} {'pos_m uni/nav':>14s} {'att_urad uni/nav':>16s} {'cpu_s':>6s}"
     )
     print(head)
     for name in a.worlds.split(","):
@@ -229,7 +237,10 @@ def main(argv=None):
                 f"{s['cov95c']:6.3f} {s['common_rms_px']:6.4f} {s['along_rms_px']:6.4f} "
                 f"{s['sigc_rms_px']:6.4f} {s['tau_mean_px']:6.4f} {s['nees_uni']:7.2f} {s['nees_sur']:7.2f} "
                 f"{s['nees_surc']:7.2f} {s['nees_nav']:7.2f} "
-                f"{s['nees_uni_over']}/{s['nees_sur_over']}/{s['nees_surc_over']}/{s['nees_nav_over']}",
+                f"{s['nees_uni_over']}/{s['nees_sur_over']}/{s['nees_surc_over']}/{s['nees_nav_over']:<3d}"
+                f" {s['pos_uni_m']:6.3f}/{s['pos_nav_m']:6.3f}"
+                f" {s['att_uni_urad']:7.1f}/{s['att_nav_urad']:7.1f}"
+                f" {s['cpu_s']:6.1f}",
                 flush=True,
             )
     if a.json:

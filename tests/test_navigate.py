@@ -117,7 +117,8 @@ def test_an_implausible_pose_is_no_pose(monkeypatch):
 def test_surface_weights_pass_the_registration_covariances(monkeypatch):
     """The final pass with weights="surface" hands each registered landmark's covariance
     and its shading-model error shifts to the pose solve (the rows used, in order); without the
-    sensitivity (pass 1 of two, weights="uniform", the default) none; anything else is refused."""
+    sensitivity (pass 1 of two, weights="uniform") none; "calibrated" (the default) fits uniformly with
+    them as the covariance; anything else is refused."""
     import types
 
     import numpy as np
@@ -137,13 +138,18 @@ def test_surface_weights_pass_the_registration_covariances(monkeypatch):
     def fake(*a, **k):
         seen["cov"] = k.get("pixel_covariances")
         seen["modes"] = k.get("error_modes")
+        seen["estimate"] = k.get("estimate_weights")
         return types.SimpleNamespace(converged=True, plausible=True, implausible="")
 
     monkeypatch.setattr(nav_mod, "solve_pose", fake)
     nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="surface"), None, None, sens)
     np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
     np.testing.assert_array_equal(seen["modes"], shifts[[0, 2, 3]])
+    assert seen["estimate"] == "covariance"
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None, sens)
+    assert seen["estimate"] == "uniform" and NavigateOptions().weights == "calibrated"
+    np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
     nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="uniform"), None, None)
-    assert seen["cov"] is None and seen["modes"] is None and NavigateOptions().weights == "uniform"
+    assert seen["cov"] is None and seen["modes"] is None
     with pytest.raises(SpcUsageError):
         NavigateOptions(weights="inverse")

@@ -327,9 +327,10 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     clock = time.perf_counter()
     new_pic = with_measured_landmarks(pic, reg.names, reg.measured, reg.ok)
     use = np.flatnonzero(ok)
-    # two-pass navigation's final weights (issue #39: the registration covariances and the shading
-    # model's error patterns, weights="surface") — the same solve as its final pass
+    # two-pass navigation's final weights and covariance (issue #39: the registration covariances and
+    # the shading model's error patterns, weights calibrated or surface) — the same solve as its final pass
     sens = None if nav is None else nav.final.sensitivity
+    gls = sens is not None and nav.options.weights == "surface"
     try:
         pose = solve_pose(
             camera,
@@ -341,6 +342,7 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
             names=[names[i] for i in use],
             pixel_covariances=None if sens is None else reg.covariance[use],
             error_modes=None if sens is None else sens.modes[use],
+            estimate_weights="covariance" if gls else "uniform",
         )
     except PoseError as exc:
         pose = None

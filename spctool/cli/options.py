@@ -530,17 +530,20 @@ def pose_options(sigma_px: float, no_prior: bool, min_landmarks: int, prior_scal
 
 
 def weights_option(extra: str = ""):
-    """--weights of the final pose solve (navigate, batch): uniform (default) or surface."""
+    """--weights of the final pose solve (navigate, batch): calibrated (default), uniform or surface."""
     return click.option(
         "--weights",
-        type=click.Choice(["uniform", "surface"]),
-        default="uniform",
+        type=click.Choice(["calibrated", "uniform", "surface"]),
+        default="calibrated",
         show_default=True,
-        help="The final pose solve's measurement weights.  uniform: every landmark 1/sigma_px^2 per axis; "
-        "surface: each landmark by its registration covariance, plus the shading model's error (every "
-        "landmark registered again with the other photometric law and, in image space, template "
-        "shading: the shifts enter as errors shared by the picture's landmarks), plus the model error "
-        "the residuals show and as large a part common to them." + extra,
+        help="The final pose solve.  calibrated: uniform weights (1/sigma_px^2 per axis) and the "
+        "covariance of that fit under the calibrated measurement covariance: each landmark's registration "
+        "covariance, the shading model's error (every landmark registered again with the other "
+        "photometric law and its maplet's heights smoothed once more; in image space also the other "
+        "template shading and no cast shadows: the shifts enter as errors shared by the picture's "
+        "landmarks) and the model error the residuals show, with as large a part common to them.  "
+        "surface: weighted by that covariance too.  uniform: uniform weights and the formal covariance "
+        "of sigma_px (the old way)." + extra,
     )
 
 

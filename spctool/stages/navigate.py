@@ -65,7 +65,11 @@ from spctool.stages.model_error import Sensitivity, shading_sensitivity
 from spctool.stages.pose import PoseError, PoseOptions, PoseResult, solve_pose
 from spctool.stages.register import RegisterOptions, RegisterResult, register
 
+#: NavigateOptions.weights: the final pose solve's weights and covariance (NavigateOptions)
+WEIGHTS = ("calibrated", "uniform", "surface")
+
 __all__ = [
+    "WEIGHTS",
     "NavigateOptions",
     "NavigateResult",
     "PassResult",
@@ -88,18 +92,18 @@ class NavigateOptions:
       thresholds, prediction/extraction options; schedule and steps are set here, and removal
       criteria apply only when given explicitly — ``criteria="default"`` means none).
     * ``pose`` — the :class:`PoseOptions` of both pose solves (outlier rejection on by default).
-    * ``weights`` — the final pose solve's measurement covariance: ``"uniform"`` (the default: every
-      landmark 1/``sigma_px``² per axis) or ``"surface"`` (issue #39: each landmark's registration
-      covariance, plus the shading model's error patterns measured by re-registering every landmark with
-      the alternative photometric law — and in image space template shading —
-      :mod:`spctool.stages.model_error`, as correlated modes, plus the model error τ the residuals show
-      and its common part; :func:`spctool.stages.pose.solve_pose` ``pixel_covariances``/
-      ``error_modes``).  Why uniform stays the default: on the demo with ``make-maplets`` maplets the
-      surface-weighted pose of two pictures is 3.5σ off in position (landmark position errors of the
-      coarse maplets, correlated over the picture, that no per-picture covariance reveals; uniform's
-      0.1 px against 0.06 px residuals covers them), and on low-Sun independent worlds the image-space
-      NEES is ~11 (docs/benchmarks.md).  Pass 1 of two passes solves with uniform weights either way
-      (its pose only centres pass 2's search).
+    * ``weights`` — the final pose solve (issue #39): ``"calibrated"`` (the default) fits with uniform
+      weights (1/``sigma_px``² per axis: the most accurate pose on the independent worlds) and reports
+      the covariance that fit has under the calibrated measurement covariance — each landmark's
+      registration covariance, the shading model's error patterns (every landmark re-registered with
+      the other photometric law and its maplet's heights smoothed once more, in image space also the
+      other template shading and no cast shadows: :mod:`spctool.stages.model_error`) as errors shared
+      by the picture's landmarks, the model error τ the residuals show and as large a common part
+      (:func:`spctool.stages.pose.solve_pose` ``estimate_weights="uniform"``); ``"surface"`` weights the
+      fit by that calibrated covariance too (generalised least squares: as honest, but up to 2× less
+      accurate in attitude at a low Sun); ``"uniform"`` is the old way (uniform weights, the formal
+      covariance of ``sigma_px``: 5–70× too large on the independent worlds, NEES 0.1–1.7).  Pass 1
+      of two passes solves with uniform weights either way (its pose only centres pass 2's search).
     """
 
     passes: int = 2
@@ -111,11 +115,11 @@ class NavigateOptions:
     min_landmarks: int = 3
     register: RegisterOptions = field(default_factory=RegisterOptions)
     pose: PoseOptions = field(default_factory=PoseOptions)
-    weights: str = "uniform"
+    weights: str = "calibrated"
 
     def __post_init__(self):
-        if self.weights not in ("uniform", "surface"):
-            raise SpcUsageError(f"weights must be 'uniform' or 'surface', got {self.weights!r}")
+        if self.weights not in WEIGHTS:
+            raise SpcUsageError(f"weights must be one of {', '.join(WEIGHTS)}, got {self.weights!r}")
         if int(self.passes) not in (1, 2):
             raise SpcUsageError(f"passes must be 1 or 2, got {self.passes}")
         self.passes = int(self.passes)
@@ -170,7 +174,7 @@ class PassResult:
     pose_error: str | None
     steps: list  #: [(spacing, grid_half), …] run
     seconds: float
-    sensitivity: Sensitivity | None = None  #: the shading model's error patterns (``weights="surface"``)
+    sensitivity: Sensitivity | None = None  #: the shading model's error patterns (calibrated, surface)
 
     @property
     def found(self) -> int:
@@ -265,8 +269,9 @@ def _cells_per_px(camera, maplets) -> float:
 
 
 def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig_pos, sig_att, sens=None):
-    """The pose from the landmarks ``reg`` measured: uniform weights, or (``sens`` given: the final pass
-    with ``weights="surface"``) their covariances and the shading model's error patterns."""
+    """The pose from the landmarks ``reg`` measured: uniform weights, or (``sens`` given: the final pass,
+    ``weights`` calibrated or surface) with their covariances and the shading model's error patterns
+    as the measurement covariance (:class:`NavigateOptions`)."""
     use = np.flatnonzero(reg.ok)
     if len(use) < options.min_landmarks:
         return None, f"{len(use)} landmarks registered, fewer than {options.min_landmarks}"
@@ -281,6 +286,7 @@ def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig
             names=[reg.names[i] for i in use],
             pixel_covariances=None if sens is None else reg.covariance[use],
             error_modes=None if sens is None else sens.modes[use],
+            estimate_weights="uniform" if options.weights == "calibrated" else "covariance",
         )
     except PoseError as exc:
         return None, str(exc)
@@ -395,7 +401,7 @@ def navigate(
         reg1 = fine
     else:
         reg1 = coarse
-    calibrate = opts.weights == "surface"
+    calibrate = opts.weights in ("surface", "calibrated")
     sens1 = None
     if calibrate and opts.passes == 1:  # the final pass: the shading model's error patterns
         sens1 = _sensitivity(photo, camera, sun, maplets, thresholds, base, opts, reg1, kw, warnings)

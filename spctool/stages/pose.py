@@ -669,6 +669,35 @@ def _model_error(problem, state, covs, opts, prior) -> float:
     return model_error(r, covs, dof, cap, opts.model_error_quantile)
 
 
+def _sandwich_covariance(problem, state, cov_w, base, common, patterns, used, opts, prior):
+    """(P, τ, common C) of a fit weighted with W (``problem.wts``) under the measurement covariance
+    R = blkdiag(Cᵢ + τ²I) + U·Uᵀ (``base`` Cᵢ of the used landmarks; modes U: ``patterns`` rows
+    ``used`` and the common C + τ²I): P = N⁻¹(HᵀW·R·WH + Nₚ)N⁻¹ with N⁻¹ = ``cov_w`` and Nₚ the prior's
+    information (an honest prior).  τ from the fit's residuals (:func:`model_error`)."""
+    j = state.camera.project_with_jacobians(problem.pts(state))
+    r = problem.meas - np.stack([j.sample, j.line], axis=-1)
+    hx = np.concatenate([j.position, j.attitude], axis=-1)  # (M, 2, 6)
+    hw = problem.wts @ hx  # Wᵢ·Hᵢ
+    cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
+    dof = 2 * r.shape[0] + prior.n_equations - 6
+    tau = model_error(r, base, dof, cap, opts.model_error_quantile) if opts.model_error else 0.0
+    shared = common
+    if opts.common_model_error and tau > 0:
+        shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
+    rb = base + (tau * tau) * np.eye(2)
+    a = np.einsum("mki,mkl,mlj->ij", hw, rb, hw)
+    rows = None if patterns is None else np.asarray(patterns, dtype=np.float64)[used]
+    modes = _error_modes(shared, rows, int(np.count_nonzero(used)), "fixed")
+    if modes is not None:
+        g = np.einsum("mik,mij->kj", modes, hw)  # (k, 6)
+        a = a + g.T @ g
+    jp = np.eye(6)  # the prior's share of N: Jₚᵀ·P₀⁻¹·Jₚ (as _Problem.normal)
+    jp[3:, 3:] = so3_right_jacobian_inv(state.theta)
+    n_prior = (jp.T * prior.info) @ jp
+    p = cov_w @ (a + n_prior) @ cov_w
+    return 0.5 * (p + p.T), float(tau), shared
+
+
 def _common_covariance(common, mode):
     """The common error's 2×2 covariance checked (symmetric, finite, positive semi-definite), or None."""
     if common is None:
@@ -783,6 +812,7 @@ def _solve_pose(
     pixel_covariances=None,
     common_covariance=None,
     error_modes=None,
+    estimate_weights: str = "covariance",
 ) -> PoseResult:
     """Solve spacecraft position and attitude from N landmark measurements (module docstring).
 
@@ -804,6 +834,12 @@ def _solve_pose(
       unit-variance coefficient (covariance Σₖ uₖuₖᵀ added to the measurements' covariance; e.g. the
       shift of every landmark under another shading model, :mod:`spctool.stages.model_error`); also by
       Woodbury, also ``"fixed"`` only.
+    * ``estimate_weights`` — with ``pixel_covariances``: ``"covariance"`` (weight the fit by the
+      measurement covariance R above, the generalised least squares) or ``"uniform"`` (fit with the
+      ``pixel_sigmas``/``sigma_px`` weights W and report the covariance that fit has under R, the
+      sandwich N⁻¹(HᵀW·R·WH + P₀⁻¹)N⁻¹, N = HᵀWH + P₀⁻¹, τ estimated from the fit's residuals:
+      :func:`_sandwich_covariance`) — the estimate of uniform weights with a covariance calibrated by
+      what the registration and the shading model's error patterns show (issue #39).
 
     Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
     """
@@ -819,7 +855,14 @@ def _solve_pose(
     if len(names) != n_all:
         raise SpcUsageError(f"names has {len(names)} entries for {n_all} landmarks")
     warnings: list[str] = []
-    wts_all = _measurement_weights(opts, meas_all, names, pixel_sigmas, pixel_covariances, warnings)
+    if estimate_weights not in ("covariance", "uniform"):
+        raise SpcUsageError(f"estimate_weights must be 'covariance' or 'uniform', got {estimate_weights!r}")
+    sandwich = estimate_weights == "uniform" and pixel_covariances is not None
+    if sandwich and opts.landmark_mode != "fixed":
+        raise SpcUsageError("estimate_weights 'uniform' with pixel covariances needs landmark_mode 'fixed'")
+    wts_all = _measurement_weights(
+        opts, meas_all, names, pixel_sigmas, None if sandwich else pixel_covariances, warnings
+    )
     mode = opts.landmark_mode
     lmk_sig = None
     if mode != "fixed":
@@ -842,7 +885,7 @@ def _solve_pose(
     prior = _Prior(info)
     prior_used = prior.n_equations > 0
     common = _common_covariance(common_covariance, mode)
-    modes_all = _error_modes(common, error_modes, n_all, mode)
+    modes_all = None if sandwich else _error_modes(common, error_modes, n_all, mode)
     common_used = common  # with the model error's common part once estimated
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
@@ -881,7 +924,7 @@ def _solve_pose(
         build, usable, opts, prior, names, status, rejected, warnings
     )
     tau = 0.0
-    if pixel_covariances is not None and opts.model_error:
+    if pixel_covariances is not None and opts.model_error and not sandwich:
         # the model error the residuals show beyond the correlation peaks' covariances, then the fit
         # again with it (twice: the residuals of the refit estimate it again)
         base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
@@ -905,12 +948,19 @@ def _solve_pose(
     cov, cond, cov_plain, lmk_corr, lmk_cov, pts_after = _final_covariance(
         problem, state, mode, used, pts_all, lmk_sig
     )
+    uniform_cov = None
+    if sandwich:  # the uniform fit's covariance under the calibrated measurement covariance
+        base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
+        uniform_cov = cov
+        cov, tau, common_used = _sandwich_covariance(
+            problem, state, cov, base[used], common, error_modes, used, opts, prior
+        )
     cost, chi2 = problem.cost(state)
     # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
     dof = 2 * m + prior.n_equations - 6
     # residuals larger than sigma_px say so: the covariance is scaled by cost/dof when it exceeds 1
     red = cost / dof if dof > 0 else math.nan
-    cov_formal, scale = None, 1.0
+    cov_formal, scale = uniform_cov, 1.0
     # ("consider" mode: the landmark errors that raise cost/dof are already in the covariance)
     if opts.scale_covariance and mode != "consider" and red > 1.0:
         cov_formal, scale = cov, float(red)
