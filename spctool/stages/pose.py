@@ -960,7 +960,7 @@ def _solve_pose(
     dof = 2 * m + prior.n_equations - 6
     # residuals larger than sigma_px say so: the covariance is scaled by cost/dof when it exceeds 1
     red = cost / dof if dof > 0 else math.nan
-    cov_formal, scale = uniform_cov, 1.0
+    cov_formal, scale = None, 1.0
     # ("consider" mode: the landmark errors that raise cost/dof are already in the covariance)
     if opts.scale_covariance and mode != "consider" and red > 1.0:
         cov_formal, scale = cov, float(red)
@@ -974,9 +974,12 @@ def _solve_pose(
             f"sigma_px {opts.sigma_px:g} px (wrong measurements, another picture's table, or sigma_px "
             "too small)"
         )
+    # (the prior test reads the a-posteriori covariance of the weights the fit used: with the
+    # sandwich, the uniform fit's own, as its derivation needs P = (A + P₀⁻¹)⁻¹)
     gate, prior_check = _consistency(
-        problem, state, opts, dof, cost, names, used, prior, cov_plain, cov_formal, cov
-    )
+        problem, state, opts, dof, cost, names, used, prior,
+        cov_plain if uniform_cov is None else uniform_cov, cov_formal, cov,
+    )  # fmt: skip
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sig, sig)
