@@ -74,9 +74,10 @@ def test_no_landmarks_found_is_exit_1(run_cli, tmp_path, monkeypatch):
 def test_calibrated_and_surface_weights_report_the_model_error_and_cover_the_truth(
     run_cli, tmp_path, monkeypatch
 ):
-    """The default (--weights calibrated) and --weights surface: the final pass re-registers every
-    landmark with the other photometric law and its maplet smoothed (the JSON's pass "model_error"),
-    pass 1 does not, and the pose's 3σ holds the demo's true pose; calibrated keeps uniform's pose."""
+    """The default (--weights calibrated), --weights surface and uniform: the pose's 3σ holds the demo's
+    true pose; calibrated keeps uniform's pose with another covariance; surface's final pass
+    re-registers every landmark with the other photometric law and its maplet smoothed (the JSON's
+    pass "model_error"), pass 1 does not."""
     import numpy as np
 
     from spctool.geometry.frames import rotvec_from_rot
@@ -93,7 +94,9 @@ def test_calibrated_and_surface_weights_report_the_model_error_and_cover_the_tru
         doc = json.loads((tmp_path / "demo" / f"{weights}.json").read_text())
         p1, p2 = doc["passes"]
         assert doc["options"]["weights"] == weights and p1["model_error"] is None
-        if weights != "uniform":
+        if weights != "surface":
+            assert p2["model_error"] is None
+        else:
             assert p2["model_error"]["patterns"] == ["photometry lambert", "heights smoothed"]
             assert p2["model_error"]["landmarks"] == [p2["found"]] * 2
         pose = poses[weights] = doc["pose"]

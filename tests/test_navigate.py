@@ -118,7 +118,7 @@ def test_surface_weights_pass_the_registration_covariances(monkeypatch):
     """The final pass with weights="surface" hands each registered landmark's covariance
     and its shading-model error shifts to the pose solve (the rows used, in order); without the
     sensitivity (pass 1 of two, weights="uniform") none; "calibrated" (the default) fits uniformly with
-    them as the covariance; anything else is refused."""
+    the covariances (no patterns) as the measurement covariance; anything else is refused."""
     import types
 
     import numpy as np
@@ -146,9 +146,12 @@ def test_surface_weights_pass_the_registration_covariances(monkeypatch):
     np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
     np.testing.assert_array_equal(seen["modes"], shifts[[0, 2, 3]])
     assert seen["estimate"] == "covariance"
-    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None, sens)
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None)
     assert seen["estimate"] == "uniform" and NavigateOptions().weights == "calibrated"
     np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
+    assert seen["modes"] is None
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None, final=False)  # pass 1 of 2
+    assert seen["cov"] is None and seen["estimate"] == "covariance"
     nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="uniform"), None, None)
     assert seen["cov"] is None and seen["modes"] is None
     with pytest.raises(SpcUsageError):

@@ -95,15 +95,16 @@ class NavigateOptions:
     * ``weights`` — the final pose solve (issue #39): ``"calibrated"`` (the default) fits with uniform
       weights (1/``sigma_px``² per axis: the most accurate pose on the independent worlds) and reports
       the covariance that fit has under the calibrated measurement covariance — each landmark's
-      registration covariance, the shading model's error patterns (every landmark re-registered with
-      the other photometric law and its maplet's heights smoothed once more, in image space also the
-      other template shading and no cast shadows: :mod:`spctool.stages.model_error`) as errors shared
-      by the picture's landmarks, the model error τ the residuals show and as large a common part
-      (:func:`spctool.stages.pose.solve_pose` ``estimate_weights="uniform"``); ``"surface"`` weights the
-      fit by that calibrated covariance too (generalised least squares: as honest, but up to 2× less
-      accurate in attitude at a low Sun); ``"uniform"`` is the old way (uniform weights, the formal
-      covariance of ``sigma_px``: 5–70× too large on the independent worlds, NEES 0.1–1.7).  Pass 1
-      of two passes solves with uniform weights either way (its pose only centres pass 2's search).
+      registration covariance, the model error τ the residuals show and as large a part common to
+      the landmarks (:func:`spctool.stages.pose.solve_pose` ``estimate_weights="uniform"``; nothing is
+      registered again); ``"surface"`` weights the fit by the registration covariances plus the
+      shading model's error patterns (every landmark re-registered with the other photometric law and
+      its maplet's heights smoothed once more, in image space also the other template shading and no
+      cast shadows: :mod:`spctool.stages.model_error`) as errors shared by the picture's landmarks —
+      honest but conservative (NEES 1.4–2.7), up to 2× less accurate in attitude at a low Sun and
+      40–90 % more time; ``"uniform"`` is the old way (uniform weights and the formal covariance of
+      ``sigma_px``: NEES 0.1–1.7 on the independent worlds).  Pass 1 of two passes solves with uniform
+      weights either way (its pose only centres pass 2's search).
     """
 
     passes: int = 2
@@ -174,7 +175,7 @@ class PassResult:
     pose_error: str | None
     steps: list  #: [(spacing, grid_half), …] run
     seconds: float
-    sensitivity: Sensitivity | None = None  #: the shading model's error patterns (calibrated, surface)
+    sensitivity: Sensitivity | None = None  #: the shading model's error patterns (``weights="surface"``)
 
     @property
     def found(self) -> int:
@@ -268,13 +269,16 @@ def _cells_per_px(camera, maplets) -> float:
     return float(np.median(r)) if len(r) else 1.0
 
 
-def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig_pos, sig_att, sens=None):
-    """The pose from the landmarks ``reg`` measured: uniform weights, or (``sens`` given: the final pass,
-    ``weights`` calibrated or surface) with their covariances and the shading model's error patterns
-    as the measurement covariance (:class:`NavigateOptions`)."""
+def _solve(
+    camera, positions, reg: RegisterResult, options: NavigateOptions, sig_pos, sig_att, sens=None, final=True
+):
+    """The pose from the landmarks ``reg`` measured (:class:`NavigateOptions` ``weights``): the final
+    pass ``calibrated`` fits uniformly with their registration covariances as the measurement
+    covariance; ``sens`` given (``surface``) weights by them and the shading model's error patterns;
+    otherwise (and pass 1 of two) uniform weights."""
     use = np.flatnonzero(reg.ok)
-    if len(use) < options.min_landmarks:
-        return None, f"{len(use)} landmarks registered, fewer than {options.min_landmarks}"
+    calibrated = final and options.weights == "calibrated" and reg.covariance is not None
+    covs = reg.covariance[use] if (calibrated or sens is not None) else None
     try:
         pose = solve_pose(
             camera,
@@ -284,9 +288,9 @@ def _solve(camera, positions, reg: RegisterResult, options: NavigateOptions, sig
             prior_sigma_position=sig_pos,
             prior_sigma_attitude=sig_att,
             names=[reg.names[i] for i in use],
-            pixel_covariances=None if sens is None else reg.covariance[use],
+            pixel_covariances=covs,
             error_modes=None if sens is None else sens.modes[use],
-            estimate_weights="uniform" if options.weights == "calibrated" else "covariance",
+            estimate_weights="uniform" if calibrated else "covariance",
         )
     except PoseError as exc:
         return None, str(exc)
@@ -401,11 +405,12 @@ def navigate(
         reg1 = fine
     else:
         reg1 = coarse
-    calibrate = opts.weights in ("surface", "calibrated")
+    patterns = opts.weights == "surface"  # the shading model's error patterns (the final pass)
     sens1 = None
-    if calibrate and opts.passes == 1:  # the final pass: the shading model's error patterns
+    if patterns and opts.passes == 1:
         sens1 = _sensitivity(photo, camera, sun, maplets, thresholds, base, opts, reg1, kw, warnings)
-    pose1, err1 = _solve(camera, pos, reg1, opts, prior_sigma_position, prior_sigma_attitude, sens1)
+    one = opts.passes == 1
+    pose1, err1 = _solve(camera, pos, reg1, opts, prior_sigma_position, prior_sigma_attitude, sens1, one)
     pass1 = PassResult(reg1, pose1 if err1 is None else None, err1, steps, time.perf_counter() - t0, sens1)
     passes = [pass1]
     if err1 is not None:
@@ -430,7 +435,7 @@ def navigate(
     tick(n)
     reg2.apriori = start.copy()  # the table's a-priori pixel stays the input one
     sens2 = None
-    if calibrate:
+    if patterns:
         sens2 = _sensitivity(photo, cam1, sun, maplets, thresholds, base, opts, reg2, kw, warnings)
     pose2, err2 = _solve(camera, pos, reg2, opts, prior_sigma_position, prior_sigma_attitude, sens2)
     passes.append(
