@@ -12,6 +12,8 @@ space); against the truth pixels and poses this prints, per world × space:
 * ``d2c`` / ``cov95c`` — the same with the marginal covariance of ``--weights surface``: each
   landmark's share of the shading model's error patterns (:mod:`spctool.stages.model_error`) and the
   model error with its common part, Cᵢ + Σₖ δᵢ⁽ᵏ⁾δᵢ⁽ᵏ⁾ᵀ + τ²I + τ²I;
+* ``d2nav`` / ``cov95nav`` — the same with navigate's own per-landmark covariance (``--weights``):
+  Cᵢ + τ²I + the common part of its pose solve (+ the patterns' share with ``surface``);
 * ``common`` — rms over the pictures of the picture's common error ē (mean of e over its landmarks), and
   ``along`` the rms of its component along the Sun's direction in the image; ``sigc`` the rms of the
   patterns' mean shifts (what the sensitivity says the common error is);
@@ -148,11 +150,21 @@ def picture_figures(root, p, space, weights="uniform"):
         + common
     )
     d2c = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_ic), e)
+    # navigate's own: its pose's model error and common part (and patterns, if it measured them)
+    nav_sens = res.passes[-1].sensitivity
+    d2n = np.full(e.shape[0], np.nan)
+    if res.pose is not None:
+        pn = res.pose
+        cn = reg.covariance if nav_sens is None else nav_sens.landmark_covariances(reg.covariance)
+        common_n = np.zeros((2, 2)) if pn.common_covariance is None else pn.common_covariance
+        c_n = cn[ok] + (pn.model_error_px**2 + PoseOptions().sigma_floor_px ** 2) * np.eye(2) + common_n
+        d2n = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c_n), e)
     sc = sens.common()  # (2, k) each pattern's mean shift
     eb = e.mean(axis=0)
     return {
         "d2": d2,
         "d2c": d2c,
+        "d2n": d2n,
         "common": eb,
         "along": float(eb @ sun_px),
         "sigc": float(np.sqrt(np.sum(sc * sc))),
@@ -176,6 +188,7 @@ def math_nan():
 def summarise(rows):
     d2 = np.concatenate([r["d2"] for r in rows])
     d2c = np.concatenate([r["d2c"] for r in rows])
+    d2n = np.concatenate([r["d2n"] for r in rows])
     eb = np.array([r["common"] for r in rows])
     out = {
         "landmarks": int(d2.size),
@@ -184,6 +197,8 @@ def summarise(rows):
         "cov95": float(np.mean(d2 <= 5.991)),
         "d2c": float(np.mean(d2c)),
         "cov95c": float(np.mean(d2c <= 5.991)),
+        "d2n": float(np.nanmean(d2n)),
+        "cov95n": float(np.nanmean(d2n <= 5.991)),
         "common_rms_px": float(np.sqrt(np.mean(np.sum(eb * eb, axis=1)))),
         "along_rms_px": float(np.sqrt(np.mean([r["along"] ** 2 for r in rows]))),
         "sigc_rms_px": float(np.sqrt(np.mean([r["sigc"] ** 2 for r in rows]))),
@@ -215,7 +230,8 @@ def main(argv=None):
     head = (
         f"{'world':12s} {'space':6s} {'rms':>6s} {'d2':>6s} {'cov95':>6s} {'d2c':>6s} {'cov95c':>6s} "
         f"{'common':>6s} {'along':>6s} {'sigc':>6s} {'tau':>6s} {'NEESuni':>7s} {'sur':>7s} {'sur+C':>7s} "
-        f"{'nav':>7s} {'>99.9':>9s} {'pos_m uni/nav':>14s} {'att_urad uni/nav':>16s} {'cpu_s':>6s}"
+        f"{'nav':>7s} {'>99.9':>9s} {'d2nav':>6s} {'cov95nav':>8s} {'pos_m uni/nav':>14s}"
+        f" {'att_urad uni/nav':>16s} {'cpu_s':>6s}"
     )
     print(head)
     for name in a.worlds.split(","):
@@ -238,6 +254,7 @@ def main(argv=None):
                 f"{s['sigc_rms_px']:6.4f} {s['tau_mean_px']:6.4f} {s['nees_uni']:7.2f} {s['nees_sur']:7.2f} "
                 f"{s['nees_surc']:7.2f} {s['nees_nav']:7.2f} "
                 f"{s['nees_uni_over']}/{s['nees_sur_over']}/{s['nees_surc_over']}/{s['nees_nav_over']:<3d}"
+                f" {s['d2n']:6.2f} {s['cov95n']:8.3f}"
                 f" {s['pos_uni_m']:6.3f}/{s['pos_nav_m']:6.3f}"
                 f" {s['att_uni_urad']:7.1f}/{s['att_nav_urad']:7.1f}"
                 f" {s['cpu_s']:6.1f}",

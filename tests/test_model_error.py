@@ -131,3 +131,8 @@ def test_a_landmark_the_alternative_does_not_find_gets_no_shift(lambert_scene):
         photo, sc.camera, sc.sun, maplets, sc.thresholds, _options(), meas, np.zeros(3, bool)
     )
     assert isinstance(empty, Sensitivity) and empty.shifts.shape == (3, 2, 2) and not empty.warnings
+    one = shading_sensitivity(
+        photo, sc.camera, sc.sun, maplets, sc.thresholds, _options(), truth, np.ones(3, bool),
+        only=("heights smoothed",),
+    )  # fmt: skip
+    assert one.labels == ["heights smoothed"] and one.shifts.shape == (3, 2, 1) and one.available.all()

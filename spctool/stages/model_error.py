@@ -144,17 +144,19 @@ def shading_sensitivity(
     converge_jacobian=None,
     patch_cache=None,
     max_shift_px: float = 1.0,
+    only=None,
 ) -> Sensitivity:
     """Register every landmark ``ok`` once more from ``measured`` (N, 2) with each alternative model of
     ``options`` (a :class:`spctool.stages.register.RegisterOptions` of the S16 driver, as navigate's)
     at spacing 1, and return the shifts (module docstring).  ``positions``, ``converge_jacobian`` (N, …)
-    and ``patch_cache`` go to :func:`spctool.stages.register.register`."""
+    and ``patch_cache`` go to :func:`spctool.stages.register.register`; ``only``: the labels of the
+    alternatives to run (None: all of :func:`alternative_models`)."""
     from spctool.stages.register import register
 
     meas = np.asarray(measured, dtype=np.float64)
     ok = np.asarray(ok, dtype=bool) & np.all(np.isfinite(meas), axis=1)
     n = meas.shape[0]
-    models = alternative_models(options)
+    models = [(lab, o) for lab, o in alternative_models(options) if only is None or lab in only]
     shifts = np.zeros((n, 2, len(models)))
     avail = np.zeros((n, len(models)), dtype=bool)
     warnings: list[str] = []
