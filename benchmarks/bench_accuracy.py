@@ -15,14 +15,14 @@ half-cell facets, flat-shaded) and a smooth one (third-of-a-cell facets, interpo
 * ``accuracy <truth>-low <space> two-pass rms`` — the same worlds with a low Sun (70° from the
   zenith, long cast shadows: the issue's second scene);
 * ``accuracy <truth>[-low] <space> landmark d2`` / ``coverage 95 %`` — calibration of the per-landmark
-  measurement covariance of ``navigate --weights surface`` against the truth pixels after pass 2: the
-  registration's Cᵢ, the landmark's share of the shading model's error patterns
-  (:mod:`spctool.stages.model_error`: the shifts when the landmark is registered again with the other
-  photometric law, in image space also the other template shading and no cast shadows), the model
-  error τ the pose residuals show and its common part: mean d² = eᵀC⁻¹e (target 2 ± 0.5) and the
-  fraction inside the 95 % ellipse (d² ≤ 5.99; target 0.90–0.98).  ``pose NEES`` is the mean
-  normalised pose error (χ²₆: 6) of that solve, and of the same measurements with uniform weights
-  (the default, 0.1 px), over the six pictures.
+  measurement covariance of ``navigate`` (``--weights calibrated``, the default) against the truth
+  pixels after pass 2: the registration's Cᵢ, the model error τ the uniform fit's residuals show and
+  its part common to the landmarks (τ²I + τ²I): mean d² = eᵀC⁻¹e (target 2 ± 0.5) and the fraction
+  inside the 95 % ellipse (d² ≤ 5.99; target 0.90–0.98).  ``pose NEES`` is the mean normalised pose
+  error (χ²₆: 6) over the six pictures of navigate's pose (the uniform fit, its covariance under that
+  calibrated measurement covariance), of the same fit with its formal covariance (``--weights
+  uniform``, 0.1 px) and of ``--weights surface`` (weighted by the registration covariances and the
+  shading model's error patterns, :mod:`spctool.stages.model_error`).
 * ``accuracy two-pass ms/landmark`` — CPU time of :func:`spctool.stages.navigate.navigate` per
   landmark in maplet space on one core (numba and the process limited to one thread, so CPU time is
   one core's work; wall clock counts the other jobs of a shared machine too), steady state (best of 3
@@ -80,7 +80,6 @@ def _world(truth, sun="high"):
     return _CACHE[(truth, sun)]
 
 
-
 def _run(pic, cam, photo, names, maplets, space, **nav):  # navigate's defaults unless given
     from spctool.stages.navigate import NavigateOptions, navigate
     from spctool.stages.register import RegisterOptions
@@ -103,19 +102,20 @@ def _figures(truth, space, sun="high"):
     if key not in _CACHE:
         root, doc = _world(truth, sun)
         found = total = 0
-        e1, e2, d2, nees, nees_u = [], [], [], [], []
+        e1, e2, d2, nees, nees_u, nees_s = [], [], [], [], [], []
         for p in doc["pictures"]:
             pic, cam, photo, names, maplets, tp = load_picture(root, p)
-            res = _run(pic, cam, photo, names, maplets, space, weights="surface")
+            res = _run(pic, cam, photo, names, maplets, space)
             r1, r2 = res.passes[0].register, res.passes[-1].register
             found += int(r1.ok.sum()) + int(r2.ok.sum())
             total += 2 * len(names)
             e1.append(np.linalg.norm(r1.measured - tp, axis=1))
             e2.append(np.linalg.norm(r2.measured - tp, axis=1))
-            d, n, nu = _calibration(pic, cam, maplets, res, tp, p)
+            d, n, nu, ns = _calibration(pic, cam, photo, maplets, names, res, tp, p, space)
             d2.append(d)
             nees.append(n)
             nees_u.append(nu)
+            nees_s.append(ns)
         e1, e2, d2 = np.concatenate(e1), np.concatenate(e2), np.concatenate(d2)
         _CACHE[key] = {
             "found": found / total,
@@ -126,6 +126,7 @@ def _figures(truth, space, sun="high"):
             "cover": float(np.mean(d2 <= 5.991)),
             "nees": float(np.mean(nees)),
             "nees_uniform": float(np.mean(nees_u)),
+            "nees_surface": float(np.mean(nees_s)),
         }
     return _CACHE[key]
 
@@ -139,34 +140,40 @@ def _nees(truth_doc, pose):
     return float(err @ np.linalg.solve(pose.covariance, err))
 
 
-def _calibration(pic, cam, maplets, res, tp, truth_doc):
-    """(d² of every landmark of the final pose solve against its true pixel with its marginal
-    covariance, the pose NEES of navigate's ``weights="surface"`` solve, the NEES of the same
-    measurements solved with uniform weights).  The marginal covariance: the registration's Cᵢ, the
-    landmark's share of the shading model's error patterns, τ²I and the common τ²I
-    (:mod:`spctool.stages.model_error`)."""
-    from spctool.stages.pose import PoseOptions, solve_pose
+def _calibration(pic, cam, photo, maplets, names, res, tp, truth_doc, space):
+    """(d² of every landmark of navigate's final pose solve against its true pixel with its per-landmark
+    covariance, the NEES of that pose — ``--weights calibrated``, the default —, of the same
+    measurements with uniform weights and their formal covariance, and with ``--weights surface``).
+    The default's per-landmark covariance: the registration's Cᵢ, τ²I and the common τ²I."""
+    import dataclasses
 
-    reg, pose, sens = res.final.register, res.pose, res.final.sensitivity
+    from spctool.stages.navigate import NavigateOptions, _sensitivity
+    from spctool.stages.pose import PoseOptions, solve_pose
+    from spctool.stages.register import RegisterOptions
+
+    reg, pose = res.final.register, res.pose
     idx = {n: i for i, n in enumerate(reg.names)}
     used = np.array([idx[n] for n, u in zip(pose.names, pose.used) if u])
     floor = PoseOptions().sigma_floor_px
     common = np.zeros((2, 2)) if pose.common_covariance is None else pose.common_covariance
-    cov = reg.covariance if sens is None else sens.landmark_covariances(reg.covariance)
-    c = cov[used] + (pose.model_error_px**2 + floor**2) * np.eye(2) + common
+    c = reg.covariance[used] + (pose.model_error_px**2 + floor**2) * np.eye(2) + common
     e = (reg.measured - tp)[used]
     d2 = np.einsum("mi,mij,mj->m", e, np.linalg.inv(c), e)
     ok = np.flatnonzero(reg.ok)
     pos = np.array([np.asarray(m.v, float) for m in maplets])
-    uni = solve_pose(
-        cam,
-        pos[ok],
-        reg.measured[ok],
-        PoseOptions(),
-        prior_sigma_position=pic.sigma_vso,
-        prior_sigma_attitude=pic.sigma_ptg,
+    args = (cam, pos[ok], reg.measured[ok], PoseOptions())
+    kw = dict(prior_sigma_position=pic.sigma_vso, prior_sigma_attitude=pic.sigma_ptg)
+    uni = solve_pose(*args, **kw)
+    # --weights surface: the shading model's patterns of the final registration (pass 1's camera)
+    p1 = res.passes[0].pose
+    cam1 = cam.with_pose(scobj=p1.scobj, rotation=p1.rotation)
+    base = dataclasses.replace(
+        RegisterOptions(space=space), schedule="retina_s16", steps=None, fail_fast=True, cap_spacing=False
     )
-    return d2, _nees(truth_doc, pose), _nees(truth_doc, uni)
+    nkw = {"names": names, "positions": pos, "patch_cache": {}}
+    sens = _sensitivity(photo, cam1, pic.sz, maplets, tuple(pic.thrsh), base, NavigateOptions(), reg, nkw, [])
+    sur = solve_pose(*args, pixel_covariances=reg.covariance[ok], error_modes=sens.modes[ok], **kw)
+    return d2, _nees(truth_doc, pose), _nees(truth_doc, uni), _nees(truth_doc, sur)
 
 
 def _calib_line(truth, space, what, sun="high"):
@@ -176,8 +183,8 @@ def _calib_line(truth, space, what, sun="high"):
             return f["d2"], "mean d2", abs(f["d2"] - 2.0) <= 0.5
         if what == "cover":
             return f["cover"], "fraction", 0.90 <= f["cover"] <= 0.98
-        if what == "nees_uniform":
-            return f["nees_uniform"], "mean NEES", 3.0 <= f["nees_uniform"] <= 9.0
+        if what in ("nees_uniform", "nees_surface"):
+            return f[what], "mean NEES", 3.0 <= f[what] <= 9.0
         return f["nees"], "mean NEES", 3.0 <= f["nees"] <= 9.0
 
     return fn
@@ -290,8 +297,9 @@ BENCHMARKS = [
         for label, target, what in (
             ("landmark d2 (calibrated covariance)", "2 +- 0.5", "d2"),
             ("landmark coverage of the 95 % ellipse", "0.90-0.98", "cover"),
-            ("pose NEES (--weights surface)", "6 (chi2_6)", "nees"),
-            ("pose NEES (uniform weights, the default)", "6 (chi2_6)", "nees_uniform"),
+            ("pose NEES (--weights calibrated, the default)", "6 (chi2_6)", "nees"),
+            ("pose NEES (--weights uniform: formal sigma_px)", "6 (chi2_6)", "nees_uniform"),
+            ("pose NEES (--weights surface)", "6 (chi2_6)", "nees_surface"),
         )
     ],
     ("accuracy two-pass ms/landmark (maplet, 1 core)", "<= 40 ms (GIANT 363)", bench_ms_per_landmark),
