@@ -80,9 +80,12 @@ import numpy as np
 from spctool.errors import SpcUsageError
 from spctool.stages._pose_problem import (
     PoseError,
+    _common_covariance,
+    _error_modes,
     _Prior,
     _prior_info,
     _Problem,
+    _sandwich_covariance,
     so3_right_jacobian_inv,
 )
 from spctool.stages.pose_consistency import (
@@ -667,69 +670,6 @@ def _model_error(problem, state, covs, opts, prior) -> float:
     cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
     dof = 2 * r.shape[0] + prior.n_equations - 6
     return model_error(r, covs, dof, cap, opts.model_error_quantile)
-
-
-def _sandwich_covariance(problem, state, cov_w, base, common, patterns, used, opts, prior):
-    """(P, τ, common C) of a fit weighted with W (``problem.wts``) under the measurement covariance
-    R = blkdiag(Cᵢ + τ²I) + U·Uᵀ (``base`` Cᵢ of the used landmarks; modes U: ``patterns`` rows
-    ``used`` and the common C + τ²I): P = N⁻¹(HᵀW·R·WH + Nₚ)N⁻¹ with N⁻¹ = ``cov_w`` and Nₚ the prior's
-    information (an honest prior).  τ from the fit's residuals (:func:`model_error`)."""
-    j = state.camera.project_with_jacobians(problem.pts(state))
-    r = problem.meas - np.stack([j.sample, j.line], axis=-1)
-    hx = np.concatenate([j.position, j.attitude], axis=-1)  # (M, 2, 6)
-    hw = problem.wts @ hx  # Wᵢ·Hᵢ
-    cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
-    dof = 2 * r.shape[0] + prior.n_equations - 6
-    tau = model_error(r, base, dof, cap, opts.model_error_quantile) if opts.model_error else 0.0
-    shared = common
-    if opts.common_model_error and tau > 0:
-        shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
-    rb = base + (tau * tau) * np.eye(2)
-    a = np.einsum("mki,mkl,mlj->ij", hw, rb, hw)
-    rows = None if patterns is None else np.asarray(patterns, dtype=np.float64)[used]
-    modes = _error_modes(shared, rows, int(np.count_nonzero(used)), "fixed")
-    if modes is not None:
-        g = np.einsum("mik,mij->kj", modes, hw)  # (k, 6)
-        a = a + g.T @ g
-    jp = np.eye(6)  # the prior's share of N: Jₚᵀ·P₀⁻¹·Jₚ (as _Problem.normal)
-    jp[3:, 3:] = so3_right_jacobian_inv(state.theta)
-    n_prior = (jp.T * prior.info) @ jp
-    p = cov_w @ (a + n_prior) @ cov_w
-    return 0.5 * (p + p.T), float(tau), shared
-
-
-def _common_covariance(common, mode):
-    """The common error's 2×2 covariance checked (symmetric, finite, positive semi-definite), or None."""
-    if common is None:
-        return None
-    c = np.asarray(common, dtype=np.float64)
-    if c.shape != (2, 2) or not np.all(np.isfinite(c)):
-        raise SpcUsageError(f"common_covariance must be a finite 2x2 matrix, got shape {c.shape}")
-    c = 0.5 * (c + c.T)
-    if np.linalg.eigvalsh(c)[0] < -1e-12 * max(1.0, float(np.abs(c).max())):
-        raise SpcUsageError("common_covariance must be positive semi-definite")
-    if mode != "fixed" and np.any(c != 0.0):
-        raise SpcUsageError(f"common_covariance needs landmark_mode 'fixed', not {mode!r}")
-    return c
-
-
-def _error_modes(common, patterns, n, mode):
-    """(N, 2, k) correlated error modes (:mod:`spctool.stages._pose_problem`): the common covariance's
-    square root L (L·Lᵀ = C, every landmark alike) beside the given patterns; None without either."""
-    parts = []
-    if common is not None and np.any(common != 0.0):
-        lam, vec = np.linalg.eigh(common)
-        root = vec * np.sqrt(np.clip(lam, 0.0, None))
-        parts.append(np.broadcast_to(root, (n, 2, 2)))
-    if patterns is not None:
-        u = np.asarray(patterns, dtype=np.float64)
-        u = u[..., None] if u.ndim == 2 else u
-        if u.ndim != 3 or u.shape[:2] != (n, 2):
-            raise SpcUsageError(f"error_modes must have shape ({n}, 2, k), got {np.shape(patterns)}")
-        if mode != "fixed":
-            raise SpcUsageError(f"error_modes need landmark_mode 'fixed', not {mode!r}")
-        parts.append(np.where(np.isfinite(u), u, 0.0))
-    return np.concatenate(parts, axis=2) if parts else None
 
 
 def _usable_landmarks(camera, pts_all, meas_all, names):
