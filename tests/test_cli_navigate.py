@@ -69,3 +69,43 @@ def test_no_landmarks_found_is_exit_1(run_cli, tmp_path, monkeypatch):
     res = run_cli("-C", "demo", "navigate", "P000000001A1", "--min-landmarks", "1000")
     assert res.exit_code == 1
     assert "no-pose" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_calibrated_and_surface_weights_report_the_model_error_and_cover_the_truth(
+    run_cli, tmp_path, monkeypatch
+):
+    """The default (--weights calibrated), --weights surface and uniform: the pose's 3σ holds the demo's
+    true pose; calibrated keeps uniform's pose with another covariance; surface's final pass
+    re-registers every landmark with the other photometric law and its maplet smoothed (the JSON's
+    pass "model_error"), pass 1 does not."""
+    import numpy as np
+
+    from spctool.geometry.frames import rotvec_from_rot
+
+    monkeypatch.chdir(tmp_path)
+    assert run_cli("demo", "--copy-to", "demo").exit_code == 0
+    true = next(p for p in json.loads((tmp_path / "demo" / "TRUTH.json").read_text())["pictures"]
+                if p["name"] == "P000000001A1")["true"]  # fmt: skip
+    poses = {}
+    for weights in ("calibrated", "surface", "uniform"):
+        extra = [] if weights == "calibrated" else ["--weights", weights]
+        res = run_cli("-C", "demo", "navigate", "P000000001A1", *extra, "--json", "-o", f"{weights}.json")
+        assert res.exit_code == 0, res.stderr
+        doc = json.loads((tmp_path / "demo" / f"{weights}.json").read_text())
+        p1, p2 = doc["passes"]
+        assert doc["options"]["weights"] == weights and p1["model_error"] is None
+        if weights != "surface":
+            assert p2["model_error"] is None
+        else:
+            assert p2["model_error"]["patterns"] == ["photometry lambert", "heights smoothed"]
+            assert p2["model_error"]["landmarks"] == [p2["found"]] * 2
+        pose = poses[weights] = doc["pose"]
+        e = np.concatenate(
+            [
+                -np.asarray(true["scobj"]) - np.asarray(pose["position"]),
+                -rotvec_from_rot(np.asarray(true["rotation"]) @ np.asarray(pose["rotation"]).T),
+            ]
+        )
+        assert np.all(np.abs(e) <= 3.0 * np.sqrt(np.diag(np.asarray(pose["covariance"])))), (weights, e)
+    assert poses["calibrated"]["position"] == poses["uniform"]["position"]
+    assert poses["calibrated"]["covariance"] != poses["uniform"]["covariance"]

@@ -115,29 +115,44 @@ def test_an_implausible_pose_is_no_pose(monkeypatch):
 
 
 def test_surface_weights_pass_the_registration_covariances(monkeypatch):
-    """weights="surface" hands each registered landmark's covariance to the pose solve (the rows used,
-    in order); "uniform" (the default) none; anything else is refused."""
+    """The final pass with weights="surface" hands each registered landmark's covariance
+    and its shading-model error shifts to the pose solve (the rows used, in order); without the
+    sensitivity (pass 1 of two, weights="uniform") none; "calibrated" (the default) fits uniformly with
+    the covariances (no patterns) as the measurement covariance; anything else is refused."""
     import types
 
     import numpy as np
 
     from spctool.stages import navigate as nav_mod
+    from spctool.stages.model_error import Sensitivity
     from spctool.stages.register import RegisterResult
 
     z = np.zeros((4, 2))
     cov = np.arange(16, dtype=float).reshape(4, 2, 2)
     reg = RegisterResult(list("ABCD"), z, z.copy(), np.zeros(4), np.zeros(4, int), np.zeros(4, int),
                          ["ok", "not-found", "ok", "ok"], None, covariance=cov)  # fmt: skip
+    shifts = np.arange(8, dtype=float).reshape(4, 2, 1)
+    sens = Sensitivity(["photometry lambert"], shifts, np.ones((4, 1), bool))
     seen = {}
 
     def fake(*a, **k):
         seen["cov"] = k.get("pixel_covariances")
+        seen["modes"] = k.get("error_modes")
+        seen["estimate"] = k.get("estimate_weights")
         return types.SimpleNamespace(converged=True, plausible=True, implausible="")
 
     monkeypatch.setattr(nav_mod, "solve_pose", fake)
-    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="surface"), None, None)
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="surface"), None, None, sens)
     np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
+    np.testing.assert_array_equal(seen["modes"], shifts[[0, 2, 3]])
+    assert seen["estimate"] == "covariance"
     nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None)
-    assert seen["cov"] is None and NavigateOptions().weights == "uniform"
+    assert seen["estimate"] == "uniform" and NavigateOptions().weights == "calibrated"
+    np.testing.assert_array_equal(seen["cov"], cov[[0, 2, 3]])
+    assert seen["modes"] is None
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(), None, None, final=False)  # pass 1 of 2
+    assert seen["cov"] is None and seen["estimate"] == "covariance"
+    nav_mod._solve(None, np.zeros((4, 3)), reg, NavigateOptions(weights="uniform"), None, None)
+    assert seen["cov"] is None and seen["modes"] is None
     with pytest.raises(SpcUsageError):
         NavigateOptions(weights="inverse")

@@ -210,9 +210,11 @@ def _covs(rng, n, lo=0.005, hi=0.03):
 def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_honest():
     """Pixel errors = the peaks' covariances Cᵢ (5–30 mpx) plus an isotropic 0.04 px model error that
     the covariances do not hold: weighted with Cᵢ alone the NEES is far above χ²₆; with the model
-    error estimated (τ ≈ 0.04 px) it follows χ²₆ over 100 seeds."""
+    error estimated (τ ≈ 0.04 px) it follows χ²₆ over 100 seeds.  With its common part too (the
+    default, ``common_model_error``: a shift τ²I shared by the landmarks, which this world does not
+    have) the covariance is larger, never smaller: NEES below χ²₆'s mean, not far below."""
     tau_true = 0.04
-    est, with_tau, without = [], [], []
+    est, with_tau, without, with_common = [], [], [], []
     for seed in range(100):
         rng = np.random.default_rng(500 + seed)
         truth = make_camera(rng)
@@ -222,9 +224,10 @@ def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_hone
         y = observe(truth, pts) + np.einsum("mij,mj->mi", np.linalg.cholesky(full), rng.normal(size=(25, 2)))
         start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
         kw = dict(pixel_covariances=cov, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
-        res = solve_pose(start, pts, y, PoseOptions(), **kw)
+        res = solve_pose(start, pts, y, PoseOptions(common_model_error=False), **kw)
         est.append(res.model_error_px)
         with_tau.append(nees(truth, res))
+        with_common.append(nees(truth, solve_pose(start, pts, y, PoseOptions(), **kw)))
         if seed < 30:
             off = solve_pose(start, pts, y, PoseOptions(model_error=False, scale_covariance=False), **kw)
             without.append(nees(truth, off))
@@ -234,6 +237,7 @@ def test_model_error_estimated_from_the_residuals_makes_the_pose_covariance_hone
     assert abs(with_tau.mean() - 6.0) < 1.2, with_tau.mean()
     assert stats.kstest(with_tau, "chi2", args=(6,)).pvalue > 1e-3
     assert np.mean(without) > 15.0, np.mean(without)
+    assert 3.0 < np.mean(with_common) < 6.0, np.mean(with_common)
 
 
 def test_model_error_is_capped_and_the_rest_left_to_the_gate():
@@ -271,3 +275,205 @@ def test_model_error_by_hand():
     assert model_error(r, c, dof, cap=0.02) == 0.02  # capped
     assert model_error(r * 0.1, c, dof, cap=1.0) == 0.0  # within the covariances
     assert model_error(r, c, 0, cap=1.0) == 0.0
+
+
+# ------------------------------------------------------------------------------------------------
+# an error common to the picture's landmarks (Woodbury)
+
+
+def _dense_problem(problem, state):
+    """HᵀR⁻¹H, HᵀR⁻¹r and rᵀR⁻¹r with R = blkdiag(Wᵢ⁻¹) + U·Uᵀ inverted as a dense 2M × 2M matrix (U the
+    problem's error modes stacked, 2M × k; a common C: U = [L; …; L] written out here from C)."""
+    j = state.camera.project_with_jacobians(problem.pts(state))
+    r = (problem.meas - np.stack([j.sample, j.line], axis=-1)).reshape(-1)
+    h = np.concatenate([j.position, j.attitude], axis=-1).reshape(-1, 6)
+    m = problem.meas.shape[0]
+    big = np.zeros((2 * m, 2 * m))
+    for i in range(m):
+        big[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = np.linalg.inv(problem.wts[i])
+    if problem.common_dense is not None:
+        u = np.tile(np.eye(2), (m, 1))
+        extra = u @ problem.common_dense @ u.T
+    else:
+        u = problem.modes.reshape(2 * m, -1)
+        extra = u @ u.T
+    rinv = np.linalg.inv(big + extra)
+    return h.T @ rinv @ h, h.T @ rinv @ r, float(r @ rinv @ r)
+
+
+@pytest.mark.parametrize("common", ["full", "rank one", "patterns"])
+def test_common_error_woodbury_equals_the_dense_inverse(common):
+    """The normal matrix, gradient and χ² with the common term (Woodbury, O(M)) equal those of the
+    dense 2M × 2M measurement covariance, for a full and a rank-one (Sun-aligned) C, and for three
+    arbitrary error patterns over the landmarks (with a common C)."""
+    from spctool.stages._pose_problem import _Prior, _Problem
+
+    rng = np.random.default_rng(11)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 12)
+    cov = _covs(rng, 12)
+    y = observe(truth, pts) + rng.normal(scale=0.02, size=(12, 2))
+    sun = np.array([math.cos(0.7), math.sin(0.7)])
+    c = np.array([[3e-3, 1e-3], [1e-3, 2e-3]]) if common == "full" else 0.05**2 * np.outer(sun, sun)
+    start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+    from spctool.stages.pose import _error_modes
+
+    patterns = rng.normal(scale=0.03, size=(12, 2, 3)) if common == "patterns" else None
+    modes = _error_modes(c, patterns, 12, "fixed")
+    prob = _Problem(
+        start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions(), modes
+    )
+    prob.common_dense = None if common == "patterns" else c
+    s = prob.start()
+    n, g, _ = prob.normal(s)
+    nd, gd, chi2d = _dense_problem(prob, s)
+    np.testing.assert_allclose(n, nd, rtol=1e-9, atol=1e-9 * np.abs(nd).max())
+    np.testing.assert_allclose(g, gd, rtol=1e-9, atol=1e-9 * np.abs(gd).max())
+    assert prob.cost(s)[1] == pytest.approx(chi2d, rel=1e-10)
+    # C = 0 is the independent problem exactly
+    plain = _Problem(start, pts, y, np.linalg.inv(cov), _Prior(np.zeros(6)), "fixed", None, PoseOptions())
+    zero = _Problem(
+        start,
+        pts,
+        y,
+        np.linalg.inv(cov),
+        _Prior(np.zeros(6)),
+        "fixed",
+        None,
+        PoseOptions(),
+        np.zeros((12, 2, 1)),
+    )
+    assert np.array_equal(plain.normal(s)[0], zero.normal(s)[0])
+
+
+def test_common_error_makes_the_pose_covariance_honest_over_100_seeds():
+    """Pixel errors = the peaks' covariances Cᵢ (5–30 mpx) plus one 0.03 px shift common to all 25
+    landmarks along a random 'Sun' direction: weighted with Cᵢ the NEES is far above χ²₆ (the residuals
+    cannot show the shift: the attitude absorbs it, τ stays ~0); with the common term C in the
+    measurement covariance it follows χ²₆ over 100 seeds."""
+    with_c, without = [], []
+    for seed in range(100):
+        rng = np.random.default_rng(1300 + seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 25)
+        cov = _covs(rng, 25)
+        a = rng.uniform(0.0, 2.0 * math.pi)
+        sun = np.array([math.cos(a), math.sin(a)])
+        c = 0.03**2 * np.outer(sun, sun) + 0.005**2 * np.eye(2)
+        shift = np.linalg.cholesky(c) @ rng.normal(size=2)
+        noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
+        y = observe(truth, pts) + noise + shift
+        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        kw = dict(pixel_covariances=cov, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+        res = solve_pose(start, pts, y, PoseOptions(), common_covariance=c, **kw)
+        assert res.converged and res.common_covariance is not None
+        with_c.append(nees(truth, res))
+        if seed < 30:
+            without.append(nees(truth, solve_pose(start, pts, y, PoseOptions(), **kw)))
+    with_c = np.array(with_c)
+    assert abs(with_c.mean() - 6.0) < 1.2, with_c.mean()
+    assert stats.kstest(with_c, "chi2", args=(6,)).pvalue > 1e-3
+    assert np.mean(without) > 20.0, np.mean(without)
+
+
+def test_common_error_is_checked():
+    from spctool.errors import SpcUsageError
+
+    rng = np.random.default_rng(5)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 6)
+    y = observe(truth, pts)
+    for bad in (np.eye(3), -np.eye(2), np.full((2, 2), np.nan)):
+        with pytest.raises(SpcUsageError):
+            solve_pose(truth, pts, y, common_covariance=bad)
+    with pytest.raises(SpcUsageError, match="fixed"):
+        solve_pose(
+            truth,
+            pts,
+            y,
+            PoseOptions(landmark_mode="consider"),
+            landmark_sigmas=np.full((6, 3), 1e-4),
+            common_covariance=np.eye(2) * 1e-3,
+        )
+
+
+# ------------------------------------------------------------------------------------------------
+# uniform weights, calibrated covariance (the sandwich)
+
+
+def test_uniform_fit_under_the_calibrated_covariance_equals_the_dense_sandwich():
+    """estimate_weights="uniform": the pose is the uniform fit's (the same numbers), and its covariance
+    is N⁻¹(HᵀW·R·WH + P₀⁻¹)N⁻¹ with R = blkdiag(Cᵢ + floor²I) + U·Uᵀ written out densely (2M × 2M),
+    N = HᵀWH + P₀⁻¹, at the solution."""
+    from spctool.stages.pose import _error_modes
+
+    rng = np.random.default_rng(21)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 10)
+    cov = _covs(rng, 10)
+    y = observe(truth, pts) + rng.normal(scale=0.02, size=(10, 2))
+    start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+    patterns = rng.normal(scale=0.02, size=(10, 2, 2))
+    c = np.array([[4e-4, 1e-4], [1e-4, 2e-4]])
+    opts = PoseOptions(model_error=False)
+    kw = dict(prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+    uni = solve_pose(start, pts, y, opts, **kw)
+    res = solve_pose(
+        start, pts, y, opts, pixel_covariances=cov, common_covariance=c, error_modes=patterns,
+        estimate_weights="uniform", **kw,
+    )  # fmt: skip
+    np.testing.assert_array_equal(res.position, uni.position)
+    assert res.verdict == uni.verdict and res.prior_check.nis == pytest.approx(uni.prior_check.nis, rel=1e-12)
+    cam = start.with_pose(scobj=res.scobj, rotation=res.rotation)
+    j = cam.project_with_jacobians(pts)
+    h = np.concatenate([j.position, j.attitude], axis=-1).reshape(-1, 6)
+    w = np.eye(20) / 0.1**2
+    big = np.zeros((20, 20))
+    for i in range(10):
+        big[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = cov[i] + 0.001**2 * np.eye(2)
+    u = _error_modes(c, patterns, 10, "fixed").reshape(20, -1)
+    r_dense = big + u @ u.T
+    from spctool.stages.pose import so3_right_jacobian_inv
+
+    jp = np.eye(6)
+    jp[3:, 3:] = so3_right_jacobian_inv(res.delta_attitude)
+    info = np.concatenate([np.full(3, 1.0 / SIG_P**2), np.full(3, 1.0 / SIG_A**2)])
+    n_prior = (jp.T * info) @ jp
+    n = h.T @ w @ h + n_prior
+    ninv = np.linalg.inv(n)
+    expect = ninv @ (h.T @ w @ r_dense @ w @ h + n_prior) @ ninv
+    np.testing.assert_allclose(res.covariance, expect, rtol=1e-6, atol=1e-6 * np.abs(expect).max())
+    with pytest.raises(Exception, match="estimate_weights"):
+        solve_pose(start, pts, y, opts, estimate_weights="inverse")
+
+
+def test_uniform_fit_with_the_calibrated_covariance_is_honest_over_100_seeds():
+    """The world of the common-error test (peaks' covariances Cᵢ plus one 0.03 px shift along a random
+    'Sun' shared by the 25 landmarks): fitted with uniform 0.1 px weights, the formal covariance is
+    too large (NEES mean 2.5); under the calibrated covariance (Cᵢ and the common C) the NEES of the same
+    poses follows χ²₆."""
+    values, formal = [], []
+    for seed in range(100):
+        rng = np.random.default_rng(1300 + seed)
+        truth = make_camera(rng)
+        pts = make_landmarks(rng, truth, 25)
+        cov = _covs(rng, 25)
+        a = rng.uniform(0.0, 2.0 * math.pi)
+        sun = np.array([math.cos(a), math.sin(a)])
+        c = 0.03**2 * np.outer(sun, sun) + 0.005**2 * np.eye(2)
+        shift = np.linalg.cholesky(c) @ rng.normal(size=2)
+        noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
+        y = observe(truth, pts) + noise + shift
+        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        kw = dict(prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
+        opts = PoseOptions(model_error=False)
+        res = solve_pose(
+            start, pts, y, opts, pixel_covariances=cov, common_covariance=c, estimate_weights="uniform", **kw
+        )
+        values.append(nees(truth, res))
+        if seed < 20:
+            formal.append(nees(truth, solve_pose(start, pts, y, opts, **kw)))
+    values = np.array(values)
+    assert abs(values.mean() - 6.0) < 1.2, values.mean()
+    assert stats.kstest(values, "chi2", args=(6,)).pvalue > 1e-3
+    assert np.mean(formal) < 4.0, np.mean(formal)  # 0.1 px: too large for most seeds (2.5 here)

@@ -327,6 +327,10 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     clock = time.perf_counter()
     new_pic = with_measured_landmarks(pic, reg.names, reg.measured, reg.ok)
     use = np.flatnonzero(ok)
+    # two-pass navigation's final weights and covariance (issue #39, NavigateOptions.weights: calibrated,
+    # surface with the shading model's error patterns, or uniform) — the same solve as its final pass
+    sens = None if nav is None else nav.final.sensitivity
+    calibrated = nav is not None and nav.options.weights == "calibrated"
     try:
         pose = solve_pose(
             camera,
@@ -336,6 +340,9 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
             prior_sigma_position=pic.sigma_vso,
             prior_sigma_attitude=pic.sigma_ptg,
             names=[names[i] for i in use],
+            pixel_covariances=reg.covariance[use] if (calibrated or sens is not None) else None,
+            error_modes=None if sens is None else sens.modes[use],
+            estimate_weights="uniform" if calibrated else "covariance",
         )
     except PoseError as exc:
         pose = None

@@ -72,6 +72,7 @@ from spctool.errors import SpcResultError, SpcUsageError
 )
 @options.shape_option(" for the occlusion test", exists=True)
 @options.sigma_px_option()
+@options.weights_option("  Two-pass schedule only (the single-pass schedules solve with uniform weights).")
 @options.no_prior_option
 @options.prior_scale_option
 @options.min_landmarks_option
@@ -115,6 +116,7 @@ def batch_cmd(
     occlusion,
     shape_path,
     sigma_px,
+    weights,
     no_prior,
     prior_scale,
     min_landmarks,
@@ -205,7 +207,9 @@ def batch_cmd(
         occlusion=occlusion,
         register=register,
         pose=pose,
-        two_pass=NavigateOptions(reach_px=reach_px or 25.0) if schedule == "two-pass" else None,
+        two_pass=(
+            NavigateOptions(reach_px=reach_px or 25.0, weights=weights) if schedule == "two-pass" else None
+        ),
         settings_path=ctx.settings_path,
         shape_path=shape_path,
     )

@@ -68,14 +68,7 @@ def _spacings(text: str) -> tuple:
     help="Stop after pass 1 (acquisition and one pose solve).",
 )
 @options.sigma_px_option()
-@click.option(
-    "--weights",
-    type=click.Choice(["uniform", "surface"]),
-    default="uniform",
-    show_default=True,
-    help="uniform: every landmark 1/sigma_px^2 per axis; surface: each landmark by the inverse of its "
-    "registration covariance (correlation peak) plus the model error the pose residuals show.",
-)
+@options.weights_option()
 @options.no_prior_option
 @options.prior_scale_option
 @options.min_landmarks_option

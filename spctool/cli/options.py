@@ -529,6 +529,24 @@ def pose_options(sigma_px: float, no_prior: bool, min_landmarks: int, prior_scal
     )
 
 
+def weights_option(extra: str = ""):
+    """--weights of the final pose solve (navigate, batch): calibrated (default), uniform or surface."""
+    return click.option(
+        "--weights",
+        type=click.Choice(["calibrated", "uniform", "surface"]),
+        default="calibrated",
+        show_default=True,
+        help="The final pose solve.  calibrated: uniform weights (1/sigma_px^2 per axis) and the "
+        "covariance of that fit under each landmark's registration covariance plus the model error the "
+        "residuals show, with as large a part common to the landmarks.  surface: weighted by the "
+        "registration covariances and the shading model's error (every landmark registered again with "
+        "the other photometric law and its maplet's heights smoothed once more; in image space also the "
+        "other template shading and no cast shadows: the shifts enter as errors shared by the picture's "
+        "landmarks): conservative, 40-90 % more time.  uniform: uniform weights and the formal "
+        "covariance of sigma_px (the old way)." + extra,
+    )
+
+
 template_shading_option = click.option(
     "--template-shading",
     type=click.Choice(["smooth", "facet"]),

@@ -84,6 +84,8 @@ class IndependentSpec:
       sigmas written.
     * ``supersample`` rays per pixel axis; ``noise_dn`` Gaussian noise (1σ DN) on ``dn_bias`` +
       ``dn_gain``·radiance.
+    * ``sun_incidence_deg`` — the Sun's angle from UZ in every picture (None: each view's own, 38–60°
+      of :data:`VIEWS`; e.g. 70 for a low Sun and long shadows, as the issue's second scene).
     """
 
     truth: str = "facet"
@@ -105,6 +107,7 @@ class IndependentSpec:
     dn_bias: float = 200.0
     dn_gain: float = 20000.0
     body_radius_km: float = 0.2
+    sun_incidence_deg: float | None = None
 
     def __post_init__(self):
         if self.truth not in TRUTHS:
@@ -116,6 +119,8 @@ class IndependentSpec:
             raise SpcUsageError("n_side >= 2, qsz >= 4 and supersample >= 1 are needed")
         if len(self.apriori_px) > len(VIEWS):
             raise SpcUsageError(f"at most {len(VIEWS)} pictures")
+        if self.sun_incidence_deg is not None and not (0.0 <= float(self.sun_incidence_deg) < 90.0):
+            raise SpcUsageError(f"sun_incidence_deg must be in [0, 90), got {self.sun_incidence_deg}")
 
     @property
     def mesh_cells(self) -> float:
@@ -394,6 +399,7 @@ def build_world(root, spec: IndependentSpec | None = None) -> dict:
     pics = []
     for j, target in enumerate(spec.apriori_px):
         emission, azimuth, inc, saz = VIEWS[j]
+        inc = inc if spec.sun_incidence_deg is None else float(spec.sun_incidence_deg)
         sun = _direction(ux, uy, uz, inc, saz)
         position = v0 + spec.range_km * _direction(ux, uy, uz, emission, azimuth)
         rot = _look_at(v0, position)

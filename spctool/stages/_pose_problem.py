@@ -1,8 +1,25 @@
 """The pose solve's least-squares problem (private; used by :mod:`spctool.stages.pose`): the a-priori
 information, the state, the normal equations with the landmark blocks eliminated, the Jacobi-scaled
-solve with its condition check, the pivot-retraction step and the Gauss–Newton loop.
+solve with its condition check, the pivot-retraction step and the Gauss–Newton loop; the correlated
+error modes and the covariance of a uniformly weighted fit under a calibrated measurement covariance
+(the sandwich N⁻¹(HᵀW·R·WH + P₀⁻¹)N⁻¹, :func:`_sandwich_covariance`).
 
 Conventions and equations: :mod:`spctool.stages.pose` (spc-algorithms.md §10 and errata 1–4 of §11).
+
+**Correlated measurement errors** (issue #39): the pixel errors of one picture's landmarks need not be
+independent — a shading-model error shifts every landmark of the picture alike (along the Sun's
+azimuth), or in a pattern that varies smoothly over the picture, and the residuals cannot reveal the
+part of it a pose change absorbs.  Such errors are k *modes*: columns of U (2M × k, the block Uᵢ
+(2 × k) per landmark) with unit-variance coefficients, so the measurement covariance of the M
+landmarks is R = blkdiag(W₁⁻¹ … W_M⁻¹) + U·Uᵀ — a shift common to all landmarks with 2×2 covariance
+C is Uᵢ = L (L·Lᵀ = C) for every i.  By the Woodbury identity
+
+    R⁻¹ = W − W·U·K·Uᵀ·W,   K = (I + Uᵀ·W·U)⁻¹ = (I + Σᵢ UᵢᵀWᵢUᵢ)⁻¹   (k × k),
+
+so with G = Σᵢ UᵢᵀWᵢHᵢ (k × 6) and w = Σᵢ UᵢᵀWᵢrᵢ every quantity of the weighted problem gains one
+rank-k term: HᵀR⁻¹H = Σ HᵢᵀWᵢHᵢ − GᵀKG, HᵀR⁻¹r = Σ HᵢᵀWᵢrᵢ − GᵀKw, rᵀR⁻¹r = Σ rᵢᵀWᵢrᵢ − wᵀKw —
+O(M·k²) work, never a 2M × 2M matrix (tests/test_pose_consistency.py compares it with the dense
+inverse).
 """
 
 from __future__ import annotations
@@ -14,6 +31,7 @@ import numpy as np
 
 from spctool.errors import SpcResultError, SpcUsageError
 from spctool.geometry.frames import apply_attitude_update, rotvec_from_rot, skew
+from spctool.stages.pose_consistency import model_error
 
 
 class PoseError(SpcResultError):
@@ -87,7 +105,7 @@ class _State:
 class _Problem:
     """The least-squares problem over a fixed set of used landmarks (M of them)."""
 
-    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts):
+    def __init__(self, camera0, points, meas, wts, prior: _Prior, mode, lmk_info, opts, modes=None):
         self.camera0 = camera0
         self.p0 = camera0.position.copy()
         self.t0 = np.array(camera0.rotation)
@@ -97,6 +115,13 @@ class _Problem:
         if w.ndim == 2:  # per-axis weights (M, 2): diagonal Wᵢ
             w = w[:, :, None] * np.eye(2)
         self.wts = w  # (M, 2, 2) weight matrices Wᵢ (symmetric)
+        # correlated error modes Uᵢ (M, 2, k) and the Woodbury kernel K (module docstring); None: independent
+        self.modes = self.kernel = None
+        if modes is not None and np.asarray(modes).shape[-1] > 0 and np.any(np.asarray(modes) != 0.0):
+            u = np.asarray(modes, dtype=np.float64)
+            s_ = np.einsum("mik,mij,mjl->kl", u, w, u)
+            k = np.linalg.inv(np.eye(u.shape[2]) + 0.5 * (s_ + s_.T))
+            self.modes, self.kernel = u, 0.5 * (k + k.T)
         self.prior = prior
         self.mode = mode
         self.lmk_info = lmk_info  # (M, 3) inverse variances, "estimate" mode
@@ -137,6 +162,9 @@ class _Problem:
         smp, lin = s.camera.project(self.pts(s))
         r = self.meas - np.stack([smp, lin], axis=-1)
         chi2 = float(np.einsum("mi,mij,mj->", r, self.wts, r))
+        if self.kernel is not None:
+            w = np.einsum("mik,mij,mj->k", self.modes, self.wts, r)
+            chi2 -= float(w @ self.kernel @ w)
         e = np.concatenate([s.dpos, s.theta])
         total = chi2 + float(np.sum(self.prior.info * e * e))
         if s.dlmk is not None:
@@ -155,6 +183,12 @@ class _Problem:
         hw2 = hw.reshape(-1, 6)
         n = hw2.T @ h2
         g = hw2.T @ r.reshape(-1)
+        if self.kernel is not None:  # correlated errors (module docstring): rank-k corrections
+            gw = np.einsum("mik,mij->kj", self.modes, hw)  # G = Σ UᵢᵀWᵢHᵢ (k, 6)
+            w = np.einsum("mik,mij,mj->k", self.modes, self.wts, r)
+            n = n - gw.T @ self.kernel @ gw
+            n = 0.5 * (n + n.T)
+            g = g - gw.T @ (self.kernel @ w)
         # a-priori term: residual e = [Δp; θ], de/dχ = diag(I, J_r(θ)⁻¹)
         jp = np.eye(6)
         jp[3:, 3:] = so3_right_jacobian_inv(s.theta)
@@ -248,3 +282,70 @@ class _Problem:
                 converged = True
                 break
         return s, iterations, converged, history
+
+
+# ------------------------------------------------------------------------------------------------
+# correlated errors and the sandwich covariance (used by spctool.stages.pose)
+
+
+def _sandwich_covariance(problem, state, cov_w, base, common, patterns, used, opts, prior):
+    """(P, τ, common C) of a fit weighted with W (``problem.wts``) under the measurement covariance
+    R = blkdiag(Cᵢ + τ²I) + U·Uᵀ (``base`` Cᵢ of the used landmarks; modes U: ``patterns`` rows
+    ``used`` and the common C + τ²I): P = N⁻¹(HᵀW·R·WH + Nₚ)N⁻¹ with N⁻¹ = ``cov_w`` and Nₚ the prior's
+    information (an honest prior).  τ from the fit's residuals (:func:`model_error`)."""
+    j = state.camera.project_with_jacobians(problem.pts(state))
+    r = problem.meas - np.stack([j.sample, j.line], axis=-1)
+    hx = np.concatenate([j.position, j.attitude], axis=-1)  # (M, 2, 6)
+    hw = problem.wts @ hx  # Wᵢ·Hᵢ
+    cap = opts.sigma_px if opts.max_model_error_px is None else float(opts.max_model_error_px)
+    dof = 2 * r.shape[0] + prior.n_equations - 6
+    tau = model_error(r, base, dof, cap, opts.model_error_quantile) if opts.model_error else 0.0
+    shared = common
+    if opts.common_model_error and tau > 0:
+        shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
+    rb = base + (tau * tau) * np.eye(2)
+    a = np.einsum("mki,mkl,mlj->ij", hw, rb, hw)
+    rows = None if patterns is None else np.asarray(patterns, dtype=np.float64)[used]
+    modes = _error_modes(shared, rows, int(np.count_nonzero(used)), "fixed")
+    if modes is not None:
+        g = np.einsum("mik,mij->kj", modes, hw)  # (k, 6)
+        a = a + g.T @ g
+    jp = np.eye(6)  # the prior's share of N: Jₚᵀ·P₀⁻¹·Jₚ (as _Problem.normal)
+    jp[3:, 3:] = so3_right_jacobian_inv(state.theta)
+    n_prior = (jp.T * prior.info) @ jp
+    p = cov_w @ (a + n_prior) @ cov_w
+    return 0.5 * (p + p.T), float(tau), shared
+
+
+def _common_covariance(common, mode):
+    """The common error's 2×2 covariance checked (symmetric, finite, positive semi-definite), or None."""
+    if common is None:
+        return None
+    c = np.asarray(common, dtype=np.float64)
+    if c.shape != (2, 2) or not np.all(np.isfinite(c)):
+        raise SpcUsageError(f"common_covariance must be a finite 2x2 matrix, got shape {c.shape}")
+    c = 0.5 * (c + c.T)
+    if np.linalg.eigvalsh(c)[0] < -1e-12 * max(1.0, float(np.abs(c).max())):
+        raise SpcUsageError("common_covariance must be positive semi-definite")
+    if mode != "fixed" and np.any(c != 0.0):
+        raise SpcUsageError(f"common_covariance needs landmark_mode 'fixed', not {mode!r}")
+    return c
+
+
+def _error_modes(common, patterns, n, mode):
+    """(N, 2, k) correlated error modes (:mod:`spctool.stages._pose_problem`): the common covariance's
+    square root L (L·Lᵀ = C, every landmark alike) beside the given patterns; None without either."""
+    parts = []
+    if common is not None and np.any(common != 0.0):
+        lam, vec = np.linalg.eigh(common)
+        root = vec * np.sqrt(np.clip(lam, 0.0, None))
+        parts.append(np.broadcast_to(root, (n, 2, 2)))
+    if patterns is not None:
+        u = np.asarray(patterns, dtype=np.float64)
+        u = u[..., None] if u.ndim == 2 else u
+        if u.ndim != 3 or u.shape[:2] != (n, 2):
+            raise SpcUsageError(f"error_modes must have shape ({n}, 2, k), got {np.shape(patterns)}")
+        if mode != "fixed":
+            raise SpcUsageError(f"error_modes need landmark_mode 'fixed', not {mode!r}")
+        parts.append(np.where(np.isfinite(u), u, 0.0))
+    return np.concatenate(parts, axis=2) if parts else None

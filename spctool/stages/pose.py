@@ -80,9 +80,12 @@ import numpy as np
 from spctool.errors import SpcUsageError
 from spctool.stages._pose_problem import (
     PoseError,
+    _common_covariance,
+    _error_modes,
     _Prior,
     _prior_info,
     _Problem,
+    _sandwich_covariance,
     so3_right_jacobian_inv,
 )
 from spctool.stages.pose_consistency import (
@@ -151,6 +154,11 @@ class PoseOptions:
       (Cᵢ + τ²I)⁻¹ (True), when χ² exceeds its ``model_error_quantile`` (0.9; below it the
       covariances are left as they are); τ is at most ``max_model_error_px`` (None: ``sigma_px``), a
       larger misfit is the χ² gate's.  Reported as :attr:`PoseResult.model_error_px`.
+      ``common_model_error`` (True, ``"fixed"`` landmarks): τ also as a shift common to all the
+      landmarks (covariance τ²I, through the Woodbury identity as ``common_covariance``) — the model
+      errors that leave per-landmark residuals of size τ (a maplet's heights, its photometry) shift a
+      picture's landmarks alike too, by a part the residuals cannot show (the pose absorbs it), taken
+      as large as the part they show.
     * ``prior_scale`` — factor applied to the a-priori sigmas (1); ``estimate_prior_scale``: when the
       measurements contradict the prior, widen it by the test's √(q/k) and solve again, at most
       ``max_prior_scale_steps`` times, until they agree (the factor is :attr:`PoseResult.prior_scale`).
@@ -175,6 +183,7 @@ class PoseOptions:
     sigma_floor_px: float = 0.001
     consistency_quantile: float = 0.999
     model_error: bool = True
+    common_model_error: bool = True
     max_model_error_px: float | None = None
     model_error_quantile: float = 0.9
     prior_scale: float = 1.0
@@ -289,6 +298,7 @@ class PoseResult:
     prior_check: PriorTest | None = None  # the prior–measurement test (None: no prior)
     prior_scale: float = 1.0  # factor applied to the a-priori sigmas (estimated or given)
     model_error_px: float = 0.0  # τ added in quadrature to the per-landmark covariances (estimated)
+    common_covariance: np.ndarray | None = None  # (2, 2) px² error common to the landmarks (given + τ²I)
 
     # ---- convenience ------------------------------------------------------------------------------
     @property
@@ -400,6 +410,9 @@ class PoseResult:
             "prior_check": None if self.prior_check is None else self.prior_check.as_dict(),
             "prior_scale": self.prior_scale,
             "model_error_px": self.model_error_px,
+            "common_sigma_px": None
+            if self.common_covariance is None
+            else float(np.sqrt(np.trace(self.common_covariance))),
         }
         if self.landmark_corrections is not None:
             out["landmark_corrections"] = {
@@ -448,6 +461,11 @@ class PoseResult:
         ]
         if self.model_error_px > 0:
             lines.append(f"model error {self.model_error_px:.4f} px added to the landmarks' covariances")
+        if self.common_covariance is not None and np.any(self.common_covariance != 0):
+            lines.append(
+                f"common error {np.sqrt(np.trace(self.common_covariance)):.4f} px (1 sigma, shared by the"
+                " landmarks) in the measurement covariance"
+            )
         if self.covariance_scale != 1.0:
             lines.append(
                 f"covariance scaled by cost/dof = {self.covariance_scale:.3g} (sigmas x "
@@ -732,6 +750,9 @@ def _solve_pose(
     names=None,
     pixel_sigmas=None,
     pixel_covariances=None,
+    common_covariance=None,
+    error_modes=None,
+    estimate_weights: str = "covariance",
 ) -> PoseResult:
     """Solve spacecraft position and attitude from N landmark measurements (module docstring).
 
@@ -745,6 +766,20 @@ def _solve_pose(
     * ``pixel_covariances`` — optional (N, 2, 2) measurement covariances in px² (sample, line), e.g.
       ``register``'s; weights Wᵢ = (Cᵢ + ``sigma_floor_px``²·I)⁻¹.  Rows that are not finite positive
       definite fall back to ``pixel_sigmas``/``sigma_px`` (named in a warning).
+    * ``common_covariance`` — optional 2×2 covariance (px²) of an error common to every landmark of the
+      picture (a shading-model error shared by its landmarks, :mod:`spctool.stages.model_error`): the
+      measurements' covariance becomes blkdiag(Wᵢ⁻¹) + U·C·Uᵀ, applied by the Woodbury identity
+      (:mod:`spctool.stages._pose_problem`), so the pose covariance includes it.  ``"fixed"`` landmarks only.
+    * ``error_modes`` — optional (N, 2, k) px: k patterns of pixel errors over the landmarks, each with a
+      unit-variance coefficient (covariance Σₖ uₖuₖᵀ added to the measurements' covariance; e.g. the
+      shift of every landmark under another shading model, :mod:`spctool.stages.model_error`); also by
+      Woodbury, also ``"fixed"`` only.
+    * ``estimate_weights`` — with ``pixel_covariances``: ``"covariance"`` (weight the fit by the
+      measurement covariance R above, the generalised least squares) or ``"uniform"`` (fit with the
+      ``pixel_sigmas``/``sigma_px`` weights W and report the covariance that fit has under R, the
+      sandwich N⁻¹(HᵀW·R·WH + P₀⁻¹)N⁻¹, N = HᵀWH + P₀⁻¹, τ estimated from the fit's residuals:
+      :func:`_sandwich_covariance`) — the estimate of uniform weights with a covariance calibrated by
+      what the registration and the shading model's error patterns show (issue #39).
 
     Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
     """
@@ -760,7 +795,14 @@ def _solve_pose(
     if len(names) != n_all:
         raise SpcUsageError(f"names has {len(names)} entries for {n_all} landmarks")
     warnings: list[str] = []
-    wts_all = _measurement_weights(opts, meas_all, names, pixel_sigmas, pixel_covariances, warnings)
+    if estimate_weights not in ("covariance", "uniform"):
+        raise SpcUsageError(f"estimate_weights must be 'covariance' or 'uniform', got {estimate_weights!r}")
+    sandwich = estimate_weights == "uniform" and pixel_covariances is not None
+    if sandwich and opts.landmark_mode != "fixed":
+        raise SpcUsageError("estimate_weights 'uniform' with pixel covariances needs landmark_mode 'fixed'")
+    wts_all = _measurement_weights(
+        opts, meas_all, names, pixel_sigmas, None if sandwich else pixel_covariances, warnings
+    )
     mode = opts.landmark_mode
     lmk_sig = None
     if mode != "fixed":
@@ -782,6 +824,9 @@ def _solve_pose(
         info = np.zeros(6)
     prior = _Prior(info)
     prior_used = prior.n_equations > 0
+    common = _common_covariance(common_covariance, mode)
+    modes_all = None if sandwich else _error_modes(common, error_modes, n_all, mode)
+    common_used = common  # with the model error's common part once estimated
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
     usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
@@ -810,6 +855,7 @@ def _solve_pose(
             mode,
             None if lmk_info_all is None else lmk_info_all[mask],
             opts,
+            None if modes_all is None else modes_all[mask],
         )
 
     # ---- fit, reject, refit -------------------------------------------------------------------------
@@ -818,7 +864,7 @@ def _solve_pose(
         build, usable, opts, prior, names, status, rejected, warnings
     )
     tau = 0.0
-    if pixel_covariances is not None and opts.model_error:
+    if pixel_covariances is not None and opts.model_error and not sandwich:
         # the model error the residuals show beyond the correlation peaks' covariances, then the fit
         # again with it (twice: the residuals of the refit estimate it again)
         base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
@@ -828,6 +874,10 @@ def _solve_pose(
                 break
             tau = new_tau
             wts_all = np.linalg.inv(base + (tau * tau) * np.eye(2))
+            if opts.common_model_error and mode == "fixed":  # its common part, as large (PoseOptions)
+                shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
+                modes_all = _error_modes(shared, error_modes, n_all, mode)
+                common_used = shared
             status[:], rejected[:], warnings[:] = (list(x) for x in before)
             problem, state, iterations, converged, history, used = _fit_rejecting(
                 build, usable, opts, prior, names, status, rejected, warnings
@@ -838,6 +888,13 @@ def _solve_pose(
     cov, cond, cov_plain, lmk_corr, lmk_cov, pts_after = _final_covariance(
         problem, state, mode, used, pts_all, lmk_sig
     )
+    uniform_cov = None
+    if sandwich:  # the uniform fit's covariance under the calibrated measurement covariance
+        base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
+        uniform_cov = cov
+        cov, tau, common_used = _sandwich_covariance(
+            problem, state, cov, base[used], common, error_modes, used, opts, prior
+        )
     cost, chi2 = problem.cost(state)
     # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
     dof = 2 * m + prior.n_equations - 6
@@ -857,9 +914,12 @@ def _solve_pose(
             f"sigma_px {opts.sigma_px:g} px (wrong measurements, another picture's table, or sigma_px "
             "too small)"
         )
+    # (the prior test reads the a-posteriori covariance of the weights the fit used: with the
+    # sandwich, the uniform fit's own, as its derivation needs P = (A + P₀⁻¹)⁻¹)
     gate, prior_check = _consistency(
-        problem, state, opts, dof, cost, names, used, prior, cov_plain, cov_formal, cov
-    )
+        problem, state, opts, dof, cost, names, used, prior,
+        cov_plain if uniform_cov is None else uniform_cov, cov_formal, cov,
+    )  # fmt: skip
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sig, sig)
@@ -915,4 +975,5 @@ def _solve_pose(
         prior_check=prior_check,
         prior_scale=float(opts.prior_scale) if prior_used else 1.0,
         model_error_px=float(tau),
+        common_covariance=None if common_used is None else np.array(common_used, dtype=np.float64),
     )
