@@ -327,9 +327,6 @@ def register(
             _parallel_s16(reg, camera, steps, start, result, last, tick, workers, caps)
         else:
             _drive_s16(reg, camera, steps, start, result, last, tick, caps)
-    if opts.space == "maplet" and int(result.iterations.sum()) > 0:  # (the serial drivers too)
-        global _MAPLET_KERNELS_LOADED
-        _MAPLET_KERNELS_LOADED = True
     else:
         pos = (
             (np.stack([lm.v for lm in reg.landmarks]) if n else np.zeros((0, 3)))
@@ -349,6 +346,9 @@ def register(
             tick,
             caps,
         )
+    if opts.space == "maplet" and int(result.iterations.sum()) > 0:  # a step has run here (either driver)
+        global _MAPLET_KERNELS_LOADED
+        _MAPLET_KERNELS_LOADED = True
     result.last_steps = last
     bad = ~result.ok
     result.covariance[bad] = np.nan
