@@ -26,6 +26,14 @@ Drivers (:func:`register`; spc-algorithms.md §9.3)
   re-extracts with the new pose in the next pass; ``halve_shift`` applies half of each shift (the
   "option 1" of Align landmarks).
 
+The S16 driver's landmarks are independent and run on ``threads`` workers (:func:`landmark_workers`:
+default numba's thread count, i.e. every core unless ``NUMBA_NUM_THREADS`` says otherwise, and one in
+``batch``'s and the Monte Carlo's workers), one landmark per task, merged in landmark order: the result
+is the one-thread driver's to the last bit.  Image space runs threads (its render and correlation
+kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`),
+since its steps are short kernels between small NumPy operations that hold the GIL (issue 39: in one
+thread 48 % of its time is in kernels that release it).
+
 Both drivers end with a **converged full-resolution stage** when their last align step is at
 spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
 estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`` extra steps (10;
@@ -484,11 +492,12 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
 
     Image space: threads (the render and correlation kernels release the GIL and hold most of the
     time).  Maplet space: processes forked from this one (:func:`spctool.workers.forked_map`), since
-    its steps are short kernels between small NumPy operations that hold the GIL (threads gain ~1.1×
-    on two cores).  The first such call of a process registers landmarks alone until one has run a
-    step, so that every kernel is loaded once, here, before the workers are forked with them.  Where
-    forking is not safe (:func:`spctool.workers.can_fork_tasks`: another Python thread runs), maplet
-    space uses threads.
+    its steps are short kernels between small NumPy operations that hold the GIL (48 % of a
+    landmark's time is in kernels that release it: threads could gain at most 1.3× on two cores).
+    The first such call of a process registers landmarks alone until one has run a step, so that
+    every kernel is loaded once, here, before the workers are forked with them.  Where forking is
+    not safe (:func:`spctool.workers.can_fork_tasks`: another Python thread runs), maplet space uses
+    threads.
     """
     import threading
 
