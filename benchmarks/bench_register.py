@@ -310,7 +310,7 @@ def _cpu_split(run):
 
 def _maplet_split(kind):
     """One and two workers on the 16-landmark picture in maplet space, interleaved (1, 2, 1, 2, …: a
-    drift of the machine's speed falls on both), medians of 9 pairs after one warm pair:
+    drift of the machine's speed falls on both), medians of 21 pairs (navigate: 9) after a warm pair:
     ``{"one": (wall, cpu), "two": (wall, critical path), "speedup_cpu", "speedup_wall"}``.  The
     critical path of a two-worker run is max(this process's CPU, its forked worker's CPU): its wall time
     on two idle cores (the two run side by side from the fork to the last result; the fork is in this
@@ -351,7 +351,7 @@ def _maplet_split(kind):
     one, two = runner(1), runner(2)
     one(), two()  # warm: kernels loaded, the first two-worker call's own landmark
     rows = {1: [], 2: []}
-    for _ in range(9):
+    for _ in range(21 if kind == "register" else 9):
         for k, run in ((1, one), (2, two)):
             wall, cpu, child = _cpu_split(run)
             rows[k].append((wall, cpu if k == 1 else max(cpu, child)))
