@@ -138,25 +138,28 @@ def forked_map(task, n: int, workers: int, on_result=None) -> list:
         open_fds = set(buffers)
 
         def drain(timeout):
-            """Read what the children sent (``timeout`` 0: only what is there now; None: until one
-            sends or ends), delivering complete results."""
-            if not open_fds:
-                return
-            ready, _, _ = select.select(list(open_fds), [], [], timeout)
-            for fd in ready:
-                chunk = os.read(fd, 1 << 20)
-                if not chunk:
-                    open_fds.discard(fd)
-                    continue
-                buf = buffers[fd]
-                buf += chunk
-                while len(buf) >= 8:
-                    size = struct.unpack_from("<Q", buf, 0)[0]
-                    if len(buf) < 8 + size:
-                        break
-                    i, value = pickle.loads(bytes(buf[8 : 8 + size]))
-                    del buf[: 8 + size]
-                    deliver(i, value)
+            """Read what the children sent (``timeout`` 0: what is there now; None: until one sends
+            or ends), delivering complete results."""
+            while open_fds:
+                ready, _, _ = select.select(list(open_fds), [], [], timeout)
+                if not ready:
+                    return
+                for fd in ready:
+                    chunk = os.read(fd, 1 << 20)
+                    if not chunk:
+                        open_fds.discard(fd)
+                        continue
+                    buf = buffers[fd]
+                    buf += chunk
+                    while len(buf) >= 8:
+                        size = struct.unpack_from("<Q", buf, 0)[0]
+                        if len(buf) < 8 + size:
+                            break
+                        i, value = pickle.loads(bytes(buf[8 : 8 + size]))
+                        del buf[: 8 + size]
+                        deliver(i, value)
+                if timeout is None:
+                    return
 
         while True:
             i = claim()

@@ -62,3 +62,13 @@ def test_can_fork_tasks_only_with_one_thread(monkeypatch):
     for method, ok in (("spawn", False), ("forkserver", False), ("fork", True)):
         monkeypatch.setenv("SPCTOOL_START_METHOD", method)
         assert workers.can_fork_tasks() is ok
+
+
+def _big(i):
+    time.sleep(0.01)
+    return bytes([i]) * (3 << 20)  # larger than a pipe's buffer: read in several pieces
+
+
+def test_forked_map_large_results():
+    out = workers.forked_map(_big, 4, 2)
+    assert [len(v) for v in out] == [3 << 20] * 4 and [v[-1] for v in out] == [0, 1, 2, 3]
