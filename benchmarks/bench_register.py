@@ -296,16 +296,13 @@ _SPLIT: dict = {}
 
 
 def _cpu_split(run):
-    """(wall s, this process's CPU s, its children's CPU s) of one ``run()``."""
-    import resource
+    """(wall s, this process's CPU s, its forked workers' CPU s as they report it before exiting:
+    :func:`spctool.workers.children_cpu`) of one ``run()``."""
+    from spctool.workers import children_cpu
 
-    def child():
-        r = resource.getrusage(resource.RUSAGE_CHILDREN)
-        return r.ru_utime + r.ru_stime
-
-    t, c, k = time.perf_counter(), time.process_time(), child()
+    t, c, k = time.perf_counter(), time.process_time(), children_cpu()
     run()
-    return time.perf_counter() - t, time.process_time() - c, child() - k
+    return time.perf_counter() - t, time.process_time() - c, children_cpu() - k
 
 
 def _maplet_split(kind):
@@ -314,8 +311,9 @@ def _maplet_split(kind):
     ``{"one": (wall, cpu), "two": (wall, critical path), "speedup_cpu", "speedup_wall"}``.  The
     critical path of a two-worker run is max(this process's CPU, its forked worker's CPU): its wall time
     on two idle cores (the two run side by side from the fork to the last result; the fork is in this
-    process's CPU, the worker's exit in its own).  ``kind``: "register" (the S16 pass) or "navigate"
-    (two passes and the pose solves; the solves run here, between the passes)."""
+    process's CPU; the worker's exit, after its last result, is not on the path).  ``kind``:
+    "register" (the S16 pass) or "navigate" (two passes and the pose solves; the solves run here,
+    between the passes)."""
     if kind in _SPLIT:
         return _SPLIT[kind]
     from spctool.formats.workdir import WorkDir
