@@ -139,8 +139,10 @@ def forked_map(task, n: int, workers: int, on_result=None) -> list:
                             break
                         frame = pickle.dumps((i, task(i)), protocol=pickle.HIGHEST_PROTOCOL)
                         _write_all(w, struct.pack("<Q", len(frame)) + frame)
-                    use = os.times()
-                    frame = pickle.dumps((-1, use.user + use.system))  # the end: this child's CPU
+                    import resource
+
+                    use = resource.getrusage(resource.RUSAGE_SELF)
+                    frame = pickle.dumps((-1, use.ru_utime + use.ru_stime))  # the end: this child's CPU
                     _write_all(w, struct.pack("<Q", len(frame)) + frame)
                     os.close(w)  # EOF now, not after the kernel has torn down this process
                     code = 0

@@ -72,3 +72,22 @@ def _big(i):
 def test_forked_map_large_results():
     out = workers.forked_map(_big, 4, 2)
     assert [len(v) for v in out] == [3 << 20] * 4 and [v[-1] for v in out] == [0, 1, 2, 3]
+
+
+def _busy(i):
+    end = time.thread_time() + 0.01
+    while time.thread_time() < end:
+        pass
+    return i
+
+
+def test_forked_map_children_are_reaped_and_counted():
+    """A child closes its pipe before it exits: the call does not wait for its teardown, the next call
+    (or the interpreter's exit) reaps it; its CPU, as it reported it, is counted."""
+    before = workers.children_cpu()
+    workers.forked_map(_busy, 6, 2)
+    workers.forked_map(_busy, 6, 2)  # reaps the first call's child, if it had not exited then
+    assert len(workers._UNREAPED) <= 1
+    workers._reap(block=True)
+    assert workers._UNREAPED == []
+    assert workers.children_cpu() > before
