@@ -405,7 +405,7 @@ def disagreeing_shifts(result: RegisterResult) -> str | None:
 
 
 #: maplet space, ``threads=None``: a worker process per this many landmarks at least (a forked worker
-#: costs a few milliseconds, a landmark's S16 schedule about fifteen)
+#: costs about ten milliseconds in all, a landmark's S16 schedule ten to fifteen)
 MAPLET_LANDMARKS_PER_WORKER = 2
 
 
