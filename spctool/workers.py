@@ -129,7 +129,8 @@ def forked_map(task, n: int, workers: int, on_result=None) -> list:
             if pid == 0:  # the child: tasks until none is left, then exit without returning
                 code = 1
                 try:
-                    signal.signal(signal.SIGINT, signal.SIG_DFL)
+                    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                        signal.signal(signal.SIGINT, signal.SIG_DFL)  # ^C ends a child at once, silently
                     os.close(r)
                     for other in children.values():
                         os.close(other)
