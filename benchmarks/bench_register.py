@@ -290,6 +290,106 @@ def bench_navigate_image():
     return ms, "ms", ms <= 50.0
 
 
+# -- maplet space over two workers (issue 39) ------------------------------------------------------
+
+_SPLIT: dict = {}
+
+
+def _cpu_split(run):
+    """(wall s, this process's CPU s, its forked workers' CPU s as they report it before exiting:
+    :func:`spctool.workers.children_cpu`) of one ``run()``."""
+    from spctool.workers import children_cpu
+
+    t, c, k = time.perf_counter(), time.process_time(), children_cpu()
+    run()
+    return time.perf_counter() - t, time.process_time() - c, children_cpu() - k
+
+
+def _maplet_split(kind):
+    """One and two workers on the 16-landmark picture in maplet space, interleaved (1, 2, 1, 2, …: a
+    drift of the machine's speed falls on both), medians of 21 pairs (navigate: 9) after a warm pair:
+    ``{"one": (wall, cpu), "two": (wall, critical path), "speedup_cpu", "speedup_wall"}``.  The
+    critical path of a two-worker run is max(this process's CPU, its forked worker's CPU): its wall time
+    on two idle cores (the two run side by side from the fork to the last result; the fork is in this
+    process's CPU; the worker's exit, after its last result, is not on the path).  ``kind``:
+    "register" (the S16 pass) or "navigate" (two passes and the pose solves; the solves run here,
+    between the passes)."""
+    if kind in _SPLIT:
+        return _SPLIT[kind]
+    from spctool.formats.workdir import WorkDir
+    from spctool.stages.navigate import NavigateOptions, navigate
+
+    w = _load16()
+    pic = WorkDir(_world16()).read_picture(PICTURE16)
+
+    def runner(threads):
+        ropts = RegisterOptions(space="maplet", threads=threads)
+        if kind == "register":
+
+            def run():
+                r = register(
+                    w["photo"], w["camera"], w["sun"], w["maplets"], w["thresholds"], ropts, names=w["names"]
+                )
+                assert int(r.ok.sum()) == len(w["names"])
+                return r
+
+        else:
+            nopts = NavigateOptions(register=ropts)
+
+            def run():
+                r = navigate(
+                    w["photo"], w["camera"], w["sun"], w["maplets"], w["thresholds"], nopts, names=w["names"],
+                    prior_sigma_position=pic.sigma_vso, prior_sigma_attitude=pic.sigma_ptg,
+                )  # fmt: skip
+                assert r.status == "ok"
+                return r
+
+        return run
+
+    one, two = runner(1), runner(2)
+    one(), two()  # warm: kernels loaded, the first two-worker call's own landmark
+    rows = {1: [], 2: []}
+    for _ in range(21 if kind == "register" else 9):
+        for k, run in ((1, one), (2, two)):
+            wall, cpu, child = _cpu_split(run)
+            rows[k].append((wall, cpu if k == 1 else max(cpu, child)))
+    med = {k: np.median(np.array(v), axis=0) for k, v in rows.items()}
+    out = {
+        "one": tuple(med[1]),
+        "two": tuple(med[2]),
+        "speedup_cpu": float(med[1][1] / med[2][1]),
+        "speedup_wall": float(med[1][0] / med[2][0]),
+        "load": os.getloadavg()[0],
+    }
+    _SPLIT[kind] = out
+    return out
+
+
+def bench_maplet_one_thread():
+    ms = _maplet_split("register")["one"][1] * 1e3
+    return ms, "ms", True
+
+
+def bench_maplet_two_workers_cpu():
+    x = _maplet_split("register")["speedup_cpu"]
+    return x, "x", x >= 1.7
+
+
+def bench_maplet_two_workers_wall():
+    s = _maplet_split("register")
+    return s["speedup_wall"], f"x (load {s['load']:.1f})", True
+
+
+def bench_navigate_maplet_two_workers_cpu():
+    x = _maplet_split("navigate")["speedup_cpu"]
+    return x, "x", True
+
+
+def bench_navigate_maplet_two_workers_wall():
+    s = _maplet_split("navigate")
+    return s["speedup_wall"], f"x (load {s['load']:.1f})", True
+
+
 _COLD: dict = {}
 
 
@@ -427,6 +527,27 @@ BENCHMARKS = [
         "register image two-pass navigation per landmark, 1 core",
         "<= 50 ms (GIANT PnP + 2nd pass 363 ms)",
         bench_navigate_image,
+    ),
+    ("register maplet S16 pass 16 landmarks, 1 thread, CPU", "(informative)", bench_maplet_one_thread),
+    (
+        "register maplet S16 pass 16 landmarks, 2 workers vs 1, speed-up (CPU critical path)",
+        ">= 1.7x (GIANT 1.5x at 2 threads)",
+        bench_maplet_two_workers_cpu,
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, 2 workers vs 1, speed-up (wall)",
+        "(informative: the machine's load)",
+        bench_maplet_two_workers_wall,
+    ),
+    (
+        "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (CPU critical path)",
+        "(informative)",
+        bench_navigate_maplet_two_workers_cpu,
+    ),
+    (
+        "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (wall)",
+        "(informative: the machine's load)",
+        bench_navigate_maplet_two_workers_wall,
     ),
     ("cold register 16 landmarks 1024^2, image, wall", "<= 1.5 s (GIANT 7.2 s)", bench_cold_image),
     ("cold register 16 landmarks 1024^2, image, CPU", "<= 1.5 s", bench_cold_image_cpu),

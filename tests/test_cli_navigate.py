@@ -109,3 +109,29 @@ def test_calibrated_and_surface_weights_report_the_model_error_and_cover_the_tru
         assert np.all(np.abs(e) <= 3.0 * np.sqrt(np.diag(np.asarray(pose["covariance"])))), (weights, e)
     assert poses["calibrated"]["position"] == poses["uniform"]["position"]
     assert poses["calibrated"]["covariance"] != poses["uniform"]["covariance"]
+
+
+def test_threads_give_the_same_outputs_to_the_byte(run_cli, tmp_path, monkeypatch):
+    """navigate and register in maplet space with --threads 2 (landmarks shared with a forked worker)
+    write what --threads 1 writes: the table byte for byte, the JSON but for its timings and the
+    --threads setting it echoes."""
+    import spctool.workers as wmod
+
+    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: True)  # also under pytest-xdist's threads
+    monkeypatch.chdir(tmp_path)
+    assert run_cli("demo", "--copy-to", "demo").exit_code == 0
+    docs, tables = {}, {}
+    for n in ("1", "2"):
+        res = run_cli("-C", "demo", "navigate", "P000000001A1", "--json", "--threads", n)
+        assert res.exit_code == 0, res.stderr
+        doc = json.loads(res.stdout)
+        assert doc["options"]["register"]["threads"] == int(n)
+        doc["options"]["register"]["threads"] = None
+        for p in doc["passes"]:
+            p.pop("seconds")
+        docs[n] = doc
+        res = run_cli("-C", "demo", "register", "P000000001A1", "--threads", n)
+        assert res.exit_code == 0, res.stderr
+        tables[n] = res.stdout
+    assert docs["1"] == docs["2"] and docs["1"]["registered"] >= 10
+    assert tables["1"] == tables["2"] and tables["1"].count(" ok") >= 10

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -776,6 +777,90 @@ def test_image_space_threads_do_not_change_results(scene):
     np.testing.assert_array_equal(one.measured, many.measured)
     np.testing.assert_array_equal(one.correlation, many.correlation)
     np.testing.assert_array_equal(one.iterations, many.iterations)
+
+
+def _same_bits(one, many):
+    """Two RegisterResults are the same to the last bit (arrays, words, notes, last steps, table)."""
+    arrays = ("apriori", "measured", "correlation", "iterations", "spacing", "covariance")
+    arrays += ("converge_jacobian",)
+    for f in arrays:
+        a, b = getattr(one, f), getattr(many, f)
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f
+    for f in ("names", "status", "warnings", "adapted"):
+        assert getattr(one, f) == getattr(many, f), f
+    for s1, s2 in zip(one.last_steps, many.last_steps):
+        assert s1.status == s2.status and s1.center.tobytes() == s2.center.tobytes()
+        assert s1.correlation.surface.tobytes() == s2.correlation.surface.tobytes()
+        if s1.extraction is not None:
+            assert s1.extraction.image.tobytes() == s2.extraction.image.tobytes()
+    assert one.to_table("P").to_text() == many.to_table("P").to_text()
+
+
+def test_maplet_space_workers_do_not_change_results(scene, monkeypatch):
+    """Maplet space runs its landmarks in processes forked from this one (one landmark per task, claimed
+    as they finish); 2 or 3 workers give one thread's result bit for bit — every array, status, note,
+    last step (with its extraction: ``keep_images``) and the table — and the landmark whose cast shadows
+    a child resolved is named as in one thread.  Forking where it is not safe falls back to threads
+    (the same result)."""
+    import spctool.stages.register as reg_mod
+    import spctool.workers as wmod
+
+    cam = rs.pointing_error(scene.camera, 3.2, 1.7)
+    maplets = [scene.maplet] * 5
+    names = [f"L{i}" for i in range(5)]
+    # a-priori pixels near the truth and one 60 px off (a failure, found alike by every worker count)
+    start = np.array([[np.nan, np.nan], [101.3, 99.2], [98.6, 102.4], [160.0, 40.0], [103.9, 97.1]])
+    forks = []
+    real_fork = os.fork
+
+    def counting_fork():
+        pid = real_fork()
+        if pid:
+            forks.append(pid)
+        return pid
+
+    monkeypatch.setattr(os, "fork", counting_fork)
+    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: True)  # also under pytest-xdist's threads
+    monkeypatch.setattr(reg_mod, "_MAPLET_KERNELS_LOADED", False)
+    out = {}
+    for threads, keep in ((1, True), (2, True), (3, False), (1, False)):
+        opts = RegisterOptions(space="maplet", threads=threads, keep_images=keep)
+        out[threads, keep] = register(
+            scene.photo, cam, scene.sun, maplets, scene.thresholds, opts, apriori=start, names=names
+        )
+    # the first parallel call registered landmark 0 here (loading the kernels), then forked a worker;
+    # the next forked two at once
+    assert len(forks) == 3
+    one = out[1, True]
+    assert one.status.count("ok") == 4 and one.status[3] != "ok"
+    assert any("L0, L1, L2" in w for _, w in one.adapted)  # cast shadows resolved per landmark
+    _same_bits(one, out[2, True])
+    _same_bits(out[1, False], out[3, False])
+    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: False)  # another thread runs: threads instead
+    threaded = register(
+        scene.photo, cam, scene.sun, maplets, scene.thresholds,
+        RegisterOptions(space="maplet", threads=2), apriori=start, names=names,
+    )  # fmt: skip
+    assert len(forks) == 3
+    _same_bits(out[1, False], threaded)
+
+
+def test_landmark_workers_default_and_explicit(monkeypatch):
+    """``threads=None``: numba's thread count, maplet space at least two landmarks per worker; an
+    explicit count is used as given, at most one worker per landmark."""
+    import numba
+
+    from spctool.stages.register import landmark_workers
+
+    monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
+    assert landmark_workers(RegisterOptions(space="maplet"), 16) == 2
+    assert landmark_workers(RegisterOptions(space="maplet"), 3) == 1  # too few landmarks to fork for
+    assert landmark_workers(RegisterOptions(space="image"), 3) == 2
+    assert landmark_workers(RegisterOptions(space="maplet", threads=3), 2) == 2
+    assert landmark_workers(RegisterOptions(space="maplet", threads=1), 16) == 1
+    assert landmark_workers(RegisterOptions(space="maplet", threads=4), 1) == 1
+    monkeypatch.setattr(numba, "get_num_threads", lambda: 1)  # batch's and the Monte Carlo's workers
+    assert landmark_workers(RegisterOptions(space="maplet"), 16) == 1
 
 
 def test_template_options_are_checked():

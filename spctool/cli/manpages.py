@@ -119,8 +119,16 @@ FILES = (
 
 #: environment variables spctool reads
 ENVIRONMENT = (
-    ("SPCTOOL_START_METHOD", "batch, montecarlo: force how local workers start (fork, spawn, forkserver)"),
-    ("NUMBA_NUM_THREADS", "threads of the compiled kernels (one per batch worker)"),
+    (
+        "SPCTOOL_START_METHOD",
+        "batch, montecarlo: force how local workers start (fork, spawn, forkserver); spawn or "
+        "forkserver: register and navigate in maplet space fork no workers (threads instead)",
+    ),
+    (
+        "NUMBA_NUM_THREADS",
+        "threads of the compiled kernels (one per batch worker); register's and navigate's "
+        "default --threads",
+    ),
     ("NUMBA_CACHE_DIR", "where numba caches its compiled kernels"),
     (
         "OPENBLAS_NUM_THREADS",

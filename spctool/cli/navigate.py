@@ -86,6 +86,7 @@ def _spacings(text: str) -> tuple:
     metavar="FILE",
     help="Write the landmark table to FILE instead of stdout ('-' = stdout).",
 )
+@options.threads_option
 @options.require_option("Exit 1 when fewer than N landmarks are registered in the final pass.")
 @options.json_option
 @pass_context
@@ -146,7 +147,9 @@ def navigate_cmd(ctx: Context, **kw):
     inp = _Inputs(ctx, kw)
     if not inp.names:
         raise SpcResultError(f"{inp.pic.name}: no landmark with a maplet to navigate with")
-    with progress(ctx, f"navigate {inp.pic.name}", len(inp.names) * (3 if nopts.passes == 2 else 2)) as adv:
+    # maplet space forks its workers: only while this process runs one thread (no refresh thread)
+    steps = len(inp.names) * (3 if nopts.passes == 2 else 2)
+    with progress(ctx, f"navigate {inp.pic.name}", steps, threaded=ropts.space == "image") as adv:
         result = inp.run(navigate, nopts, adv)
     for w in result.warnings:
         ctx.note_once(w)

@@ -567,3 +567,14 @@ panels_option = click.option(
     "predicted | extracted (image space: template | photo window) | correlation surface with the "
     "sub-pixel peak, enlarged, with the figures. A different picture already there is kept as .bak.",
 )
+
+#: register and navigate: workers over the landmarks (RegisterOptions.threads)
+threads_option = click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    default=None,
+    metavar="N",
+    help="Register the landmarks with N workers (s16 schedule; maplet space: processes forked from this "
+    "one, image space: threads); 1 = one thread. The results do not depend on N.  [default: "
+    "NUMBA_NUM_THREADS, else every core; maplet space two landmarks per worker at least]",
+)

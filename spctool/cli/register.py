@@ -164,6 +164,7 @@ def _register_options(kw, schedule, **extra):
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
         template_shading=kw["template_shading"],
+        threads=kw.get("threads"),  # commands without --threads: numba's thread count
         predict=popts,
         extract=eopts,
         **extra,
@@ -568,6 +569,7 @@ def _say_adapted(ctx, adapted) -> None:
     help="--overlay: draw shift vectors F times their length.  [default: the median shift drawn ~40 px]",
 )
 @options.panels_option
+@options.threads_option
 @options.require_option(
     "Exit 1 when fewer than N landmarks are registered (the table is still written). Without it a run "
     "that registers nothing exits 0 with a warning on stderr."
@@ -652,7 +654,9 @@ def register_cmd(ctx: Context, **kw):
     inp = _Inputs(ctx, kw)
     # AUTOREGISTER visits every active landmark once per align pass (fewer after a drop)
     passes = sum(k == "align" for k, _ in schedule_steps(opts)) if schedule == "autoregister" else 1
-    with progress(ctx, f"register {inp.pic.name}", passes * len(inp.names)) as adv:
+    # maplet space forks its workers: only while this process runs one thread (no refresh thread)
+    bar = progress(ctx, f"register {inp.pic.name}", passes * len(inp.names), threaded=opts.space == "image")
+    with bar as adv:
         result = inp.run(run_register, opts, adv)
     for w in result.warnings:
         ctx.note_once(w)

@@ -5,7 +5,8 @@ Everything here works on 0-based *index* coordinates of a maplet grid:
 along axis 1 (maplet y, along UY, SPC's I + q).  Heights are in cells and
 missing heights have already been set to 0 by the caller, so a zero bilinear
 weight never multiplies garbage.  The public wrappers (with the conventions
-documented for users) live in ``heightfield.py``.
+documented for users) live in ``heightfield.py``.  Every kernel releases the GIL
+(``nogil=True``): threads over landmarks run them side by side.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def bilinear_index(h, valid, u, w):
     return value, True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _quadrant_max(h, valid, su, sw):
     """Highest valid corner height of all cells "ahead" of each cell.
 
@@ -89,7 +90,7 @@ def _quadrant_max(h, valid, su, sw):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def march_blocked(h, valid, nodes, du, dw, rise, tol, out):
     """Horizon march from every selected valid node (spc-algorithms.md §5.3).
 
@@ -212,7 +213,7 @@ def _node_slopes(h, valid, r, c):
     return 0.0, 0.0, False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def slopes(h, valid, hx, hy, usable):
     """HGT2SLP slopes along axis 0 (hx) and axis 1 (hy); 0 and unusable unless both directions work."""
     n0, n1 = h.shape
@@ -221,7 +222,7 @@ def slopes(h, valid, hx, hy, usable):
             hx[r, c], hy[r, c], usable[r, c] = _node_slopes(h, valid, r, c)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def normals(hx, hy, ux, uy, uz, out):
     """out[m] = normalise(-hx[m]*ux - hy[m]*uy + uz) over flat arrays hx, hy."""
     for m in range(hx.shape[0]):
@@ -345,7 +346,7 @@ def _window_max_rows(src, reach, dst):
                 dst[i, j] = s if s > d else d
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def near_steps(h, valid, reach, out):
     """out (n0 − 1, n1 − 1, 2): for each cell, the largest |height step| between neighbouring nodes along
     u (channel 0) and along w (1) over the full cells within ``reach`` cells (Chebyshev), +inf where that
@@ -378,7 +379,7 @@ def near_steps(h, valid, reach, out):
                 out[i, j, c] = both[j, i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cell_tops(h, valid):
     """(n0−1, n1−1): each cell's highest corner plus 1e-9·(1 + max |h|) (far above rounding), −inf for
     cells with a missing corner — no ray segment above it can cross the cell's terrain."""
@@ -525,7 +526,7 @@ def _march(h, valid, cmax, p, n0, n1, hmin, hmax, u0, w0, z0, du, dw, dz, t_min,
         t_a = max(t_a, t_b)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def intersect_rays(h, valid, origins, directions, t_min, t_max, out):
     """First crossing of each ray (index coordinates u, w and height z) with the terrain."""
     n0, n1 = h.shape
@@ -814,7 +815,7 @@ def lit_from(h, cmax, entry, p, n0, n1, u, w, z0, du, dw, dz):
 # loops vectorise, and take rows by index rather than as views (a view per row costs reference counts).
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def patch_maps(h, valid, albedo, maps, valid_out):
     """A height patch's sanitation in one pass: ``valid_out`` = valid & finite(h); ``maps[0]`` = h and
     ``maps[3]`` = albedo there, 0 elsewhere (maps (4, n0, n1): heights, hx, hy, albedo, the middle two
@@ -931,7 +932,7 @@ def _block_max(src, reach, dst, tmp, row):
         _grow_reach(tmp, 1, reach, dst, tmp, row)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def patch_grids(maps, valid, big, reach_a, reach_b, usable, tops, near):
     """A height patch's derived grids in one call, each equal to the last bit to its reference kernel
     (``big``: the largest |height| of a valid node, from :func:`patch_maps`' extremes — as a loop here it

@@ -26,6 +26,14 @@ Drivers (:func:`register`; spc-algorithms.md §9.3)
   re-extracts with the new pose in the next pass; ``halve_shift`` applies half of each shift (the
   "option 1" of Align landmarks).
 
+The S16 driver's landmarks are independent and run on ``threads`` workers (:func:`landmark_workers`:
+default numba's thread count, i.e. every core unless ``NUMBA_NUM_THREADS`` says otherwise, and one in
+``batch``'s and the Monte Carlo's workers), one landmark per task, merged in landmark order: the result
+is the one-thread driver's to the last bit.  Image space runs threads (its render and correlation
+kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`),
+since its steps are short kernels between small NumPy operations that hold the GIL (issue 39: in one
+thread 48 % of its time is in kernels that release it).
+
 Both drivers end with a **converged full-resolution stage** when their last align step is at
 spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
 estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`` extra steps (10;
@@ -95,6 +103,7 @@ __all__ = [
     "RegisterResult",
     "Registrar",
     "correlate_landmark",
+    "landmark_workers",
     "register",
     "schedule_steps",
     "spacing_cap",
@@ -321,7 +330,7 @@ def register(
     if capped:
         _cap_warnings(reg, caps, top, result)
     if opts.schedule == "retina_s16":
-        workers = _image_workers(opts, n)
+        workers = landmark_workers(opts, n)
         if workers > 1:
             _parallel_s16(reg, camera, steps, start, result, last, tick, workers, caps)
         else:
@@ -345,6 +354,9 @@ def register(
             tick,
             caps,
         )
+    if opts.space == "maplet" and int(result.iterations.sum()) > 0:  # a step has run here (either driver)
+        global _MAPLET_KERNELS_LOADED
+        _MAPLET_KERNELS_LOADED = True
     result.last_steps = last
     bad = ~result.ok
     result.covariance[bad] = np.nan
@@ -392,37 +404,56 @@ def disagreeing_shifts(result: RegisterResult) -> str | None:
     )
 
 
-def _image_workers(opts: RegisterOptions, n: int) -> int:
-    """Threads for the landmarks of an image-space S16 run (maplet space stays on one thread: its small
-    numpy steps hold the GIL)."""
-    if opts.space != "image" or n < 2:
+#: maplet space, ``threads=None``: a worker process per this many landmarks at least (a forked worker
+#: costs about ten milliseconds in all, a landmark's S16 schedule ten to fifteen)
+MAPLET_LANDMARKS_PER_WORKER = 2
+
+
+def landmark_workers(opts: RegisterOptions, n: int) -> int:
+    """Workers over the ``n`` landmarks of an S16 run (:func:`_parallel_s16`): ``threads``, or with
+    None numba's thread count (``NUMBA_NUM_THREADS``; all cores unless set; 1 in ``batch``'s and the
+    Monte Carlo's workers, which are one core each), at most one per landmark; with None, maplet space
+    also keeps :data:`MAPLET_LANDMARKS_PER_WORKER` landmarks per worker.  1: the one-thread driver."""
+    if n < 2:
         return 1
     if opts.threads is None:
         import numba
 
-        return min(n, int(numba.get_num_threads()))
-    return min(n, int(opts.threads))
+        k = int(numba.get_num_threads())
+        if opts.space == "maplet":
+            k = min(k, n // MAPLET_LANDMARKS_PER_WORKER)
+    else:
+        k = int(opts.threads)
+    return max(1, min(n, k))
 
 
-def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, workers: int, caps):
-    """:func:`_drive_s16` with the landmarks spread over ``workers`` threads, one landmark per task.
+@dataclass
+class _Done:
+    """What registering one landmark alone (:func:`_landmark_task`) adds to the result (small and
+    picklable: it may come from a forked worker)."""
 
-    Landmarks are independent (their own template, crop and state; the photo is only read), and the
-    render and correlation kernels release the GIL; every landmark runs exactly the computation of the
-    one-thread driver, so the result does not depend on ``workers`` (``tests/test_register.py``).
-    """
-    import threading
-    from concurrent.futures import ThreadPoolExecutor
+    measured: np.ndarray
+    correlation: float
+    iterations: int
+    spacing: int
+    status: str
+    covariance: np.ndarray
+    converge_jacobian: np.ndarray
+    warnings: list
+    adapted: list
+    last: object  #: the landmark's last LandmarkStep (or None)
+    shadow_mode: object  #: the landmark's resolved ``shadows="auto"`` (read by cast_shadow_landmarks)
 
-    lock = threading.Lock()
 
-    def locked_tick(k=1):
-        with lock:
-            tick(k)
+def _landmark_task(reg: Registrar, camera, steps, start, result, caps):
+    """``task(i)``: landmark ``i`` registered alone by :func:`_drive_s16` on a Registrar of that one
+    landmark (sharing the photo and the settings) — exactly the one-thread driver's computation of it,
+    which touches no other landmark's state — as a :class:`_Done`."""
 
-    def one(i):
+    def task(i: int) -> _Done:
         sub = copy.copy(reg)  # shares the photo and caches; its own landmark list
-        sub.landmarks = [reg.landmarks[i]]
+        lm = reg.landmarks[i]
+        sub.landmarks = [lm]
         part = RegisterResult(
             [result.names[i]],
             result.apriori[i : i + 1],
@@ -437,21 +468,82 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             converge_jacobian=result.converge_jacobian[i : i + 1].copy(),
         )
         sub_last = [None]
-        _drive_s16(sub, camera, steps, start[i : i + 1], part, sub_last, locked_tick, caps[i : i + 1])
-        return i, part, sub_last[0]
+        _drive_s16(sub, camera, steps, start[i : i + 1], part, sub_last, lambda k=1: None, caps[i : i + 1])
+        return _Done(
+            part.measured[0], float(part.correlation[0]), int(part.iterations[0]), int(part.spacing[0]),
+            part.status[0], part.covariance[0], part.converge_jacobian[0], part.warnings, part.adapted,
+            sub_last[0], lm.shadow_mode,
+        )  # fmt: skip
 
-    with ThreadPoolExecutor(workers) as pool:
-        for i, part, st in pool.map(one, range(len(reg))):
-            result.measured[i] = part.measured[0]
-            result.correlation[i] = part.correlation[0]
-            result.iterations[i] = part.iterations[0]
-            result.spacing[i] = part.spacing[0]
-            result.status[i] = part.status[0]
-            result.covariance[i] = part.covariance[0]
-            result.converge_jacobian[i] = part.converge_jacobian[0]
-            result.warnings.extend(part.warnings)
-            result.adapted.extend(part.adapted)
-            last[i] = st
+    return task
+
+
+#: a maplet-space step has run in this process: its kernels are loaded (:func:`_parallel_s16` forks)
+_MAPLET_KERNELS_LOADED = False
+
+
+def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, workers: int, caps):
+    """:func:`_drive_s16` with the landmarks spread over ``workers``, one landmark per task.
+
+    Landmarks are independent (their own prediction, extraction or template, and state; the photo is
+    only read) and every landmark runs exactly the computation of the one-thread driver
+    (:func:`_landmark_task`); the results are merged in landmark order, so the result does not depend
+    on ``workers`` (``tests/test_register.py``).
+
+    Image space: threads (the render and correlation kernels release the GIL and hold most of the
+    time).  Maplet space: processes forked from this one (:func:`spctool.workers.forked_map`), since
+    its steps are short kernels between small NumPy operations that hold the GIL (48 % of a
+    landmark's time is in kernels that release it: threads could gain at most 1.3× on two cores).
+    The first such call of a process registers landmarks alone until one has run a step, so that
+    every kernel is loaded once, here, before the workers are forked with them.  Where forking is
+    not safe (:func:`spctool.workers.can_fork_tasks`: another Python thread runs), maplet space uses
+    threads.
+    """
+    import threading
+
+    from spctool.workers import can_fork_tasks, forked_map
+
+    task = _landmark_task(reg, camera, steps, start, result, caps)
+    n = len(reg)
+    done: list = [None] * n
+    lock = threading.Lock()
+
+    def ticked(i, rec):
+        with lock:
+            tick()
+
+    if reg.options.space == "maplet" and can_fork_tasks():
+        global _MAPLET_KERNELS_LOADED
+        first = 0
+        while first < n and not _MAPLET_KERNELS_LOADED:  # loaded here, once, before forking the workers
+            done[first] = task(first)
+            tick()
+            first += 1
+            _MAPLET_KERNELS_LOADED = done[first - 1].iterations > 0
+        rest = forked_map(lambda k: task(first + k), n - first, workers, on_result=ticked)
+        done[first:] = rest
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        def one(i):
+            rec = task(i)
+            ticked(i, rec)
+            return rec
+
+        with ThreadPoolExecutor(workers) as pool:
+            done = list(pool.map(one, range(n)))
+    for i, rec in enumerate(done):
+        result.measured[i] = rec.measured
+        result.correlation[i] = rec.correlation
+        result.iterations[i] = rec.iterations
+        result.spacing[i] = rec.spacing
+        result.status[i] = rec.status
+        result.covariance[i] = rec.covariance
+        result.converge_jacobian[i] = rec.converge_jacobian
+        result.warnings.extend(rec.warnings)
+        result.adapted.extend(rec.adapted)
+        last[i] = rec.last
+        reg.landmarks[i].shadow_mode = rec.shadow_mode
 
 
 def _record(result, last, i, st: LandmarkStep, keep_images: bool):

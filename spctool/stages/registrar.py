@@ -162,12 +162,14 @@ class RegisterOptions:
       model, then solve the crossing there — the same template as ``"march"``, the grid march of
       every sub-ray, to the last bit, 10–30 % less time per ss2 template: :class:`RenderOptions`
       ``visibility``; single-ray templates march, where the raster costs as much as it saves),
-      ``threads`` (landmarks
-      registered in parallel by :func:`spctool.stages.register.register`: None = numba's thread
-      count; results do not depend on it), ``template_margin`` (px
+      ``template_margin`` (px
       added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
       this fraction of its n² pixels on the maplet, 0.5: border bins that average only a sliver of
       template are not compared with full photo bins).
+    * ``threads`` — workers over the landmarks of an S16 run (:func:`spctool.stages.register.register`:
+      image space threads, maplet space processes forked from this one; 1 = one thread): None = numba's
+      thread count (maplet space: at most one worker per two landmarks).  The result does not depend
+      on it, to the last bit.
     * ``cap_spacing`` — fit the schedule to each maplet (:func:`spctool.stages.register.spacing_cap`, True).
     * ``keep_images`` — keep each landmark's last Extraction / template Rendering in
       :attr:`RegisterResult.last_steps` (False: only the correlation, to bound memory).
