@@ -1029,6 +1029,8 @@ def test_few_rays_traced_in_numpy_equal_the_kernels_bit_for_bit(ell8, crater12):
     rng = np.random.default_rng(21)
     for shp in (ell8, crater12):
         o, d = rays_at_box(rng, 60)
+        corners = shp._verts[rng.choice(len(shp._verts), 20)]  # through vertices: u, v at 0 or 1, ties
+        d[40:] = corners - o[40:]
         o[3] = np.nan  # a non-finite origin and a zero direction: no hit on either path
         d[4] = 0.0
         t_max = np.where(np.arange(60) % 7 == 0, rng.uniform(0.5, 2.0, 60), np.inf)

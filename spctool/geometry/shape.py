@@ -847,7 +847,7 @@ def _trace_patches_numpy(verts, q, eps, n, o, d, t0, t1):
             (c00 < 0.0) & (c10 < 0.0) & (c01 < 0.0) & (c11 < 0.0))
 
     with np.errstate(all="ignore"):
-        for r in range(n):  # a few rays; every cell at once
+        for r in range(n):  # a few rays; every cell at once (screened, then solved)
             ox, oy, oz = (float(x) for x in o[r if o.shape[0] > 1 else 0])
             dx, dy, dz = (float(x) for x in d[r if d.shape[0] > 1 else 0])
             lo = float(t0[r if t0.shape[0] > 1 else 0])
@@ -869,9 +869,23 @@ def _trace_patches_numpy(verts, q, eps, n, o, d, t0, t1):
             pz = vz - oz
             X = px * fr[0] + py * fr[1] + pz * fr[2]
             Y = px * fr[3] + py * fr[4] + pz * fr[5]
-            Z = px * fr[6] + py * fr[7] + pz * fr[8]
-            x0, x1, x2, x3 = X[b], X[b + 1], X[b + q1], X[b + q1 + 1]
-            y0, y1, y2, y3 = Y[b], Y[b + 1], Y[b + q1], Y[b + q1 + 1]
+            # a superset of the cells the sign screen keeps, cheaply: the extended corners (weights summing
+            # to 1, the negative ones 2·eps(1+eps) at most) lie within that fraction of the corners' span
+            # around it (doubled here; 1e-9·max|a| covers rounding); the exact arithmetic below runs on
+            # these cells only
+            cx = np.stack((X[b], X[b + 1], X[b + q1], X[b + q1 + 1]))
+            cy = np.stack((Y[b], Y[b + 1], Y[b + q1], Y[b + q1 + 1]))
+            keep = np.ones(b.shape[0], bool)
+            for cc in (cx, cy):
+                clo, chi = cc.min(axis=0), cc.max(axis=0)
+                slack = 4.0 * eps * (1.0 + eps) * (chi - clo) + 1e-9 * np.maximum(np.abs(clo), np.abs(chi))
+                keep &= (clo - slack <= 0.0) & (chi + slack >= 0.0)
+            cells = np.flatnonzero(keep)
+            if cells.size == 0:
+                continue
+            bc = b[cells]
+            x0, x1, x2, x3 = (c[cells] for c in cx)
+            y0, y1, y2, y3 = (c[cells] for c in cy)
             ok = ~(outside(x0, x1, x2, x3) | outside(y0, y1, y2, y3))  # _raykernels.patch_solve
             X1 = x1 - x0
             X2 = x2 - x0
@@ -894,16 +908,17 @@ def _trace_patches_numpy(verts, q, eps, n, o, d, t0, t1):
             ok &= use_x | (dyn != 0.0)
             v = np.where(use_x, -(x0 + X1 * u) / dxn, -(y0 + Y1 * u) / dyn)
             ok &= (v >= -eps) & (v <= 1.0 + eps)
-            z0, z1, z2, z3 = Z[b], Z[b + 1], Z[b + q1], Z[b + q1 + 1]
+            zi = (bc, bc + 1, bc + q1, bc + q1 + 1)
+            z0, z1, z2, z3 = (px[i] * fr[6] + py[i] * fr[7] + pz[i] * fr[8] for i in zi)
             t = z0 + (z1 - z0) * u + (z2 - z0) * v + (z0 - z1 - z2 + z3) * u * v
             ok &= (t >= lo) & (t <= hi)
             if not ok.any():
                 continue
             t = np.where(ok, t, np.inf)
-            m = int(np.argmin(t))  # the nearest; ties → the smaller cell (the first minimum)
-            uu, vv = float(u[m]), float(v[m])
-            out_k[r], out_t[r], out_u[r], out_v[r] = m, t[m], uu, vv
-            c = b[m]
+            j = int(np.argmin(t))  # the nearest; ties → the smaller cell (the first minimum; cells ascend)
+            uu, vv = float(u[j]), float(v[j])
+            out_k[r], out_t[r], out_u[r], out_v[r] = cells[j], t[j], uu, vv
+            c = bc[j]
             w0 = (1.0 - uu) * (1.0 - vv)
             w1 = uu * (1.0 - vv)
             w2 = (1.0 - uu) * vv
