@@ -2,14 +2,18 @@
 
 spctool's hot loops are numba kernels compiled on their first call and cached on disk (next to the
 module, or in ``NUMBA_CACHE_DIR``).  On a fresh install the first command that needs them spends
-about half a minute compiling, so :func:`first_run_note` checks, before a command runs,
+up to about 15 s of CPU compiling (a first ``spctool demo``), so :func:`first_run_note` checks, before a
+command runs,
 whether the kernels that command uses have a cached index file (numba's own cache locator says where)
 and, when one is missing, arms one note on stderr that is printed when numba really starts compiling
 (its ``numba:compile`` event).  A command that refuses its input before any kernel runs therefore
 prints its one error line and nothing else; on a terminal :class:`CompileProgress` then shows, every
 half second, which kernel compiles and how many are done.  ``spctool warmup`` compiles every kernel the
 commands use by running the shipped demo through lithos-select, register (maplet and image space),
-solve-pose, a small render and make-maplets, so that later commands start at once.
+solve-pose, a small render and make-maplets, so that later commands start at once.  On a terminal a
+first ``demo`` or ``navigate`` also starts a helper process that compiles register's kernels from the
+last to the first (:data:`REGISTER_KERNELS`) while the command compiles them from the first: on two
+cores the first demo then takes about the time of half the compilation.
 """
 
 from __future__ import annotations
@@ -54,9 +58,9 @@ COMMAND_FAMILIES = {
     "batch": _PIPELINE,
     "montecarlo": ("camera", "maplet", "render"),
 }
-#: a cold `spctool demo` compiles for about this long on one core (27 s of CPU measured at load 4,
-#: docs/benchmarks.md)
-COMPILE_SECONDS = "30 s"
+#: a cold `spctool demo` compiles for about this long on one core (12.7 s of compilation, 15.0 s of CPU
+#: in all, measured at load 4.4; docs/benchmarks.md)
+COMPILE_SECONDS = "15 s"
 
 
 def _index_path(module: str, name: str) -> Path | None:
@@ -386,8 +390,8 @@ def warmup_cmd(ctx: Context):
     """Compile and cache every numba kernel now, so that later commands start at once.
 
     spctool's inner loops are compiled on their first use and cached on disk (next to the installed
-    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends about
-    half a minute compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
+    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends up to
+    about 15 s compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
     install under PYTHONDONTWRITEBYTECODE otherwise compiles them from source in every command, about
     0.2 s), then runs the shipped demo working directory through lithos-select, register in
     maplet and in image space, solve-pose, a render of a small window and make-maplets, all in a
