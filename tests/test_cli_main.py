@@ -116,3 +116,33 @@ def test_the_command_line_keeps_numba_from_building_cffi_s_parser():
     assert probe() == ["False", "False"]
     installed = subprocess.run([sys.executable, "-c", "import cffi"], capture_output=True).returncode == 0
     assert probe(SPCTOOL_CFFI="1") == [str(installed), str(installed)]
+
+
+_NUMBA_BLAS_PROBE = """
+import sys
+import numpy as np
+import spctool.cli.main
+from spctool.geometry import _heightkernels as hk
+h = np.arange(25.0).reshape(5, 5)
+hx, hy, ok = np.empty_like(h), np.empty_like(h), np.empty(h.shape, np.bool_)
+hk.slopes(h, np.ones(h.shape, np.bool_), hx, hy, ok)  # numba's first kernel in this process
+import numba.np.arraymath as am, numba.np.linalg as la
+print("scipy.linalg" in sys.modules, am._HAVE_BLAS, am.ensure_blas is la.ensure_blas, float(hx[2, 2]))
+"""
+
+
+def test_the_command_line_spares_numba_s_first_kernel_the_scipy_linalg_import():
+    """numba's BLAS probe imports scipy.linalg at the first kernel of a process (0.3-0.4 s): the command
+    line answers it "no BLAS" (spctool's kernels use no np.correlate/np.convolve, the only users), and
+    puts numba's own probe back; SPCTOOL_BLAS_PROBE=1 runs it."""
+    import os
+
+    def probe(**extra):
+        env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_BLAS_PROBE"} | extra
+        cmd = [sys.executable, "-c", _NUMBA_BLAS_PROBE]
+        run = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        assert run.returncode == 0, run.stderr
+        return run.stdout.split()
+
+    assert probe() == ["False", "False", "True", "5.0"]
+    assert probe(SPCTOOL_BLAS_PROBE="1") == ["True", "True", "True", "5.0"]

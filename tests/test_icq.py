@@ -52,10 +52,13 @@ EXAMPLE_53 = """\
 FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
-@pytest.fixture(params=["python", "kernel"])
+@pytest.fixture(params=["python", "kernel", "plain"])
 def path_kind(request, monkeypatch):
-    """Run a test through the plain-Python reader/writer and through the numba kernels."""
+    """Run a test through the plain-Python reader/writer, through the numba kernels, and through the
+    plain-rows reader (files it does not take go to the kernels)."""
     monkeypatch.setattr(icq, "_KERNEL_MIN_VALUES", 10**12 if request.param == "python" else 0)
+    monkeypatch.setattr(icq, "_PLAIN_MAX_VALUES", 10**12 if request.param == "plain" else -1)
+    monkeypatch.setattr(icq, "_kernel_cached", lambda: request.param != "plain")
     return request.param
 
 
@@ -378,9 +381,11 @@ def test_kernel_writers_equal_python_formatting(monkeypatch, values):
     exact = bytes(icq._format_rows(table, "exact")).decode()
     # Python's "%24.16E" whenever that leaves a blank before the value (2-digit exponents)
     assert exact == "".join("".join(f" {t:23.16E}" for t in row) + "\n" for row in table)
-    # lossless through both readers
-    for limit in (0, 10**12):
+    # lossless through the three readers
+    for limit, plain in ((0, -1), (10**12, -1), (0, 10**12)):
         monkeypatch.setattr(icq, "_KERNEL_MIN_VALUES", limit)
+        monkeypatch.setattr(icq, "_PLAIN_MAX_VALUES", plain)
+        monkeypatch.setattr(icq, "_kernel_cached", lambda cached=plain < 0: cached)
         q1 = "1".rjust(12) + "\n"
         # pad to a full Q = 1 file (24 lines) by repeating the rows
         rows = np.resize(table, (24, 3))

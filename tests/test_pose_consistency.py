@@ -20,10 +20,11 @@ from spctool.stages.pose_consistency import chi2_gate, chi2_quantile, prior_scal
 from tests.test_pose import SIG_A, SIG_P, make_camera, make_landmarks, nees, observe, perturbed
 
 
-@pytest.mark.parametrize("dof", [1, 2, 6, 17, 300])
+@pytest.mark.parametrize("dof", [0.5, 1, 1.5, 2, 3, 6, 17, 300, 5000, 1e5])
 def test_chi2_quantile_matches_scipy(dof):
-    for p in (0.5, 0.99, 0.999):
-        assert chi2_quantile(dof, p) == pytest.approx(stats.chi2.ppf(p, dof), rel=1e-10)
+    """spctool's own quantile (no scipy.special import in navigate) against scipy's, both tails."""
+    for p in (1e-12, 1e-6, 0.01, 0.3, 0.5, 0.7, 0.99, 0.999, 1 - 1e-8, 1 - 1e-12):
+        assert chi2_quantile(dof, p) == pytest.approx(stats.chi2.ppf(p, dof), rel=1e-11), p
     assert math.isnan(chi2_quantile(0, 0.999))
 
 

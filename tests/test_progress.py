@@ -4,6 +4,7 @@ first-use compile note appears exactly when a command's kernels are missing from
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -152,29 +153,35 @@ def test_compile_progress_shows_what_compiles_while_it_compiles(monkeypatch):
 
 
 def test_a_first_interactive_demo_compiles_registration_in_a_helper(monkeypatch):
-    """demo and navigate trace rays first: on a terminal, with both families cold and two cores, a
-    second process compiles register's kernels meanwhile; never off a terminal, for other commands,
-    or with SPCTOOL_NO_HELPER=1; the helper is ended with the command."""
-    assert jit.start_helper("demo", ["camera", "maplet", "rays"], interactive=False) is None
+    """demo and navigate select first and register after: on a terminal, with register's kernels cold
+    and two cores, a second process compiles them meanwhile; never off a terminal, for other
+    commands, or with SPCTOOL_NO_HELPER=1; the helper is ended with the command."""
+    assert jit.start_helper("demo", ["camera", "maplet"], interactive=False) is None
     assert jit.start_helper("register", ["camera", "maplet", "rays"], interactive=True) is None
     assert jit.start_helper("demo", ["camera", "rays"], interactive=True) is None
     monkeypatch.setenv("SPCTOOL_NO_HELPER", "1")
     assert jit.start_helper("navigate", ["maplet", "rays"], interactive=True) is None
     monkeypatch.delenv("SPCTOOL_NO_HELPER")
     monkeypatch.setattr("os.cpu_count", lambda: 2)
-    helper = jit.start_helper("demo", ["camera", "maplet", "rays"], interactive=True)
-    assert helper is not None and helper.args[0]
+    helper = jit.start_helper("demo", ["camera", "maplet"], interactive=True)
+    assert helper is not None and "precompile_kernels" in helper.args[-1]
     jit.stop_helper(helper)
     assert helper.poll() is not None
 
 
-def test_the_helper_s_work_registers_demo_landmarks(tmp_path, monkeypatch):
-    """What the helper runs: register of three demo landmarks in a temporary copy (quiet, no files
-    left behind; here the kernels are cached already, so it only loads them)."""
-    import os
-    import tempfile
+def test_the_helper_compiles_what_register_uses_on_the_demo(tmp_path):
+    """The helper's list is register's: after a register of the demo's pictures (maplet space) every listed
+    kernel holds exactly the listed signature and no other one; precompile_kernels then only loads
+    them (here they are compiled already)."""
+    import importlib
 
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    cwd = os.getcwd()
-    assert jit.precompile_registration(cli) is True
-    assert os.getcwd() == cwd and list(tmp_path.iterdir()) == []
+    from spctool.sim.demo import copy_demo
+
+    root = copy_demo(tmp_path / "demo")
+    for picture in ("P000000001A1", "P000000002A1", "P000000003A1", "P000000004A1"):
+        res = CliRunner().invoke(cli, ["-q", "-C", str(root), "register", picture, "-o", os.devnull])
+        assert res.exit_code == 0, res.output
+    for module, name, codes in jit.REGISTER_KERNELS:
+        disp = getattr(importlib.import_module(module), name)
+        assert disp.signatures == [jit.kernel_signature(codes)], (name, disp.signatures)
+    assert jit.precompile_kernels() == len(jit.REGISTER_KERNELS)

@@ -1019,3 +1019,42 @@ def test_as_shape_from_formats_objects(real):
     assert isinstance(tri, TriangleShape)
     with pytest.raises(TypeError):
         as_shape("not a shape")
+
+
+def test_few_rays_traced_in_numpy_equal_the_kernels_bit_for_bit(ell8, crater12):
+    """The numpy path for a few rays (no kernel compiled, no hierarchy built) gives exactly what the
+    BVH kernel and the brute-force kernel give: cell, t, u, v and the hit point."""
+    from spctool.geometry import shape as shape_mod
+
+    rng = np.random.default_rng(21)
+    for shp in (ell8, crater12):
+        o, d = rays_at_box(rng, 60)
+        corners = shp._verts[rng.choice(len(shp._verts), 20)]  # through vertices: u, v at 0 or 1, ties
+        d[40:] = corners - o[40:]
+        o[3] = np.nan  # a non-finite origin and a zero direction: no hit on either path
+        d[4] = 0.0
+        t_max = np.where(np.arange(60) % 7 == 0, rng.uniform(0.5, 2.0, 60), np.inf)
+        n, oo, dd, t0, t1 = shape_mod._rays(o, d, 0.0, t_max)
+        k, t, u, v, p = shape_mod._trace_patches_numpy(shp._verts, shp.q, shp._eps, n, oo, dd, t0, t1)
+        assert np.array_equal(k, shp.first_hit(o, d, t_max).index)  # ≤ NUMPY_TRACE_RAYS: numpy
+        ref = shp._trace_numba(False, n, oo, dd, t0, t1)  # the hierarchy's kernel
+        brute = shp.brute_force_first_hit(o, d, t_max)
+        assert 0.2 < (k >= 0).mean() < 0.95 and k[3] == -1 and k[4] == -1
+        for a, b in zip((k, t, u, v, p), ref):
+            assert np.array_equal(a, b, equal_nan=True)
+        assert np.array_equal(k, brute.index) and np.array_equal(t, brute.t)
+        assert np.array_equal(u, brute.u, equal_nan=True) and np.array_equal(v, brute.v, equal_nan=True)
+
+
+def test_patch_hierarchy_built_only_when_the_kernels_need_it(ell8):
+    from spctool.geometry.shape import NUMPY_TRACE_RAYS, PatchShape
+
+    s = PatchShape(ell8.vertices)
+    rng = np.random.default_rng(22)
+    o, d = rays_at_box(rng, NUMPY_TRACE_RAYS)
+    few = s.first_hit(o, d)
+    assert "bvh_prims" not in s.__dict__  # numpy: no tree
+    assert np.array_equal(s.any_hit(o, d), few.hit)
+    o2, d2 = rays_at_box(rng, NUMPY_TRACE_RAYS + 1)
+    s.first_hit(o2, d2)
+    assert "bvh_prims" in s.__dict__ and sorted(s.bvh_prims.tolist()) == list(range(s.n_cells))

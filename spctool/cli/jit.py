@@ -2,14 +2,18 @@
 
 spctool's hot loops are numba kernels compiled on their first call and cached on disk (next to the
 module, or in ``NUMBA_CACHE_DIR``).  On a fresh install the first command that needs them spends
-about half a minute compiling, so :func:`first_run_note` checks, before a command runs,
+up to about 15 s of CPU compiling (a first ``spctool demo``), so :func:`first_run_note` checks, before a
+command runs,
 whether the kernels that command uses have a cached index file (numba's own cache locator says where)
 and, when one is missing, arms one note on stderr that is printed when numba really starts compiling
 (its ``numba:compile`` event).  A command that refuses its input before any kernel runs therefore
 prints its one error line and nothing else; on a terminal :class:`CompileProgress` then shows, every
 half second, which kernel compiles and how many are done.  ``spctool warmup`` compiles every kernel the
 commands use by running the shipped demo through lithos-select, register (maplet and image space),
-solve-pose, a small render and make-maplets, so that later commands start at once.
+solve-pose, a small render and make-maplets, so that later commands start at once.  On a terminal a
+first ``demo`` or ``navigate`` also starts a helper process that compiles register's kernels from the
+last to the first (:data:`REGISTER_KERNELS`) while the command compiles them from the first: on two
+cores the first demo then takes about the time of half the compilation.
 """
 
 from __future__ import annotations
@@ -50,15 +54,15 @@ COMMAND_FAMILIES = {
     "render": ("camera", "rays", "render"),
     "simulate": ("camera", "rays", "render"),
     "make-maplets": ("rays",),
-    "demo": _PIPELINE,
+    "demo": ("camera", "maplet"),  # its occlusion tests trace a few rays each: numpy (geometry.shape)
     "navigate": _PIPELINE,
     "batch": _PIPELINE,
     "montecarlo": ("camera", "maplet", "render"),
     "lithos": ("camera", "maplet", "heights"),
 }
-#: a cold `spctool demo` compiles for about this long on one core (27 s of CPU measured at load 4,
-#: docs/benchmarks.md)
-COMPILE_SECONDS = "30 s"
+#: a cold `spctool demo` compiles for about this long on one core (12.7 s of compilation, 15.0 s of CPU
+#: in all, measured at load 4.4; docs/benchmarks.md)
+COMPILE_SECONDS = "15 s"
 
 
 def _index_path(module: str, name: str) -> Path | None:
@@ -291,29 +295,76 @@ def first_run_note(ctx: Context, command: str | None, args=None):
     return disarm_both
 
 
-#: commands that trace rays first (lithos-select's occlusion) and register after, in one process: on a
-#: first run a second process compiles the registration kernels meanwhile
+#: commands that run lithos-select first and register after, in one process: on a first run a second
+#: process compiles register's kernels meanwhile
 HELPED = ("demo", "navigate")
+
+#: register's top-level kernels (maplet space) in the order a first register compiles them, each with
+#: the argument types its call site gives it (one signature each; kernels they call compile with
+#: them).  Codes: f/i/? a float64/int64/boolean scalar; fN, iN, bN, u1 a C-contiguous N-d float64,
+#: int64, bool, uint8 array, ``r`` read-only; FN a tuple of N float64.  tests/test_progress.py checks
+#: that a register on the demo uses exactly these.
+REGISTER_KERNELS = (
+    ("spctool.geometry.camera", "_k_invert", "f1 f1 F34 i F5 f i f2r f1 f1 f2 i1"),
+    ("spctool.geometry.camera", "_k_project_body", "f2 f2r f1r F34 i f1 f1 b1"),
+    ("spctool.geometry._heightkernels", "slopes", "f2 b2 f2 f2 b2"),
+    ("spctool.geometry.camera", "_k_jac_camera", "f2 F34 i f1 f1 f3"),
+    ("spctool.stages.extract", "_brt0_kernel", "f2 f1 f1 f f f f1"),
+    ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),
+    ("spctool.geometry._heightkernels", "march_blocked", "f2 b2 b2 f f f f b2"),
+    ("spctool.stages.correlate", "_k_valid", "f2 b2 ? f b2"),
+    ("spctool.stages.correlate", "_k_bin", "f2 b2 i i i f f2 b2"),
+    ("spctool.stages.correlate", "_k_ncc", "f2 b2 f2 b2 i i i f f2 i2"),
+    ("spctool.stages.correlate", "_k_grid_peak", "f2 ?"),
+    ("spctool.stages.correlate", "_k_alignment", "f2 b2 f2 b2 i i i i i i f2 f1"),
+    ("spctool.stages.extract", "_subsample_kernel", "f2 f1r f1r b1 f1r f1r f1r f1r f1 f f f f1 b1"),
+)
+
+
+def kernel_signature(codes: str) -> tuple:
+    """The numba argument types of a :data:`REGISTER_KERNELS` signature."""
+    from numba.core import types
+
+    scalars = {"f": types.float64, "i": types.int64, "?": types.boolean}
+    dtypes = {"f": types.float64, "i": types.int64, "b": types.boolean, "u": types.uint8}
+    out = []
+    for code in codes.split():
+        if code in scalars:
+            out.append(scalars[code])
+        elif code[0] == "F":
+            out.append(types.UniTuple(types.float64, int(code[1:])))
+        else:
+            ndim = int(code[1:].rstrip("r"))
+            out.append(types.Array(dtypes[code[0]], ndim, "C", readonly=code.endswith("r")))
+    return tuple(out)
+
+
+def precompile_kernels(kernels=REGISTER_KERNELS, *, reverse: bool = True) -> int:
+    """Compile (or load from numba's cache) ``kernels`` for their signatures, last first by default:
+    the helper's work.  The command compiles them first to last as it reaches them, so the two meet
+    in the middle (a kernel the helper has cached is loaded, not compiled again; numba writes its
+    cache files whole and renames them).  Returns how many were compiled or loaded."""
+    done = 0
+    for module, name, codes in reversed(kernels) if reverse else kernels:
+        getattr(importlib.import_module(module), name).compile(kernel_signature(codes))
+        done += 1
+    return done
 
 
 def start_helper(command: str, cold, *, interactive: bool | None = None):
-    """On a terminal, for a :data:`HELPED` command whose ray and registration kernels are both cold and
-    a machine of two cores or more, start a second Python process that compiles the registration
-    kernels (register of three demo landmarks, :func:`precompile_registration`) while this one traces
-    rays: numba's cache is shared by the two (its files are written whole and renamed), so this
-    process later loads what the other compiled.  Returns the process, or None."""
+    """On a terminal, for a :data:`HELPED` command whose registration kernels are cold and a machine of
+    two cores or more, start a second Python process that compiles them (:func:`precompile_kernels`,
+    last first) while this one reads, selects and compiles them first to last.  Returns the process,
+    or None."""
     import os
     import subprocess
 
     interactive = sys.stderr.isatty() if interactive is None else interactive
-    if command not in HELPED or not {"rays", "maplet"} <= set(cold) or not interactive:
+    if command not in HELPED or "maplet" not in cold or not interactive:
         return None
     if (os.cpu_count() or 1) < 2 or os.environ.get("SPCTOOL_NO_HELPER") == "1":
         return None
-    code = (
-        "from spctool.cli.main import cli; from spctool.cli.jit import precompile_registration; "
-        "precompile_registration(cli)"
-    )
+    code = "from spctool.cli.jit import precompile_kernels; precompile_kernels()"
     try:
         return subprocess.Popen(
             [sys.executable, "-c", code],
@@ -335,34 +386,14 @@ def stop_helper(helper) -> None:
             helper.kill()
 
 
-def precompile_registration(cli) -> bool:
-    """Compile and cache register's kernels (maplet space): ``cli`` (the ``spctool`` group, passed in:
-    this module is below it) registers three landmarks of the shipped demo in a temporary copy; True
-    when that register ran to its end (exit code 0)."""
-    import os
-
-    from spctool.sim.demo import copy_demo
-
-    with tempfile.TemporaryDirectory(prefix="spctool-precompile-") as tmp:
-        root = copy_demo(Path(tmp) / "demo")
-        pic = sorted(p.stem for p in (root / "SUMFILES").glob("*.SUM"))[0]
-        names = sorted(p.stem for p in (root / "LMKFILES").glob("*.LMK"))[:3]
-        args = ["-q", "-C", str(root), "register", pic, *names, "-o", os.devnull]
-        try:
-            rv = cli.main(args=args, prog_name="spctool", standalone_mode=False)
-        except SystemExit as exc:
-            rv = exc.code
-        return rv in (0, None)
-
-
 @click.command("warmup")
 @pass_context
 def warmup_cmd(ctx: Context):
     """Compile and cache every numba kernel now, so that later commands start at once.
 
     spctool's inner loops are compiled on their first use and cached on disk (next to the installed
-    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends about
-    half a minute compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
+    modules, or under NUMBA_CACHE_DIR); the first command after an install otherwise spends up to
+    about 15 s compiling.  warmup byte-compiles spctool's own modules (as pip does for a wheel: an editable
     install under PYTHONDONTWRITEBYTECODE otherwise compiles them from source in every command, about
     0.2 s), then runs the shipped demo working directory through lithos-select, register in
     maplet and in image space, solve-pose, a render of a small window, make-maplets and lithos's

@@ -514,6 +514,18 @@ def _say_adapted(ctx, adapted) -> None:
     "cells: a peak between two L-cell grid points is no longer read at half its height.",
     default=1,
 )
+@click.option(
+    "--capped-phases",
+    "capped_phases",
+    type=click.IntRange(1, 4),
+    default=2,
+    show_default=True,
+    metavar="P",
+    help="S16 schedule, maplet space: when the maplet's size capped the schedule (one step at the cap "
+    "instead of the coarser ones, said with -v), the first step runs at max(P, --first-phases) phases: "
+    "at the cap the grid's border offsets overlap half the maplet and can beat a peak read between grid "
+    "points (1 = the capped step as given).",
+)
 @options.acquire_reach_option(
     "S16 schedule, maplet space: the first step (spacing L >= 2) searches +-CELLS on the photo "
     "resampled onto the maplet's grid extended beyond its edge, so every offset compares the whole "
@@ -636,6 +648,7 @@ def register_cmd(ctx: Context, **kw):
         "converge_tol": kw["converge_tol"],
         "edge_retries": kw["edge_retries"],
         "first_phases": kw["first_phases"],
+        "capped_phases": kw["capped_phases"],
         "acquire_reach": kw["acquire_reach"],
         "converge_max": kw["converge_max"],
         "converge_peak": kw["converge_peak"],
@@ -682,7 +695,7 @@ def register_cmd(ctx: Context, **kw):
         "status_counts": result.status_counts(),
         "registered": int(result.ok.sum()),
         "passes": result.passes,
-        "options": opts.as_dict(),
+        "options": result.options.as_dict(),  # as run (capped_phases may have raised first_phases)
         "warnings": list(result.warnings),
         "adapted": [text for _, text in result.adapted],
     }

@@ -352,6 +352,7 @@ class IcqShape:
 # Below this many numbers the plain-Python reader/writer is used: the same results, without the
 # one-off cost (~0.5–1 s) of starting numba in a fresh process.
 _KERNEL_MIN_VALUES = 60_000
+_PLAIN_MAX_VALUES = 1_000_000  # plain rows up to this many values (q ≈ 230) read by _parse_rows_plain
 
 
 # =============================================================================================
@@ -414,7 +415,12 @@ def _parse_bytes(data: bytes, path) -> IcqShape:
         )
     ncols = n_tok
     what = "x y z albedo" if ncols == 4 else "x y z"
-    if nvert * ncols < _KERNEL_MIN_VALUES:
+    n_values = nvert * ncols
+    plain = n_values <= _PLAIN_MAX_VALUES and (n_values < _KERNEL_MIN_VALUES or not _kernel_cached())
+    fast = _parse_rows_plain(data, nl + 1, nvert, ncols) if plain else None
+    if fast is not None:
+        out, end = fast
+    elif nvert * ncols < _KERNEL_MIN_VALUES:
         out, end = _parse_rows_python(data, nl + 1, nvert, ncols, where, what)
     else:
         out, end = _parse_rows_kernel(data, nl + 1, nvert, ncols, where, what, q)
@@ -437,6 +443,46 @@ def _parse_bytes(data: bytes, path) -> IcqShape:
     shape = IcqShape(q, vertices, albedo, where, source)
     shape.__dict__["_spc_warnings"] = warnings
     return shape
+
+
+_PLAIN = b"0123456789.+-eE \t\r\n"  # the bytes of plain decimal rows
+
+
+def _kernel_cached() -> bool:
+    """Whether the reader kernel is in numba's on-disk cache (then it is the fastest reader; until it
+    is, plain rows are read without compiling it: a first run spends no 3 s on it)."""
+    try:
+        from spctool.formats._icqkernels import parse_records
+
+        return os.path.exists(parse_records._cache._cache_file._index_path)
+    except Exception:  # another numba's internals: compile as before
+        return True
+
+
+def _parse_rows_plain(data: bytes, pos: int, nvert: int, ncols: int):
+    """The common case at C speed, or None: every vertex line holds exactly ``ncols`` plain decimal
+    numbers (``[+-]digits[.digits][E[+-]digits]``, as SPC writes them), converted by Python's
+    correctly rounded ``float`` (the value :func:`fortran.parse_number` and the kernel give).  Any
+    other line (Fortran's ``D`` or letterless exponents, commas, repeat counts, extra values, an
+    error to report) returns None: the exact readers take the file (no numba compilation for the
+    plain files of a first run)."""
+    lines = data[pos:].split(b"\n", nvert)
+    if len(lines) < nvert:
+        return None
+    body = lines[:nvert]
+    if any(b.translate(None, _PLAIN) for b in body):  # a byte outside the plain set
+        return None
+    toks = b" ".join(body).split()
+    if len(toks) != nvert * ncols or any(len(b.split()) != ncols for b in body):
+        return None
+    try:
+        out = np.array([float(t) for t in toks], dtype=np.float64)
+    except ValueError:  # e.g. Fortran's letterless exponent 1.0-05
+        return None
+    if not np.isfinite(out).all():
+        return None
+    end = len(data) if len(lines) <= nvert else len(data) - len(lines[nvert])
+    return out, end
 
 
 def _parse_rows_python(data: bytes, pos: int, nvert: int, ncols: int, where, what: str):

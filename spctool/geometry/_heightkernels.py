@@ -151,7 +151,7 @@ def march_blocked(h, valid, nodes, du, dw, rise, tol, out):
                 k += 1.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, forceinline=True)
 def _stencil(vm2, vm1, v0, vp1, vp2, hm2, hm1, h0, hp1, hp2):
     """One HGT2SLP derivative: the first applicable row of spc-algorithms.md §3.1; returns (d, ok)."""
     if vm1 and vp1:
@@ -171,7 +171,7 @@ def _stencil(vm2, vm1, v0, vp1, vp2, hm2, hm1, h0, hp1, hp2):
     return 0.0, False
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, forceinline=True)
 def _node_slopes(h, valid, r, c):
     """HGT2SLP slopes (dx, dy, ok) of node (r, c): ok unless a direction has no applicable stencil (then
     dx = dy = 0); neighbours outside the grid count as missing."""

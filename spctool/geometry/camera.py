@@ -93,7 +93,7 @@ def model_code(name: str) -> int:
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(forceinline=True, **_JIT)
 def _focal_value(model, q, xn, yn):
     """(x̄, ȳ) → distorted focal plane (x, y) in mm (value only; see :func:`_focal_jac`)."""
     mmfl = q[0]
@@ -157,7 +157,7 @@ def _focal_value(model, q, xn, yn):
     return x * (1.0 + q[15] * rr2 + q[16] * rr2 * math.sqrt(rr2)), mmfl * yn
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(forceinline=True, **_JIT)
 def _focal_jac(model, q, xn, yn):
     """(x̄, ȳ) → (x, y) mm and a = ∂(x, y)/∂(x̄, ȳ), differentiated term by term from §6.4."""
     mmfl = q[0]

@@ -37,7 +37,10 @@ Both traversals are numba kernels (:mod:`spctool.geometry._raykernels`; the tree
 first walk with t-pruning for first hits and early exit for any-hit queries over a packed 4-wide
 hierarchy (float32 boxes rounded outward), parallel over rays.  Batches of ≥ 4096 rays are traced in
 a coherent order (rays sorted by direction, then origin, by an O(n) radix sort) and the results
-written back in the caller's order.
+written back in the caller's order.  A few rays on a patch shape (at most :data:`NUMPY_TRACE_RAYS`,
+e.g. lithos-select's occlusion test of one picture's candidates) are traced in numpy instead, every
+cell tested with the same arithmetic (:func:`_trace_patches_numpy`, equal to the kernels bit for bit):
+no kernel to compile on a first run, and the patch hierarchy is built only when the kernels need it.
 
 The patch hierarchy is built from the ICQ grid itself: six face quadtrees (blocks of 2×2 cells as
 leaves) whose boxes are merged bottom-up — O(n), well under a second for q = 512 (1.57 M cells).
@@ -83,6 +86,8 @@ SPC_SMALL_A = 1e-8
 """SPC's switch between the closed-form root and its series, on \\|A\\| (erratum 13)."""
 
 _SORT_MIN_RAYS = 4096  # above this many rays, trace them in a coherent order (ray_order)
+NUMPY_TRACE_RAYS = 64  # up to this many rays on a patch shape: numpy brute force (no kernel compiled)
+_NUMPY_TRACE_CELLS = 1 << 21  # … and while rays × cells stays below this (milliseconds per ray)
 _BOX_PAD_REL = 1e-9  # BVH boxes are padded by this fraction of the model's extent (rounding safety)
 _EMBREE_SLACK_REL = 2.0**-16  # Embree rays reach this fraction of the model's size past both ends
 
@@ -547,8 +552,23 @@ class PatchShape(_Shape):
         self._eps = float(eps)
         self.eps = float(eps)
         self._faces = np.zeros((0, 3), np.int64)
-        self._set_tree(_bvh.build_patch_tree(self._verts, self.q, int(leaf_side), self._eps,
-                                            _pad_for(self._verts)))
+        self._leaf_side = int(leaf_side)
+
+    def __getattr__(self, name):
+        """The ``bvh_*`` arrays, built on first use (a few rays are traced without them)."""
+        if name.startswith("bvh_") and "_leaf_side" in self.__dict__ and "bvh_prims" not in self.__dict__:
+            self._set_tree(_bvh.build_patch_tree(self._verts, self.q, self._leaf_side, self._eps,
+                                                _pad_for(self._verts)))
+            return self.__dict__[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def _trace(self, any_hit, n, o, d, t0, t1):
+        if 0 < n <= NUMPY_TRACE_RAYS and n * self.n_primitives <= _NUMPY_TRACE_CELLS:
+            return _trace_patches_numpy(self._verts, self.q, self._eps, n, o, d, t0, t1)
+        return self._trace_numba(any_hit, n, o, d, t0, t1)
+
+    def _any(self, n, o, d, t0, t1):
+        return self._trace(True, n, o, d, t0, t1)[0] >= 0
 
     @property
     def n_primitives(self) -> int:
@@ -794,6 +814,117 @@ class TriangleShape(_Shape):
         """Total facet area (km²)."""
         t = self.vertices[self.faces]
         return float(np.sum(np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1))) / 2.0
+
+
+def _trace_patches_numpy(verts, q, eps, n, o, d, t0, t1):
+    """First hits of ``n`` rays on the ICQ patches (``verts`` (6(q+1)², 3)) by testing every cell in
+    numpy: :func:`_raykernels.trace_brute`'s search (L15 Eq. 3.21–3.35 with errata 13–16, each
+    operation in the kernels' order, so the result is theirs bit for bit; ties → the smaller cell)
+    without compiling anything.  Inputs as :func:`_rays` returns them; returns ``(k, t, u, v, p)``."""
+    qq = q * q
+    k = np.arange(6 * qq, dtype=np.int64)
+    f, r = np.divmod(k, qq)
+    j, i = np.divmod(r, q)
+    q1 = q + 1
+    b = f * q1 * q1 + j * q1 + i  # _raykernels.cell_base
+    out_k = np.full(n, -1, np.int64)
+    out_t = np.full(n, np.inf)
+    out_u = np.full(n, np.nan)
+    out_v = np.full(n, np.nan)
+    out_p = np.full((n, 3), np.nan)
+    vx, vy, vz = verts[:, 0], verts[:, 1], verts[:, 2]
+    e1, e2 = -eps, 1.0 + eps
+
+    def outside(a0, a1, a2, a3):  # _raykernels._outside
+        A1 = a1 - a0
+        A2 = a2 - a0
+        A3 = a0 - a1 - a2 + a3
+        c00 = a0 + A1 * e1 + A2 * e1 + A3 * e1 * e1
+        c10 = a0 + A1 * e2 + A2 * e1 + A3 * e2 * e1
+        c01 = a0 + A1 * e1 + A2 * e2 + A3 * e1 * e2
+        c11 = a0 + A1 * e2 + A2 * e2 + A3 * e2 * e2
+        return ((c00 > 0.0) & (c10 > 0.0) & (c01 > 0.0) & (c11 > 0.0)) | (
+            (c00 < 0.0) & (c10 < 0.0) & (c01 < 0.0) & (c11 < 0.0))
+
+    with np.errstate(all="ignore"):
+        for r in range(n):  # a few rays; every cell at once (screened, then solved)
+            ox, oy, oz = (float(x) for x in o[r if o.shape[0] > 1 else 0])
+            dx, dy, dz = (float(x) for x in d[r if d.shape[0] > 1 else 0])
+            lo = float(t0[r if t0.shape[0] > 1 else 0])
+            hi = float(t1[r if t1.shape[0] > 1 else 0])
+            nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not (0.0 < nd < math.inf and math.isfinite(ox + oy + oz) and lo <= hi):
+                continue
+            dx, dy, dz = dx / nd, dy / nd, dz / nd
+            ny = dy * dy + dz * dz  # _raykernels.tilde_frame
+            if ny > 1e-12:
+                s = 1.0 / math.sqrt(ny)
+                yx, yy, yz = 0.0, dz * s, -dy * s
+            else:
+                s = 1.0 / math.sqrt(dx * dx + dz * dz)
+                yx, yy, yz = -dz * s, 0.0, dx * s
+            fr = (yy * dz - yz * dy, yz * dx - yx * dz, yx * dy - yy * dx, yx, yy, yz, dx, dy, dz)
+            px = vx - ox  # _raykernels._project, every vertex
+            py = vy - oy
+            pz = vz - oz
+            X = px * fr[0] + py * fr[1] + pz * fr[2]
+            Y = px * fr[3] + py * fr[4] + pz * fr[5]
+            # a superset of the cells the sign screen keeps, cheaply: the extended corners (weights summing
+            # to 1, the negative ones 2·eps(1+eps) at most) lie within that fraction of the corners' span
+            # around it (doubled here; 1e-9·max|a| covers rounding); the exact arithmetic below runs on
+            # these cells only
+            cx = np.stack((X[b], X[b + 1], X[b + q1], X[b + q1 + 1]))
+            cy = np.stack((Y[b], Y[b + 1], Y[b + q1], Y[b + q1 + 1]))
+            keep = np.ones(b.shape[0], bool)
+            for cc in (cx, cy):
+                clo, chi = cc.min(axis=0), cc.max(axis=0)
+                slack = 4.0 * eps * (1.0 + eps) * (chi - clo) + 1e-9 * np.maximum(np.abs(clo), np.abs(chi))
+                keep &= (clo - slack <= 0.0) & (chi + slack >= 0.0)
+            cells = np.flatnonzero(keep)
+            if cells.size == 0:
+                continue
+            bc = b[cells]
+            x0, x1, x2, x3 = (c[cells] for c in cx)
+            y0, y1, y2, y3 = (c[cells] for c in cy)
+            ok = ~(outside(x0, x1, x2, x3) | outside(y0, y1, y2, y3))  # _raykernels.patch_solve
+            X1 = x1 - x0
+            X2 = x2 - x0
+            X3 = x0 - x1 - x2 + x3
+            Y1 = y1 - y0
+            Y2 = y2 - y0
+            Y3 = y0 - y1 - y2 + y3
+            A = X1 * Y3 - X3 * Y1
+            B = X1 * Y2 - X2 * Y1 + x0 * Y3 - X3 * y0
+            C = x0 * Y2 - X2 * y0
+            D = B * B - 4.0 * A * C
+            ok &= D > 0.0
+            sq = np.sqrt(np.where(ok, D, 0.0))
+            qd = np.where(B >= 0.0, -0.5 * (B + sq), -0.5 * (B - sq))
+            u = C / qd
+            ok &= (u >= -eps) & (u <= 1.0 + eps)
+            dxn = X2 + X3 * u
+            dyn = Y2 + Y3 * u
+            use_x = np.abs(dxn) > np.abs(dyn)
+            ok &= use_x | (dyn != 0.0)
+            v = np.where(use_x, -(x0 + X1 * u) / dxn, -(y0 + Y1 * u) / dyn)
+            ok &= (v >= -eps) & (v <= 1.0 + eps)
+            zi = (bc, bc + 1, bc + q1, bc + q1 + 1)
+            z0, z1, z2, z3 = (px[i] * fr[6] + py[i] * fr[7] + pz[i] * fr[8] for i in zi)
+            t = z0 + (z1 - z0) * u + (z2 - z0) * v + (z0 - z1 - z2 + z3) * u * v
+            ok &= (t >= lo) & (t <= hi)
+            if not ok.any():
+                continue
+            t = np.where(ok, t, np.inf)
+            j = int(np.argmin(t))  # the nearest; ties → the smaller cell (the first minimum; cells ascend)
+            uu, vv = float(u[j]), float(v[j])
+            out_k[r], out_t[r], out_u[r], out_v[r] = cells[j], t[j], uu, vv
+            c = bc[j]
+            w0 = (1.0 - uu) * (1.0 - vv)
+            w1 = uu * (1.0 - vv)
+            w2 = (1.0 - uu) * vv
+            w3 = uu * vv
+            out_p[r] = w0 * verts[c] + w1 * verts[c + 1] + w2 * verts[c + q1] + w3 * verts[c + q1 + 1]
+    return out_k, out_t, out_u, out_v, out_p
 
 
 def _rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:

@@ -410,7 +410,7 @@ def shadow_offsets(sun_xy, ds: int, lateral: int = 2, band: bool = True, include
 _JIT = dict(cache=True, nogil=True)
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(forceinline=True, **_JIT)
 def _corner(data, row, col, t_lo, t_hi):
     v = float(data[row, col])
     if v >= t_lo and v <= t_hi:  # NaN fails both
@@ -418,7 +418,7 @@ def _corner(data, row, col, t_lo, t_hi):
     return 0.0
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(forceinline=True, **_JIT)
 def _brt0_one(data, x, y, t_lo, t_hi, floor_value):
     """BRT0 at one point (1-based sample x, line y); 0 = invalid."""
     nln, npx = data.shape

@@ -78,6 +78,7 @@ full-resolution stage did not settle within ``converge_max`` steps).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -329,6 +330,14 @@ def register(
     )
     if capped:
         _cap_warnings(reg, caps, top, result)
+        if (
+            opts.schedule == "retina_s16"
+            and opts.space == "maplet"
+            and opts.capped_phases > opts.first_phases
+            and np.any(caps < top)
+        ):  # the capped step's border offsets overlap half the maplet: a denser first step (capped_phases)
+            opts = dataclasses.replace(opts, first_phases=opts.capped_phases)
+            reg.options = result.options = opts
     if opts.schedule == "retina_s16":
         workers = landmark_workers(opts, n)
         if workers > 1:

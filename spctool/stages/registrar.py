@@ -127,6 +127,12 @@ class RegisterOptions:
       two grid points at a fraction of its height (ρ ≈ 0.5 where it is 0.9 on the point; s16-50m
       Monte Carlo, L = 10), and an edge peak over a third of the overlap can beat it; 2 samples the
       surface at L/2 cells.  Costs p² − 1 more steps per landmark.
+    * ``capped_phases`` — S16 driver, maplet space: when the maplet's size capped the schedule (one
+      step at the cap replaces the coarser ones, :func:`spctool.stages.register.spacing_cap`), the
+      first step is taken at max(``first_phases``, this) phases (2).  At the cap the grid's border
+      offsets keep about half of the maplet per axis, the case above: on the shipped demo (49×49
+      maplets, cap L = 5, a-priori errors of 2–5 px) landmark B02631 of P000000002A1 read its peak
+      between two grid points and ended ``edge-peak`` at one phase; 1 runs the capped step as given.
     * ``acquire_reach`` — S16 driver, maplet space (cells): the steps at the schedule's first spacing
       L ≥ 2 (its phases and edge retries) search ±k·L cells, k = max(``grid_half``, ⌈reach / L⌉), on
       the photo resampled onto the maplet's grid extended by (k + 1)·L cells per side (heights continued
@@ -192,6 +198,7 @@ class RegisterOptions:
     fail_fast: bool = True
     edge_retries: int = 2
     first_phases: int = 1
+    capped_phases: int = 2
     acquire_reach: int = 0
     pose_update: bool = True
     halve_shift: bool = False
@@ -250,6 +257,9 @@ class RegisterOptions:
         if int(self.first_phases) != self.first_phases or not 1 <= int(self.first_phases) <= 4:
             raise SpcUsageError(f"first_phases must be an integer from 1 to 4, got {self.first_phases}")
         self.first_phases = int(self.first_phases)
+        if int(self.capped_phases) != self.capped_phases or not 1 <= int(self.capped_phases) <= 4:
+            raise SpcUsageError(f"capped_phases must be an integer from 1 to 4, got {self.capped_phases}")
+        self.capped_phases = int(self.capped_phases)
         if int(self.acquire_reach) != self.acquire_reach or int(self.acquire_reach) < 0:
             raise SpcUsageError(
                 f"acquire_reach must be an integer >= 0 (cells; px in image space), got {self.acquire_reach}"
