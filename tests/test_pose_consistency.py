@@ -14,10 +14,10 @@ import math
 import numpy as np
 import pytest
 from scipy import stats
+from test_pose import SIG_A, SIG_P, make_camera, make_landmarks, nees, observe, perturbed
 
 from spctool.stages.pose import PoseOptions, solve_pose
 from spctool.stages.pose_consistency import chi2_gate, chi2_quantile, prior_scale_step, prior_test
-from tests.test_pose import SIG_A, SIG_P, make_camera, make_landmarks, nees, observe, perturbed
 
 
 @pytest.mark.parametrize("dof", [0.5, 1, 1.5, 2, 3, 6, 17, 300, 5000, 1e5])
