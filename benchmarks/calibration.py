@@ -44,26 +44,15 @@ for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MK
 import numpy as np  # noqa: E402
 
 WORLDS = ("facet-high", "facet-low", "smooth-high", "smooth-low")
-LOW_SUN_DEG = 70.0
 NEES_999 = 22.458  # χ²₆ 99.9 % quantile
 
 
 def world_spec(name):
-    from spctool.sim.independent import IndependentSpec
+    """The independent world NAME ("facet-high", …): bench_accuracy's worlds, the same specification."""
+    from bench_accuracy import _spec
 
     truth, sun = name.split("-")
-    return IndependentSpec(
-        truth=truth,
-        n_side=4,
-        qsz=49,
-        scale_km=5e-5,
-        spacing_cells=60.0,
-        range_km=0.2,
-        npx=300,
-        seed=16,
-        apriori_px=(6.0, 14.0, 20.0, 10.0, 17.0, 20.0),
-        sun_incidence_deg=None if sun == "high" else LOW_SUN_DEG,
-    )
+    return _spec(truth, sun)
 
 
 def world(root, name):
