@@ -855,6 +855,11 @@ def test_landmark_workers_default_and_explicit(monkeypatch):
     monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
     assert landmark_workers(RegisterOptions(space="maplet"), 16) == 2
     assert landmark_workers(RegisterOptions(space="maplet"), 3) == 1  # too few landmarks to fork for
+    # too little work to fork for (the demo's 12 maplets of 49²), enough (S16's 16 of 99²)
+    assert landmark_workers(RegisterOptions(space="maplet"), 12, 12 * 49 * 49) == 1
+    assert landmark_workers(RegisterOptions(space="maplet"), 16, 16 * 99 * 99) == 2
+    assert landmark_workers(RegisterOptions(space="maplet", threads=2), 12, 12 * 49 * 49) == 2
+    assert landmark_workers(RegisterOptions(space="image"), 12, 12 * 49 * 49) == 2
     assert landmark_workers(RegisterOptions(space="image"), 3) == 2
     assert landmark_workers(RegisterOptions(space="maplet", threads=3), 2) == 2
     assert landmark_workers(RegisterOptions(space="maplet", threads=1), 16) == 1

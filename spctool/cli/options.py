@@ -576,5 +576,6 @@ threads_option = click.option(
     metavar="N",
     help="Register the landmarks with N workers (s16 schedule; maplet space: processes forked from this "
     "one, image space: threads); 1 = one thread. The results do not depend on N.  [default: "
-    "NUMBA_NUM_THREADS, else every core; maplet space two landmarks per worker at least]",
+    "NUMBA_NUM_THREADS, else every core; maplet space two landmarks per worker at least and one "
+    "process below 100,000 maplet cells in all]",
 )

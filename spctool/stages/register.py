@@ -339,7 +339,7 @@ def register(
             opts = dataclasses.replace(opts, first_phases=opts.capped_phases)
             reg.options = result.options = opts
     if opts.schedule == "retina_s16":
-        workers = landmark_workers(opts, n)
+        workers = landmark_workers(opts, n, sum(int(np.size(lm.maplet.heights)) for lm in reg.landmarks))
         if workers > 1:
             _parallel_s16(reg, camera, steps, start, result, last, tick, workers, caps)
         else:
@@ -416,13 +416,20 @@ def disagreeing_shifts(result: RegisterResult) -> str | None:
 #: maplet space, ``threads=None``: a worker process per this many landmarks at least (a forked worker
 #: costs about ten milliseconds in all, a landmark's S16 schedule ten to fifteen)
 MAPLET_LANDMARKS_PER_WORKER = 2
+#: by default maplet space forks only for at least this many maplet cells in all (Σ (2q+1)²): a cold
+#: ``register`` of a demo picture (12 maplets of 49², 29k cells) took 1.04× the wall of one thread with
+#: a forked worker (farm-bench, 20 A/B pairs; 1.11× in another 10): the copy-on-write faults and the
+#: child's start outweigh ~0.1 s of work; S16's 16 maplets of 99² (157k cells) take 1/1.63 of it
+MAPLET_MIN_CELLS_TO_FORK = 100_000
 
 
-def landmark_workers(opts: RegisterOptions, n: int) -> int:
+def landmark_workers(opts: RegisterOptions, n: int, cells: int | None = None) -> int:
     """Workers over the ``n`` landmarks of an S16 run (:func:`_parallel_s16`): ``threads``, or with
     None numba's thread count (``NUMBA_NUM_THREADS``; all cores unless set; 1 in ``batch``'s and the
     Monte Carlo's workers, which are one core each), at most one per landmark; with None, maplet space
-    also keeps :data:`MAPLET_LANDMARKS_PER_WORKER` landmarks per worker.  1: the one-thread driver."""
+    also keeps :data:`MAPLET_LANDMARKS_PER_WORKER` landmarks per worker and stays in one process below
+    :data:`MAPLET_MIN_CELLS_TO_FORK` maplet cells in all (``cells``, when given).  1: the one-thread
+    driver."""
     if n < 2:
         return 1
     if opts.threads is None:
@@ -431,6 +438,8 @@ def landmark_workers(opts: RegisterOptions, n: int) -> int:
         k = int(numba.get_num_threads())
         if opts.space == "maplet":
             k = min(k, n // MAPLET_LANDMARKS_PER_WORKER)
+            if cells is not None and cells < MAPLET_MIN_CELLS_TO_FORK:
+                k = 1
     else:
         k = int(opts.threads)
     return max(1, min(n, k))
