@@ -347,6 +347,24 @@ def test_common_error_woodbury_equals_the_dense_inverse(common):
     assert np.array_equal(plain.normal(s)[0], zero.normal(s)[0])
 
 
+def _common_error_world(seed):
+    """One seed of the common-error world: 25 landmarks whose pixel errors are the peaks' covariances Cᵢ
+    (5–30 mpx) plus one shift shared by all, 0.03 px along a random 'Sun' (and 0.005 px isotropic).
+    Returns (true camera, points, Cᵢ, the common covariance C, observed pixels, a-priori camera)."""
+    rng = np.random.default_rng(1300 + seed)
+    truth = make_camera(rng)
+    pts = make_landmarks(rng, truth, 25)
+    cov = _covs(rng, 25)
+    a = rng.uniform(0.0, 2.0 * math.pi)
+    sun = np.array([math.cos(a), math.sin(a)])
+    c = 0.03**2 * np.outer(sun, sun) + 0.005**2 * np.eye(2)
+    shift = np.linalg.cholesky(c) @ rng.normal(size=2)
+    noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
+    y = observe(truth, pts) + noise + shift
+    start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+    return truth, pts, cov, c, y, start
+
+
 def test_common_error_makes_the_pose_covariance_honest_over_100_seeds():
     """Pixel errors = the peaks' covariances Cᵢ (5–30 mpx) plus one 0.03 px shift common to all 25
     landmarks along a random 'Sun' direction: weighted with Cᵢ the NEES is far above χ²₆ (the residuals
@@ -354,17 +372,7 @@ def test_common_error_makes_the_pose_covariance_honest_over_100_seeds():
     measurement covariance it follows χ²₆ over 100 seeds."""
     with_c, without = [], []
     for seed in range(100):
-        rng = np.random.default_rng(1300 + seed)
-        truth = make_camera(rng)
-        pts = make_landmarks(rng, truth, 25)
-        cov = _covs(rng, 25)
-        a = rng.uniform(0.0, 2.0 * math.pi)
-        sun = np.array([math.cos(a), math.sin(a)])
-        c = 0.03**2 * np.outer(sun, sun) + 0.005**2 * np.eye(2)
-        shift = np.linalg.cholesky(c) @ rng.normal(size=2)
-        noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
-        y = observe(truth, pts) + noise + shift
-        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        truth, pts, cov, c, y, start = _common_error_world(seed)
         kw = dict(pixel_covariances=cov, prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
         res = solve_pose(start, pts, y, PoseOptions(), common_covariance=c, **kw)
         assert res.converged and res.common_covariance is not None
@@ -455,17 +463,7 @@ def test_uniform_fit_with_the_calibrated_covariance_is_honest_over_100_seeds():
     poses follows χ²₆."""
     values, formal = [], []
     for seed in range(100):
-        rng = np.random.default_rng(1300 + seed)
-        truth = make_camera(rng)
-        pts = make_landmarks(rng, truth, 25)
-        cov = _covs(rng, 25)
-        a = rng.uniform(0.0, 2.0 * math.pi)
-        sun = np.array([math.cos(a), math.sin(a)])
-        c = 0.03**2 * np.outer(sun, sun) + 0.005**2 * np.eye(2)
-        shift = np.linalg.cholesky(c) @ rng.normal(size=2)
-        noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(25, 2)))
-        y = observe(truth, pts) + noise + shift
-        start = perturbed(truth, rng.normal(size=3) * SIG_P, rng.normal(size=3) * SIG_A)
+        truth, pts, cov, c, y, start = _common_error_world(seed)
         kw = dict(prior_sigma_position=SIG_P, prior_sigma_attitude=SIG_A)
         opts = PoseOptions(model_error=False)
         res = solve_pose(
