@@ -368,10 +368,52 @@ def _classify_tag(tag: str) -> str | None:
 
 
 def parse_sum(text: str, path=None) -> Picture:
-    """Parse the text of a SUM file (spc-formats.md §2).  Bad input raises :class:`SpcFormatError`."""
+    """Parse the text of a SUM file (spc-formats.md §2).  Bad input raises :class:`SpcFormatError`.
+
+    Three parts, read as SPC's routines read them: the fixed header (:func:`_read_fixed_header`: name,
+    UTC and the list-directed records to K-MATRIX), the rest of the header (:func:`_read_header_rest`:
+    DISTORTION, SIGMA_VSO, SIGMA_PTG, other lines kept verbatim) and the sections
+    (:func:`_read_sections`: LANDMARKS, LIMB FITS, LINE SCAN DATA, END FILE)."""
     path = source_path(path)
     lines, final = split_lines(text)
+    header: list[Slot] = []
+    warnings: list[tuple[int, str]] = []
+    fixed, pos = _read_fixed_header(lines, path, header, warnings)
+    distortion, sigma_vso, sigma_ptg, header_end = _read_header_rest(lines, pos, path, header, warnings)
+    sec = _read_sections(lines, header_end, path, warnings)
+
+    linescan_data = _parse_linescan(lines, path) if len(lines[0]) >= 14 and lines[0][13] == "L" else None
+    source = _SumSource(
+        linescan_data=linescan_data,
+        warnings=warnings,
+        header=header,
+        section_text=sec.section_text,
+        landmark_rows=sec.landmark_rows,
+        limb_rows=sec.limb_rows,
+        linescan=sec.linescan,
+        after_end=lines[sec.end_index + 1 :],
+        final_newline=final,
+        pad_header=majority_padded(lines[:header_end], False),
+        pad_body=majority_padded(lines[header_end : sec.end_index + 1], False),
+        name_line=lines[0],
+    )
+    return Picture(
+        **fixed,
+        distortion=distortion,
+        sigma_vso=sigma_vso,
+        sigma_ptg=sigma_ptg,
+        landmarks=sec.landmarks,
+        limb_fits=sec.limbs,
+        _source=source,
+    )
+
+
+def _read_fixed_header(lines: list[str], path, header: list[Slot], warnings: list) -> tuple[dict, int]:
+    """The picture name, the UTC and the list-directed records NPX … K-MATRIX (globalStat,
+    map_coverage_p_low).  Appends a :class:`Slot` per record to ``header``; returns the
+    :class:`Picture` fields read and the index of the first line after K-MATRIX."""
     n = len(lines)
+    rec = Records(lines, path)
 
     def need(i: int, what: str) -> str:
         if i >= n:
@@ -379,10 +421,6 @@ def parse_sum(text: str, path=None) -> Picture:
                 raise SpcFormatError(path, 1, f"expected {what}, found an empty file")
             raise SpcFormatError(path, n, f"expected {what} on line {i + 1}, found end of file")
         return lines[i]
-
-    header: list[Slot] = []
-    warnings: list[tuple[int, str]] = []
-    rec = Records(lines, path)
 
     # line 1: globalStat READ(10,*) skips it; the name is columns 1-12, column 14 'L' marks a line-scan
     # picture (xV2IMGPL READ(32,FMT='(A80)') LINE; IF(LINE(14:14).EQ.'L'))
@@ -455,11 +493,21 @@ def parse_sum(text: str, path=None) -> Picture:
     cz = np.array(vec_line("cz", 3, "CZ"))
     sz = np.array(vec_line("sz", 3, "SZ"))
     kmatrix = np.array(vec_line("kmatrix", 6, "K-MATRIX")).reshape(2, 3)
+    fields = dict(
+        name=name, utc=utc, npx=npx, nln=nln, thrsh=thrsh, mmfl=mmfl, ctr=ctr,
+        scobj=scobj, cx=cx, cy=cy, cz=cz, sz=sz, kmatrix=kmatrix,
+    )  # fmt: skip
+    return fields, rec.pos
 
+
+def _read_header_rest(lines: list[str], start: int, path, header: list[Slot], warnings: list):
+    """The header after K-MATRIX, up to the first section line: returns ``(distortion, sigma_vso,
+    sigma_ptg, header_end)``."""
+    n = len(lines)
     # the rest of the header.  DISTORTION: READ(10,FMT='(A80)') LINE; IF(LINE(64:73).EQ.'DISTORTION')
     # READ(LINE,*) (D(I),I=1,4), else D = 0 (globalStat, map_coverage_p_low); SIGMA_VSO / SIGMA_PTG (LITHOS)
     # by tag, untagged lines by position; other lines kept verbatim
-    i = rec.pos
+    i = start
     d_line = i
     rest: list[tuple[int, str, str | None]] = []
     while i < n and _section_kind(lines[i]) is None:
@@ -540,9 +588,26 @@ def parse_sum(text: str, path=None) -> Picture:
         )
         sigma_vso = np.zeros(3) if sigma_vso is None else sigma_vso
         sigma_ptg = np.zeros(3) if sigma_ptg is None else sigma_ptg
-    header_end = i
+    return distortion, sigma_vso, sigma_ptg, i
 
-    # sections
+
+@dataclass
+class _Sections:
+    """What :func:`_read_sections` read."""
+
+    section_text: dict[str, str]
+    landmarks: list[SumLandmark]
+    limbs: list[LimbFit]
+    landmark_rows: list[tuple[tuple, str]]
+    limb_rows: list[tuple[tuple, str]]
+    linescan: tuple[str, list[str]] | None
+    end_index: int
+
+
+def _read_sections(lines: list[str], i: int, path, warnings: list) -> _Sections:
+    """LANDMARKS, LIMB FITS, a LINE SCAN DATA block and END FILE, from line index ``i`` (LMCOUNT's
+    (A80) records)."""
+    n = len(lines)
     section_text: dict[str, str] = {}
     landmarks: list[SumLandmark] = []
     limbs: list[LimbFit] = []
@@ -606,43 +671,7 @@ def parse_sum(text: str, path=None) -> Picture:
         i += 1
     if end_index is None:
         raise SpcFormatError(path, n, "expected END FILE line, found end of file")
-
-    linescan_data = _parse_linescan(lines, path) if len(lines[0]) >= 14 and lines[0][13] == "L" else None
-    source = _SumSource(
-        linescan_data=linescan_data,
-        warnings=warnings,
-        header=header,
-        section_text=section_text,
-        landmark_rows=landmark_rows,
-        limb_rows=limb_rows,
-        linescan=linescan,
-        after_end=lines[end_index + 1 :],
-        final_newline=final,
-        pad_header=majority_padded(lines[:header_end], False),
-        pad_body=majority_padded(lines[header_end : end_index + 1], False),
-        name_line=lines[0],
-    )
-    return Picture(
-        name=name,
-        utc=utc,
-        npx=npx,
-        nln=nln,
-        thrsh=thrsh,
-        mmfl=mmfl,
-        ctr=ctr,
-        scobj=scobj,
-        cx=cx,
-        cy=cy,
-        cz=cz,
-        sz=sz,
-        kmatrix=kmatrix,
-        distortion=distortion,
-        sigma_vso=sigma_vso,
-        sigma_ptg=sigma_ptg,
-        landmarks=landmarks,
-        limb_fits=limbs,
-        _source=source,
-    )
+    return _Sections(section_text, landmarks, limbs, landmark_rows, limb_rows, linescan, end_index)
 
 
 def _parse_sum_landmark(line: str, path, lineno: int, notes: list | None = None) -> SumLandmark:
