@@ -239,33 +239,73 @@ def _section_of(line: str) -> str | None:
 
 
 def parse_lmk(text: str, path=None) -> Landmark:
-    """Parse the text of an LMK file (spc-formats.md §4).  Bad input raises :class:`SpcFormatError`."""
+    """Parse the text of an LMK file (spc-formats.md §4).  Bad input raises :class:`SpcFormatError`.
+
+    Read as LITHOS reads it: line 1 (:func:`_read_lmk_name`), lines 2-9 by position, each a
+    list-directed READ(unit,*) (:func:`_read_lmk_header`), then the sections
+    (:func:`_read_lmk_sections`)."""
     # mirrors: lines 2-9 READ(unit,*) by position (LITHOS); sections READ(27,FMT='(A80)') LINE with
     # LINE(1:8)='PICTURES', (1:12)='MAP OVERLAPS', (1:9)='LIMB FITS', (1:8)='END FILE' (KOUNT)
     path = source_path(path)
     lines, final = split_lines(text)
-    n = len(lines)
-    whats = {
-        "size": "QSZ, SCALE",
-        "horizon": "HORIZON",
-        "sig": "SIGKM, RMSLMK",
-        "vlm": "VLM",
-        "ux": "UX",
-        "uy": "UY",
-        "uz": "UZ",
-        "sigma_lmk": "SIGMA_LMK",
-    }
-
-    def need(i: int, what: str) -> str:
-        if i >= n:
-            if n == 0:
-                raise SpcFormatError(path, 1, f"expected {what}, found an empty file")
-            raise SpcFormatError(path, n, f"expected {what} on line {i + 1}, found end of file")
-        return lines[i]
-
     header: list[Slot] = []
-    # line 1: (A6,3X,A1) or the bigmap variant (A6,3X,A1,4X,2F8.4)
-    line = need(0, "the landmark name and HFLAG")
+    name, hflag, bigmap_extra, line1_notes = _read_lmk_name(lines, path, header)
+    values, pos = _read_lmk_header(lines, path, header)
+    sec = _read_lmk_sections(lines, pos, path)
+    i = sec.end_index
+    section_text, rows, notes = sec.section_text, sec.rows, sec.notes
+    section_order, pictures, overlaps, limbs = sec.section_order, sec.pictures, sec.overlaps, sec.limbs
+
+    source = _LmkSource(
+        header=header,
+        section_order=section_order,
+        section_text=section_text,
+        rows=rows,
+        end_line=lines[i],
+        after_end=lines[i + 1 :],
+        final_newline=final,
+        pad_header=majority_padded(lines[1:9], True),
+        pad_body=majority_padded([lines[0]] + lines[9 : i + 1], False),
+    )
+    source.warnings.extend(line1_notes + notes)
+    missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
+    if missing:
+        # globalCoverage.f KOUNT: READ (A80) until PICTURES, then until MAP OVERLAPS, then LIMB FITS
+        source.warnings.append(
+            (
+                i + 1,
+                f"no {' / '.join(missing)} line before END FILE: globalCoverage.f KOUNT would read on "
+                "past it "
+                "(spctool accepts the trimmed file)",
+            )
+        )
+    return Landmark(
+        name=name,
+        hflag=hflag,
+        bigmap_extra=bigmap_extra,
+        qsz=values["size"][0],
+        scale=values["size"][1],
+        horizon=tuple(values["horizon"]),
+        sigkm=values["sig"][0],
+        rmslmk=values["sig"][1],
+        vlm=np.array(values["vlm"]),
+        ux=np.array(values["ux"]),
+        uy=np.array(values["uy"]),
+        uz=np.array(values["uz"]),
+        sigma_lmk=np.array(values["sigma_lmk"]),
+        pictures=pictures,
+        overlaps=overlaps,
+        limb_fits=limbs,
+        _source=source,
+    )
+
+
+def _read_lmk_name(lines: list[str], path, header: list[Slot]):
+    """Line 1: (A6,3X,A1) or the bigmap variant (A6,3X,A1,4X,2F8.4); returns ``(name, hflag,
+    bigmap_extra, notes)`` and appends its :class:`Slot` to ``header``."""
+    if not lines:
+        raise SpcFormatError(path, 1, "expected the landmark name and HFLAG, found an empty file")
+    line = lines[0]
     name = line[:6].strip()
     if not name:
         raise SpcFormatError(path, 1, "expected the landmark name in columns 1-6")
@@ -291,6 +331,25 @@ def parse_lmk(text: str, path=None) -> Landmark:
         bigmap_extra = (vals[0], vals[1])
     header.append(Slot("name", line, (name, hflag, bigmap_extra)))
 
+    return name, hflag, bigmap_extra, line1_notes
+
+
+_LMK_WHATS = {
+    "size": "QSZ, SCALE",
+    "horizon": "HORIZON",
+    "sig": "SIGKM, RMSLMK",
+    "vlm": "VLM",
+    "ux": "UX",
+    "uy": "UY",
+    "uz": "UZ",
+    "sigma_lmk": "SIGMA_LMK",
+}
+
+
+def _read_lmk_header(lines: list[str], path, header: list[Slot]) -> tuple[dict[str, list[float]], int]:
+    """Lines 2-9; returns their values by key and the index of the first line after them."""
+    n = len(lines)
+    whats = _LMK_WHATS
     # lines 2-9 by position, each a list-directed READ(unit,*) (LITHOS/bigmap write them with the LMK
     # formats of spc-formats.md §4.1); a tag that names another header line is a swapped/duplicated line
     values: dict[str, list[float]] = {}
@@ -315,6 +374,26 @@ def parse_lmk(text: str, path=None) -> Landmark:
         values[key] = v
         header.append(Slot(key, "\n".join(lines[first : res.last + 1]), tuple(v), tag))
 
+    return values, rec.pos
+
+
+@dataclass
+class _LmkSections:
+    """What :func:`_read_lmk_sections` read."""
+
+    section_order: list[str]
+    section_text: dict[str, str]
+    rows: dict[str, list[tuple[tuple, str]]]
+    pictures: list[LandmarkPicture]
+    overlaps: list[MapOverlap]
+    limbs: list[LandmarkLimb]
+    notes: list[tuple[int, str]]
+    end_index: int
+
+
+def _read_lmk_sections(lines: list[str], i: int, path) -> _LmkSections:
+    """PICTURES, MAP OVERLAPS, LIMB FITS to END FILE, from line index ``i`` (KOUNT's (A80) records)."""
+    n = len(lines)
     section_order: list[str] = []
     section_text: dict[str, str] = {}
     rows: dict[str, list[tuple[tuple, str]]] = {"pictures": [], "overlaps": [], "limbs": []}
@@ -323,7 +402,6 @@ def parse_lmk(text: str, path=None) -> Landmark:
     overlaps: list[MapOverlap] = []
     limbs: list[LandmarkLimb] = []
     state = None
-    i = rec.pos
     while i < n:
         ln = lines[i]
         kind = _section_of(ln)
@@ -381,48 +459,7 @@ def parse_lmk(text: str, path=None) -> Landmark:
     if i >= n:
         raise SpcFormatError(path, max(n, 1), "expected END FILE line, found end of file")
 
-    source = _LmkSource(
-        header=header,
-        section_order=section_order,
-        section_text=section_text,
-        rows=rows,
-        end_line=lines[i],
-        after_end=lines[i + 1 :],
-        final_newline=final,
-        pad_header=majority_padded(lines[1:9], True),
-        pad_body=majority_padded([lines[0]] + lines[9 : i + 1], False),
-    )
-    source.warnings.extend(line1_notes + notes)
-    missing = [_SECTIONS[k] for k in ("pictures", "overlaps", "limbs") if k not in section_text]
-    if missing:
-        # globalCoverage.f KOUNT: READ (A80) until PICTURES, then until MAP OVERLAPS, then LIMB FITS
-        source.warnings.append(
-            (
-                i + 1,
-                f"no {' / '.join(missing)} line before END FILE: globalCoverage.f KOUNT would read on "
-                "past it "
-                "(spctool accepts the trimmed file)",
-            )
-        )
-    return Landmark(
-        name=name,
-        hflag=hflag,
-        bigmap_extra=bigmap_extra,
-        qsz=values["size"][0],
-        scale=values["size"][1],
-        horizon=tuple(values["horizon"]),
-        sigkm=values["sig"][0],
-        rmslmk=values["sig"][1],
-        vlm=np.array(values["vlm"]),
-        ux=np.array(values["ux"]),
-        uy=np.array(values["uy"]),
-        uz=np.array(values["uz"]),
-        sigma_lmk=np.array(values["sigma_lmk"]),
-        pictures=pictures,
-        overlaps=overlaps,
-        limb_fits=limbs,
-        _source=source,
-    )
+    return _LmkSections(section_order, section_text, rows, pictures, overlaps, limbs, notes, i)
 
 
 def _lmk_line(lmk: Landmark, slot: Slot, pad_header: bool, pad_body: bool) -> str:
