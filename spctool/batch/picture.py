@@ -181,13 +181,19 @@ def _navigate(workdir, picture, options, shared, stamp) -> PictureOutcome:
 
 
 def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: PictureOutcome, timings):
+    """One picture through SPC's stages (reading, A lithos-select, H register, I solve-pose), each
+    timed into ``timings``; results and the new SUM text go into ``out``."""
+    pic, camera, photo = _read_inputs(shared, picture, out, timings)
+    sel = _select_stage(shared, pic, camera, out, timings)
+    reg, nav, names, positions = _register_stage(shared, pic, camera, photo, sel, options, out, timings)
+    _pose_stage(pic, camera, reg, nav, names, positions, options, out, timings)
+
+
+def _read_inputs(shared: SharedData, picture: str, out: PictureOutcome, timings):
+    """The SUM (hashed, parsed, checked finite), its camera and its photo (size checked)."""
     from spctool.formats.sumfile import parse_sum
     from spctool.geometry.camera import Camera
-    from spctool.stages.pose import solve_pose
-    from spctool.stages.register import register
-    from spctool.stages.select import select_maplets
 
-    summary = out.summary
     wd = shared.wd
     clock = time.perf_counter()
 
@@ -211,6 +217,14 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
         )
     timings["read_s"] = time.perf_counter() - clock
 
+    return pic, camera, photo
+
+
+def _select_stage(shared: SharedData, pic, camera, out: PictureOutcome, timings):
+    """Stage A: the maplets the picture sees, with their a-priori pixels."""
+    from spctool.stages.select import select_maplets
+
+    summary = out.summary
     # ---- Stage A: lithos-select ------------------------------------------------------------------
     clock = time.perf_counter()
     sel = select_maplets(
@@ -245,6 +259,15 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
     )
     timings["select_s"] = time.perf_counter() - clock
 
+    return sel
+
+
+def _register_stage(shared: SharedData, pic, camera, photo, sel, options: BatchOptions, out, timings):
+    """Stage H: the selected landmarks registered (two-pass navigation when asked); a landmark whose
+    maplet cannot be read is a ``no-maplet`` row."""
+    from spctool.stages.register import register
+
+    summary = out.summary
     # ---- Stage H: register -----------------------------------------------------------------------
     clock = time.perf_counter()
     chosen = np.flatnonzero(sel.selected)
@@ -317,12 +340,20 @@ def _run_stages(shared: SharedData, picture: str, options: BatchOptions, out: Pi
             rows.append(row)
         table = LandmarkTable.from_rows(rows, picture=pic.name, command="register", meta=meta)
     table.comments.append(
-        f"registered {summary.found} of {len(reg) + len(missing)} landmarks "
-        f"({schedule}, {ropts.space} space)"
+        f"registered {summary.found} of {len(reg) + len(missing)} landmarks ({schedule}, {ropts.space} space)"
     )
     out.register_table = table
     timings["register_s"] = time.perf_counter() - clock
 
+    return reg, nav, names, positions
+
+
+def _pose_stage(pic, camera, reg, nav, names, positions, options: BatchOptions, out, timings):
+    """Stage I: the pose from the registered landmarks, the status it earns and the new SUM text."""
+    from spctool.stages.pose import solve_pose
+
+    summary = out.summary
+    ok = reg.ok
     # ---- Stage I: solve-pose ---------------------------------------------------------------------
     clock = time.perf_counter()
     new_pic = with_measured_landmarks(pic, reg.names, reg.measured, reg.ok)
@@ -502,7 +533,11 @@ def read_marker(out_dir, picture: str) -> dict | None:
 
 
 def done_summary(
-    workdir, out_dir, picture: str, fingerprint: str, options: BatchOptions | None = None,
+    workdir,
+    out_dir,
+    picture: str,
+    fingerprint: str,
+    options: BatchOptions | None = None,
     shared_sha256: str | None = None,
 ) -> PictureSummary | None:
     """The stored summary if ``picture`` is done with these options, this spctool version and the
@@ -577,5 +612,3 @@ def process_picture(
             outcome.summary.status = "failed: " + _one_line(f"cannot write the outputs: {exc}")
         outcome.summary.timings["write_s"] = time.perf_counter() - clock
     return outcome.summary
-
-
