@@ -176,12 +176,83 @@ _NAN_COLUMNS = (
 )
 
 
-def _run(ctx: Context, stage: str, kw: dict):
-    from spctool.formats.table import LandmarkTable
+def _appearance(row: dict, maplet, camera, sun, photo, thresholds, popts, eopts, center):
+    """One landmark's prediction and (with a photo) extraction, its table columns put in ``row``:
+    the pixels, the brightness fit, the angles and the extraction's figures (or, without a photo,
+    the prediction's lit fraction and the resolution from the camera's Jacobian).  Returns
+    ``(prediction, extraction or None, in front of the camera)``."""
     from spctool.geometry import heightfield
     from spctool.geometry.frames import unit_vector
     from spctool.stages.extract import extract
-    from spctool.stages.predict import cast_shadow_note, predict
+    from spctool.stages.predict import predict
+
+    sl = heightfield.slopes(maplet.heights, maplet.valid)
+    pred0 = None
+    if eopts.ill_source == "predicted":
+        pred0 = predict(maplet, camera.position, sun, popts, slopes=sl)
+    ext = None
+    if photo is not None:
+        ext = extract(photo, maplet, camera, sun, thresholds, eopts, center, slopes=sl, prediction=pred0)
+    pred = predict(maplet, camera.position, sun, popts, extracted=ext, slopes=sl)
+    ps, pl = camera.project(np.asarray(maplet.v, float))
+    uz = unit_vector(maplet.uz, "UZ")
+    emission = math.degrees(math.acos(min(1.0, max(-1.0, float(pred.emission_vector @ uz)))))
+    incidence = math.degrees(math.acos(min(1.0, max(-1.0, float(sun @ uz)))))
+    front = bool(camera.in_front(np.asarray(maplet.v, float)))
+    cs = ext.center_sample if ext is not None else (center[0] if center else float(ps))
+    cl = ext.center_line if ext is not None else (center[1] if center else float(pl))
+    row.update(
+        {
+            "sample": cs,
+            "line": cl,
+            "predicted_sample": float(ps),
+            "predicted_line": float(pl),
+            "lambda": pred.lam,
+            "phi": pred.phi,
+            "correlation": pred.correlation,
+            "emission": emission,
+            "incidence": incidence,
+            "phase": pred.alpha_deg,
+        }
+    )
+    if ext is not None:
+        row.update(
+            {
+                "cov": ext.cov,
+                "ill": ext.ill,
+                "res": ext.res,
+                "inv": int(ext.inv),
+                "det_j": ext.det_j,
+                "ds": int(ext.ds),
+                "subsample": int(ext.subsample),
+                "status": ext.status,
+            }
+        )
+    else:
+        det_j = float(
+            np.linalg.det(
+                camera.jacobian_maplet(np.asarray(maplet.v, float), maplet.ux, maplet.uy, maplet.scale)
+            )
+        )
+        row.update(
+            {
+                "cov": math.nan,
+                "ill": pred.lit_fraction,
+                "res": 1.0 / math.sqrt(abs(det_j)) if det_j else math.inf,
+                "inv": -1,
+                "det_j": det_j,
+                "ds": -1,
+                "subsample": -1,
+                "status": "ok" if front else "outside",
+            }
+        )
+    return pred, ext, front
+
+
+def _run(ctx: Context, stage: str, kw: dict):
+    from spctool.formats.table import LandmarkTable
+    from spctool.geometry.frames import unit_vector
+    from spctool.stages.predict import cast_shadow_note
 
     wd = ctx.wd
     inputs = load_stage_inputs(ctx, kw, photo_required=stage == "extracted")
@@ -224,70 +295,7 @@ def _run(ctx: Context, stage: str, kw: dict):
                 advance()
                 continue
             center = _table_pixel(pixel, inputs.source) if kw["at_table_pixels"] else None
-            sl = heightfield.slopes(maplet.heights, maplet.valid)
-            pred0 = None
-            if eopts.ill_source == "predicted":
-                pred0 = predict(maplet, camera.position, sun, popts, slopes=sl)
-            ext = None
-            if photo is not None:
-                ext = extract(
-                    photo, maplet, camera, sun, thresholds, eopts, center, slopes=sl, prediction=pred0
-                )
-            pred = predict(maplet, camera.position, sun, popts, extracted=ext, slopes=sl)
-            ps, pl = camera.project(np.asarray(maplet.v, float))
-            uz = unit_vector(maplet.uz, "UZ")
-            emission = math.degrees(math.acos(min(1.0, max(-1.0, float(pred.emission_vector @ uz)))))
-            incidence = math.degrees(math.acos(min(1.0, max(-1.0, float(sun @ uz)))))
-            front = bool(camera.in_front(np.asarray(maplet.v, float)))
-            cs = ext.center_sample if ext is not None else (center[0] if center else float(ps))
-            cl = ext.center_line if ext is not None else (center[1] if center else float(pl))
-            row.update(
-                {
-                    "sample": cs,
-                    "line": cl,
-                    "predicted_sample": float(ps),
-                    "predicted_line": float(pl),
-                    "lambda": pred.lam,
-                    "phi": pred.phi,
-                    "correlation": pred.correlation,
-                    "emission": emission,
-                    "incidence": incidence,
-                    "phase": pred.alpha_deg,
-                }
-            )
-            if ext is not None:
-                row.update(
-                    {
-                        "cov": ext.cov,
-                        "ill": ext.ill,
-                        "res": ext.res,
-                        "inv": int(ext.inv),
-                        "det_j": ext.det_j,
-                        "ds": int(ext.ds),
-                        "subsample": int(ext.subsample),
-                        "status": ext.status,
-                    }
-                )
-            else:
-                det_j = float(
-                    np.linalg.det(
-                        camera.jacobian_maplet(
-                            np.asarray(maplet.v, float), maplet.ux, maplet.uy, maplet.scale
-                        )
-                    )
-                )
-                row.update(
-                    {
-                        "cov": math.nan,
-                        "ill": pred.lit_fraction,
-                        "res": 1.0 / math.sqrt(abs(det_j)) if det_j else math.inf,
-                        "inv": -1,
-                        "det_j": det_j,
-                        "ds": -1,
-                        "subsample": -1,
-                        "status": "ok" if front else "outside",
-                    }
-                )
+            pred, ext, front = _appearance(row, maplet, camera, sun, photo, thresholds, popts, eopts, center)
             if not front:
                 row["status"] = "outside"
             rows.append(row)
