@@ -360,41 +360,7 @@ def solve_pose_cmd(
         pixel_covariances=meas.covariance[idx] if weights == "surface" else None,
     )
 
-    # ---- residual table (every input row; unused rows keep their reason) ------------------------
-    n = len(meas.names)
-    cols = {"name": list(meas.names), "sample": meas.sample, "line": meas.line}
-    # rows left out of the solve (e.g. 'not-found' in a register table) still get predictions when
-    # their LMK exists; solved rows take the stage's values (with landmark corrections, if estimated)
-    pred0 = np.full((n, 2), np.nan)
-    pred1 = np.full((n, 2), np.nan)
-    solved = camera.with_pose(scobj=result.scobj, rotation=result.rotation)
-    for cam_, pred in ((camera, pred0), (solved, pred1)):
-        s_, l_, front = cam_.project_with_mask(pos[found])
-        pred[found] = np.where(front[:, None], np.stack([s_, l_], axis=-1), np.nan)
-    pred0[idx], pred1[idx] = result.predicted_before, result.predicted_after
-    y_all = np.stack([meas.sample, meas.line], axis=-1)
-    res0, res1 = y_all - pred0, y_all - pred1
-    cols.update(
-        apriori_sample=pred0[:, 0],
-        apriori_line=pred0[:, 1],
-        predicted_sample=pred1[:, 0],
-        predicted_line=pred1[:, 1],
-        residual_sample_before=res0[:, 0],
-        residual_line_before=res0[:, 1],
-        residual_sample_after=res1[:, 0],
-        residual_line_after=res1[:, 1],
-    )
-    status = list(meas.status)
-    for i in range(n):  # status words only (no numerics)
-        if status[i] == "ok" and not found[i]:
-            status[i] = "no-lmk"
-    for k, i in enumerate(idx):
-        status[i] = result.status[k]
-    if result.landmark_corrections is not None:
-        corr = np.full((n, 3), np.nan)
-        corr[idx] = result.landmark_corrections
-        cols.update(dx_km=corr[:, 0], dy_km=corr[:, 1], dz_km=corr[:, 2])
-    cols["status"] = status
+    cols, res0, res1, status = _residual_columns(camera, result, meas, pos, found, idx)
 
     from spctool.formats.table import LandmarkTable
 
@@ -440,6 +406,47 @@ def solve_pose_cmd(
                 + ("; no SUM written (--force writes it)" if write_target is not None else "")
             )
         ctx.warn(f"{pic.name}: implausible fit (written because of --force): {result.implausible}")
+
+
+def _residual_columns(camera, result, meas, pos, found, idx):
+    """The residual table's columns for every input row (rows left out of the solve keep their
+    reason and, where their LMK exists, get predictions with both poses); returns ``(columns,
+    residuals before (N, 2), residuals after (N, 2), status words)``."""
+    n = len(meas.names)
+    cols = {"name": list(meas.names), "sample": meas.sample, "line": meas.line}
+    # rows left out of the solve (e.g. 'not-found' in a register table) still get predictions when
+    # their LMK exists; solved rows take the stage's values (with landmark corrections, if estimated)
+    pred0 = np.full((n, 2), np.nan)
+    pred1 = np.full((n, 2), np.nan)
+    solved = camera.with_pose(scobj=result.scobj, rotation=result.rotation)
+    for cam_, pred in ((camera, pred0), (solved, pred1)):
+        s_, l_, front = cam_.project_with_mask(pos[found])
+        pred[found] = np.where(front[:, None], np.stack([s_, l_], axis=-1), np.nan)
+    pred0[idx], pred1[idx] = result.predicted_before, result.predicted_after
+    y_all = np.stack([meas.sample, meas.line], axis=-1)
+    res0, res1 = y_all - pred0, y_all - pred1
+    cols.update(
+        apriori_sample=pred0[:, 0],
+        apriori_line=pred0[:, 1],
+        predicted_sample=pred1[:, 0],
+        predicted_line=pred1[:, 1],
+        residual_sample_before=res0[:, 0],
+        residual_line_before=res0[:, 1],
+        residual_sample_after=res1[:, 0],
+        residual_line_after=res1[:, 1],
+    )
+    status = list(meas.status)
+    for i in range(n):  # status words only (no numerics)
+        if status[i] == "ok" and not found[i]:
+            status[i] = "no-lmk"
+    for k, i in enumerate(idx):
+        status[i] = result.status[k]
+    if result.landmark_corrections is not None:
+        corr = np.full((n, 3), np.nan)
+        corr[idx] = result.landmark_corrections
+        cols.update(dx_km=corr[:, 0], dy_km=corr[:, 1], dz_km=corr[:, 2])
+    cols["status"] = status
+    return cols, res0, res1, status
 
 
 def _plot(ctx, path, pic, photo_path, flip_rows, meas, res0, res1, status, result):
