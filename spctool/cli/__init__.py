@@ -28,7 +28,10 @@ runtime is initialised and the kernel loaded; should the load fail, numba's own 
 load) runs.  ``SPCTOOL_NUMBA_REFRESH=1`` keeps numba's refresh.  And while numba itself is imported it
 finds neither SciPy (imported only to check its version, ~0.01-0.03 s) nor PyYAML (for a
 ``.numba_config.yaml``, ~0.015 s; left visible when the current folder has one): both import as usual
-afterwards.
+afterwards.  Nor does numba look for third-party extensions (``numba_extensions`` entry points: its
+``importlib.metadata`` import, loaded lazily instead, and a scan of every installed distribution's
+metadata at the first kernel, ~0.025 s); spctool's kernels use none.  ``SPCTOOL_NUMBA_EXTENSIONS=1``
+loads them as numba does.
 """
 
 import importlib.abc
@@ -72,6 +75,9 @@ def _exec_numba(real_exec, module):
     hidden = [n for n in ("scipy", "yaml") if n not in sys.modules]
     if "yaml" in hidden and os.path.exists(".numba_config.yaml"):  # numba reads it from here: keep yaml
         hidden.remove("yaml")
+    extensions = os.environ.get("SPCTOOL_NUMBA_EXTENSIONS") == "1"
+    if not extensions:
+        _lazy_module("importlib.metadata")
     for n in hidden:
         sys.modules[n] = None  # `import n` raises ImportError inside numba's own import only
     try:
@@ -80,6 +86,30 @@ def _exec_numba(real_exec, module):
         for n in hidden:
             if n in sys.modules and sys.modules[n] is None:
                 del sys.modules[n]
+    entrypoints = sys.modules.get("numba.core.entrypoints")
+    if not extensions and hasattr(entrypoints, "_already_initialized"):
+        entrypoints._already_initialized = True  # no numba_extensions scan at the first kernel
+
+
+def _lazy_module(name):
+    """Put a lazily executed ``name`` in sys.modules (executed at its first attribute access)."""
+    import importlib.util
+
+    if name in sys.modules:
+        return
+    try:
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            return
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        parent, _, child = name.rpartition(".")
+        if parent in sys.modules:
+            setattr(sys.modules[parent], child, module)
+    except Exception:  # left to the ordinary import
+        sys.modules.pop(name, None)
 
 
 def _exec_caching(real_exec, module):
