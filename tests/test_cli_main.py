@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import click
+import numpy as np
 from click.testing import CliRunner
 
 from spctool.cli.main import COMMAND_MODULES, COMMANDS, cli
@@ -146,3 +147,61 @@ def test_the_command_line_spares_numba_s_first_kernel_the_scipy_linalg_import():
 
     assert probe() == ["False", "False", "True", "5.0"]
     assert probe(SPCTOOL_BLAS_PROBE="1") == ["True", "True", "True", "5.0"]
+
+
+_NUMBA_LIGHT_LOAD = """
+import sys
+import numpy as np
+loaded_before = "importlib.metadata" in sys.modules  # by the interpreter's start (a .pth file)
+import spctool.cli.main
+from spctool.geometry import _heightkernels as hk
+print("scipy" in sys.modules, "yaml" in sys.modules)  # numba imported, without them
+h = np.arange(25.0).reshape(5, 5) ** 2
+hx, hy, ok = np.empty_like(h), np.empty_like(h), np.empty(h.shape, np.bool_)
+hk.slopes(h, np.ones(h.shape, np.bool_), hx, hy, ok)  # numba's first kernel in this process
+print(sum(hk.slopes.stats.cache_hits.values()), "numba.np.arraymath" in sys.modules, float(hx[2, 2]))
+import numba
+lazy = type(sys.modules["importlib.metadata"]).__name__ == "_LazyModule"
+print("metadata", "loaded" if loaded_before else lazy, numba.core.entrypoints._already_initialized)
+
+@numba.njit
+def twice(h, ok):  # compiled now, after the light load: numba's compiler refreshes its registries
+    hx, hy, out = np.empty_like(h), np.empty_like(h), np.empty(h.shape, np.bool_)
+    hk.slopes(h, ok, hx, hy, out)
+    return 2.0 * hx[2, 2]
+
+print(twice(h, np.ones(h.shape, np.bool_)), "numba.np.arraymath" in sys.modules)
+import scipy, yaml  # both import as usual afterwards
+print(bool(scipy.__version__), bool(yaml.__version__))
+"""
+
+
+def test_the_command_line_loads_a_cached_kernel_without_numba_s_registry_refresh(tmp_path):
+    """A cached kernel needs numba's runtime, not the typing and lowering registries of all of numba
+    (~0.22 s of CPU in every process that runs a kernel): the command line loads it without them,
+    numba's compiler still refreshes them when a kernel compiles, and numba's import finds neither
+    SciPy nor PyYAML (both import as usual afterwards) and does not scan every distribution for
+    numba extensions (importlib.metadata left unexecuted); SPCTOOL_NUMBA_REFRESH=1 and
+    SPCTOOL_NUMBA_EXTENSIONS=1 keep numba's ways."""
+    import os
+
+    def probe(**extra):
+        env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_NUMBA_REFRESH"} | extra
+        env["NUMBA_CACHE_DIR"] = str(tmp_path)  # compiled by the first run, loaded by the next
+        run = subprocess.run(
+            [sys.executable, "-c", _NUMBA_LIGHT_LOAD], capture_output=True, text=True, env=env, cwd=tmp_path
+        )
+        assert run.returncode == 0, run.stderr
+        return run.stdout.split()
+
+    h = np.arange(25.0).reshape(5, 5) ** 2
+    slope = float(np.gradient(h, axis=0)[2, 2])  # HGT2SLP's central difference along axis 0: 120
+    first = probe()  # compiles slopes into the empty cache: numba's compiler loads the registries
+    lazy = first[6] if first[6] == "loaded" else "True"  # "loaded": imported by the interpreter's start
+    after = [str(slope), "metadata", lazy, "True", str(2 * slope), "True", "True", "True"]
+    assert first == ["False", "False", "0", "True"] + after
+    light = probe()  # loads it: no registries, until `twice` compiles
+    assert light == ["False", "False", "1", "False"] + after
+    assert probe(SPCTOOL_NUMBA_REFRESH="1")[2:4] == ["1", "True"]  # numba's refresh at the load
+    scanned = probe(SPCTOOL_NUMBA_EXTENSIONS="1")[5:8]  # numba's scan at the first kernel
+    assert scanned == ["metadata", "loaded" if lazy == "loaded" else "False", "True"]

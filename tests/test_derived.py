@@ -74,3 +74,58 @@ def test_the_numpy_diameter_parts_equal_the_kernels_bit_for_bit():
             kernel = rk.directional_extremes(p, dirs, 16)
             for ours, theirs in zip(shape_mod.directional_extremes(p, dirs), kernel):
                 assert np.array_equal(ours, theirs)
+
+
+def test_an_array_is_kept_as_stored_and_a_misshapen_or_corrupt_entry_is_a_miss(monkeypatch, tmp_path):
+    monkeypatch.setenv("SPCTOOL_CACHE_DIR", str(tmp_path))
+    a = np.linspace(-1.0, 2.0, 7)
+    key = derived.digest(a)
+    assert derived.lookup_array("arr-v1", key, (7,)) is None
+    derived.store_array("arr-v1", key, a)
+    assert np.array_equal(derived.lookup_array("arr-v1", key, (7,)).view(np.int64), a.view(np.int64))
+    assert derived.lookup_array("arr-v1", key, (8,)) is None  # another shape: not this entry
+    path = tmp_path / "derived" / f"arr-v1-{key}.npy"
+    path.write_bytes(path.read_bytes()[:-5])  # truncated
+    assert derived.lookup_array("arr-v1", key, (7,)) is None
+    path.write_bytes(b"not an npy file")
+    assert derived.lookup_array("arr-v1", key, (7,)) is None
+    monkeypatch.setenv("SPCTOOL_CACHE_DIR", "")
+    derived.store_array("arr-v1", key, a)  # off: nothing written, nothing read
+    assert derived.lookup_array("arr-v1", key, (7,)) is None
+
+
+def test_an_icq_file_s_rows_are_read_once_per_exact_bytes(monkeypatch, tmp_path):
+    """The demo's q = 64 shape (101,400 values) is parsed once; the same bytes again (another copy of the
+    file too) come from the cache bit for bit, and a file differing in one digit is parsed anew."""
+    from spctool.formats import icq
+    from spctool.sim.demo import demo_path
+
+    monkeypatch.setenv("SPCTOOL_CACHE_DIR", str(tmp_path / "cache"))
+    data = (demo_path() / "SHAPEFILES" / "SHAPE.TXT").read_bytes()
+    (tmp_path / "a.txt").write_bytes(data)
+    first = icq.read_icq(tmp_path / "a.txt")
+    assert len(list((tmp_path / "cache" / "derived").glob("icq-rows-v1-*.npy"))) == 1
+    real_parse = icq._parse_rows
+    monkeypatch.setattr(icq, "_parse_rows", lambda *a: pytest.fail("parsed again"))
+    (tmp_path / "b.txt").write_bytes(data)
+    again = icq.read_icq(tmp_path / "b.txt")
+    assert np.array_equal(again.vertices.view(np.int64), first.vertices.view(np.int64))
+    assert np.array_equal(again.albedo.view(np.int64), first.albedo.view(np.int64))
+    assert icq.format_icq(again) == data.decode("latin-1")  # the text kept for writing is the file's
+    # one digit changed in the last vertex line: other bytes, parsed again, that value differs
+    changed = data.rstrip(b"\n")
+    cut = changed.rfind(b"\n") + 1
+    line = changed[cut:].decode()
+    digit = len(line.rstrip()) - 1
+    line2 = line[:digit] + ("1" if line[digit] != "1" else "2") + line[digit + 1 :]
+    (tmp_path / "c.txt").write_bytes(changed[:cut] + line2.encode() + b"\n")
+    parsed = []
+    monkeypatch.setattr(icq, "_parse_rows", lambda *a: parsed.append(1) or real_parse(*a))
+    other = icq.read_icq(tmp_path / "c.txt")
+    assert parsed == [1]
+    assert not np.array_equal(other.albedo, first.albedo)
+    assert np.array_equal(other.vertices, first.vertices)  # the albedo column was the one changed
+    # the parse itself equals a reading without any cache
+    monkeypatch.setenv("SPCTOOL_CACHE_DIR", "")
+    plain = icq.read_icq(tmp_path / "c.txt")
+    assert np.array_equal(plain.albedo.view(np.int64), other.albedo.view(np.int64))

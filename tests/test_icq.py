@@ -59,6 +59,7 @@ def path_kind(request, monkeypatch):
     monkeypatch.setattr(icq, "_KERNEL_MIN_VALUES", 10**12 if request.param == "python" else 0)
     monkeypatch.setattr(icq, "_PLAIN_MAX_VALUES", 10**12 if request.param == "plain" else -1)
     monkeypatch.setattr(icq, "_kernel_cached", lambda: request.param != "plain")
+    monkeypatch.setattr(icq, "_KEEP_MIN_VALUES", 10**12)  # each reader reads: no rows kept from before
     return request.param
 
 

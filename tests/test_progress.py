@@ -152,21 +152,33 @@ def test_compile_progress_shows_what_compiles_while_it_compiles(monkeypatch):
     assert cp.done == {"correlate._k_ncc", "raykernels.trace"} and cp.depth == 0
 
 
-def test_a_first_interactive_demo_compiles_registration_in_a_helper(monkeypatch):
-    """demo and navigate select first and register after: on a terminal, with register's kernels cold
-    and two cores, a second process compiles them meanwhile; never off a terminal, for other
-    commands, or with SPCTOOL_NO_HELPER=1; the helper is ended with the command."""
-    assert jit.start_helper("demo", ["camera", "maplet"], interactive=False) is None
-    assert jit.start_helper("register", ["camera", "maplet", "rays"], interactive=True) is None
-    assert jit.start_helper("demo", ["camera", "rays"], interactive=True) is None
+def test_a_first_demo_compiles_registration_in_a_helper_on_a_terminal_or_not(monkeypatch):
+    """demo and navigate select first and register after: with register's kernels cold and two cores,
+    a second process compiles them meanwhile, on a terminal or not (it prints nothing) and with -q;
+    never for other commands, when register's kernels are warm, or with SPCTOOL_NO_HELPER=1; the
+    helper is ended with the command."""
+    assert jit.start_helper("register", ["camera", "maplet", "rays"]) is None
+    assert jit.start_helper("demo", ["camera", "rays"]) is None
     monkeypatch.setenv("SPCTOOL_NO_HELPER", "1")
-    assert jit.start_helper("navigate", ["maplet", "rays"], interactive=True) is None
+    assert jit.start_helper("navigate", ["maplet", "rays"]) is None
     monkeypatch.delenv("SPCTOOL_NO_HELPER")
     monkeypatch.setattr("os.cpu_count", lambda: 2)
-    helper = jit.start_helper("demo", ["camera", "maplet"], interactive=True)
+    helper = jit.start_helper("demo", ["camera", "maplet"])  # stderr is not a terminal here
     assert helper is not None and "precompile_kernels" in helper.args[-1]
     jit.stop_helper(helper)
     assert helper.poll() is not None
+
+    # through first_run_note: -q silences the note, not the helper; other commands get none with -q
+    started, said = [], []
+    monkeypatch.setattr(jit, "cold_families", lambda fams: list(fams))  # every kernel cold
+    monkeypatch.setattr(jit, "start_helper", lambda command, cold: started.append(command) or None)
+    monkeypatch.setattr(Context, "note_once", lambda self, m: said.append(m))
+    assert jit.first_run_note(Context(verbosity=-1), "demo", args=["-q", "demo"]) is None
+    assert jit.first_run_note(Context(verbosity=-1), "register", args=["-q", "register", "P1"]) is None
+    disarm = jit.first_run_note(Context(verbosity=0), "navigate", args=["navigate", "P1"])
+    assert started == ["demo", "navigate"] and disarm is not None
+    disarm()
+    assert said == []  # nothing compiled
 
 
 _HELPER_LIST_CHECK = """

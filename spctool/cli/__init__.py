@@ -18,6 +18,20 @@ kernel a process compiles or loads from the cache) it imports ``scipy.linalg`` o
 import (scipy.linalg, scipy's array-API layer, numpy.f2py) was 0.3-0.4 s of every command that runs a
 kernel.  The probe answers "no BLAS" (those two functions would use numba's own loop, same results);
 ``SPCTOOL_BLAS_PROBE=1`` runs numba's probe.
+
+It loads a cached kernel without numba's full registry refresh: numba's ``Cache.load_overload`` first
+installs the typing and lowering registries of all of numba (imports of numba.np, numba.typed,
+numba.experimental ..., ~0.22 s of CPU at the first kernel of every process, forked workers that load
+a kernel of their own included), which only compiling needs — numba's compiler refreshes them itself
+before it compiles.  A cached kernel is machine code linked against numba's runtime (NRT), so the
+runtime is initialised and the kernel loaded; should the load fail, numba's own path (refresh, then
+load) runs.  ``SPCTOOL_NUMBA_REFRESH=1`` keeps numba's refresh.  And while numba itself is imported it
+finds neither SciPy (imported only to check its version, ~0.01-0.03 s) nor PyYAML (for a
+``.numba_config.yaml``, ~0.015 s; left visible when the current folder has one): both import as usual
+afterwards.  Nor does numba look for third-party extensions (``numba_extensions`` entry points: its
+``importlib.metadata`` import, loaded lazily instead, and a scan of every installed distribution's
+metadata at the first kernel, ~0.025 s); spctool's kernels use none.  ``SPCTOOL_NUMBA_EXTENSIONS=1``
+loads them as numba does.
 """
 
 import importlib.abc
@@ -30,42 +44,129 @@ if os.environ.get("SPCTOOL_CFFI") != "1" and "cffi" not in sys.modules:
     sys.modules["cffi"] = None  # `import cffi` raises ImportError: numba's cffi support stays off
 
 
-class _SkipBlasProbe(importlib.abc.MetaPathFinder):
-    """Loads ``numba.np.arraymath`` with numba's BLAS probe answering "no BLAS" (no scipy.linalg import);
-    removes itself at once."""
+class _NumbaStartHooks(importlib.abc.MetaPathFinder):
+    """Wraps the loading of three numba modules (each once; removes itself after the last): ``numba``
+    (SciPy and PyYAML hidden while it executes), ``numba.core.caching`` (the light cache load) and
+    ``numba.np.arraymath`` (the BLAS probe answering "no BLAS", no scipy.linalg import)."""
+
+    def __init__(self, names):
+        self.pending = set(names)
 
     def find_spec(self, name, path, target=None):
-        if name != "numba.np.arraymath":
+        if name not in self.pending:
             return None
-        if self in sys.meta_path:
+        self.pending.discard(name)
+        if not self.pending and self in sys.meta_path:
             sys.meta_path.remove(self)
         spec = importlib.machinery.PathFinder.find_spec(name, path)
         if spec is None or not hasattr(spec.loader, "exec_module"):
             return spec
         real_exec = spec.loader.exec_module
-
-        def exec_module(module):
-            import numba.np.linalg as linalg
-
-            probe = getattr(linalg, "ensure_blas", None)
-            if probe is None:  # another numba: its own import, untouched
-                real_exec(module)
-                return
-
-            def no_probe():
-                raise ImportError("numba's BLAS probe skipped by spctool (SPCTOOL_BLAS_PROBE=1 runs it)")
-
-            linalg.ensure_blas = no_probe
-            try:
-                real_exec(module)
-            finally:
-                linalg.ensure_blas = probe
-                if getattr(module, "ensure_blas", None) is no_probe:
-                    module.ensure_blas = probe
-
-        spec.loader.exec_module = exec_module
+        wrap = {
+            "numba": _exec_numba,
+            "numba.core.caching": _exec_caching,
+            "numba.np.arraymath": _exec_arraymath,
+        }
+        spec.loader.exec_module = lambda module: wrap[name](real_exec, module)
         return spec
 
 
-if os.environ.get("SPCTOOL_BLAS_PROBE") != "1" and "numba.np.arraymath" not in sys.modules:
-    sys.meta_path.insert(0, _SkipBlasProbe())
+def _exec_numba(real_exec, module):
+    hidden = [n for n in ("scipy", "yaml") if n not in sys.modules]
+    if "yaml" in hidden and os.path.exists(".numba_config.yaml"):  # numba reads it from here: keep yaml
+        hidden.remove("yaml")
+    extensions = os.environ.get("SPCTOOL_NUMBA_EXTENSIONS") == "1"
+    if not extensions:
+        _lazy_module("importlib.metadata")
+    for n in hidden:
+        sys.modules[n] = None  # `import n` raises ImportError inside numba's own import only
+    try:
+        real_exec(module)
+    finally:
+        for n in hidden:
+            if n in sys.modules and sys.modules[n] is None:
+                del sys.modules[n]
+    entrypoints = sys.modules.get("numba.core.entrypoints")
+    if not extensions and hasattr(entrypoints, "_already_initialized"):
+        entrypoints._already_initialized = True  # no numba_extensions scan at the first kernel
+
+
+def _lazy_module(name):
+    """Put a lazily executed ``name`` in sys.modules (executed at its first attribute access)."""
+    import importlib.util
+
+    if name in sys.modules:
+        return
+    try:
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            return
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        parent, _, child = name.rpartition(".")
+        if parent in sys.modules:
+            setattr(sys.modules[parent], child, module)
+    except Exception:  # left to the ordinary import
+        sys.modules.pop(name, None)
+
+
+def _exec_caching(real_exec, module):
+    real_exec(module)
+    cache = getattr(module, "Cache", None)
+    real_load = getattr(cache, "load_overload", None)
+    if real_load is None or not all(
+        hasattr(cache, a) for a in ("_load_overload", "_guard_against_spurious_io_errors")
+    ):  # another numba: its own loading, untouched
+        return
+
+    def load_overload(self, sig, target_context):
+        """numba's ``Cache.load_overload`` without the registry refresh (see spctool.cli)."""
+        try:
+            from numba.core.runtime import rtsys
+
+            rtsys.initialize(target_context)  # what a cached kernel links against
+            with self._guard_against_spurious_io_errors():
+                loaded = self._load_overload(sig, target_context)
+            if loaded is not None:
+                return loaded
+        except Exception:  # numba's own path below: refresh, then load (or compile)
+            pass
+        return real_load(self, sig, target_context)
+
+    load_overload.__wrapped__ = real_load
+    cache.load_overload = load_overload
+
+
+def _exec_arraymath(real_exec, module):
+    import numba.np.linalg as linalg
+
+    probe = getattr(linalg, "ensure_blas", None)
+    if probe is None:  # another numba: its own import, untouched
+        real_exec(module)
+        return
+
+    def no_probe():
+        raise ImportError("numba's BLAS probe skipped by spctool (SPCTOOL_BLAS_PROBE=1 runs it)")
+
+    linalg.ensure_blas = no_probe
+    try:
+        real_exec(module)
+    finally:
+        linalg.ensure_blas = probe
+        if getattr(module, "ensure_blas", None) is no_probe:
+            module.ensure_blas = probe
+
+
+_hooked = [
+    name
+    for name, off in (
+        ("numba", "numba" in sys.modules),
+        ("numba.core.caching", os.environ.get("SPCTOOL_NUMBA_REFRESH") == "1"),
+        ("numba.np.arraymath", os.environ.get("SPCTOOL_BLAS_PROBE") == "1"),
+    )
+    if not off and name not in sys.modules
+]
+if _hooked:
+    sys.meta_path.insert(0, _NumbaStartHooks(_hooked))

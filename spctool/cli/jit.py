@@ -10,10 +10,11 @@ and, when one is missing, arms one note on stderr that is printed when numba rea
 prints its one error line and nothing else; on a terminal :class:`CompileProgress` then shows, every
 half second, which kernel compiles and how many are done.  ``spctool warmup`` compiles every kernel the
 commands use by running the shipped demo through lithos-select, register (maplet and image space),
-solve-pose, a small render and make-maplets, so that later commands start at once.  On a terminal a
-first ``demo`` or ``navigate`` also starts a helper process that compiles register's kernels from the
-last to the first (:data:`REGISTER_KERNELS`) while the command compiles them from the first: on two
-cores the first demo then takes about the time of half the compilation.
+solve-pose, a small render and make-maplets, so that later commands start at once.  A first ``demo``
+or ``navigate`` also starts a helper process that compiles register's kernels from the last to the
+first (:data:`REGISTER_KERNELS`) while the command compiles them from the first: on two cores the
+first demo then takes about the time of half the compilation.  The helper runs on a terminal or not
+(a script, a pipe, CI) and with -q: it prints nothing, only the display needs the terminal.
 """
 
 from __future__ import annotations
@@ -267,29 +268,35 @@ def _columns() -> int:
 
 def first_run_note(ctx: Context, command: str | None, args=None):
     """Arm, for a command whose kernels are not all in numba's cache, one stderr note (silenced by -q)
-    printed when it really starts compiling, and the live :class:`CompileProgress` on a terminal.
-    Returns the function that disarms them (call it when the command ends), or None when nothing was
-    armed."""
+    printed when it really starts compiling, and the live :class:`CompileProgress` on a terminal; for
+    a :data:`HELPED` command, also with -q and off a terminal, the helper process
+    (:func:`start_helper`).  Returns the function that disarms them (call it when the command ends),
+    or None when nothing was armed."""
     args = sys.argv[1:] if args is None else args
-    if not command or command not in COMMAND_FAMILIES or ctx.verbosity < 0:
+    if not command or command not in COMMAND_FAMILIES:
+        return None
+    if ctx.verbosity < 0 and command not in HELPED:
         return None
     if any(a in ("-h", "--help", "--example", "--copy-to") for a in args):
         return None
     cold = cold_families(COMMAND_FAMILIES[command])
     if not cold:
         return None
-    message = (
-        f"compiling spctool's numba kernels ({', '.join(cold)}) on first use: this run spends a few "
-        f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
-        "'spctool warmup' compiles them all now)"
-    )
-    disarm = CompileProgress(ctx, message).arm()
+    disarm = None
+    if ctx.verbosity >= 0:
+        message = (
+            f"compiling spctool's numba kernels ({', '.join(cold)}) on first use: this run spends a few "
+            f"seconds to {COMPILE_SECONDS} more, once (later runs load them from the cache; "
+            "'spctool warmup' compiles them all now)"
+        )
+        disarm = CompileProgress(ctx, message).arm()
     helper = start_helper(command, cold)
     if helper is None:
         return disarm
 
     def disarm_both() -> None:
-        disarm()
+        if disarm is not None:
+            disarm()
         stop_helper(helper)
 
     return disarm_both
@@ -351,16 +358,17 @@ def precompile_kernels(kernels=REGISTER_KERNELS, *, reverse: bool = True) -> int
     return done
 
 
-def start_helper(command: str, cold, *, interactive: bool | None = None):
-    """On a terminal, for a :data:`HELPED` command whose registration kernels are cold and a machine of
-    two cores or more, start a second Python process that compiles them (:func:`precompile_kernels`,
-    last first) while this one reads, selects and compiles them first to last.  Returns the process,
-    or None."""
+def start_helper(command: str, cold):
+    """For a :data:`HELPED` command whose registration kernels are cold, on a machine of two cores or
+    more, start a second Python process that compiles them (:func:`precompile_kernels`, last first)
+    while this one reads, selects and compiles them first to last.  On a terminal or not, with -q or
+    not: the helper prints nothing (its output goes nowhere), it only fills numba's cache, so a first
+    demo run by a script, a pipe or CI gains as much as one on a terminal.  Returns the process, or
+    None."""
     import os
     import subprocess
 
-    interactive = sys.stderr.isatty() if interactive is None else interactive
-    if command not in HELPED or "maplet" not in cold or not interactive:
+    if command not in HELPED or "maplet" not in cold:
         return None
     if (os.cpu_count() or 1) < 2 or os.environ.get("SPCTOOL_NO_HELPER") == "1":
         return None

@@ -1,12 +1,14 @@
-"""A small on-disk cache of values derived from data and costly to compute (the shape's largest diameter).
+"""A small on-disk cache of values derived from data and costly to compute (the shape's largest diameter,
+the vertex rows parsed from an ICQ file's text).
 
 A value is stored under a digest of the exact bytes it is computed from (with their dtype and shape)
 and the name and version of the computation, so it can never be served for other data or by another
 algorithm: a changed file has another digest, and the old entry is simply not asked for again.  One
-small JSON file per value, written atomically, under ``$SPCTOOL_CACHE_DIR``, else
+small JSON file per value (:func:`cached`), or one ``.npy`` file per float64 array
+(:func:`lookup_array`, :func:`store_array`), written atomically, under ``$SPCTOOL_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/spctool``, else ``~/.cache/spctool`` (``derived/``).  Reading never fails: a missing,
-unreadable or corrupt entry is a miss (the value is recomputed), and a cache that cannot be written is
-skipped.  ``SPCTOOL_CACHE_DIR=`` (empty) turns the cache off.
+unreadable, corrupt or misshapen entry is a miss (the value is recomputed), and a cache that cannot be
+written is skipped.  ``SPCTOOL_CACHE_DIR=`` (empty) turns the cache off.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["cache_dir", "digest", "lookup", "store", "cached"]
+__all__ = ["cache_dir", "digest", "lookup", "store", "cached", "lookup_array", "store_array"]
 
 
 def cache_dir() -> Path | None:
@@ -39,9 +41,9 @@ def digest(array) -> str:
     return h.hexdigest()
 
 
-def _path(kind: str, key: str) -> Path | None:
+def _path(kind: str, key: str, suffix: str = ".json") -> Path | None:
     folder = cache_dir()
-    return None if folder is None else folder / f"{kind}-{key}.json"
+    return None if folder is None else folder / f"{kind}-{key}{suffix}"
 
 
 def lookup(kind: str, key: str):
@@ -81,3 +83,37 @@ def cached(kind: str, array, compute):
         value = compute()
         store(kind, key, value)
     return value
+
+
+def lookup_array(kind: str, key: str, shape: tuple) -> np.ndarray | None:
+    """The float64 array of ``shape`` stored for (``kind``, ``key``), or None (missing, unreadable, or
+    of another shape or dtype)."""
+    path = _path(kind, key, ".npy")
+    if path is None:
+        return None
+    try:
+        with open(path, "rb") as f:
+            array = np.lib.format.read_array(f, allow_pickle=False)
+    except (OSError, ValueError, EOFError):
+        return None
+    if array.dtype != np.float64 or array.shape != tuple(shape):
+        return None
+    return array
+
+
+def store_array(kind: str, key: str, array) -> None:
+    """Keep a float64 ``array`` for (``kind``, ``key``) as ``.npy``; silently skipped when not writable."""
+    path = _path(kind, key, ".npy")
+    if path is None:
+        return
+    import io
+
+    from spctool.formats import atomic
+
+    try:
+        buf = io.BytesIO()
+        np.lib.format.write_array(buf, np.ascontiguousarray(array, dtype=np.float64), allow_pickle=False)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic.write_bytes(path, buf.getvalue())
+    except Exception:  # a read-only home, a full disk: the value is simply recomputed next time
+        pass

@@ -240,7 +240,7 @@ class RegisterOptions:
             raise SpcUsageError(
                 f"converge_peak must be one of {', '.join(PEAK_METHODS)}, got {self.converge_peak!r}"
             )
-        from spctool.stages.render import SHADINGS, VISIBILITIES  # the renderer's own lists
+        from spctool.stages.render_modes import SHADINGS, VISIBILITIES  # the renderer's own lists
 
         for name, allowed in (("template_shading", SHADINGS), ("template_visibility", VISIBILITIES)):
             if getattr(self, name) not in allowed:

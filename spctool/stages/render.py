@@ -81,6 +81,7 @@ from spctool.geometry.surfaces import (
 )
 from spctool.photometry import ALPHA0_DEG, FIXED_BETA, phase_angle_deg, reflectance
 from spctool.photometry import MODELS as PHOTOMETRY_MODELS
+from spctool.stages.render_modes import SHADINGS, VISIBILITIES
 
 __all__ = [
     "RenderOptions",
@@ -99,11 +100,9 @@ __all__ = [
 ]
 
 
-#: shading normals of height patches (:class:`RenderOptions`)
-SHADINGS = ("smooth", "facet")
-
-#: how a one-patch window finds each sub-ray's terrain (:class:`RenderOptions`)
-VISIBILITIES = ("march", "raster")
+# SHADINGS (shading normals of height patches) and VISIBILITIES (how a one-patch window finds each
+# sub-ray's terrain) of :class:`RenderOptions` are named in spctool.stages.render_modes (an options
+# check imports no renderer)
 
 # ------------------------------------------------------------------------------------------------
 # options and results
