@@ -75,6 +75,7 @@ from spctool.stages.extract import (
     shadow_extension,
     shadow_offsets,
 )
+from spctool.stages.image_shadows import PHOTO_SHADOW_MODES, dark_floor
 from spctool.stages.pose import PoseOptions
 from spctool.stages.predict import PredictOptions, predict, resolve_shadows
 
@@ -215,6 +216,7 @@ class RegisterOptions:
     threads: int | None = None
     template_margin: int = 1
     image_bin_fraction: float = 0.5
+    photo_shadows: str = "auto"
     keep_images: bool = False
     cap_spacing: bool = True
     predict: PredictOptions = field(default_factory=PredictOptions)
@@ -247,6 +249,10 @@ class RegisterOptions:
                 raise SpcUsageError(
                     f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
                 )
+        if self.photo_shadows not in PHOTO_SHADOW_MODES:
+            raise SpcUsageError(
+                f"photo_shadows must be one of {', '.join(PHOTO_SHADOW_MODES)}, got {self.photo_shadows!r}"
+            )
         if self.threads is not None and int(self.threads) < 1:
             raise SpcUsageError(f"threads must be >= 1, got {self.threads}")
         if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
@@ -441,6 +447,7 @@ class _Landmark:
         "padded",
         "shadow_mode",
         "cast",
+        "dark_floor",
         "proj",
     )
 
@@ -453,6 +460,7 @@ class _Landmark:
         self.pred_camera = None
         self.shadow_mode = None  # predict's shadows="auto", resolved on the first extraction
         self.cast = None  # the maplet's cast-shadow cells for the Registrar's Sun
+        self.dark_floor = None  # image space, photo_shadows: DN left out (0: none), at the first L = 1 step
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
@@ -600,6 +608,10 @@ class Registrar:
             )
             lm.pred_camera = camera
         return lm.pred
+
+    def dark_floor_landmarks(self) -> dict:
+        """Image space: name → the DN at or below which ``photo_shadows="auto"`` left the photo out."""
+        return {lm.name: lm.dark_floor for lm in self.landmarks if lm.dark_floor}
 
     def cast_shadow_landmarks(self) -> list[str]:
         """The landmarks whose prediction ``shadows="auto"`` switched to cast shadows."""
@@ -848,7 +860,10 @@ class Registrar:
             if part is not None:
                 rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
                 cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
-            rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
+            shd = np.zeros(shp)
+            if part is not None:
+                shd[cl0 - l0 :, cs0 - s0 :] = part.shadow
+            rend = Rendering(rad, cov, shd, np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
         lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
         return rend, frac.copy(), (s0, s1, l0, l1)
 
@@ -945,9 +960,18 @@ class Registrar:
         crop = np.empty((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
         cvalid = np.empty(crop.shape, dtype=np.bool_)
         t1, t2 = self.thresholds
-        _k_photo_window(
-            self.photo, cl_lo - 1, cs_lo - 1, t1, t2, not self.options.image_shadows, crop, cvalid
-        )
+        use_t1 = not self.options.image_shadows
+        floor = lm.dark_floor or 0.0  # a landmark's dark floor: its photo shadows left out
+        _k_photo_window(self.photo, cl_lo - 1, cs_lo - 1, t1, t2, use_t1, floor, crop, cvalid)
+        if lm.dark_floor is None and not use_t1 and int(spacing) == 1:
+            # photo_shadows="auto": read once, at the first full-resolution step (image_shadows module)
+            lm.dark_floor = 0.0
+            if self.options.photo_shadows == "auto":
+                h, w = tmpl.shape
+                under = (slice(marg, marg + h), slice(marg, marg + w))  # the photo under the template
+                lm.dark_floor = dark_floor(tmpl, tvalid, crop[under], cvalid[under])
+                if lm.dark_floor:
+                    np.logical_and(cvalid, crop > lm.dark_floor, out=cvalid)
         # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
         a_s = min(max(round(c0s + fs), s0), s1)
         a_l = min(max(round(c0l + fl), l0), l1)
@@ -997,9 +1021,10 @@ def _k_template_valid(coverage, radiance, full, positive, out):  # pragma: no co
 
 
 @numba.njit(cache=True, nogil=True)
-def _k_photo_window(photo, i0, j0, t1, t2, use_t1, crop, valid):  # pragma: no cover - compiled
-    """crop[i, j] = photo[i0 + i, j0 + j] (0-based; 0 outside the photo) and its validity: positive
-    (DN 0 = no data), finite, ≤ ``t2`` and, with ``use_t1``, ≥ ``t1`` — in one pass."""
+def _k_photo_window(photo, i0, j0, t1, t2, use_t1, floor, crop, valid):  # pragma: no cover - compiled
+    """crop[i, j] = photo[i0 + i, j0 + j] (0-based; 0 outside the photo) and its validity: above
+    ``floor`` ≥ 0 (DN 0 = no data; a landmark's dark floor, :mod:`spctool.stages.image_shadows`),
+    finite, ≤ ``t2`` and, with ``use_t1``, ≥ ``t1`` — in one pass."""
     nl, ns = photo.shape
     for i in range(crop.shape[0]):
         r = i0 + i
@@ -1007,7 +1032,7 @@ def _k_photo_window(photo, i0, j0, t1, t2, use_t1, crop, valid):  # pragma: no c
             c = j0 + j
             x = photo[r, c] if (r >= 0) & (r < nl) & (c >= 0) & (c < ns) else 0.0
             crop[i, j] = x
-            valid[i, j] = (x > 0.0) & (x <= t2) & math.isfinite(x) & ((not use_t1) | (x >= t1))
+            valid[i, j] = (x > floor) & (x > 0.0) & (x <= t2) & math.isfinite(x) & ((not use_t1) | (x >= t1))
 
 
 #: a template re-rendered at a finer supersampling within this many pixels (per axis) of the phase of
