@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from spctool.errors import SpcUsageError
-from spctool.stages.image_shadows import dark_floor, dark_floor_note
-from spctool.stages.registrar import RegisterOptions, _k_photo_window
+from spctool.stages.image_shadows import dark_floor, dark_floor_note, dark_pixels
+from spctool.stages.registrar import RegisterOptions
 
 
 def _scene(rng, shadow_cols=10, photo_extra=3, noise=20.0):
@@ -70,17 +70,21 @@ def test_dark_floor_of_a_noiseless_photo_stays_below_its_lit_pixels():
     assert np.all((photo <= f) == (t <= 0.0))
 
 
-def test_photo_window_applies_the_floor():
-    photo = np.array([[0.0, 150.0, 250.0], [400.0, np.nan, 70000.0]])
-    crop = np.empty((4, 5))
-    valid = np.empty(crop.shape, bool)
-    _k_photo_window(photo, -1, -1, 1.0, 65535.0, False, 200.0, crop, valid)
-    assert np.array_equal(crop[1:3, 1:4], photo, equal_nan=True) and crop[0].sum() == 0.0
-    # DN 0 (no data), at or below the floor, NaN, above T2 and outside the photo: left out
-    assert valid[1:3, 1:4].tolist() == [[False, False, True], [True, False, False]]
-    assert not valid[0].any() and not valid[:, 0].any()
-    _k_photo_window(photo, -1, -1, 1.0, 65535.0, False, 0.0, crop, valid)
-    assert valid[1:3, 1:4].tolist() == [[False, True, True], [True, False, False]]
+def test_dark_pixels_are_the_photo_shadow_and_its_edge():
+    photo = np.full((9, 12), 3000.0)
+    photo[3, 4] = 210.0  # one dark pixel
+    photo[0, 11] = 0.0  # no data: not a shadow, no margin around it
+    photo[8, 0] = 190.0  # a dark pixel in a corner
+    got = dark_pixels(photo, 300.0, margin=2)
+    # brute force: every pixel within 2 px (Chebyshev) of a pixel with 0 < DN <= 300
+    dark = np.argwhere((photo > 0) & (photo <= 300.0))
+    ii, jj = np.mgrid[:9, :12]
+    want = np.zeros(photo.shape, bool)
+    for i, j in dark:
+        want |= (np.abs(ii - i) <= 2) & (np.abs(jj - j) <= 2)
+    assert np.array_equal(got, want) and got.sum() == 25 + 9
+    assert np.array_equal(dark_pixels(photo, 300.0, margin=0), (photo > 0) & (photo <= 300.0))
+    assert not dark_pixels(photo, 100.0).any()
 
 
 def test_photo_shadows_option_and_note():

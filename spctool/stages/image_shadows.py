@@ -41,8 +41,10 @@ __all__ = [
     "AUTO_DARK_MIN_PIXELS",
     "AUTO_DARK_SIGMAS",
     "PHOTO_SHADOW_MODES",
+    "AUTO_DARK_MARGIN_PX",
     "dark_floor",
     "dark_floor_note",
+    "dark_pixels",
 ]
 
 PHOTO_SHADOW_MODES = ("auto", "use")
@@ -55,6 +57,8 @@ AUTO_DARK_MIN_FRACTION = 0.01
 AUTO_DARK_SIGMAS = 5.0
 #: the photo shows shadows only if its lit level is this many σ above its dark level
 AUTO_DARK_CONTRAST_SIGMAS = 10.0
+#: pixels within this many px (square neighbourhood) of a dark one are left out too: the shadow's edge
+AUTO_DARK_MARGIN_PX = 2
 
 
 def dark_floor(template, template_valid, photo, photo_valid) -> float:
@@ -93,3 +97,22 @@ def dark_floor_note(floors: dict) -> str:
         f"{dn}): the maplet's smoothed heights cannot place those shadows' edges "
         "(--photo-shadows use keeps them)"
     )
+
+
+def dark_pixels(photo, floor: float, margin: int = AUTO_DARK_MARGIN_PX) -> np.ndarray:
+    """The photo pixels left out with a dark floor: 0 < DN ≤ ``floor`` (DN 0 is no data, left out anyway)
+    and every pixel within ``margin`` px of one (a square neighbourhood: the shadow's edge, partly dark,
+    whose DN depends on where the truth puts that edge).  Separable dilation, O(margin·H·W)."""
+    p = np.asarray(photo)
+    dark = (p > 0.0) & (p <= floor)
+    for axis in (0, 1):
+        grown = dark.copy()
+        n = dark.shape[axis]
+        for k in range(1, min(int(margin), n - 1) + 1):
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(k, None), slice(None, n - k)
+            grown[tuple(lo)] |= dark[tuple(hi)]
+            grown[tuple(hi)] |= dark[tuple(lo)]
+        dark = grown
+    return dark

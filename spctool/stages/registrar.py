@@ -75,7 +75,7 @@ from spctool.stages.extract import (
     shadow_extension,
     shadow_offsets,
 )
-from spctool.stages.image_shadows import PHOTO_SHADOW_MODES, dark_floor
+from spctool.stages.image_shadows import PHOTO_SHADOW_MODES, dark_floor, dark_pixels
 from spctool.stages.pose import PoseOptions
 from spctool.stages.predict import PredictOptions, predict, resolve_shadows
 
@@ -961,8 +961,7 @@ class Registrar:
         cvalid = np.empty(crop.shape, dtype=np.bool_)
         t1, t2 = self.thresholds
         use_t1 = not self.options.image_shadows
-        floor = lm.dark_floor or 0.0  # a landmark's dark floor: its photo shadows left out
-        _k_photo_window(self.photo, cl_lo - 1, cs_lo - 1, t1, t2, use_t1, floor, crop, cvalid)
+        _k_photo_window(self.photo, cl_lo - 1, cs_lo - 1, t1, t2, use_t1, crop, cvalid)
         if lm.dark_floor is None and not use_t1 and int(spacing) == 1:
             # photo_shadows="auto": read once, at the first full-resolution step (image_shadows module)
             lm.dark_floor = 0.0
@@ -970,8 +969,8 @@ class Registrar:
                 h, w = tmpl.shape
                 under = (slice(marg, marg + h), slice(marg, marg + w))  # the photo under the template
                 lm.dark_floor = dark_floor(tmpl, tvalid, crop[under], cvalid[under])
-                if lm.dark_floor:
-                    np.logical_and(cvalid, crop > lm.dark_floor, out=cvalid)
+        if lm.dark_floor:  # the photo's shadows and their edges out of this landmark's correlation
+            cvalid &= ~dark_pixels(crop, lm.dark_floor)
         # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
         a_s = min(max(round(c0s + fs), s0), s1)
         a_l = min(max(round(c0l + fl), l0), l1)
@@ -1021,10 +1020,9 @@ def _k_template_valid(coverage, radiance, full, positive, out):  # pragma: no co
 
 
 @numba.njit(cache=True, nogil=True)
-def _k_photo_window(photo, i0, j0, t1, t2, use_t1, floor, crop, valid):  # pragma: no cover - compiled
-    """crop[i, j] = photo[i0 + i, j0 + j] (0-based; 0 outside the photo) and its validity: above
-    ``floor`` ≥ 0 (DN 0 = no data; a landmark's dark floor, :mod:`spctool.stages.image_shadows`),
-    finite, ≤ ``t2`` and, with ``use_t1``, ≥ ``t1`` — in one pass."""
+def _k_photo_window(photo, i0, j0, t1, t2, use_t1, crop, valid):  # pragma: no cover - compiled
+    """crop[i, j] = photo[i0 + i, j0 + j] (0-based; 0 outside the photo) and its validity: positive
+    (DN 0 = no data), finite, ≤ ``t2`` and, with ``use_t1``, ≥ ``t1`` — in one pass."""
     nl, ns = photo.shape
     for i in range(crop.shape[0]):
         r = i0 + i
@@ -1032,7 +1030,7 @@ def _k_photo_window(photo, i0, j0, t1, t2, use_t1, floor, crop, valid):  # pragm
             c = j0 + j
             x = photo[r, c] if (r >= 0) & (r < nl) & (c >= 0) & (c < ns) else 0.0
             crop[i, j] = x
-            valid[i, j] = (x > floor) & (x > 0.0) & (x <= t2) & math.isfinite(x) & ((not use_t1) | (x >= t1))
+            valid[i, j] = (x > 0.0) & (x <= t2) & math.isfinite(x) & ((not use_t1) | (x >= t1))
 
 
 #: a template re-rendered at a finer supersampling within this many pixels (per axis) of the phase of
