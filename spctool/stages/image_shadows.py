@@ -58,7 +58,7 @@ AUTO_DARK_SIGMAS = 5.0
 #: the photo shows shadows only if its lit level is this many σ above its dark level
 AUTO_DARK_CONTRAST_SIGMAS = 10.0
 #: pixels within this many px (square neighbourhood) of a dark one are left out too: the shadow's edge
-AUTO_DARK_MARGIN_PX = 2
+AUTO_DARK_MARGIN_PX = 3
 
 
 def dark_floor(template, template_valid, photo, photo_valid) -> float:
