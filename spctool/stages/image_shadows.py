@@ -8,17 +8,21 @@ An image-space template is rendered from the maplet's heights, which cannot hold
 relief: the edges of its cast shadows sit where the *smoothed* heights put them.  The photo's own
 shadows are darker than the template's lit terrain wherever the truth casts further (its sharper
 relief), and these pixels, dark in the photo and lit in the template, pull the alignment along the
-Sun.  On the independent low-Sun worlds (issue #39; truth ray-traced by trimesh + Embree, Sun 70° from
-the zenith) that was 0.028 px of a 0.030 px error common to a picture's landmarks, and the two-pass
-rms 0.045 px.  Measured factor by factor (the same worlds, two-pass image-space rms, facet truth):
-no cast shadows in the template 0.198 px; the template's shadows left out (its shadowed pixels,
-with 0/1/2 px margins) 0.041/0.046/0.053 px; Lambert instead of SPC's law 0.047 px; facet shading
-0.045 px; 3 × 3 rays per template pixel 0.044 px; **photo pixels at the photo's dark level left out
-0.028 px** (the same for floors 2σ…10σ of the noise above the dark level: 0.0284, 0.0278, 0.0274 px).
+Sun, as do the shadow's edge pixels (partly dark, where the truth puts the edge).  On the independent
+low-Sun worlds (issue #39; truth ray-traced by trimesh + Embree, Sun 70° from the zenith; two-pass
+image-space rms, facet truth, 96 landmarks; docs/benchmarks.md "The photo's shadows at a low Sun"):
+no cast shadows in the template 0.198 px; the template's shadows left out (0/1/2 px margins)
+0.041/0.046/0.053 px; Lambert instead of SPC's law 0.047 px; facet shading 0.045 px; 3 × 3 rays per
+template pixel 0.044 px; as is 0.045 px; **the photo's pixels at its dark level left out 0.028 px**
+(floors 2σ…10σ above the dark level alike), and with every pixel within 1/2/3 px of them 0.024/0.024/
+0.025 px, the error common to a picture's landmarks along the Sun −0.027 → −0.019 → −0.009/−0.005/
+−0.002 px.  The 3 px margin (:data:`AUTO_DARK_MARGIN_PX`) is the one whose remaining common error
+the calibrated covariance covers (95 % ellipse: 0.82 → 0.85 at 2 px, 0.96 at 3 px).
 
 So ``photo_shadows="auto"`` (:class:`spctool.stages.registrar.RegisterOptions`, the default) leaves out
 of every full-resolution correlation of a landmark the photo pixels at or below a *dark floor* it
-reads, once, from the photo under the landmark's own template (:func:`dark_floor`):
+reads, once, from the photo under the landmark's own template (:func:`dark_floor`), and those within
+:data:`AUTO_DARK_MARGIN_PX` of one (:func:`dark_pixels`):
 
 * the template's dark pixels (radiance 0: cast or attached shadow, every sub-ray) must number at least
   :data:`AUTO_DARK_MIN_PIXELS` and :data:`AUTO_DARK_MIN_FRACTION` of the pixels compared, else the
