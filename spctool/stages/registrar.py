@@ -162,12 +162,13 @@ class RegisterOptions:
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
-      (``"smooth"``, the default, | ``"facet"``; chosen on the two independent worlds of issue #15
-      and the s16-50m Monte Carlo, two-pass image-space rms in px, smooth vs facet — tests' world
-      (27 landmarks): 0.029 vs 0.024 (facet truth), 0.028 vs 0.024 (smooth truth); benchmark world
-      (96): 0.019 vs 0.020 for both truths; but facet normals differentiate height noise, and with the
-      Monte Carlo's 3.33 mm height errors on 1 cm cells 10 of 12 landmarks end low-correlation —
-      README "Template shading"), ``template_visibility`` (``"raster"``, the default: supersampled
+      (``"smooth"``, the default, | ``"facet"``; chosen on the four independent benchmark worlds of
+      issue #39 — both truths, the views' Sun and 70° —, two-pass image-space rms in px, smooth vs
+      facet: 0.0184 vs 0.0187, 0.0181 vs 0.0186 (views' Sun), 0.0247 vs 0.0278, 0.0237 vs 0.0268
+      (70°); the tests' smaller world (27 landmarks) prefers facet at the views' Sun, 0.029 vs 0.024;
+      facet normals differentiate height noise, and with the s16-50m Monte Carlo's 3.33 mm height
+      errors on 1 cm cells 10 of 12 landmarks end low-correlation — docs/benchmarks.md "Template
+      shading"), ``template_visibility`` (``"raster"``, the default: supersampled
       templates find each sub-ray's terrain cell by rasterising the maplet with the camera's forward
       model, then solve the crossing there — the same template as ``"march"``, the grid march of
       every sub-ray, to the last bit, 10–30 % less time per ss2 template: :class:`RenderOptions`
