@@ -37,6 +37,13 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   Monte Carlo's image plan (supersample 1, for speed) and maplet space (with the study's S16
   settings, and with register's exact extraction and cast shadows) are informative.  Set
   ``SPCTOOL_MC_SCENE_EXACT=FILE`` to reuse that scene.
+* ``accuracy montecarlo image model error at zero perturbation, facet templates, supersample 3``
+  (informative, issue #39): the image-space floor with flat-facet templates at 3 × 3 rays (the study's
+  plan otherwise).  The smooth shading's interpolated node slopes carry the floor's part common to
+  the landmarks (+0.028 px in line, along the Sun, at 1, 2 or 4 rays); facet templates remove most of
+  it (+0.005 to +0.009), and the worst landmark goes 0.074 → 0.072 / 0.064 / 0.034 / 0.042 px at
+  1 / 2 / 3 / 4 rays: below maplet space's 0.045.  Not a default: facet normals differentiate the
+  study's per-node height errors (docs/benchmarks.md "Template shading").
 
 Each space is run once per process; its figures are served from that run.
 """
@@ -295,7 +302,19 @@ BENCHMARKS = [
             predict=PredictOptions(shadows="cast"),
         ),
     ),
+    # issue 39, image-space floor (engineer A): what the floor is made of — the smooth template
+    # shading's response to the unresolved relief (its common part along the Sun); informative
+    (
+        "accuracy montecarlo image model error at zero perturbation, facet templates, supersample 3",
+        "(informative: the plan's 0.074 px)",
+        lambda: _model_error_with(template_shading="facet", supersample=3),
+    ),
 ]
+
+
+def _model_error_with(**changes):
+    v = _zero_error(_scene(), "image", **changes)
+    return v, "px", bool(np.isfinite(v))
 
 
 if __name__ == "__main__":  # pragma: no cover

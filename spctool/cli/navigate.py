@@ -47,6 +47,7 @@ def _spacings(text: str) -> tuple:
 @options.flip_rows_option
 @options.space_option
 @options.template_shading_option
+@options.photo_shadows_option
 @options.corr_min_option
 @options.photometry_option
 @options.thresholds_option

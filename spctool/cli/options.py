@@ -556,6 +556,16 @@ template_shading_option = click.option(
     "two per maplet cell (facet).",
 )
 
+photo_shadows_option = click.option(
+    "--photo-shadows",
+    type=click.Choice(["auto", "use"]),
+    default="auto",
+    show_default=True,
+    help="Image space: auto leaves a landmark's photo pixels at the photo's dark level (read under the "
+    "template's own shadows) out of its full-resolution correlation, since the maplet's smoothed heights "
+    "cannot place those shadows' edges; use correlates them as dark.",
+)
+
 #: register --panels and correlate --panels: one PNG per landmark
 panels_option = click.option(
     "--panels",

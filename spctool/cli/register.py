@@ -109,6 +109,7 @@ _shared_options = options.option_group(
         help="Image space: leave shadowed pixels out instead of correlating them as dark.",
     ),
     options.template_shading_option,
+    options.photo_shadows_option,
     options.out_dir_option("Write each landmark's (last) correlation surface as an image to DIR."),
     options.image_format_option,
     options.image_zoom_option,
@@ -164,6 +165,7 @@ def _register_options(kw, schedule, **extra):
         supersample=kw["supersample"],
         image_shadows=not kw["no_image_shadows"],
         template_shading=kw["template_shading"],
+        photo_shadows=kw.get("photo_shadows", RegisterOptions.photo_shadows),
         threads=kw.get("threads"),  # commands without --threads: numba's thread count
         predict=popts,
         extract=eopts,

@@ -84,6 +84,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from spctool.stages.image_shadows import dark_floor_note
 from spctool.stages.pose import PoseError, solve_pose
 from spctool.stages.predict import cast_shadow_note
 from spctool.stages.registrar import (
@@ -372,6 +373,9 @@ def register(
     cast = reg.cast_shadow_landmarks()
     if cast:
         result.adapted.append(("cast-shadows", cast_shadow_note(cast, reg.thresholds[0])))
+    floors = reg.dark_floor_landmarks()
+    if floors:
+        result.adapted.append(("photo-shadows", dark_floor_note(floors)))
     odd = disagreeing_shifts(result)
     if odd:
         result.warnings.append(odd)

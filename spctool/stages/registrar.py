@@ -40,9 +40,12 @@ one Newton step where that is not exact to 1e-7 px:
 :func:`spctool.stages.register.register` parallelises across landmarks instead (``threads``), with
 results identical to one thread.  ``template_shading``:
 ``smooth`` (interpolated node slopes) or ``facet`` (flat triangles, two per cell; albedo bilinear).
-With ``image_shadows`` (default) shadowed pixels are *used*, dark in both images — the point of
+With ``image_shadows`` (default) the template's shadowed pixels are *used*, dark — the point of
 ray-traced shadows; photo pixels then count when 0 < DN ≤ T2 (T1 is not applied; DN 0 is SPC's
-missing data), template pixels where every sub-ray hit the maplet.
+missing data), template pixels where every sub-ray hit the maplet.  With ``photo_shadows="auto"``
+(default) the photo's own shadows and their edges are then left out of a landmark's full-resolution
+steps when its template shows them (:mod:`spctool.stages.image_shadows`: the maplet's smoothed heights
+cannot place their edges).
 """
 
 from __future__ import annotations
@@ -75,6 +78,7 @@ from spctool.stages.extract import (
     shadow_extension,
     shadow_offsets,
 )
+from spctool.stages.image_shadows import PHOTO_SHADOW_MODES, dark_floor, dark_pixels
 from spctool.stages.pose import PoseOptions
 from spctool.stages.predict import PredictOptions, predict, resolve_shadows
 
@@ -158,17 +162,21 @@ class RegisterOptions:
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
-      (``"smooth"``, the default, | ``"facet"``; chosen on the two independent worlds of issue #15
-      and the s16-50m Monte Carlo, two-pass image-space rms in px, smooth vs facet — tests' world
-      (27 landmarks): 0.029 vs 0.024 (facet truth), 0.028 vs 0.024 (smooth truth); benchmark world
-      (96): 0.019 vs 0.020 for both truths; but facet normals differentiate height noise, and with the
-      Monte Carlo's 3.33 mm height errors on 1 cm cells 10 of 12 landmarks end low-correlation —
-      README "Template shading"), ``template_visibility`` (``"raster"``, the default: supersampled
+      (``"smooth"``, the default, | ``"facet"``; chosen on the four independent benchmark worlds of
+      issue #39 — both truths, the views' Sun and 70° —, two-pass image-space rms in px, smooth vs
+      facet: 0.0184 vs 0.0187, 0.0181 vs 0.0186 (views' Sun), 0.0247 vs 0.0278, 0.0237 vs 0.0268
+      (70°); the tests' smaller world (27 landmarks) prefers facet at the views' Sun, 0.029 vs 0.024;
+      facet normals differentiate height noise, and with the s16-50m Monte Carlo's 3.33 mm height
+      errors on 1 cm cells 10 of 12 landmarks end low-correlation — docs/benchmarks.md "Template
+      shading"), ``template_visibility`` (``"raster"``, the default: supersampled
       templates find each sub-ray's terrain cell by rasterising the maplet with the camera's forward
       model, then solve the crossing there — the same template as ``"march"``, the grid march of
       every sub-ray, to the last bit, 10–30 % less time per ss2 template: :class:`RenderOptions`
       ``visibility``; single-ray templates march, where the raster costs as much as it saves),
-      ``template_margin`` (px
+      ``photo_shadows`` (``"auto"``, the default: a landmark's photo pixels at the photo's dark level,
+      read once under its template's own shadows, and those within 3 px of one are left out of its
+      full-resolution steps — independent worlds at a low Sun, two-pass 0.045 → 0.024–0.025 px rms;
+      ``"use"``: correlated as dark; :mod:`spctool.stages.image_shadows`), ``template_margin`` (px
       added around the projected footprint, 1), ``image_bin_fraction`` (a binned template pixel needs
       this fraction of its n² pixels on the maplet, 0.5: border bins that average only a sliver of
       template are not compared with full photo bins).
@@ -215,6 +223,7 @@ class RegisterOptions:
     threads: int | None = None
     template_margin: int = 1
     image_bin_fraction: float = 0.5
+    photo_shadows: str = "auto"
     keep_images: bool = False
     cap_spacing: bool = True
     predict: PredictOptions = field(default_factory=PredictOptions)
@@ -247,6 +256,10 @@ class RegisterOptions:
                 raise SpcUsageError(
                     f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
                 )
+        if self.photo_shadows not in PHOTO_SHADOW_MODES:
+            raise SpcUsageError(
+                f"photo_shadows must be one of {', '.join(PHOTO_SHADOW_MODES)}, got {self.photo_shadows!r}"
+            )
         if self.threads is not None and int(self.threads) < 1:
             raise SpcUsageError(f"threads must be >= 1, got {self.threads}")
         if not 0.0 <= float(self.image_bin_fraction) <= 1.0:
@@ -441,6 +454,7 @@ class _Landmark:
         "padded",
         "shadow_mode",
         "cast",
+        "dark_floor",
         "proj",
     )
 
@@ -453,6 +467,7 @@ class _Landmark:
         self.pred_camera = None
         self.shadow_mode = None  # predict's shadows="auto", resolved on the first extraction
         self.cast = None  # the maplet's cast-shadow cells for the Registrar's Sun
+        self.dark_floor = None  # image space, photo_shadows: DN left out (0: none), at the first L = 1 step
         self.patch = None
         self.tmpl = None
         self.tmpl_key = None
@@ -600,6 +615,10 @@ class Registrar:
             )
             lm.pred_camera = camera
         return lm.pred
+
+    def dark_floor_landmarks(self) -> dict:
+        """Image space: name → the DN at or below which ``photo_shadows="auto"`` left the photo out."""
+        return {lm.name: lm.dark_floor for lm in self.landmarks if lm.dark_floor}
 
     def cast_shadow_landmarks(self) -> list[str]:
         """The landmarks whose prediction ``shadows="auto"`` switched to cast shadows."""
@@ -848,7 +867,10 @@ class Registrar:
             if part is not None:
                 rad[cl0 - l0 :, cs0 - s0 :] = part.radiance
                 cov[cl0 - l0 :, cs0 - s0 :] = part.coverage
-            rend = Rendering(rad, cov, np.zeros(shp), np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
+            shd = np.zeros(shp)
+            if part is not None:
+                shd[cl0 - l0 :, cs0 - s0 :] = part.shadow
+            rend = Rendering(rad, cov, shd, np.zeros(shp, np.int16), (s0, s1, l0, l1), ropts)
         lm.tmpl, lm.tmpl_key = rend, (camera, frac.copy(), (s0, s1, l0, l1))
         return rend, frac.copy(), (s0, s1, l0, l1)
 
@@ -945,9 +967,17 @@ class Registrar:
         crop = np.empty((cl_hi - cl_lo + 1, cs_hi - cs_lo + 1))
         cvalid = np.empty(crop.shape, dtype=np.bool_)
         t1, t2 = self.thresholds
-        _k_photo_window(
-            self.photo, cl_lo - 1, cs_lo - 1, t1, t2, not self.options.image_shadows, crop, cvalid
-        )
+        use_t1 = not self.options.image_shadows
+        _k_photo_window(self.photo, cl_lo - 1, cs_lo - 1, t1, t2, use_t1, crop, cvalid)
+        if lm.dark_floor is None and not use_t1 and int(spacing) == 1:
+            # photo_shadows="auto": read once, at the first full-resolution step (image_shadows module)
+            lm.dark_floor = 0.0
+            if self.options.photo_shadows == "auto":
+                h, w = tmpl.shape
+                under = (slice(marg, marg + h), slice(marg, marg + w))  # the photo under the template
+                lm.dark_floor = dark_floor(tmpl, tvalid, crop[under], cvalid[under])
+        if lm.dark_floor:  # the photo's shadows and their edges out of this landmark's correlation
+            cvalid &= ~dark_pixels(crop, lm.dark_floor)
         # anchors: the template pixel nearest to V's rendered position, and where it sits in the crop
         a_s = min(max(round(c0s + fs), s0), s1)
         a_l = min(max(round(c0l + fl), l0), l1)
