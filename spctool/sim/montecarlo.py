@@ -67,7 +67,8 @@ order of evaluation or on the number of worker processes (``jobs``): runs are id
 Floor.  Each landmark is also registered once with every perturbation at zero
 (:func:`zero_floor`, :attr:`MonteCarloResult.floor`): its error is the model-error floor of the scene
 (the onboard maplets are smoothed from a finer truth, as S16 prescribes), which the per-landmark means
-are read against (report: |mean| − |floor| per axis).
+are read against (report: the excess |mean − floor| per axis, with the mean's σ/√n, and a PASS/MISS per
+landmark against :data:`spctool.sim.montecarlo_report.LANDMARK_TARGETS`).
 
 Scenes and report.  The study's input — one photo with its truth and the onboard maplets, the
 ``s16-50m`` preset among them — is :mod:`spctool.sim.montecarlo_scene`; its output in S16 Table 3's
