@@ -70,8 +70,10 @@ def test_json_report(run_cli, scene_file):
     assert one["checks"]["landmark_targets"]["max_excess"] == row["targets"]["excess"]
     assert len(one["s16_table3"]["landmarks"]) == 12
     assert one["timing"]["samples"] == 3
-    other = _doc(run_cli(*args[:-3], "--seed", 8, "--json", "--jobs", 1))
+    other = _doc(run_cli(*args[:-3], "--seed", 8, "--json", "--jobs", 1, "--converge-peak", "gradient"))
     assert other["landmarks"][0]["sample_mean"] != row["sample_mean"]
+    assert one["config"]["plan"][0]["converge_peak"] == "gradient-photo"  # maplet space's default
+    assert other["config"]["plan"][0]["converge_peak"] == "gradient"
 
 
 @pytest.mark.slow

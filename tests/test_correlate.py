@@ -21,6 +21,7 @@ from spctool.stages.correlate import (
     correlate,
     find_peak,
     gradient_offset,
+    gradient_offset_photo,
     ncc_surface,
     parabola_vertex,
     peak_covariance,
@@ -1008,3 +1009,105 @@ def test_correlate_valid_is_correlate_for_masks_of_valid_pixels(spacing):
     np.testing.assert_array_equal(got.surface, ref.surface)
     np.testing.assert_array_equal(got.offset, ref.offset)
     np.testing.assert_array_equal(got.covariance, ref.covariance)
+
+
+# --------------------------------------------------------------------------------------------------
+# the alignment the other way round: the prediction fitted on the photo (gradient_offset_photo)
+
+
+def _photo_alignment_reference(e, me, p, mp, origin):
+    """P ≈ α·E + β + c·∇E by dense NumPy least squares over the pixels where both masks and E's four
+    axis neighbours hold (E at + origin); δ = c/α.  Written from the formula, not from the kernel."""
+    o0, o1 = origin
+    rows, pv, ev, gr, gc = [], [], [], [], []
+    for i in range(p.shape[0]):
+        for j in range(p.shape[1]):
+            ie, je = i + o0, j + o1
+            if not (1 <= ie < e.shape[0] - 1 and 1 <= je < e.shape[1] - 1):
+                continue
+            if not (mp[i, j] and me[ie, je] and me[ie - 1, je] and me[ie + 1, je]):
+                continue
+            if not (me[ie, je - 1] and me[ie, je + 1]):
+                continue
+            pv.append(p[i, j])
+            ev.append(e[ie, je])
+            gr.append(0.5 * (e[ie + 1, je] - e[ie - 1, je]))
+            gc.append(0.5 * (e[ie, je + 1] - e[ie, je - 1]))
+            rows.append((i, j))
+    a = np.stack([np.asarray(ev), np.asarray(gr), np.asarray(gc), np.ones(len(ev))], axis=1)
+    coef = np.linalg.lstsq(a, np.asarray(pv), rcond=None)[0]
+    return coef[1] / coef[0], coef[2] / coef[0], coef[0]
+
+
+@given(seed=st.integers(0, 2**31 - 1), o0=st.integers(-3, 3), o1=st.integers(-3, 3))
+@settings(max_examples=30, deadline=None)
+def test_photo_alignment_matches_a_dense_least_squares(seed, o0, o1):
+    """gradient_offset_photo equals the least squares of the prediction on the photo and its gradient,
+    computed pixel by pixel from the formula (the interior-only window of the kernel: P's rows
+    1 … n − 2 are used when E's neighbours exist, so the reference keeps those too)."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
+    e = 3.0 * np.roll(p, (1, -1), axis=(0, 1)) + 7.0 + 0.3 * rng.normal(size=p.shape)
+    e = np.pad(e, 3, mode="edge")
+    mp = rng.random(p.shape) > 0.1
+    me = rng.random(e.shape) > 0.1
+    dr, dc, good = gradient_offset_photo(e, me, p, mp, (3 + o0, 3 + o1), max_move=1e9)
+    # the kernel's window: P rows/columns whose E partner is an interior node, P's own border excluded
+    mp_in = mp.copy()
+    mp_in[[0, -1], :] = False
+    mp_in[:, [0, -1]] = False
+    rr, rc, gain = _photo_alignment_reference(e, me, p, mp_in, (3 + o0, 3 + o1))
+    assert good == (gain > 0.0)
+    if good:
+        np.testing.assert_allclose([dr, dc], [rr, rc], rtol=1e-8, atol=1e-9)
+
+
+def test_photo_alignment_is_exactly_zero_at_a_perfect_alignment():
+    """E = 3·P + 7 at a whole-cell offset under an asymmetric mask: both alignments read the offset to
+    rounding (correlate's peak="gradient-photo" reports its own estimator)."""
+    n, d = 61, np.array([2.0, -1.0])
+    e = 3.0 * _sharp(n, d) + 7.0
+    p = _sharp(n)
+    mask = _blob_mask(n)
+    g = correlate(e, p, predicted_valid=mask, options=CorrelateOptions(peak="gradient-photo"))
+    assert g.ok and g.peak_fit == "gradient-photo"
+    np.testing.assert_allclose(g.offset, d, rtol=0, atol=1e-9)
+    with pytest.raises(SpcUsageError, match="gradient-photo"):
+        CorrelateOptions(peak="gradient-photos")
+
+
+def test_noise_biases_the_alignment_whose_regressors_carry_it():
+    """Least squares is unbiased for noise in the fitted image and attenuated by noise in its
+    regressors.  A smooth texture shifted by (0.3, −0.2) cell, white noise of its gradient's rms on
+    one image, 40 draws: the noisy image as the fitted side reads the shift to within a few standard
+    errors and the first-order expansion's error (≈ 1 %); as the regressor it reads it shortened by
+    the attenuation var(∇P)/(var(∇P) + var(∇noise)) ≈ 2/3."""
+    n, d = 61, np.array([0.3, -0.2])
+    x = np.arange(n, dtype=float)
+
+    def tex(s=(0.0, 0.0)):
+        r, c = x[:, None] - s[0], x[None, :] - s[1]
+        return np.sin(r / 4.0 + 0.3) * np.cos(c / 5.0) + 0.5 * np.sin((r + c) / 6.0)
+
+    clean_p, clean_e = tex(), 2.0 * tex(d) + 1.0
+    ok = np.ones((n, n), bool)
+    g = np.gradient(clean_p)
+    sigma = float(np.sqrt(np.mean(g[0] ** 2 + g[1] ** 2) / 2.0))
+    rng = np.random.default_rng(3)
+    reads = {"p noisy": ([], []), "e noisy": ([], [])}
+    for _ in range(40):
+        noisy_p = clean_p + sigma * rng.normal(size=(n, n))
+        noisy_e = clean_e + 2.0 * sigma * rng.normal(size=(n, n))
+        for key, (e, p) in (("p noisy", (clean_e, noisy_p)), ("e noisy", (noisy_e, clean_p))):
+            a = gradient_offset(e, ok, p, ok, (0, 0))
+            b = gradient_offset_photo(e, ok, p, ok, (0, 0))
+            assert a[2] and b[2]
+            reads[key][0].append(a[:2])
+            reads[key][1].append(b[:2])
+    for key, fitted_noisy, regressor_noisy in (("p noisy", 1, 0), ("e noisy", 0, 1)):
+        good = np.asarray(reads[key][fitted_noisy])
+        bad = np.asarray(reads[key][regressor_noisy])
+        se = good.std(axis=0, ddof=1) / math.sqrt(len(good))
+        assert np.all(np.abs(good.mean(axis=0) - d) < 4 * se + 0.01 * np.abs(d)), key
+        # the attenuated read: shorter than the shift by more than 20 % on each axis
+        assert np.all(np.abs(bad.mean(axis=0)) < 0.8 * np.abs(d)), key

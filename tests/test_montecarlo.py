@@ -314,7 +314,9 @@ def test_error_is_truth_minus_register(scene):
 def test_default_plans():
     (o,) = mc.default_plan("maplet")
     assert [n for _, n in o.steps] == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1]  # refine = 1, then converged
-    assert o.converge_max > 0 and o.converge_peak == "gradient"
+    # the prediction (noisy maplets) is the fitted side of the converged stage's alignment
+    assert o.converge_max > 0 and o.converge_peak == mc.MAPLET_CONVERGE_PEAK == "gradient-photo"
+    assert mc.default_plan("maplet", converge_peak="gradient")[0].converge_peak == "gradient"
     assert o.extract.linearized and o.extract.criteria is None and o.schedule == "retina_s16"
     assert o.acquire_reach == mc.S16_ACQUIRE_REACH and o.first_phases == 1  # 4 sigma, full overlap
     (s16,) = mc.default_plan("maplet", refine=0, acquire_reach=0)
@@ -329,6 +331,7 @@ def test_default_plans():
     assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
     assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]
     assert coarse.converge_max == 0 and fine.converge_max > 0  # the fine phase ends converged
+    assert coarse.converge_peak == fine.converge_peak == "gradient"  # image space: register's own
     # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then
     assert coarse.acquire_reach == mc.IMAGE_ACQUIRE_REACH == 48 and coarse.steps[0] == 4
     assert coarse.grid_half == fine.grid_half == mc.IMAGE_GRID_HALF == 3

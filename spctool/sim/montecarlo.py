@@ -294,6 +294,15 @@ IMAGE_GRID_HALF = 3
 IMAGE_CONVERGE_TOL = 0.01
 
 
+#: the maplet plan's converged-stage estimator: the least-squares alignment with the photo's gradient as
+#: regressor (:func:`spctool.stages.correlate.gradient_offset_photo`).  The study's maplets carry an
+#: i.i.d. height error on every node (a third of a cell), so the prediction shaded from their slopes is
+#: far noisier than the photo; with the prediction's gradient as regressor (register's ``"gradient"``)
+#: that noise moved the landmarks' mean errors by up to 0.044 px from their zero-perturbation
+#: registration (s16-50m, 12 × 500; docs/benchmarks.md)
+MAPLET_CONVERGE_PEAK = "gradient-photo"
+
+
 def acquire_reach_for(sigma_scale: float) -> int:
     """The maplet plan's first-step reach (cells) for Table 2's sigmas multiplied by ``sigma_scale``."""
     return round(S16_ACQUIRE_REACH * float(sigma_scale))
@@ -340,7 +349,10 @@ def default_plan(
             raise SpcUsageError(f"acquire_reach must be an integer >= 0 (cells), got {reach!r}")
         changes = {"acquire_reach": int(reach), **changes}
         opts = dict(
-            schedule="retina_s16", space="maplet", extract=ExtractOptions(linearized=True, criteria=None)
+            schedule="retina_s16",
+            space="maplet",
+            extract=ExtractOptions(linearized=True, criteria=None),
+            converge_peak=MAPLET_CONVERGE_PEAK,
         )
         opts.update(changes)
         spacings = tuple(opts.get("s16_spacings", RegisterOptions.s16_spacings))

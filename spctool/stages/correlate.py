@@ -61,7 +61,10 @@ E (image space, :func:`correlate` with anchors).  With spacing n:
    vertex of a sampled surface is biased where the surface is asymmetric about its maximum — and with
    masks and shading it is: a template identical to the photo still reads 0.03–0.05 px off with the
    quadric — while the alignment is exactly 0 there; the register loop's converged full-resolution
-   stage uses it (``RegisterOptions.converge_peak``).
+   stage uses it (``RegisterOptions.converge_peak``).  ``peak="gradient-photo"`` is the same
+   alignment the other way round (P ≈ α·E + β + α·δ·∇E, :func:`gradient_offset_photo`): the
+   regressors are the photo's, the prediction is the fitted side — for predictions noisier than the
+   photo (maplets with per-node height errors), whose noise in the regressors biases the first form.
 6. **Offset** in full-resolution cells: Δx (along UX) = n·((r₀ − k) + δ_r), Δy (along UY) =
    n·((c₀ − k) + δ_c).  The picture shift is δ = J_xy·Δ (Stage H, :mod:`spctool.stages.register`).
 
@@ -112,6 +115,7 @@ __all__ = [
     "ncc_surface",
     "parabola_vertex",
     "PEAK_METHODS",
+    "ALIGNMENTS",
     "peak_covariance",
     "quadric_fit",
     "quadric_vertex",
@@ -122,7 +126,10 @@ __all__ = [
 STATUSES = ("ok", "edge-peak", "not-found", "low-correlation")
 #: sub-pixel peak estimators: 2-D least-squares quadric (default), SPC's separable parabolas, or the
 #: least-squares image alignment at the grid peak (:func:`gradient_offset`)
-PEAK_METHODS = ("quadric", "parabola", "gradient")
+PEAK_METHODS = ("quadric", "parabola", "gradient", "gradient-photo")
+#: the estimators that align the images at the grid peak (:func:`gradient_offset`,
+#: :func:`gradient_offset_photo`)
+ALIGNMENTS = ("gradient", "gradient-photo")
 
 
 @dataclass
@@ -142,7 +149,9 @@ class CorrelateOptions:
     * ``peak`` — sub-pixel estimator: ``"quadric"`` (2-D least squares on the 3×3 neighbourhood, with
       the cross term; default), ``"parabola"`` (SPC/L15: one parabola per axis, for legacy runs) or
       ``"gradient"`` (least-squares alignment of the two images at the grid peak,
-      :func:`gradient_offset`; unbiased at zero offset, the register loop's converged stage uses it).
+      :func:`gradient_offset`; unbiased at zero offset, the register loop's converged stage uses it)
+      or ``"gradient-photo"`` (the same with the photo's gradient as regressor:
+      :func:`gradient_offset_photo`, for a prediction noisier than the photo).
     """
 
     grid_half: int = 5
@@ -190,8 +199,8 @@ class Correlation:
     hessian: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
     #: (2, 2) covariance of ``offset`` in full-resolution cells² (array axes; NaN if none)
     covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
-    #: sub-pixel estimate used: "gradient", "quadric", "parabola" or "parabola-fallback" (quadric
-    #: rejected); "" if none
+    #: sub-pixel estimate used: "gradient", "gradient-photo", "quadric", "parabola" or
+    #: "parabola-fallback" (quadric rejected); "" if none
     peak_fit: str = ""
 
     @property
@@ -774,6 +783,35 @@ def _gradient_offset(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
     return dr, dc, True
 
 
+def gradient_offset_photo(e, me, p, mp, origin, max_move: float = 1.0):
+    """:func:`gradient_offset` with the roles of the images exchanged: ``(δ_r, δ_c, ok)``, the same
+    offset of E relative to P placed at ``origin``, from the fit of the prediction on the photo
+
+        P ≈ α·E + β + c_r·∇_r E + c_c·∇_c E,     δ = (c_r, c_c)/α
+
+    (E(m) = a·P(m − δ) + b ⇔ P(m) = (E(m + δ) − b)/a, to first order P ≈ E/a − b/a + δ·∇E/a), over
+    the pixels valid in both whose axis neighbours are valid in E.  Least squares is unbiased for noise
+    in the fitted image and biased by noise in its regressors: this form suits a prediction noisier
+    than the photo.  On the s16-50m Monte Carlo (per-node height errors of a third of a cell, S16
+    Table 2) the prediction's shading noise in the regressors of :func:`gradient_offset` moved the
+    landmarks' mean errors by up to 0.044 px from their zero-perturbation registration; here by at
+    most ~0.007 px (docs/benchmarks.md).  With a clean prediction and a noisy photo it is the other way
+    round: the photo's noise is then in the regressors.  Exactly zero, like :func:`gradient_offset`,
+    when P = a'·E + b'.  It is :func:`gradient_offset` called with the images exchanged and the origin
+    negated, its offset negated."""
+    return _gradient_offset_photo(
+        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
+        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
+        int(origin[0]), int(origin[1]), max_move,
+    )  # fmt: skip
+
+
+def _gradient_offset_photo(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
+    """:func:`gradient_offset_photo` on C-contiguous float64 images and bool masks."""
+    dr, dc, ok = _gradient_offset(p, mp, e, me, -o0, -o1, max_move)
+    return (-dr, -dc, True) if ok else (dr, dc, False)
+
+
 def resampled_noise_footprint(pixels_per_cell: float) -> float:
     """Cells per independent noise sample of a photo resampled bilinearly onto cells of
     ``pixels_per_cell`` pixels (linear; √|det J_xy| times the spacing n for binned maplet cells).
@@ -1006,10 +1044,14 @@ def correlate_valid(e, me, p, mp, n: int, opts: CorrelateOptions, ea, pa, noise_
     k = opts.grid_half
     surf, cnts = _ncc(eb, meb, pb, mpb, k, opts.min_valid, origin)
     status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
-    if opts.peak == "gradient" and status in ("ok", "low-correlation"):
-        g_r, g_c, g_ok = _gradient_offset(eb, meb, pb, mpb, origin[0] + idx[0] - k, origin[1] + idx[1] - k)
+    if opts.peak in ALIGNMENTS and status in ("ok", "low-correlation"):
+        o0, o1 = origin[0] + idx[0] - k, origin[1] + idx[1] - k
+        if opts.peak == "gradient":
+            g_r, g_c, g_ok = _gradient_offset(eb, meb, pb, mpb, o0, o1)
+        else:
+            g_r, g_c, g_ok = _gradient_offset_photo(eb, meb, pb, mpb, o0, o1)
         if g_ok:
-            dr, dc, fit = g_r, g_c, "gradient"
+            dr, dc, fit = g_r, g_c, opts.peak
     if idx is None or status == "not-found":
         return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), np.full(2, np.nan), hess, peak_fit=fit)
     off = np.array([n * ((idx[0] - k) + dr), n * ((idx[1] - k) + dc)])
