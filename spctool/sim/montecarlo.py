@@ -24,7 +24,9 @@ over the successful samples; the mean of the maximum ρ is over all samples with
 Registration plans (:func:`default_plan`).  Maplet space is S16's driver (``retina_s16``: L = 10 … 1,
 ±5L cells, no pose update, linearised extraction) followed by ``refine`` steps at L = 1; the extra
 steps re-extract at the current estimate so that the last correlation peak sits at a near-zero offset,
-where the 3-point parabola is least biased.  Its first step (L = 10) searches ±80 cells on the photo
+where the 3-point parabola is least biased; the converged stage fits the prediction on the photo
+(:data:`MAPLET_CONVERGE_PEAK`), since the study's noisy maplets make the prediction the noisier image.
+Its first step (L = 10) searches ±80 cells on the photo
 resampled onto the maplet's grid extended beyond its edge (``acquire_reach``, 4σ of the a-priori pixel):
 S16's search within the maplet's own 99 cells ends near ±50 cells (35 px = 2.8σ), and lost 1.1 % of
 one landmark's samples beyond it (0.8 % within it to edge peaks of a third of the overlap, which the
@@ -324,7 +326,10 @@ def default_plan(
       :data:`S16_ACQUIRE_REACH`): the first step searches that far on a full-overlap extraction
       (:class:`RegisterOptions`; s16-50m 12 × 500, worst landmark's success 96.4 % with S16's search,
       99.0 % with 2 × 2 phases, 99.8 % with the reach).  ``first_phases`` (default 1): the first step
-      at p × p phases.  ``refine=0, acquire_reach=0, first_phases=1`` is S16's schedule exactly.
+      at p × p phases.  The converged stage reads each step with :data:`MAPLET_CONVERGE_PEAK` (the
+      prediction fitted on the photo; ``converge_peak="gradient"`` is register's default).
+      ``refine=0, acquire_reach=0, first_phases=1, converge_peak="gradient"`` is S16's schedule
+      followed by register's converged stage.
     * ``"image"`` — S16's image-space direction (Retina; S16 gives no schedule): a coarse search at
       L = 4, 2, 1, ±48 px at L = 4 (a 25 × 25 grid: the search is not limited by the maplet; the
       image-space ``acquire_reach``), then ±3 bins (:data:`IMAGE_GRID_HALF`), with the template
