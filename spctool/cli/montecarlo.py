@@ -203,7 +203,7 @@ def register(cli: click.Group) -> None:
     )
     @click.option(
         "--converge-peak",
-        type=click.Choice(["gradient", "gradient-photo"]),
+        type=click.Choice(["gradient", "gradient-photo", "gradient-symmetric", "gradient-weighted"]),
         default=None,
         help="The converged stage's least-squares alignment: 'gradient' fits the photo on the "
         "prediction and its gradient (register's default), 'gradient-photo' the prediction on the "
