@@ -317,6 +317,8 @@ def test_default_plans():
     # the prediction (noisy maplets) is the fitted side of the converged stage's alignment
     assert o.converge_max > 0 and o.converge_peak == mc.MAPLET_CONVERGE_PEAK == "gradient-photo"
     assert mc.default_plan("maplet", converge_peak="gradient")[0].converge_peak == "gradient"
+    for other in ("gradient-symmetric", "gradient-weighted"):  # measured in docs/benchmarks.md
+        assert mc.default_plan("maplet", converge_peak=other)[0].converge_peak == other
     assert o.extract.linearized and o.extract.criteria is None and o.schedule == "retina_s16"
     assert o.acquire_reach == mc.S16_ACQUIRE_REACH and o.first_phases == 1  # 4 sigma, full overlap
     (s16,) = mc.default_plan("maplet", refine=0, acquire_reach=0)

@@ -210,7 +210,10 @@ def register(cli: click.Group) -> None:
         "photo and its gradient (default in maplet space: the study's maplets, with a height error "
         "on every node, make the prediction the noisier image, and noise in the regressors biases a "
         "fit: on the s16-50m preset the worst landmark's mean moved 0.040 px from its "
-        "zero-perturbation floor with 'gradient'). Image space: 'gradient'.",
+        "zero-perturbation floor with 'gradient'). 'gradient-symmetric' regresses the difference on "
+        "the mean of both images' gradients, 'gradient-weighted' on their mix weighted by each "
+        "image's estimated noise (measured, not adopted: docs/benchmarks.md). Image space: "
+        "'gradient'.",
     )
     @click.option(
         "--jobs",

@@ -65,6 +65,11 @@ E (image space, :func:`correlate` with anchors).  With spacing n:
    alignment the other way round (P ≈ α·E + β + α·δ·∇E, :func:`gradient_offset_photo`): the
    regressors are the photo's, the prediction is the fitted side — for predictions noisier than the
    photo (maplets with per-node height errors), whose noise in the regressors biases the first form.
+   ``peak="gradient-symmetric"`` chooses no side: the difference E − P' (P on E's scale) regressed on
+   the mean of both images' gradients (:func:`gradient_offset_symmetric`), which halves a one-sided
+   fit's attenuation by noise on either side; ``"gradient-weighted"`` mixes the two gradients by each
+   image's estimated noise.  On the s16-50m Monte Carlo neither does what ``gradient-photo`` does for
+   the per-landmark excess (docs/benchmarks.md): they are measured there, not adopted.
 6. **Offset** in full-resolution cells: Δx (along UX) = n·((r₀ − k) + δ_r), Δy (along UY) =
    n·((c₀ − k) + δ_c).  The picture shift is δ = J_xy·Δ (Stage H, :mod:`spctool.stages.register`).
 
