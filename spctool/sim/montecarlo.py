@@ -302,8 +302,8 @@ IMAGE_CONVERGE_TOL = 0.01
 #: far noisier than the photo; with the prediction's gradient as regressor (register's ``"gradient"``)
 #: that noise moved the landmarks' mean errors by up to 0.044 px from their zero-perturbation
 #: registration (s16-50m, 12 × 500; docs/benchmarks.md).  The fits that choose no side
-#: (``"gradient-symmetric"``, ``"gradient-weighted"``) keep the lower zero-perturbation floor but leave
-#: 0.038 and 0.019 px of that excess (measured there, not adopted)
+#: (``"gradient-symmetric"``, ``"gradient-weighted"``) leave 0.038 and 0.019 px of that excess
+#: (measured there, not adopted)
 MAPLET_CONVERGE_PEAK = "gradient-photo"
 
 
