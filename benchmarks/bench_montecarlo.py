@@ -18,9 +18,15 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
 * image space (S16's "Retina" direction): success ≥ 99.5 %, |mean| ≤ 0.05 px and 1σ ≤ 0.08 px per
   axis over all samples (max over the two axes), and the same for the worst landmark (informative).
 
-* ``accuracy`` lines (issue #15, per landmark, not only pooled): the worst landmark's |mean| ≤ 0.03 px
-  and 1σ ≤ 0.04 px per axis, and the worst landmark's success ≥ 99.5 %, in both spaces.  Run them
-  alone with ``python benchmarks/run.py accuracy``.
+* ``accuracy`` lines (issue #39's per-landmark targets, both spaces; every landmark on its own, the
+  worst one shown, :data:`spctool.sim.montecarlo_report.LANDMARK_TARGETS`): the worst landmark's
+  **excess** — |mean − floor| per axis, the larger axis, where the floor is that landmark registered
+  once with every Table 2 sigma at zero (``MonteCarloResult.floor``: the preset's model error, which
+  no estimator removes) — ≤ 0.01 px; its 1σ per axis ≤ 0.04 px; its success ≥ 99.5 %.  The excess's
+  own uncertainty is the mean's sampling error σ/√n (≈ 0.002 px at 500 samples; the floor shares the
+  samples' photo, so its noise draw cancels in the difference): reported on an informative line.
+  The worst landmark's |mean| stays as an informative line beside S16 Table 3's worst (0.208 px).
+  Run them alone with ``python benchmarks/run.py accuracy``.
 * ``… image --supersample 2 …``: the image-space study with register's own templates (2 × 2 rays per
   pixel at L = 1, one-ray drafts until the converged stage is near) instead of the study's
   single-ray default: its time and the same accuracy lines.
@@ -29,7 +35,8 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   maplet as written).  What remains is the preset's model error — 1 cm maplets smoothed from the
   3.33 mm truth that rendered the photo — plus the photo's one noise draw, which moves it by only
   ~0.001 px (six draws measured).  It is a floor under every landmark's |mean| that no estimator
-  removes: the |mean| target above cannot be met on this preset while it exceeds 0.03 px.
+  removes, which is why the targets above judge the excess over it (the study's own floor, the same
+  registrations landmark by landmark).
 * ``accuracy montecarlo <space> zero perturbation, exact maplets`` — the same on the control world
   (``s16_scene(exact_maplets=True)``: truth at the maplets' own 1 cm, so the maplets are the surface
   that rendered the photo).  This is the registration's own error.  Image space with templates at the
@@ -171,15 +178,40 @@ def bench_image_worst_std():
     return v, "px", v <= mcr.IMAGE_TARGETS["std_px"]
 
 
-#: issue #15's per-landmark accuracy targets (both spaces)
-ACCURACY = {"abs_mean_px": 0.03, "std_px": 0.04, "success_rate": 0.995}
+#: issue #39's per-landmark targets (both spaces): excess over the floor, 1σ, success
+ACCURACY = {"excess_px": mcr.LANDMARK_TARGETS["excess_px"], "std_px": mcr.LANDMARK_TARGETS["std_px"],
+            "success_rate": mcr.LANDMARK_TARGETS["success_rate"]}  # fmt: skip
 
 
 def _acc_mean(space):
+    """The worst landmark's |mean| per axis (informative: it includes the floor)."""
+
     def fn():
         _, s = _run(space)
         v = max(s["overall"]["max_abs_sample_mean"], s["overall"]["max_abs_line_mean"])
-        return v, "px", v <= ACCURACY["abs_mean_px"]
+        return v, "px", bool(np.isfinite(v))
+
+    return fn
+
+
+def _acc_excess(space):
+    def fn():
+        _, s = _run(space)
+        v = s["overall"]["max_excess"]
+        return v, "px", v <= ACCURACY["excess_px"]
+
+    return fn
+
+
+def _acc_excess_se(space):
+    """σ/√n of the worst-excess landmark's mean on its worst axis (informative: the excess's sampling
+    uncertainty)."""
+
+    def fn():
+        _, s = _run(space)
+        name = s["overall"]["worst_landmarks"]["excess"]["name"]
+        v = next(r["excess_se"] for r in s["landmarks"] if r["name"] == name)
+        return v, "px", bool(np.isfinite(v))
 
     return fn
 
@@ -254,19 +286,32 @@ BENCHMARKS = [
     ("montecarlo image 1sigma (all, max axis)", "<= 0.08 px", bench_image_std),
     ("montecarlo image worst-landmark |mean|", "<= 0.05 px (informative)", bench_image_worst_mean),
     ("montecarlo image worst-landmark 1sigma", "<= 0.08 px (informative)", bench_image_worst_std),
-    ("accuracy montecarlo maplet worst-landmark |mean|", "<= 0.03 px (S16 0.208)", _acc_mean("maplet")),
+    ("accuracy montecarlo maplet worst-landmark excess over floor", "<= 0.01 px", _acc_excess("maplet")),
     ("accuracy montecarlo maplet worst-landmark 1sigma", "<= 0.04 px (S16 0.113)", _acc_std("maplet")),
     ("accuracy montecarlo maplet worst-landmark success", ">= 99.5 % (S16 86 %)", _acc_success("maplet")),
-    ("accuracy montecarlo image worst-landmark |mean|", "<= 0.03 px", _acc_mean("image")),
+    ("accuracy montecarlo maplet worst excess's sigma/sqrt(n)", "(informative)", _acc_excess_se("maplet")),
+    ("accuracy montecarlo maplet worst-landmark |mean|", "(informative: S16 0.208)", _acc_mean("maplet")),
+    ("accuracy montecarlo image worst-landmark excess over floor", "<= 0.01 px", _acc_excess("image")),
     ("accuracy montecarlo image worst-landmark 1sigma", "<= 0.04 px", _acc_std("image")),
     ("accuracy montecarlo image worst-landmark success", ">= 99.5 %", _acc_success("image")),
+    ("accuracy montecarlo image worst excess's sigma/sqrt(n)", "(informative)", _acc_excess_se("image")),
+    ("accuracy montecarlo image worst-landmark |mean|", "(informative)", _acc_mean("image")),
     ("montecarlo image --supersample 2 12x500 time", "<= 120 s on 2 cores", _time("image-ss2")),
-    ("accuracy montecarlo image --supersample 2 worst-landmark |mean|", "<= 0.03 px", _acc_mean("image-ss2")),
+    (
+        "accuracy montecarlo image --supersample 2 worst-landmark excess over floor",
+        "<= 0.01 px",
+        _acc_excess("image-ss2"),
+    ),
     ("accuracy montecarlo image --supersample 2 worst-landmark 1sigma", "<= 0.04 px", _acc_std("image-ss2")),
     (
         "accuracy montecarlo image --supersample 2 worst-landmark success",
         ">= 99.5 %",
         _acc_success("image-ss2"),
+    ),
+    (
+        "accuracy montecarlo image --supersample 2 worst-landmark |mean|",
+        "(informative)",
+        _acc_mean("image-ss2"),
     ),
     (
         "accuracy montecarlo maplet model error at zero perturbation (worst landmark)",

@@ -53,11 +53,27 @@ def test_json_report(run_cli, scene_file):
     assert (one["config"]["seed"], one["config"]["sampling"], one["config"]["fields"]) == (7, "lhs", "cell")
     steps = [n for _, n in one["config"]["plan"][0]["steps"]]
     assert steps == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1]
-    assert set(one["checks"]) == {"s16_table3", "image_targets", "image_targets_per_landmark"}
+    assert set(one["checks"]) == {
+        "s16_table3",
+        "image_targets",
+        "image_targets_per_landmark",
+        "landmark_targets",
+    }
+    # the per-landmark verdict against issue 39's targets, beside the zero-perturbation floor
+    assert row["verdict"] == ("PASS" if all(row["targets"].values()) else "MISS")
+    assert set(row["targets"]) == {"excess", "std", "success"}
+    assert row["excess"] == pytest.approx(
+        max(abs(row["sample_mean"] - row["sample_floor"]), abs(row["line_mean"] - row["line_floor"]))
+    )
+    assert row["targets"]["excess"] == (row["excess"] <= 0.01)
+    assert one["overall"]["worst_landmarks"]["excess"]["name"] == "LMK001"
+    assert one["checks"]["landmark_targets"]["max_excess"] == row["targets"]["excess"]
     assert len(one["s16_table3"]["landmarks"]) == 12
     assert one["timing"]["samples"] == 3
-    other = _doc(run_cli(*args[:-3], "--seed", 8, "--json", "--jobs", 1))
+    other = _doc(run_cli(*args[:-3], "--seed", 8, "--json", "--jobs", 1, "--converge-peak", "gradient"))
     assert other["landmarks"][0]["sample_mean"] != row["sample_mean"]
+    assert one["config"]["plan"][0]["converge_peak"] == "gradient-photo"  # maplet space's default
+    assert other["config"]["plan"][0]["converge_peak"] == "gradient"
 
 
 @pytest.mark.slow
@@ -120,6 +136,8 @@ def test_text_report_figures_and_csv(run_cli, scene_file, tmp_path):
     assert res.exit_code == 0, res.stderr
     text = (tmp_path / "report.txt").read_text()
     assert "L-map" in text and "mean max rho" in text and "S16 Table 3" in text
+    assert "worst landmark per target: excess <= 0.01 px: LMK001" in text
+    assert "landmarks meeting every target:" in text
     assert "2 MC samples per landmark" in text and "terrain errors as one bias" in text
     assert "steps L = 10, 9, 8, 7, 6, 5, 4, 3, 2, 1," in text
     assert "(off) camera focal length" in text and "(off) maplet terrain height" not in text

@@ -21,6 +21,8 @@ from spctool.stages.correlate import (
     correlate,
     find_peak,
     gradient_offset,
+    gradient_offset_photo,
+    gradient_offset_symmetric,
     ncc_surface,
     parabola_vertex,
     peak_covariance,
@@ -1008,3 +1010,253 @@ def test_correlate_valid_is_correlate_for_masks_of_valid_pixels(spacing):
     np.testing.assert_array_equal(got.surface, ref.surface)
     np.testing.assert_array_equal(got.offset, ref.offset)
     np.testing.assert_array_equal(got.covariance, ref.covariance)
+
+
+# --------------------------------------------------------------------------------------------------
+# the alignment the other way round: the prediction fitted on the photo (gradient_offset_photo)
+
+
+def _photo_alignment_reference(e, me, p, mp, origin):
+    """P ≈ α·E + β + c·∇E by dense NumPy least squares over the pixels where both masks and both
+    images' four axis neighbours hold (E at + origin); δ = c/α.  Written from the formula, not from
+    the kernel."""
+    o0, o1 = origin
+    rows, pv, ev, gr, gc = [], [], [], [], []
+    for i in range(p.shape[0]):
+        for j in range(p.shape[1]):
+            ie, je = i + o0, j + o1
+            if not (1 <= ie < e.shape[0] - 1 and 1 <= je < e.shape[1] - 1):
+                continue
+            if not (mp[i, j] and me[ie, je] and me[ie - 1, je] and me[ie + 1, je]):
+                continue
+            if not (me[ie, je - 1] and me[ie, je + 1]):
+                continue
+            if not (1 <= i < p.shape[0] - 1 and 1 <= j < p.shape[1] - 1):
+                continue
+            if not (mp[i - 1, j] and mp[i + 1, j] and mp[i, j - 1] and mp[i, j + 1]):
+                continue  # P's own axis neighbours valid too (the pixels of the symmetric form)
+            pv.append(p[i, j])
+            ev.append(e[ie, je])
+            gr.append(0.5 * (e[ie + 1, je] - e[ie - 1, je]))
+            gc.append(0.5 * (e[ie, je + 1] - e[ie, je - 1]))
+            rows.append((i, j))
+    a = np.stack([np.asarray(ev), np.asarray(gr), np.asarray(gc), np.ones(len(ev))], axis=1)
+    coef = np.linalg.lstsq(a, np.asarray(pv), rcond=None)[0]
+    return coef[1] / coef[0], coef[2] / coef[0], coef[0]
+
+
+@given(seed=st.integers(0, 2**31 - 1), o0=st.integers(-3, 3), o1=st.integers(-3, 3))
+@settings(max_examples=30, deadline=None)
+def test_photo_alignment_matches_a_dense_least_squares(seed, o0, o1):
+    """gradient_offset_photo equals the least squares of the prediction on the photo and its gradient,
+    computed pixel by pixel from the formula (P's own axis neighbours must be valid too, so its
+    border rows and columns are never used)."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
+    e = 3.0 * np.roll(p, (1, -1), axis=(0, 1)) + 7.0 + 0.3 * rng.normal(size=p.shape)
+    e = np.pad(e, 3, mode="edge")
+    mp = rng.random(p.shape) > 0.1
+    me = rng.random(e.shape) > 0.1
+    dr, dc, good = gradient_offset_photo(e, me, p, mp, (3 + o0, 3 + o1), max_move=1e9)
+    rr, rc, gain = _photo_alignment_reference(e, me, p, mp, (3 + o0, 3 + o1))
+    assert good == (gain > 0.0)
+    if good:
+        np.testing.assert_allclose([dr, dc], [rr, rc], rtol=1e-8, atol=1e-9)
+
+
+def test_photo_alignment_is_exactly_zero_at_a_perfect_alignment():
+    """E = 3·P + 7 at a whole-cell offset under an asymmetric mask: both alignments read the offset to
+    rounding (correlate's peak="gradient-photo" reports its own estimator)."""
+    n, d = 61, np.array([2.0, -1.0])
+    e = 3.0 * _sharp(n, d) + 7.0
+    p = _sharp(n)
+    mask = _blob_mask(n)
+    g = correlate(e, p, predicted_valid=mask, options=CorrelateOptions(peak="gradient-photo"))
+    assert g.ok and g.peak_fit == "gradient-photo"
+    np.testing.assert_allclose(g.offset, d, rtol=0, atol=1e-9)
+    with pytest.raises(SpcUsageError, match="gradient-photo"):
+        CorrelateOptions(peak="gradient-photos")
+
+
+def test_noise_biases_the_alignment_whose_regressors_carry_it():
+    """Least squares is unbiased for noise in the fitted image and attenuated by noise in its
+    regressors.  A smooth texture shifted by (0.3, −0.2) cell, white noise of its gradient's rms on
+    one image, 40 draws: the noisy image as the fitted side reads the shift to within a few standard
+    errors and the first-order expansion's error (≈ 1 %); as the regressor it reads it shortened by
+    the attenuation var(∇P)/(var(∇P) + var(∇noise)) ≈ 2/3."""
+    n, d = 61, np.array([0.3, -0.2])
+    x = np.arange(n, dtype=float)
+
+    def tex(s=(0.0, 0.0)):
+        r, c = x[:, None] - s[0], x[None, :] - s[1]
+        return np.sin(r / 4.0 + 0.3) * np.cos(c / 5.0) + 0.5 * np.sin((r + c) / 6.0)
+
+    clean_p, clean_e = tex(), 2.0 * tex(d) + 1.0
+    ok = np.ones((n, n), bool)
+    g = np.gradient(clean_p)
+    sigma = float(np.sqrt(np.mean(g[0] ** 2 + g[1] ** 2) / 2.0))
+    rng = np.random.default_rng(3)
+    reads = {"p noisy": ([], []), "e noisy": ([], [])}
+    for _ in range(40):
+        noisy_p = clean_p + sigma * rng.normal(size=(n, n))
+        noisy_e = clean_e + 2.0 * sigma * rng.normal(size=(n, n))
+        for key, (e, p) in (("p noisy", (clean_e, noisy_p)), ("e noisy", (noisy_e, clean_p))):
+            a = gradient_offset(e, ok, p, ok, (0, 0))
+            b = gradient_offset_photo(e, ok, p, ok, (0, 0))
+            assert a[2] and b[2]
+            reads[key][0].append(a[:2])
+            reads[key][1].append(b[:2])
+    for key, fitted_noisy, regressor_noisy in (("p noisy", 1, 0), ("e noisy", 0, 1)):
+        good = np.asarray(reads[key][fitted_noisy])
+        bad = np.asarray(reads[key][regressor_noisy])
+        se = good.std(axis=0, ddof=1) / math.sqrt(len(good))
+        assert np.all(np.abs(good.mean(axis=0) - d) < 4 * se + 0.01 * np.abs(d)), key
+        # the attenuated read: shorter than the shift by more than 20 % on each axis
+        assert np.all(np.abs(bad.mean(axis=0)) < 0.8 * np.abs(d)), key
+
+
+# --------------------------------------------------------------------------------------------------
+# the alignment on both images' gradients (gradient_offset_symmetric: w = ½, or w from their noise)
+
+
+def _symmetric_alignment_reference(e, me, p, mp, origin, weight):
+    """D = E − P' on [1, w·E + (1 − w)·P', w·∇E + (1 − w)·∇P'] by dense least squares, pixel by
+    pixel from the formula (P' = s·P with s = σ_E/σ_P; both images' four axis neighbours valid);
+    δ = −c/(1 + γ(1 − 2w)).  ``weight=None``: w = ν_P/(ν_E + ν_P) from the five-point Laplacians'
+    variances beyond their covariance.  Returns (δ_r, δ_c, w, cov(E, P))."""
+    o0, o1 = origin
+    rows = []
+    for i in range(1, p.shape[0] - 1):
+        for j in range(1, p.shape[1] - 1):
+            ie, je = i + o0, j + o1
+            if not (1 <= ie < e.shape[0] - 1 and 1 <= je < e.shape[1] - 1):
+                continue
+            nb = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
+            if not all(mp[i + a, j + b] and me[ie + a, je + b] for a, b in nb):
+                continue
+            row = []
+            for img, a, b in ((p, i, j), (e, ie, je)):
+                row += [
+                    img[a, b],
+                    0.5 * (img[a + 1, b] - img[a - 1, b]),
+                    0.5 * (img[a, b + 1] - img[a, b - 1]),
+                    img[a - 1, b] + img[a + 1, b] + img[a, b - 1] + img[a, b + 1] - 4 * img[a, b],
+                ]
+            rows.append(row)
+    pv, pgr, pgc, pl, ev, egr, egc, el = np.asarray(rows).T
+    s = ev.std() / pv.std()
+    pv, pgr, pgc, pl = s * pv, s * pgr, s * pgc, s * pl
+    if weight is None:
+        shared = np.cov(el, pl, bias=True)[0, 1]
+        nu_e, nu_p = max(el.var() - shared, 0.0), max(pl.var() - shared, 0.0)
+        weight = nu_p / (nu_e + nu_p)
+    w = weight
+    mix = [w * ev + (1 - w) * pv, w * egr + (1 - w) * pgr, w * egc + (1 - w) * pgc]
+    a = np.stack([np.ones_like(ev), *mix], axis=1)
+    beta, gamma, cr, cc = np.linalg.lstsq(a, ev - pv, rcond=None)[0]
+    den = 1 + gamma * (1 - 2 * w)
+    return -cr / den, -cc / den, w, np.cov(ev, pv)[0, 1]
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    o0=st.integers(-3, 3),
+    o1=st.integers(-3, 3),
+    weight=st.sampled_from([0.5, 0.2, 0.9, None]),
+)
+@settings(max_examples=40, deadline=None)
+def test_symmetric_alignment_matches_a_dense_least_squares(seed, o0, o1, weight):
+    """gradient_offset_symmetric equals the formula's least squares computed pixel by pixel, for a
+    fixed w and for the w it estimates from the two images' Laplacians."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
+    e = 3.0 * np.roll(p, (1, -1), axis=(0, 1)) + 7.0 + 0.3 * rng.normal(size=p.shape)
+    e = np.pad(e, 3, mode="edge")
+    mp = rng.random(p.shape) > 0.1
+    me = rng.random(e.shape) > 0.1
+    dr, dc, w, good = gradient_offset_symmetric(e, me, p, mp, (3 + o0, 3 + o1), weight, max_move=1e9)
+    rr, rc, rw, cov = _symmetric_alignment_reference(e, me, p, mp, (3 + o0, 3 + o1), weight)
+    assert good == (cov > 0.0)  # a misplaced origin can leave the images anti-correlated: refused
+    if good:
+        np.testing.assert_allclose([dr, dc, w], [rr, rc, rw], rtol=1e-7, atol=1e-9)
+
+
+def test_symmetric_alignment_at_its_ends_is_each_one_sided_fit():
+    """w = 0 is gradient_offset's fit and w = 1 gradient_offset_photo's (same pixels when every pixel
+    is valid): the regressors span the same space and δ = −c/(1 + γ(1 − 2w)) reads the same shift."""
+    rng = np.random.default_rng(11)
+    p = rng.normal(size=(23, 21)).cumsum(axis=0).cumsum(axis=1)
+    e = 2.0 * np.roll(p, (1, 0), axis=(0, 1)) + 1.0 + 2.0 * rng.normal(size=p.shape)
+    ok = np.ones(p.shape, bool)
+    sym0 = gradient_offset_symmetric(e, ok, p, ok, (0, 0), 0.0, max_move=1e9)
+    sym1 = gradient_offset_symmetric(e, ok, p, ok, (0, 0), 1.0, max_move=1e9)
+    one0 = gradient_offset(e, ok, p, ok, (0, 0), max_move=1e9)
+    one1 = gradient_offset_photo(e, ok, p, ok, (0, 0), max_move=1e9)
+    np.testing.assert_allclose(sym0[:2], one0[:2], atol=1e-10)
+    np.testing.assert_allclose(sym1[:2], one1[:2], atol=1e-10)
+    assert abs(sym0[0] - sym1[0]) > 0.01  # the noise makes the two ends differ: the check can fail
+
+
+@pytest.mark.parametrize("peak", ["gradient-symmetric", "gradient-weighted"])
+def test_symmetric_alignment_is_exactly_zero_at_a_perfect_alignment(peak):
+    """E = 3·P + 7 at a whole-cell offset under an asymmetric mask: the offset to rounding, whatever w."""
+    n, d = 61, np.array([2.0, -1.0])
+    e = 3.0 * _sharp(n, d) + 7.0
+    p = _sharp(n)
+    mask = _blob_mask(n)
+    g = correlate(e, p, predicted_valid=mask, options=CorrelateOptions(peak=peak))
+    assert g.ok and g.peak_fit == peak
+    np.testing.assert_allclose(g.offset, d, rtol=0, atol=1e-9)
+
+
+def test_symmetric_alignment_halves_the_bias_of_noise_on_either_side():
+    """The texture of the one-sided test above, shifted by (0.3, −0.2) cell, white noise on one image,
+    40 draws.  The one-sided fit with the noisy image as regressor reads the shift short by ~30 %; the
+    mean of both gradients carries half that noise amplitude and is off by at most half as much
+    (measured about a third) whichever image is noisy; the noise-weighted fit finds the noisy side
+    (w within 0.1 of the clean image's end) and reads the shift as the unbiased one-sided fit does."""
+    n, d = 61, np.array([0.3, -0.2])
+    x = np.arange(n, dtype=float)
+
+    def tex(s=(0.0, 0.0)):
+        r, c = x[:, None] - s[0], x[None, :] - s[1]
+        return np.sin(r / 4.0 + 0.3) * np.cos(c / 5.0) + 0.5 * np.sin((r + c) / 6.0)
+
+    clean_p, clean_e = tex(), 2.0 * tex(d) + 1.0
+    ok = np.ones((n, n), bool)
+    g = np.gradient(clean_p)
+    sigma = float(np.sqrt(np.mean(g[0] ** 2 + g[1] ** 2) / 2.0))
+    rng = np.random.default_rng(3)
+    for noisy in ("p", "e"):
+        keys = ("one-sided, noisy regressor", "one-sided, clean regressor", "symmetric", "weighted")
+        reads = {k: [] for k in keys}
+        weights = []
+        for _ in range(40):
+            e = clean_e + (2.0 * sigma * rng.normal(size=(n, n)) if noisy == "e" else 0.0)
+            p = clean_p + (sigma * rng.normal(size=(n, n)) if noisy == "p" else 0.0)
+            a, b = gradient_offset(e, ok, p, ok, (0, 0)), gradient_offset_photo(e, ok, p, ok, (0, 0))
+            bad, good = (a, b) if noisy == "p" else (b, a)
+            reads["one-sided, noisy regressor"].append(bad[:2])
+            reads["one-sided, clean regressor"].append(good[:2])
+            reads["symmetric"].append(gradient_offset_symmetric(e, ok, p, ok, (0, 0))[:2])
+            wr = gradient_offset_symmetric(e, ok, p, ok, (0, 0), None)
+            reads["weighted"].append(wr[:2])
+            weights.append(wr[2])
+        bias = {k: np.abs(np.mean(v, axis=0) - d) for k, v in reads.items()}
+        se = np.std(reads["weighted"], axis=0, ddof=1) / math.sqrt(40)
+        assert np.all(bias["one-sided, noisy regressor"] > 0.2 * np.abs(d)), noisy
+        assert np.all(bias["symmetric"] <= 0.5 * bias["one-sided, noisy regressor"]), noisy
+        assert np.all(bias["weighted"] < 4 * se + 0.01 * np.abs(d)), noisy
+        assert (min(weights) > 0.9) if noisy == "p" else (max(weights) < 0.1), noisy
+
+
+def test_symmetric_alignment_refuses_degenerate_pairs():
+    n = 15
+    ok = np.ones((n, n), bool)
+    p = np.add.outer(np.arange(n) ** 2, np.arange(n)).astype(float)
+    assert not gradient_offset_symmetric(np.full((n, n), 5.0), ok, p, ok, (0, 0))[3]  # flat photo
+    assert not gradient_offset_symmetric(-p, ok, p, ok, (0, 0))[3]  # anti-correlated
+    few = np.zeros((n, n), bool)
+    few[5:8, 5:8] = True
+    assert not gradient_offset_symmetric(p, few, p, few, (0, 0))[3]  # < 8 usable pixels
+    assert not gradient_offset_symmetric(p, ok, p, ok, (n, 0))[3]  # no overlap

@@ -314,7 +314,11 @@ def test_error_is_truth_minus_register(scene):
 def test_default_plans():
     (o,) = mc.default_plan("maplet")
     assert [n for _, n in o.steps] == [10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 1]  # refine = 1, then converged
-    assert o.converge_max > 0 and o.converge_peak == "gradient"
+    # the prediction (noisy maplets) is the fitted side of the converged stage's alignment
+    assert o.converge_max > 0 and o.converge_peak == mc.MAPLET_CONVERGE_PEAK == "gradient-photo"
+    assert mc.default_plan("maplet", converge_peak="gradient")[0].converge_peak == "gradient"
+    for other in ("gradient-symmetric", "gradient-weighted"):  # measured in docs/benchmarks.md
+        assert mc.default_plan("maplet", converge_peak=other)[0].converge_peak == other
     assert o.extract.linearized and o.extract.criteria is None and o.schedule == "retina_s16"
     assert o.acquire_reach == mc.S16_ACQUIRE_REACH and o.first_phases == 1  # 4 sigma, full overlap
     (s16,) = mc.default_plan("maplet", refine=0, acquire_reach=0)
@@ -329,6 +333,7 @@ def test_default_plans():
     assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
     assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]
     assert coarse.converge_max == 0 and fine.converge_max > 0  # the fine phase ends converged
+    assert coarse.converge_peak == fine.converge_peak == "gradient"  # image space: register's own
     # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then
     assert coarse.acquire_reach == mc.IMAGE_ACQUIRE_REACH == 48 and coarse.steps[0] == 4
     assert coarse.grid_half == fine.grid_half == mc.IMAGE_GRID_HALF == 3
@@ -488,7 +493,8 @@ def test_report_json_and_figures(tmp_path):
     res.timing = {"run_s": 1.0, "per_sample_ms": 8.3, "jobs": 1, "samples": 120}
     text = mcr.format_report(res)
     assert "s mean" in text and "S16 Table 3" in text and "B01980" in text
-    lines = [ln for ln in text.splitlines() if ln.startswith(("A ", "B ", "all "))]
+    table3 = text.split("per-landmark targets")[0]
+    lines = [ln for ln in table3.splitlines() if ln.startswith(("A ", "B ", "all "))]
     assert len(lines) == 3 and lines[0].split()[5:7] == ["3", "2"]
     doc = mcr.report_document(res)
     json.dumps(doc, allow_nan=False)
@@ -611,7 +617,7 @@ def test_s16_spec_camera_and_scene_window():
 def test_zero_perturbation_floor_is_reported_beside_the_bias(scene):
     """run() registers every landmark once with its knowledge unperturbed: the floor equals truth −
     register() on the scene's own camera, Sun and maplet (every plan phase chained by hand), and the
-    report gives |mean| − |floor| per axis beside it."""
+    report gives |mean − floor| per axis beside it."""
     cfg = _cfg(samples=2, seed=2, sigma_scale=0.3)
     res = mc.run(scene, cfg)
     r = None
@@ -624,11 +630,84 @@ def test_zero_perturbation_floor_is_reported_beside_the_bias(scene):
     s = mcr.summarise(res)
     row = s["landmarks"][0]
     assert row["sample_floor"] == res.floor[0, 0] and row["line_floor"] == res.floor[0, 1]
-    assert row["sample_excess"] == pytest.approx(abs(row["sample_mean"]) - abs(res.floor[0, 0]))
+    assert row["sample_excess"] == pytest.approx(abs(row["sample_mean"] - res.floor[0, 0]))
     assert s["overall"]["max_line_excess"] == row["line_excess"]
     text = mcr.format_report(res, s)
-    assert "zero-perturbation floor" in text and "largest excess" in text
-    # a result without a floor (an older run) reports none
+    assert "floor = the landmark registered with every Table 2 sigma at zero" in text
+    assert "worst landmark per target" in text
+    # a result without a floor (an older run) reports none and judges no excess
     fake = _fake_result([["ok", "ok"], ["ok", "ok"]], np.zeros((2, 2, 2)), [[0.9, 0.9], [0.9, 0.9]])
-    assert fake.floor is None and "zero-perturbation floor" not in mcr.format_report(fake)
-    assert math.isnan(mcr.summarise(fake)["landmarks"][0]["sample_floor"])
+    text = mcr.format_report(fake)
+    assert fake.floor is None and "no zero-perturbation floor in this result: excess not judged" in text
+    fs = mcr.summarise(fake)
+    assert math.isnan(fs["landmarks"][0]["sample_floor"]) and "excess" not in fs["landmarks"][0]["targets"]
+    assert set(fs["checks"]["landmark_targets"]) == {"max_std", "min_success_rate"}
+
+
+def _excess_world():
+    """Two landmarks, 400 samples each, hand-made errors: A's mean on its floor, B's sample mean on the
+    other side of its floor (mean −0.04, floor +0.04: |mean| − |floor| = 0, the shift is 0.08 px)."""
+    rng = np.random.default_rng(5)
+    e = rng.normal(0.0, 0.03, (2, 400, 2))
+    e -= e.mean(axis=1, keepdims=True)  # exact means below
+    e[0] += [0.045, -0.02]
+    e[1] += [-0.04, 0.01]
+    res = _fake_result([["ok"] * 400] * 2, e, np.full((2, 400), 0.9))
+    res.floor = np.array([[0.045, -0.02], [0.04, 0.013]])
+    return res, e
+
+
+def test_excess_is_the_shift_from_the_floor_with_its_sampling_error():
+    res, e = _excess_world()
+    s = mcr.summarise(res)
+    a, b = s["landmarks"]
+    assert a["sample_excess"] == pytest.approx(0.0, abs=1e-12) and a["line_excess"] == pytest.approx(
+        0.0, abs=1e-12
+    )
+    # opposite signs: |mean| − |floor| would read 0; the perturbations moved B's mean by 0.08 px
+    assert b["sample_excess"] == pytest.approx(0.08) and b["line_excess"] == pytest.approx(0.003)
+    assert b["excess"] == pytest.approx(0.08) and b["excess_se"] == pytest.approx(e[1, :, 0].std(ddof=1) / 20)
+    assert b["line_mean_se"] == pytest.approx(e[1, :, 1].std(ddof=1) / math.sqrt(400))
+    assert b["excess_z"] == pytest.approx(0.08 / b["excess_se"])
+    assert (
+        a["verdict"] == "PASS"
+        and b["verdict"] == "MISS"
+        and b["targets"]
+        == {
+            "excess": False,
+            "std": True,
+            "success": True,
+        }
+    )
+    w = s["overall"]["worst_landmarks"]
+    assert (w["excess"]["name"], w["excess"]["pass"]) == ("B", False)
+    assert s["overall"]["max_excess"] == pytest.approx(0.08)
+    assert s["checks"]["landmark_targets"] == {"max_excess": False, "max_std": True, "min_success_rate": True}
+    text = mcr.format_report(res, s)
+    assert "excess <= 0.01 px: B 0.0800 MISS" in text and "landmarks meeting every target: 1 of 2" in text
+    row_b = next(ln for ln in text.splitlines() if ln.startswith("B ") and ln.rstrip().endswith("MISS"))
+    assert "0.0800 +-0.0015" in row_b
+
+
+def test_landmark_verdicts_on_spread_success_and_a_lost_floor():
+    res, e = _excess_world()
+    res.floor = np.array([[0.045, -0.02], [-0.04, 0.01]])  # B now on its floor too
+    assert mcr.summarise(res)["checks"]["landmark_targets"] == dict.fromkeys(
+        ("max_excess", "max_std", "min_success_rate"), True
+    )
+    # a 1σ of 0.05 px on A's line axis; 3 of 400 of B's samples lost (99.25 %)
+    e2 = e.copy()
+    e2[0, :, 1] = (e2[0, :, 1] - e2[0, :, 1].mean()) * (0.05 / e2[0, :, 1].std(ddof=1)) - 0.02
+    st_ = [["ok"] * 400, ["ok"] * 397 + ["not-found"] * 3]
+    res2 = _fake_result(st_, e2, np.full((2, 400), 0.9))
+    res2.floor = np.array([[0.045, -0.02], [np.nan, np.nan]])  # B's floor registration failed
+    s = mcr.summarise(res2)
+    a, b = s["landmarks"]
+    assert a["targets"] == {"excess": True, "std": False, "success": True}
+    assert b["targets"] == {"excess": False, "std": True, "success": False}  # a lost floor is a miss
+    w = s["overall"]["worst_landmarks"]
+    assert (w["std"]["name"], w["std"]["value"]) == ("A", pytest.approx(0.05))
+    assert (w["success"]["name"], w["success"]["value"]) == ("B", pytest.approx(0.9925))
+    assert w["excess"]["name"] == "B" and math.isnan(w["excess"]["value"])
+    doc = mcr.report_document(res2, s)
+    assert doc["landmarks"][1]["verdict"] == "MISS" and doc["landmarks"][1]["excess"] is None

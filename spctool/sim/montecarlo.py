@@ -24,7 +24,9 @@ over the successful samples; the mean of the maximum ρ is over all samples with
 Registration plans (:func:`default_plan`).  Maplet space is S16's driver (``retina_s16``: L = 10 … 1,
 ±5L cells, no pose update, linearised extraction) followed by ``refine`` steps at L = 1; the extra
 steps re-extract at the current estimate so that the last correlation peak sits at a near-zero offset,
-where the 3-point parabola is least biased.  Its first step (L = 10) searches ±80 cells on the photo
+where the 3-point parabola is least biased; the converged stage fits the prediction on the photo
+(:data:`MAPLET_CONVERGE_PEAK`), since the study's noisy maplets make the prediction the noisier image.
+Its first step (L = 10) searches ±80 cells on the photo
 resampled onto the maplet's grid extended beyond its edge (``acquire_reach``, 4σ of the a-priori pixel):
 S16's search within the maplet's own 99 cells ends near ±50 cells (35 px = 2.8σ), and lost 1.1 % of
 one landmark's samples beyond it (0.8 % within it to edge peaks of a third of the overlap, which the
@@ -67,7 +69,8 @@ order of evaluation or on the number of worker processes (``jobs``): runs are id
 Floor.  Each landmark is also registered once with every perturbation at zero
 (:func:`zero_floor`, :attr:`MonteCarloResult.floor`): its error is the model-error floor of the scene
 (the onboard maplets are smoothed from a finer truth, as S16 prescribes), which the per-landmark means
-are read against (report: |mean| − |floor| per axis).
+are read against (report: the excess |mean − floor| per axis, with the mean's σ/√n, and a PASS/MISS per
+landmark against :data:`spctool.sim.montecarlo_report.LANDMARK_TARGETS`).
 
 Scenes and report.  The study's input — one photo with its truth and the onboard maplets, the
 ``s16-50m`` preset among them — is :mod:`spctool.sim.montecarlo_scene`; its output in S16 Table 3's
@@ -293,6 +296,17 @@ IMAGE_GRID_HALF = 3
 IMAGE_CONVERGE_TOL = 0.01
 
 
+#: the maplet plan's converged-stage estimator: the least-squares alignment with the photo's gradient as
+#: regressor (:func:`spctool.stages.correlate.gradient_offset_photo`).  The study's maplets carry an
+#: i.i.d. height error on every node (a third of a cell), so the prediction shaded from their slopes is
+#: far noisier than the photo; with the prediction's gradient as regressor (register's ``"gradient"``)
+#: that noise moved the landmarks' mean errors by up to 0.044 px from their zero-perturbation
+#: registration (s16-50m, 12 × 500; docs/benchmarks.md).  The fits that choose no side
+#: (``"gradient-symmetric"``, ``"gradient-weighted"``) leave 0.038 and 0.019 px of that excess
+#: (measured there, not adopted)
+MAPLET_CONVERGE_PEAK = "gradient-photo"
+
+
 def acquire_reach_for(sigma_scale: float) -> int:
     """The maplet plan's first-step reach (cells) for Table 2's sigmas multiplied by ``sigma_scale``."""
     return round(S16_ACQUIRE_REACH * float(sigma_scale))
@@ -314,7 +328,10 @@ def default_plan(
       :data:`S16_ACQUIRE_REACH`): the first step searches that far on a full-overlap extraction
       (:class:`RegisterOptions`; s16-50m 12 × 500, worst landmark's success 96.4 % with S16's search,
       99.0 % with 2 × 2 phases, 99.8 % with the reach).  ``first_phases`` (default 1): the first step
-      at p × p phases.  ``refine=0, acquire_reach=0, first_phases=1`` is S16's schedule exactly.
+      at p × p phases.  The converged stage reads each step with :data:`MAPLET_CONVERGE_PEAK` (the
+      prediction fitted on the photo; ``converge_peak="gradient"`` is register's default).
+      ``refine=0, acquire_reach=0, first_phases=1, converge_peak="gradient"`` is S16's schedule
+      followed by register's converged stage.
     * ``"image"`` — S16's image-space direction (Retina; S16 gives no schedule): a coarse search at
       L = 4, 2, 1, ±48 px at L = 4 (a 25 × 25 grid: the search is not limited by the maplet; the
       image-space ``acquire_reach``), then ±3 bins (:data:`IMAGE_GRID_HALF`), with the template
@@ -339,7 +356,10 @@ def default_plan(
             raise SpcUsageError(f"acquire_reach must be an integer >= 0 (cells), got {reach!r}")
         changes = {"acquire_reach": int(reach), **changes}
         opts = dict(
-            schedule="retina_s16", space="maplet", extract=ExtractOptions(linearized=True, criteria=None)
+            schedule="retina_s16",
+            space="maplet",
+            extract=ExtractOptions(linearized=True, criteria=None),
+            converge_peak=MAPLET_CONVERGE_PEAK,
         )
         opts.update(changes)
         spacings = tuple(opts.get("s16_spacings", RegisterOptions.s16_spacings))

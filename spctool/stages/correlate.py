@@ -61,7 +61,15 @@ E (image space, :func:`correlate` with anchors).  With spacing n:
    vertex of a sampled surface is biased where the surface is asymmetric about its maximum — and with
    masks and shading it is: a template identical to the photo still reads 0.03–0.05 px off with the
    quadric — while the alignment is exactly 0 there; the register loop's converged full-resolution
-   stage uses it (``RegisterOptions.converge_peak``).
+   stage uses it (``RegisterOptions.converge_peak``).  ``peak="gradient-photo"`` is the same
+   alignment the other way round (P ≈ α·E + β + α·δ·∇E, :func:`gradient_offset_photo`): the
+   regressors are the photo's, the prediction is the fitted side — for predictions noisier than the
+   photo (maplets with per-node height errors), whose noise in the regressors biases the first form.
+   ``peak="gradient-symmetric"`` chooses no side: the difference E − P' (P on E's scale) regressed on
+   the mean of both images' gradients (:func:`gradient_offset_symmetric`), which halves a one-sided
+   fit's attenuation by noise on either side; ``"gradient-weighted"`` mixes the two gradients by each
+   image's estimated noise.  On the s16-50m Monte Carlo neither does what ``gradient-photo`` does for
+   the per-landmark excess (docs/benchmarks.md): they are measured there, not adopted.
 6. **Offset** in full-resolution cells: Δx (along UX) = n·((r₀ − k) + δ_r), Δy (along UY) =
    n·((c₀ − k) + δ_c).  The picture shift is δ = J_xy·Δ (Stage H, :mod:`spctool.stages.register`).
 
@@ -112,6 +120,7 @@ __all__ = [
     "ncc_surface",
     "parabola_vertex",
     "PEAK_METHODS",
+    "ALIGNMENTS",
     "peak_covariance",
     "quadric_fit",
     "quadric_vertex",
@@ -121,8 +130,13 @@ __all__ = [
 #: status words of a correlation (cli-contract.md "Landmark tables")
 STATUSES = ("ok", "edge-peak", "not-found", "low-correlation")
 #: sub-pixel peak estimators: 2-D least-squares quadric (default), SPC's separable parabolas, or the
-#: least-squares image alignment at the grid peak (:func:`gradient_offset`)
-PEAK_METHODS = ("quadric", "parabola", "gradient")
+#: least-squares image alignment at the grid peak (:func:`gradient_offset` and its variants)
+PEAK_METHODS = (
+    "quadric", "parabola", "gradient", "gradient-photo", "gradient-symmetric", "gradient-weighted",
+)  # fmt: skip
+#: the estimators that align the images at the grid peak (:func:`gradient_offset`,
+#: :func:`gradient_offset_photo`, :func:`gradient_offset_symmetric` with w = ½ or w estimated)
+ALIGNMENTS = ("gradient", "gradient-photo", "gradient-symmetric", "gradient-weighted")
 
 
 @dataclass
@@ -142,7 +156,12 @@ class CorrelateOptions:
     * ``peak`` — sub-pixel estimator: ``"quadric"`` (2-D least squares on the 3×3 neighbourhood, with
       the cross term; default), ``"parabola"`` (SPC/L15: one parabola per axis, for legacy runs) or
       ``"gradient"`` (least-squares alignment of the two images at the grid peak,
-      :func:`gradient_offset`; unbiased at zero offset, the register loop's converged stage uses it).
+      :func:`gradient_offset`; unbiased at zero offset, the register loop's converged stage uses it)
+      or ``"gradient-photo"`` (the same with the photo's gradient as regressor:
+      :func:`gradient_offset_photo`, for a prediction noisier than the photo), or
+      ``"gradient-symmetric"`` / ``"gradient-weighted"`` (the difference on the mean of both images'
+      gradients, or on their mix weighted by each image's estimated noise:
+      :func:`gradient_offset_symmetric`).
     """
 
     grid_half: int = 5
@@ -190,8 +209,8 @@ class Correlation:
     hessian: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
     #: (2, 2) covariance of ``offset`` in full-resolution cells² (array axes; NaN if none)
     covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
-    #: sub-pixel estimate used: "gradient", "quadric", "parabola" or "parabola-fallback" (quadric
-    #: rejected); "" if none
+    #: sub-pixel estimate used: "gradient", "gradient-photo", "quadric", "parabola" or
+    #: "parabola-fallback" (quadric rejected); "" if none
     peak_fit: str = ""
 
     @property
@@ -774,6 +793,152 @@ def _gradient_offset(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
     return dr, dc, True
 
 
+def gradient_offset_photo(e, me, p, mp, origin, max_move: float = 1.0):
+    """:func:`gradient_offset` with the roles of the images exchanged: ``(δ_r, δ_c, ok)``, the same
+    offset of E relative to P placed at ``origin``, from the fit of the prediction on the photo
+
+        P ≈ α·E + β + c_r·∇_r E + c_c·∇_c E,     δ = (c_r, c_c)/α
+
+    (E(m) = a·P(m − δ) + b ⇔ P(m) = (E(m + δ) − b)/a, to first order P ≈ E/a − b/a + δ·∇E/a).
+    Least squares is unbiased for noise in the fitted image and biased by noise in its regressors:
+    this form suits a prediction noisier than the photo.  On the s16-50m Monte Carlo (per-node height
+    errors of a third of a cell, S16 Table 2) the prediction's shading noise in the regressors of
+    :func:`gradient_offset` moved the landmarks' mean errors by up to 0.041 px from their
+    zero-perturbation registration; here by at most 0.007 px (docs/benchmarks.md).  With a clean
+    prediction and a noisy photo it is the other way round: the photo's noise is then in the
+    regressors.
+
+    Pixels: valid in both images with their four axis neighbours valid in both — P's too, although
+    P is not differentiated (the pixels of :func:`gradient_offset_symmetric`; this is its w = 1).  A
+    prediction pixel beside an invalid one (a node shadowed or dark in the prediction) lies on the
+    prediction's shadow edge, where the photo's gradient is steepest and the prediction least
+    faithful; with the photo's gradient as regressor those few pixels (≈ 5 per invalid node, ~50 of
+    9,600) had the most leverage: on the s16-50m preset they raised the worst zero-perturbation
+    floor from 0.043 to 0.065 px and the exact-maplet control world's from 0.068 to 0.081 px.
+
+    Exactly zero, like :func:`gradient_offset`, when P = a'·E + b'.  It is :func:`gradient_offset`
+    called with the images exchanged (P's mask shrunk to its interior), the origin negated and its
+    offset negated."""
+    return _gradient_offset_photo(
+        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
+        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
+        int(origin[0]), int(origin[1]), max_move,
+    )  # fmt: skip
+
+
+def _gradient_offset_photo(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
+    """:func:`gradient_offset_photo` on C-contiguous float64 images and bool masks."""
+    dr, dc, ok = _gradient_offset(p, _interior(mp), e, me, -o0, -o1, max_move)
+    return (-dr, -dc, True) if ok else (dr, dc, False)
+
+
+def _interior(m):
+    """The pixels of mask ``m`` whose four axis neighbours are in ``m`` too (none on the border)."""
+    out = np.zeros_like(m)
+    out[1:-1, 1:-1] = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
+    return out
+
+
+def gradient_offset_symmetric(e, me, p, mp, origin, weight: float | None = 0.5, max_move: float = 1.0):
+    """The alignment of :func:`gradient_offset` with both images' gradients as regressors:
+    ``(δ_r, δ_c, w, ok)``, the offset of E relative to P placed at ``origin``, and the weight w used.
+
+    P is first brought to E's scale, P' = s·(P − P̄) + Ē with s = σ_E/σ_P over the pixels used (the
+    symmetric, reduced-major-axis gain: it names neither image the fitted one).  The model
+    E(m + w·δ) = g·P'(m − (1 − w)·δ) + b, to first order in δ and g − 1, is linear:
+
+        D = E − P' ≈ β + γ·(w·E + (1 − w)·P') + c_r·G_r + c_c·G_c,   G = w·∇E + (1 − w)·∇P'
+
+        δ = −(c_r, c_c) / (1 + γ·(1 − 2w))
+
+    (w = 0 is :func:`gradient_offset`'s fit, w = 1 :func:`gradient_offset_photo`'s, both exactly:
+    the regressors span the same space.)  ``weight`` w = ½ is the symmetric ("efficient second-order
+    minimisation") form: the difference regressed on the mean of the two gradients, second-order
+    exact in δ for a pure shift.  Noise in either image enters the regressors at half its amplitude,
+    so the one-sided fits' attenuation (a quarter of the variance) and their bias from a prediction
+    noisier than the photo, or the other way round, are about halved.  ``weight=None`` estimates w
+    from the two images' own noise, the errors-in-variables weighting w = ν_P/(ν_E + ν_P) that gives
+    G the least noise: ν is each image's Laplacian energy (the five-point Laplacian on P' and E, the
+    high-frequency band where a smooth terrain's shading has little power and white noise most of
+    its) beyond the part both images share, ν_E = var(ΔE) − cov(ΔE, ΔP'), ν_P = var(ΔP') −
+    cov(ΔE, ΔP'), each at least 0 (w = ½ when both are 0).  A prediction noisier than the photo
+    thus leans on the photo's gradient, an exact maplet on its own.
+
+    Pixels: those valid in both images whose four axis neighbours are valid in both.  Exactly zero
+    when P = a'·E + b' (a' > 0): then D = γ·M + β with c = 0, whatever w and s.  ``ok`` is False
+    (δ NaN) with fewer than 8 usable pixels, a flat image, a non-positive covariance of E and P, a
+    singular system, a non-positive 1 + γ(1 − 2w), or |δ| > ``max_move`` along an axis.
+    """
+    e = np.ascontiguousarray(e, dtype=np.float64)
+    p = np.ascontiguousarray(p, dtype=np.float64)
+    me = np.ascontiguousarray(me, dtype=np.bool_)
+    mp = np.ascontiguousarray(mp, dtype=np.bool_)
+    return _gradient_offset_symmetric(e, me, p, mp, int(origin[0]), int(origin[1]), weight, max_move)
+
+
+def _gradient_offset_symmetric(e, me, p, mp, o0: int, o1: int, weight=0.5, max_move: float = 1.0):
+    """:func:`gradient_offset_symmetric` on float64 images and bool masks, P placed at (o0, o1)."""
+    nan = (math.nan, math.nan, math.nan, False)
+    hp, wp = p.shape
+    he, we = e.shape
+    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
+    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
+    if i1 - i0 < 1 or j1 - j0 < 1:
+        return nan
+
+    def five(a, oi, oj):  # centre, row −1, row +1, column −1, column +1 windows
+        r0, r1, c0, c1 = i0 + oi, i1 + oi, j0 + oj, j1 + oj
+        return (
+            a[r0:r1, c0:c1], a[r0 - 1 : r1 - 1, c0:c1], a[r0 + 1 : r1 + 1, c0:c1],
+            a[r0:r1, c0 - 1 : c1 - 1], a[r0:r1, c0 + 1 : c1 + 1],
+        )  # fmt: skip
+
+    ok = np.ones((i1 - i0, j1 - j0), dtype=np.bool_)
+    for m in five(mp, 0, 0) + five(me, o0, o1):
+        ok &= m
+    if np.count_nonzero(ok) < 8:
+        return nan
+    pc, pu, pd, pl, pr = (a[ok] for a in five(p, 0, 0))
+    ec, eu, ed, el, er = (a[ok] for a in five(e, o0, o1))
+    ec = ec - ec.mean()
+    pm = pc.mean()
+    sd_e, sd_p = float(np.sqrt(np.mean(ec * ec))), float(np.sqrt(np.mean((pc - pm) ** 2)))
+    if not (sd_e > 0.0 and sd_p > 0.0 and float(np.mean(ec * (pc - pm))) > 0.0):
+        return nan
+    s = sd_e / sd_p
+    pc = s * (pc - pm)
+    pgr, pgc = 0.5 * s * (pd - pu), 0.5 * s * (pr - pl)
+    egr, egc = 0.5 * (ed - eu), 0.5 * (er - el)
+    if weight is None:
+        lap_e = (eu + ed + el + er) - 4.0 * ec  # ec lacks E's mean: a constant, removed next
+        lap_e = lap_e - lap_e.mean()
+        lap_p = s * (pu + pd + pl + pr) - 4.0 * pc
+        lap_p = lap_p - lap_p.mean()
+        shared = float(np.mean(lap_e * lap_p))
+        nu_e = max(float(np.mean(lap_e * lap_e)) - shared, 0.0)
+        nu_p = max(float(np.mean(lap_p * lap_p)) - shared, 0.0)
+        tiny = 1e-12 * float(np.mean(lap_e * lap_e) + np.mean(lap_p * lap_p))  # rounding of a perfect pair
+        w = nu_p / (nu_e + nu_p) if nu_e + nu_p > tiny else 0.5
+    else:
+        w = float(weight)
+    d = ec - pc
+    mix = w * ec + (1.0 - w) * pc
+    gr = w * egr + (1.0 - w) * pgr
+    gc = w * egc + (1.0 - w) * pgc
+    x = np.stack([mix - mix.mean(), gr - gr.mean(), gc - gc.mean()], axis=1)
+    try:
+        gamma, cr, cc = np.linalg.solve(x.T @ x, x.T @ (d - d.mean())).tolist()
+    except np.linalg.LinAlgError:
+        return nan
+    den = 1.0 + gamma * (1.0 - 2.0 * w)
+    if not (den > 0.0 and math.isfinite(cr) and math.isfinite(cc)):
+        return nan
+    dr, dc = -cr / den, -cc / den
+    if not (abs(dr) <= max_move and abs(dc) <= max_move):
+        return nan
+    return dr, dc, w, True
+
+
 def resampled_noise_footprint(pixels_per_cell: float) -> float:
     """Cells per independent noise sample of a photo resampled bilinearly onto cells of
     ``pixels_per_cell`` pixels (linear; √|det J_xy| times the spacing n for binned maplet cells).
@@ -1006,10 +1171,17 @@ def correlate_valid(e, me, p, mp, n: int, opts: CorrelateOptions, ea, pa, noise_
     k = opts.grid_half
     surf, cnts = _ncc(eb, meb, pb, mpb, k, opts.min_valid, origin)
     status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
-    if opts.peak == "gradient" and status in ("ok", "low-correlation"):
-        g_r, g_c, g_ok = _gradient_offset(eb, meb, pb, mpb, origin[0] + idx[0] - k, origin[1] + idx[1] - k)
+    if opts.peak in ALIGNMENTS and status in ("ok", "low-correlation"):
+        o0, o1 = origin[0] + idx[0] - k, origin[1] + idx[1] - k
+        if opts.peak == "gradient":
+            g_r, g_c, g_ok = _gradient_offset(eb, meb, pb, mpb, o0, o1)
+        elif opts.peak == "gradient-photo":
+            g_r, g_c, g_ok = _gradient_offset_photo(eb, meb, pb, mpb, o0, o1)
+        else:
+            w = 0.5 if opts.peak == "gradient-symmetric" else None
+            g_r, g_c, _, g_ok = _gradient_offset_symmetric(eb, meb, pb, mpb, o0, o1, w)
         if g_ok:
-            dr, dc, fit = g_r, g_c, "gradient"
+            dr, dc, fit = g_r, g_c, opts.peak
     if idx is None or status == "not-found":
         return Correlation(surf, cnts, n, status, peak, idx, (dr, dc), np.full(2, np.nan), hess, peak_fit=fit)
     off = np.array([n * ((idx[0] - k) + dr), n * ((idx[1] - k) + dc)])
