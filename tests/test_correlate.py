@@ -15,14 +15,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spctool.errors import SpcUsageError
+from spctool.stages.alignment import gradient_offset, gradient_offset_photo, gradient_offset_symmetric
 from spctool.stages.correlate import (
     CorrelateOptions,
     bin_image,
     correlate,
     find_peak,
-    gradient_offset,
-    gradient_offset_photo,
-    gradient_offset_symmetric,
     ncc_surface,
     parabola_vertex,
     peak_covariance,
@@ -933,7 +931,7 @@ def test_gradient_offset_kernel_matches_a_dense_least_squares(seed, o0, o1):
 def test_alignment_kernel_sums_equal_sequential_numpy_sums_bitwise(seed, o0, o1):
     """The alignment kernel's normal matrix and right-hand side are, bit for bit, sequential sums in
     scan order (NumPy's cumsum) over the masked pixels, of regressors centred on their sequential means."""
-    from spctool.stages.correlate import _k_alignment
+    from spctool.stages.alignment import _k_alignment
 
     rng = np.random.default_rng(seed)
     p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)

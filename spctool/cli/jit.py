@@ -323,7 +323,7 @@ REGISTER_KERNELS = (
     ("spctool.stages.correlate", "_k_bin", "f2 b2 i i i f f2 b2"),
     ("spctool.stages.correlate", "_k_ncc", "f2 b2 f2 b2 i i i f f2 i2"),
     ("spctool.stages.correlate", "_k_grid_peak", "f2 ?"),
-    ("spctool.stages.correlate", "_k_alignment", "f2 b2 f2 b2 i i i i i i f2 f1"),
+    ("spctool.stages.alignment", "_k_alignment", "f2 b2 f2 b2 i i i i i i f2 f1"),
     ("spctool.stages.extract", "_subsample_kernel", "f2 f1r f1r b1 f1r f1r f1r f1r f1 f f f f1 b1"),
 )
 

@@ -297,7 +297,7 @@ IMAGE_CONVERGE_TOL = 0.01
 
 
 #: the maplet plan's converged-stage estimator: the least-squares alignment with the photo's gradient as
-#: regressor (:func:`spctool.stages.correlate.gradient_offset_photo`).  The study's maplets carry an
+#: regressor (:func:`spctool.stages.alignment.gradient_offset_photo`).  The study's maplets carry an
 #: i.i.d. height error on every node (a third of a cell), so the prediction shaded from their slopes is
 #: far noisier than the photo; with the prediction's gradient as regressor (register's ``"gradient"``)
 #: that noise moved the landmarks' mean errors by up to 0.044 px from their zero-perturbation

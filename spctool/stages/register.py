@@ -40,7 +40,7 @@ estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`
 0 = the schedule exactly).  The coarse steps leave 0.3–1 px on tilted peaks and a single L = 1 step
 only removes part of that.  The stage reads each step with ``converge_peak`` — by default the
 least-squares alignment of prediction and photo at the grid peak
-(:func:`spctool.stages.correlate.gradient_offset`), which is exactly zero where they agree, whereas a
+(:func:`spctool.stages.alignment.gradient_offset`), which is exactly zero where they agree, whereas a
 vertex of the correlation surface (quadric or parabola) stays up to 0.05 px off on an asymmetric peak
 however often the step is repeated (independent world, image space: 0.038 → 0.019 px rms) — and
 moves by secant (Broyden) steps, so an estimator that over- or under-reads the shift converges in a

@@ -117,13 +117,13 @@ class RegisterOptions:
       at most this many extra steps (0: the schedule exactly, as S16/SPC run it).
     * ``converge_peak`` — the sub-pixel estimator of that stage: ``"gradient"`` (default:
       least-squares alignment at the grid peak, exactly zero when prediction and photo agree, so the
-      loop stops at the least-squares alignment; :func:`spctool.stages.correlate.gradient_offset`) or
+      loop stops at the least-squares alignment; :func:`spctool.stages.alignment.gradient_offset`) or
       ``"quadric"`` / ``"parabola"`` (as ``peak``; a vertex read off an asymmetric correlation surface
       keeps a bias of up to 0.05 px that re-centring cannot remove), or ``"gradient-photo"`` (the same
       alignment with the prediction as the fitted side, for predictions noisier than the photo:
-      :func:`spctool.stages.correlate.gradient_offset_photo`; the Monte Carlo's maplet plan), or
+      :func:`spctool.stages.alignment.gradient_offset_photo`; the Monte Carlo's maplet plan), or
       ``"gradient-symmetric"`` / ``"gradient-weighted"`` (the difference regressed on both images'
-      gradients, mean or noise-weighted: :func:`spctool.stages.correlate.gradient_offset_symmetric`).
+      gradients, mean or noise-weighted: :func:`spctool.stages.alignment.gradient_offset_symmetric`).
     * ``fail_fast`` — S16 driver: stop a landmark at its first failed step (True).
     * ``edge_retries`` — S16 driver: a step whose peak is on the border of the grid (``edge-peak``)
       moves to that border maximum and is repeated, at most this many times per step (0: S16, which
