@@ -78,6 +78,7 @@ def forked_map(task, n: int, workers: int, on_result=None) -> list:
     reported it.
     """
     pool = ForkedPool(workers)
+    pool._one_call = True  # its children exit after their last result: their teardown overlaps this call
     try:
         return pool.map(task, n, on_result)
     finally:
@@ -113,6 +114,7 @@ class ForkedPool:
         self._mutex = None  # (r, w): a one-byte token in this pipe is the counter's lock
         self._forked = False
         self._closed = False
+        self._one_call = False  # children exit after the first call's tasks (:func:`forked_map`)
 
     @property
     def alive(self) -> bool:
@@ -209,8 +211,8 @@ class ForkedPool:
             use = resource.getrusage(resource.RUSAGE_SELF)
             frame = pickle.dumps((-1, use.ru_utime + use.ru_stime))  # the job's end: this child's CPU
             _write_all(rw, struct.pack("<Q", len(frame)) + frame)
-            head = _read_exactly(jr, 8)
-            if head is None:  # the pool was closed
+            head = None if self._one_call else _read_exactly(jr, 8)
+            if head is None:  # the pool was closed (or serves one call)
                 os.close(rw)  # EOF now, not after the kernel has torn down this process
                 return
             build, args, n = pickle.loads(_read_exactly(jr, struct.unpack("<Q", head)[0]))

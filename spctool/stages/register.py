@@ -30,9 +30,10 @@ The S16 driver's landmarks are independent and run on ``threads`` workers (:func
 default numba's thread count, i.e. every core unless ``NUMBA_NUM_THREADS`` says otherwise, and one in
 ``batch``'s and the Monte Carlo's workers), one landmark per task, merged in landmark order: the result
 is the one-thread driver's to the last bit.  Image space runs threads (its render and correlation
-kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`),
-since its steps are short kernels between small NumPy operations that hold the GIL (issue 39: in one
-thread 48 % of its time is in kernels that release it).
+kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`, or
+the children of a caller's :class:`spctool.workers.ForkedPool`, forked once for several calls:
+navigate's passes), since its steps are short kernels between small NumPy operations that hold the
+GIL (issue 39: in one thread 48 % of its time is in kernels that release it).
 
 Both drivers end with a **converged full-resolution stage** when their last align step is at
 spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
