@@ -247,9 +247,14 @@ class ForkedPool:
                 self._fork(task, n)
             else:
                 struct.pack_into("<q", self._counter, 0, 0)  # every child is idle: its last job ended
+                frame = None
                 if job is not None and self._children:
                     build, args = job
-                    frame = pickle.dumps((build, args, n), protocol=pickle.HIGHEST_PROTOCOL)
+                    try:
+                        frame = pickle.dumps((build, args, n), protocol=pickle.HIGHEST_PROTOCOL)
+                    except (pickle.PicklingError, TypeError, AttributeError):  # not picklable: all here
+                        frame = None
+                if frame is not None:
                     for pid, child in list(self._children.items()):
                         try:
                             _write_all(child[0], struct.pack("<Q", len(frame)) + frame)

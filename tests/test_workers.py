@@ -132,6 +132,8 @@ def test_forked_pool_forks_once_and_serves_later_calls_from_their_job():
                 assert len({v[2] for v in out}) == 2
             assert sorted(seen) == sorted(list(range(10)) * 2)
             assert {v[2] for v in pool.map(_slow_pid, 6)} == {os.getpid()}  # no job: every task here
+            unpicklable = (lambda shared: _slow_pid, ())  # a lambda: not sent, every task here
+            assert {v[2] for v in pool.map(_slow_pid, 4, job=unpicklable)} == {os.getpid()} and pool.alive
             assert len(forks) == 1
         assert not pool.alive
         assert [v[:2] for v in first] == [(i, i * i) for i in range(8)]
