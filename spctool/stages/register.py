@@ -442,7 +442,7 @@ def disagreeing_shifts(result: RegisterResult) -> str | None:
 MAPLET_LANDMARKS_PER_WORKER = 2
 #: by default maplet space forks only for at least this many maplet cells in all (Σ (2q+1)²): a cold
 #: ``register`` of a demo picture (12 maplets of 49², 29k cells) took 1.04× the wall of one thread with
-#: a forked worker (farm-bench, 20 A/B pairs; 1.11× in another 10): the copy-on-write faults and the
+#: a forked worker (20 A/B pairs of whole processes; 1.11× in another 10): the copy-on-write faults and the
 #: child's start outweigh ~0.1 s of work; S16's 16 maplets of 99² (157k cells) take 1/1.63 of it
 MAPLET_MIN_CELLS_TO_FORK = 100_000
 
