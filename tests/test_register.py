@@ -51,6 +51,29 @@ def test_scene_truth_pixel(scene):
     )
 
 
+def test_a_landmark_is_freed_without_the_garbage_collector(scene):
+    """A landmark's grid finds the maplet's slopes through its landmark without keeping it alive: with
+    the collector off, a used and released Registrar's landmarks (and their arrays) go with it."""
+    import gc
+    import weakref
+
+    reg = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds)
+    reg.extraction(0, scene.camera, scene.truth_pixel)
+    reg.release(0)  # a fresh grid, its slopes not yet asked for
+    lm = reg.landmarks[0]
+    assert lm.grid.slopes is lm.slopes  # the grid's slopes are the landmark's (computed once)
+    reg.release(0)
+    gone = weakref.ref(reg.landmarks[0])
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        del reg, lm
+        assert gone() is None
+    finally:
+        if was:
+            gc.enable()
+
+
 def test_reextraction_equals_extract(scene):
     """The S16 loop's re-extraction at a new centre reuses the geometry; it must equal extract()."""
     reg = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds)
