@@ -307,16 +307,19 @@ def _cpu_split(run):
 
 def _maplet_split(kind):
     """One and two workers on the 16-landmark picture in maplet space, interleaved (one, two, one, two,
-    …: a drift of the machine's speed falls on both), medians of 21 pairs (navigate: 9) after a warm
-    pair: ``{"one": (wall, cpu), "two": (wall, critical path), "speedup_cpu", "speedup_wall",
-    "extra_cpu", "load"}``.  The critical path of a two-worker run is max(this process's CPU, its forked
-    worker's CPU): its wall time on two idle cores (the two run side by side from the fork to the last
-    result; the fork is in this process's CPU; the worker's exit, after its last result, is not on the
-    path).  ``extra_cpu``: both processes' CPU over one thread's (what the second process costs in
-    all).  Each timed one-worker run follows an untimed one: right after a fork this process's pages are
-    write-protected, and its next run would pay ~600 page faults (~3.5 ms) that a one-thread command
-    never pays.  ``kind``: "register" (the S16 pass) or "navigate" (two passes and the pose solves; the
-    solves run here, between the passes; its worker is forked once, at the first pass)."""
+    …: a drift of the machine's speed falls on both), 21 pairs (navigate: 9) after a warm pair:
+    ``{"one": (wall, cpu), "two": (wall, critical path)`` (medians), ``"speedup_cpu", "speedup_wall"``
+    (medians of each pair's ratio: on this shared machine a one-thread pass's CPU time read 139–226 ms
+    from one process to the next within two minutes, a drift that a ratio of two separate medians
+    picks up), ``"extra_cpu", "load"}``.  The critical path of a two-worker run is max(this process's
+    CPU, its forked worker's CPU): its wall time on two idle cores (the two run side by side from the
+    fork to the last result; the fork is in this process's CPU; the worker's exit, after its last
+    result, is not on the path).  ``extra_cpu``: both processes' CPU over one thread's (what the second
+    process costs in all).  Each timed one-worker run follows an untimed one: right after a fork this
+    process's pages are write-protected, and its next run would pay page faults that a one-thread
+    command never pays (a timed one-worker run pays 1–5; ~690 while each call's landmarks were left to
+    the garbage collector).  ``kind``: "register" (the S16 pass) or "navigate" (two passes and the pose
+    solves; the solves run here, between the passes; its worker is forked once, at the first pass)."""
     if kind in _SPLIT:
         return _SPLIT[kind]
     from spctool.formats.workdir import WorkDir
@@ -352,7 +355,7 @@ def _maplet_split(kind):
     one, two = runner(1), runner(2)
     one(), two()  # warm: kernels loaded, the first two-worker call's own landmark
     rows = {1: [], 2: []}
-    extra = []
+    extra, ratio_cpu, ratio_wall = [], [], []
     loads = [os.getloadavg()[0]]
     for _ in range(21 if kind == "register" else 9):
         one()  # untimed: the timed run below does not follow a fork
@@ -361,13 +364,15 @@ def _maplet_split(kind):
         rows[1].append((wall1, cpu1))
         rows[2].append((wall2, max(cpu2, child)))
         extra.append((cpu2 + child) / cpu1)
+        ratio_cpu.append(cpu1 / max(cpu2, child))
+        ratio_wall.append(wall1 / wall2)
     loads.append(os.getloadavg()[0])
     med = {k: np.median(np.array(v), axis=0) for k, v in rows.items()}
     out = {
         "one": tuple(med[1]),
         "two": tuple(med[2]),
-        "speedup_cpu": float(med[1][1] / med[2][1]),
-        "speedup_wall": float(med[1][0] / med[2][0]),
+        "speedup_cpu": float(np.median(ratio_cpu)),
+        "speedup_wall": float(np.median(ratio_wall)),
         "extra_cpu": float(np.median(extra)),
         "load": float(np.mean(loads)),
     }
