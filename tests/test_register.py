@@ -5,6 +5,7 @@ maplets are the same terrain, so the true landmark pixel is the projection of V 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -48,6 +49,29 @@ def test_scene_truth_pixel(scene):
     assert math.sqrt(abs(np.linalg.det(jxy))) == pytest.approx(
         0.698 * math.sqrt(math.cos(math.radians(15))), abs=2e-3
     )
+
+
+def test_a_landmark_is_freed_without_the_garbage_collector(scene):
+    """A landmark's grid finds the maplet's slopes through its landmark without keeping it alive: with
+    the collector off, a used and released Registrar's landmarks (and their arrays) go with it."""
+    import gc
+    import weakref
+
+    reg = Registrar(scene.photo, scene.sun, [scene.maplet], scene.thresholds)
+    reg.extraction(0, scene.camera, scene.truth_pixel)
+    reg.release(0)  # a fresh grid, its slopes not yet asked for
+    lm = reg.landmarks[0]
+    assert lm.grid.slopes is lm.slopes  # the grid's slopes are the landmark's (computed once)
+    reg.release(0)
+    gone = weakref.ref(reg.landmarks[0])
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        del reg, lm
+        assert gone() is None
+    finally:
+        if was:
+            gc.enable()
 
 
 def test_reextraction_equals_extract(scene):
@@ -843,6 +867,59 @@ def test_maplet_space_workers_do_not_change_results(scene, monkeypatch):
     )  # fmt: skip
     assert len(forks) == 3
     _same_bits(out[1, False], threaded)
+
+
+def test_maplet_space_pool_serves_several_calls_with_one_fork(scene, monkeypatch):
+    """A ForkedPool over (photo, maplets) kept over several register calls (navigate's passes): one fork
+    for all of them; each later call's landmarks are registered by the pool's child from the call's
+    arguments (another camera, start pixels, options, secant Jacobians), bit for bit as in one thread.
+    A call on other maplets does not use it (it forks for itself)."""
+    import spctool.workers as wmod
+
+    cam1 = rs.pointing_error(scene.camera, 3.2, 1.7)
+    cam2 = rs.pointing_error(scene.camera, 0.4, -0.3)
+    maplets = [scene.maplet] * 6
+    names = [f"L{i}" for i in range(6)]
+    forks = []
+    real_fork = os.fork
+
+    def counting_fork():
+        pid = real_fork()
+        if pid:
+            forks.append(pid)
+        return pid
+
+    monkeypatch.setattr(os, "fork", counting_fork)
+    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: True)  # also under pytest-xdist's threads
+    calls = [
+        (cam1, RegisterOptions(space="maplet"), None, None),
+        (cam2, RegisterOptions(space="maplet", steps=(2, 1), grid_half=3), np.full((6, 2), 100.5), "first"),
+    ]
+    one, pooled = [], []
+    for threads in (1, 2):
+        with wmod.ForkedPool(2, shared=(scene.photo, maplets)) as pool:
+            jac = None
+            for cam, opts, start, carry in calls:
+                opts = dataclasses.replace(opts, threads=threads)
+                r = register(
+                    scene.photo, cam, scene.sun, maplets, scene.thresholds, opts, apriori=start, names=names,
+                    pool=pool, converge_jacobian=jac if carry else None,
+                )  # fmt: skip
+                jac = r.converge_jacobian
+                (one if threads == 1 else pooled).append(r)
+            assert pool.alive is (threads == 2)
+    assert len(forks) == 1
+    assert pooled[0].status.count("ok") == 6 and pooled[1].status.count("ok") == 6
+    for a, b in zip(one, pooled):
+        _same_bits(a, b)
+    with wmod.ForkedPool(2, shared=(scene.photo, maplets)) as pool:
+        other = [copy.copy(m) for m in maplets]  # equal, but not these very objects: the pool is not used
+        r = register(
+            scene.photo, cam1, scene.sun, other, scene.thresholds, RegisterOptions(space="maplet", threads=2),
+            names=names, pool=pool,
+        )  # fmt: skip
+        assert not pool.alive and len(forks) == 2
+    _same_bits(one[0], r)
 
 
 def test_landmark_workers_default_and_explicit(monkeypatch):

@@ -36,6 +36,13 @@ templates, is not learned twice; the measurements move by no more than the stage
 then the pose is solved again from the a-priori pose.  A
 landmark is in the result when pass 2 measured it (``ok``); its pass-1 pixel is kept for the report.
 
+Workers (``RegisterOptions.threads``; issue 39): in maplet space every register call of the passes
+shares its landmarks with worker processes forked once, at the first (a
+:class:`spctool.workers.ForkedPool` over the photo and maplets, which the passes do not modify): a later
+pass sends them its camera, start pixels and options, not a new fork, and both processes' pages are
+already their own (a fork costs ~3 ms and ~1300 copy-on-write faults per process in its first
+landmark).  The result does not depend on the number of workers, to the last bit.
+
 When pass 1 yields no pose (fewer than ``min_landmarks`` found, degenerate geometry), pass 2 is not run
 and the result says why (``status`` ``no-pose``); when pass 2 cannot solve a pose although it
 re-registered at least ``min_landmarks`` landmarks, the pass-1 pose and measurements stand (with a
@@ -354,6 +361,42 @@ def navigate(
         else np.asarray(positions, dtype=np.float64).reshape(n, 3)
     )
     tick = progress or (lambda k=1: None)
+    # the photo as every pass's Registrar reads it (float64), converted once here, not once per pass
+    photo = np.ascontiguousarray(getattr(photo, "data", photo), dtype=np.float64)
+    # maplet space: the landmarks of every pass are shared with worker processes forked once, at the
+    # first pass, over the photo and maplets as they are here (register's ``pool``)
+    pool = _landmark_pool(photo, maplets, opts.register)
+    try:
+        return _navigate(
+            photo, camera, sun, maplets, thresholds, opts, apriori, names, pos, prior_sigma_position,
+            prior_sigma_attitude, tick, pool,
+        )  # fmt: skip
+    finally:
+        if pool is not None:
+            pool.close()
+
+
+def _landmark_pool(photo, maplets, ropts):
+    """A :class:`spctool.workers.ForkedPool` over ``(photo, maplets)`` for navigate's register calls,
+    or None (image space: threads; one worker; forking not safe here)."""
+    from spctool.stages.register import landmark_workers
+    from spctool.workers import ForkedPool, can_fork_tasks
+
+    if ropts.space != "maplet":
+        return None
+    cells = sum(int(np.size(m.heights)) for m in maplets)
+    workers = landmark_workers(ropts, len(maplets), cells)
+    if workers < 2 or not can_fork_tasks():
+        return None
+    return ForkedPool(workers, shared=(photo, maplets))
+
+
+def _navigate(
+    photo, camera, sun, maplets, thresholds, opts, apriori, names, pos, prior_sigma_position,
+    prior_sigma_attitude, tick, pool,
+) -> NavigateResult:  # fmt: skip
+    """:func:`navigate`'s passes (``pool``: register's, or None)."""
+    n = len(maplets)
     # the steps below are fitted to each maplet here (pass1_steps: at least min_bins bins across, the
     # coarse grid widened to reach_px), so register's generic K*L <= Q+1 cap must not shrink them again
     base = dataclasses.replace(
@@ -366,6 +409,7 @@ def navigate(
     kw = dict(names=names, positions=pos, prior_sigma_position=prior_sigma_position)
     kw["prior_sigma_attitude"] = prior_sigma_attitude
     kw["patch_cache"] = {}  # image space: each maplet's render-ready patch built once for all passes
+    kw["pool"] = pool
     warnings: list[str] = []
 
     # start pixels: table pixels, else the projection of the landmark position

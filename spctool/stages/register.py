@@ -30,9 +30,10 @@ The S16 driver's landmarks are independent and run on ``threads`` workers (:func
 default numba's thread count, i.e. every core unless ``NUMBA_NUM_THREADS`` says otherwise, and one in
 ``batch``'s and the Monte Carlo's workers), one landmark per task, merged in landmark order: the result
 is the one-thread driver's to the last bit.  Image space runs threads (its render and correlation
-kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`),
-since its steps are short kernels between small NumPy operations that hold the GIL (issue 39: in one
-thread 48 % of its time is in kernels that release it).
+kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`, or
+the children of a caller's :class:`spctool.workers.ForkedPool`, forked once for several calls:
+navigate's passes), since its steps are short kernels between small NumPy operations that hold the
+GIL (issue 39: in one thread 48 % of its time is in kernels that release it).
 
 Both drivers end with a **converged full-resolution stage** when their last align step is at
 spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
@@ -271,6 +272,7 @@ def register(
     progress=None,
     patch_cache: dict | None = None,
     converge_jacobian=None,
+    pool=None,
 ) -> RegisterResult:
     """Stage H: measure the landmarks of ``maplets`` in ``photo`` (module docstring).
 
@@ -286,63 +288,28 @@ def register(
     pass's :attr:`RegisterResult.converge_jacobian` on the same maplets; NaN rows or None: −I).  The
     stage's zero does not depend on it; the number of steps does, and so where within ``converge_tol``
     of the zero the stage stops (:func:`_converge`; navigate's pass 2 measured ≤ 0.0005 px apart on the
-    independent worlds, ≤ 0.0025 px on the 16-landmark benchmark picture).
+    independent worlds, ≤ 0.0025 px on the 16-landmark benchmark picture).  ``pool``: a
+    :class:`spctool.workers.ForkedPool` whose ``shared`` is ``(photo, maplets)`` — these very objects —
+    kept by the caller over several calls (navigate's passes): maplet space's workers are its children,
+    forked once (another pool, or None: a fork per call).
     """
-    opts = options if options is not None else RegisterOptions()
-    reg = Registrar(photo, sun, maplets, thresholds, opts, names, patch_cache=patch_cache)
+    reg, steps, start, result, caps, opts = _setup(
+        photo, camera, sun, maplets, thresholds, options, apriori, names, patch_cache, converge_jacobian
+    )
     n = len(reg)
-    steps = schedule_steps(opts)
-    proj, usable = reg.project(camera)
-    start = proj.copy()
-    if apriori is not None:
-        ap = np.asarray(apriori, dtype=np.float64).reshape(n, 2)
-        given = np.all(np.isfinite(ap), axis=1)
-        start[given] = ap[given]
-    apri = start.copy()
-    measured = np.full((n, 2), np.nan)
-    corr = np.full(n, np.nan)
-    iters = np.zeros(n, np.int64)
-    spac = np.zeros(n, np.int64)
-    status = ["ok" if u else "outside" for u in usable]
     last = [None] * n
     tick = progress or (lambda k=1: None)
-    result = RegisterResult(
-        [lm.name for lm in reg.landmarks],
-        apri,
-        measured,
-        corr,
-        iters,
-        spac,
-        status,
-        camera,
-        options=opts,
-        covariance=np.full((n, 2, 2), np.nan),
-        converge_jacobian=(
-            np.full((n, 2, 2), np.nan)
-            if converge_jacobian is None
-            else np.array(converge_jacobian, dtype=np.float64).reshape(n, 2, 2)
-        ),
-    )
-    top = max(int(v) for k, v in steps if k == "align")
-    # a cap is at least 1: a schedule at spacing 1 only (a refinement phase) has nothing to cap
-    capped = opts.cap_spacing and top > 1
-    caps = np.array(
-        [spacing_cap(lm.maplet, opts, camera) if capped else top for lm in reg.landmarks], dtype=np.int64
-    )
-    if capped:
-        _cap_warnings(reg, caps, top, result)
-        if (
-            opts.schedule == "retina_s16"
-            and opts.space == "maplet"
-            and opts.capped_phases > opts.first_phases
-            and np.any(caps < top)
-        ):  # the capped step's border offsets overlap half the maplet: a denser first step (capped_phases)
-            opts = dataclasses.replace(opts, first_phases=opts.capped_phases)
-            reg.options = result.options = opts
     if opts.schedule == "retina_s16":
         workers = landmark_workers(opts, n, sum(int(np.size(lm.maplet.heights)) for lm in reg.landmarks))
         if workers > 1:
-            _parallel_s16(reg, camera, steps, start, result, last, tick, workers, caps)
+            from spctool.workers import shares
+
+            job = None  # what a child of the pool needs to make this call's task
+            if not shares(pool, photo, maplets):
+                pool = None
+            else:
+                job = (camera, sun, thresholds, options, apriori, names, converge_jacobian)
+            _parallel_s16(reg, camera, steps, start, result, last, tick, workers, caps, pool, job)
         else:
             _drive_s16(reg, camera, steps, start, result, last, tick, caps)
     else:
@@ -380,6 +347,63 @@ def register(
     if odd:
         result.warnings.append(odd)
     return result
+
+
+def _setup(photo, camera, sun, maplets, thresholds, options, apriori, names, patch_cache, converge_jacobian):
+    """What :func:`register` sets up before its driver runs (the Registrar, the schedule, the start
+    pixels, the result to fill, each maplet's spacing cap and the options as adapted to the caps): a
+    deterministic function of its arguments, made again in a :class:`spctool.workers.ForkedPool`'s
+    child from the same arguments (:func:`_pool_task`)."""
+    opts = options if options is not None else RegisterOptions()
+    reg = Registrar(photo, sun, maplets, thresholds, opts, names, patch_cache=patch_cache)
+    n = len(reg)
+    steps = schedule_steps(opts)
+    proj, usable = reg.project(camera)
+    start = proj.copy()
+    if apriori is not None:
+        ap = np.asarray(apriori, dtype=np.float64).reshape(n, 2)
+        given = np.all(np.isfinite(ap), axis=1)
+        start[given] = ap[given]
+    apri = start.copy()
+    measured = np.full((n, 2), np.nan)
+    corr = np.full(n, np.nan)
+    iters = np.zeros(n, np.int64)
+    spac = np.zeros(n, np.int64)
+    status = ["ok" if u else "outside" for u in usable]
+    result = RegisterResult(
+        [lm.name for lm in reg.landmarks],
+        apri,
+        measured,
+        corr,
+        iters,
+        spac,
+        status,
+        camera,
+        options=opts,
+        covariance=np.full((n, 2, 2), np.nan),
+        converge_jacobian=(
+            np.full((n, 2, 2), np.nan)
+            if converge_jacobian is None
+            else np.array(converge_jacobian, dtype=np.float64).reshape(n, 2, 2)
+        ),
+    )
+    top = max(int(v) for k, v in steps if k == "align")
+    # a cap is at least 1: a schedule at spacing 1 only (a refinement phase) has nothing to cap
+    capped = opts.cap_spacing and top > 1
+    caps = np.array(
+        [spacing_cap(lm.maplet, opts, camera) if capped else top for lm in reg.landmarks], dtype=np.int64
+    )
+    if capped:
+        _cap_warnings(reg, caps, top, result)
+        if (
+            opts.schedule == "retina_s16"
+            and opts.space == "maplet"
+            and opts.capped_phases > opts.first_phases
+            and np.any(caps < top)
+        ):  # the capped step's border offsets overlap half the maplet: a denser first step (capped_phases)
+            opts = dataclasses.replace(opts, first_phases=opts.capped_phases)
+            reg.options = result.options = opts
+    return reg, steps, start, result, caps, opts
 
 
 #: a registered landmark whose shift from its a-priori pixel differs from the picture's median shift by
@@ -422,7 +446,7 @@ def disagreeing_shifts(result: RegisterResult) -> str | None:
 MAPLET_LANDMARKS_PER_WORKER = 2
 #: by default maplet space forks only for at least this many maplet cells in all (Σ (2q+1)²): a cold
 #: ``register`` of a demo picture (12 maplets of 49², 29k cells) took 1.04× the wall of one thread with
-#: a forked worker (farm-bench, 20 A/B pairs; 1.11× in another 10): the copy-on-write faults and the
+#: a forked worker (20 A/B pairs of whole processes; 1.11× in another 10): the copy-on-write faults and the
 #: child's start outweigh ~0.1 s of work; S16's 16 maplets of 99² (157k cells) take 1/1.63 of it
 MAPLET_MIN_CELLS_TO_FORK = 100_000
 
@@ -504,7 +528,21 @@ def _landmark_task(reg: Registrar, camera, steps, start, result, caps):
 _MAPLET_KERNELS_LOADED = False
 
 
-def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, workers: int, caps):
+def _pool_task(shared, first: int, camera, sun, thresholds, options, apriori, names, converge_jacobian):
+    """In a :class:`spctool.workers.ForkedPool`'s child: the task of :func:`_parallel_s16` (landmark
+    ``first + k``) for a :func:`register` call with these arguments on the pool's ``shared`` photo and
+    maplets, made by :func:`_setup` as the caller made it."""
+    photo, maplets = shared
+    reg, steps, start, result, caps, _ = _setup(
+        photo, camera, sun, maplets, thresholds, options, apriori, names, None, converge_jacobian
+    )
+    task = _landmark_task(reg, camera, steps, start, result, caps)
+    return lambda k: task(first + k)
+
+
+def _parallel_s16(
+    reg: Registrar, camera, steps, start, result, last, tick, workers: int, caps, pool=None, job=None
+):
     """:func:`_drive_s16` with the landmarks spread over ``workers``, one landmark per task.
 
     Landmarks are independent (their own prediction, extraction or template, and state; the photo is
@@ -513,9 +551,12 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
     on ``workers`` (``tests/test_register.py``).
 
     Image space: threads (the render and correlation kernels release the GIL and hold most of the
-    time).  Maplet space: processes forked from this one (:func:`spctool.workers.forked_map`), since
-    its steps are short kernels between small NumPy operations that hold the GIL (48 % of a
-    landmark's time is in kernels that release it: threads could gain at most 1.3× on two cores).
+    time).  Maplet space: processes forked from this one — a ``pool``'s children (forked by its first
+    call; later calls send them ``job``, :func:`register`'s arguments but the photo and maplets, from
+    which :func:`_pool_task` makes the same task there), or forked for this call
+    (:func:`spctool.workers.forked_map`), since its steps are short kernels between small NumPy
+    operations that hold the GIL (48 % of a landmark's time is in kernels that release it: threads
+    could gain at most 1.3× on two cores).
     The first such call of a process registers landmarks alone until one has run a step, so that
     every kernel is loaded once, here, before the workers are forked with them.  Where forking is
     not safe (:func:`spctool.workers.can_fork_tasks`: another Python thread runs), maplet space uses
@@ -534,7 +575,7 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
         with lock:
             tick()
 
-    if reg.options.space == "maplet" and can_fork_tasks():
+    if reg.options.space == "maplet" and ((pool is not None and pool.alive) or can_fork_tasks()):
         global _MAPLET_KERNELS_LOADED
         first = 0
         while first < n and not _MAPLET_KERNELS_LOADED:  # loaded here, once, before forking the workers
@@ -542,7 +583,11 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             tick()
             first += 1
             _MAPLET_KERNELS_LOADED = done[first - 1].iterations > 0
-        rest = forked_map(lambda k: task(first + k), n - first, workers, on_result=ticked)
+        if pool is not None:
+            job = (_pool_task, (first, *job))
+            rest = pool.map(lambda k: task(first + k), n - first, on_result=ticked, job=job)
+        else:
+            rest = forked_map(lambda k: task(first + k), n - first, workers, on_result=ticked)
         done[first:] = rest
     else:
         from concurrent.futures import ThreadPoolExecutor
@@ -552,8 +597,8 @@ def _parallel_s16(reg: Registrar, camera, steps, start, result, last, tick, work
             ticked(i, rec)
             return rec
 
-        with ThreadPoolExecutor(workers) as pool:
-            done = list(pool.map(one, range(n)))
+        with ThreadPoolExecutor(workers) as threads:
+            done = list(threads.map(one, range(n)))
     for i, rec in enumerate(done):
         result.measured[i] = rec.measured
         result.correlation[i] = rec.correlation
