@@ -5,7 +5,7 @@ numpy loads OpenBLAS; the CLI imports numpy only inside a command): spctool para
 pictures and samples itself (numba kernels, worker processes), and its NumPy/SciPy linear algebra is on
 matrices of a few rows, so OpenBLAS's thread pool had no work to share — its threads only spun after
 start-up and after each call, about 0.3 s of CPU in every cold command (``spctool register`` of 16
-landmarks: 1.82 → 1.50 s CPU, ``farm-bench -n 8``) and, in ``montecarlo -j 2``, CPU taken from the other
+landmarks: 1.82 → 1.50 s CPU, 8 A/B pairs) and, in ``montecarlo -j 2``, CPU taken from the other
 worker.  Worker processes inherit the setting; set the variable to use more BLAS threads.
 
 It also keeps numba from loading cffi, which spctool never uses: numba's typing imports ``cffi`` when it
