@@ -135,6 +135,8 @@ _LMK_TAGS = {
     "uz": "UZ",
     "sigma_lmk": "SIGMA_LMK",
 }
+#: what lines 2-9 hold, as error messages name them
+_LMK_WHATS = {**_LMK_TAGS, "size": "QSZ, SCALE"}
 _LMK_ORDER = ["name", "size", "horizon", "sig", "vlm", "ux", "uy", "uz", "sigma_lmk"]
 _SECTIONS = {"pictures": "PICTURES", "overlaps": "MAP OVERLAPS", "limbs": "LIMB FITS"}
 _LANDMARK_FIELDS = (
@@ -332,18 +334,6 @@ def _read_lmk_name(lines: list[str], path, header: list[Slot]):
     header.append(Slot("name", line, (name, hflag, bigmap_extra)))
 
     return name, hflag, bigmap_extra, line1_notes
-
-
-_LMK_WHATS = {
-    "size": "QSZ, SCALE",
-    "horizon": "HORIZON",
-    "sig": "SIGKM, RMSLMK",
-    "vlm": "VLM",
-    "ux": "UX",
-    "uy": "UY",
-    "uz": "UZ",
-    "sigma_lmk": "SIGMA_LMK",
-}
 
 
 def _read_lmk_header(lines: list[str], path, header: list[Slot]) -> tuple[dict[str, list[float]], int]:
