@@ -29,6 +29,13 @@ import numpy as np
 __all__ = ["gradient_offset", "gradient_offset_photo", "gradient_offset_symmetric"]
 
 
+def _contiguous(e, me, p, mp):
+    """The two images as C-contiguous float64 and their masks as bool (the kernels' one signature)."""
+    f, b = np.float64, np.bool_
+    return (np.ascontiguousarray(e, dtype=f), np.ascontiguousarray(me, dtype=b),
+            np.ascontiguousarray(p, dtype=f), np.ascontiguousarray(mp, dtype=b))  # fmt: skip
+
+
 @numba.njit(cache=True, inline="always")
 def _k_usable(me, mp, i, j, ie, je):  # pragma: no cover - compiled
     """P pixel (i, j) valid with its four axis neighbours, and E pixel (ie, je) valid (every index is
@@ -128,11 +135,7 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
     alignment.  ``ok`` is False (δ NaN) with fewer than 8 usable pixels, a singular system, a
     non-positive gain a, or |δ| > ``max_move`` along an axis (outside the linear range).
     """
-    return _gradient_offset(
-        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
-        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
-        int(origin[0]), int(origin[1]), max_move,
-    )  # fmt: skip
+    return _gradient_offset(*_contiguous(e, me, p, mp), int(origin[0]), int(origin[1]), max_move)
 
 
 def _gradient_offset(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
@@ -189,11 +192,7 @@ def gradient_offset_photo(e, me, p, mp, origin, max_move: float = 1.0):
     Exactly zero, like :func:`gradient_offset`, when P = a'·E + b'.  It is :func:`gradient_offset`
     called with the images exchanged (P's mask shrunk to its interior), the origin negated and its
     offset negated."""
-    return _gradient_offset_photo(
-        np.ascontiguousarray(e, dtype=np.float64), np.ascontiguousarray(me, dtype=np.bool_),
-        np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(mp, dtype=np.bool_),
-        int(origin[0]), int(origin[1]), max_move,
-    )  # fmt: skip
+    return _gradient_offset_photo(*_contiguous(e, me, p, mp), int(origin[0]), int(origin[1]), max_move)
 
 
 def _gradient_offset_photo(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
