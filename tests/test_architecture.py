@@ -34,10 +34,8 @@ FLOORS = {
     "stages": 4,
     "sim": 5,
     "batch": 5,
-    "figures": 5,
-    "figures_refine": 5,  # the picture of a landmark refinement (geometry --plot)
-    "figures_heights": 5,  # figures of a "Find heights" run (lithos)
-    "figures_register": 5,  # pictures a registration writes (surfaces, panels, overlay)
+    "figures": 5,  # every picture: figures/__init__ (the canvas, overlays, pose and batch plots),
+    # figures/register (surfaces, panels), figures/heights (lithos), figures/refine (geometry --plot)
     "cli": 6,
 }
 

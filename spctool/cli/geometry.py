@@ -241,7 +241,7 @@ def geometry_cmd(
     if report_dir:
         _reports(Path(report_dir), result, prob, inputs, summary)
     if plot:
-        from spctool.figures_refine import refinement_plot
+        from spctool.figures.refine import refinement_plot
 
         used = np.array([s in ("ok", "undetermined", "ignored-in-vlm") for s in result.obs_status])
         rb = group_rms(result.residual_before, prob.obs_picture, used, len(prob.picture_names))

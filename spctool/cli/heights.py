@@ -187,7 +187,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
             wrote = True
             ctx.info(f"wrote {map_path} and {ctx.wd.lmk_path(lmk.name)}")
         if kw["figures_dir"] and result.ok:
-            from spctool.figures_heights import maplet_sheet, rerender_sheet
+            from spctool.figures.heights import maplet_sheet, rerender_sheet
 
             out = Path(kw["figures_dir"])
             out.mkdir(parents=True, exist_ok=True)

@@ -372,14 +372,14 @@ def correlate_cmd(ctx: Context, **kw):
             )
             rows.append(row)
             if out_dir is not None:
-                from spctool import figures_register
+                from spctool.figures import register as figures_register
 
                 figures_register.write_surface(
                     out_dir, kw["image_format"], name, inp.pic.name, st, opts.space, kw["zoom"]
                 )
                 written += 1
             if kw["panels"]:
-                from spctool import figures_register
+                from spctool.figures import register as figures_register
 
                 Path(kw["panels"]).mkdir(parents=True, exist_ok=True)
                 figures_register.write_panel(
@@ -680,7 +680,7 @@ def register_cmd(ctx: Context, **kw):
     out_dir = Path(kw["out_dir"]) if kw["out_dir"] else None
     written = 0
     if out_dir is not None:
-        from spctool import figures_register
+        from spctool.figures import register as figures_register
 
         out_dir.mkdir(parents=True, exist_ok=True)
         for name, st in zip(result.names, result.last_steps):
@@ -726,7 +726,7 @@ def register_cmd(ctx: Context, **kw):
         path = _write_sum(kw, inp, result)
         ctx.info(f"rewrote the LANDMARKS section of {path}")
     if kw["overlay"]:
-        from spctool import figures_register
+        from spctool.figures import register as figures_register
         from spctool.formats import atomic
 
         atomic.write_bytes(
@@ -747,7 +747,7 @@ def register_cmd(ctx: Context, **kw):
         )
         ctx.info(f"wrote {kw['overlay']}")
     if kw["panels"]:
-        from spctool import figures_register
+        from spctool.figures import register as figures_register
 
         n = figures_register.write_panels(Path(kw["panels"]), inp, result, opts)
         ctx.info(f"wrote {n} panels to {kw['panels']}")

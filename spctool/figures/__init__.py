@@ -2,8 +2,10 @@
 
 SPC analysts judge a landmark registration by looking at the predicted and the extracted maplet
 images side by side with the correlation surface, and a pose by its residuals over the photo.  This
-module draws those pictures from the stages' results (it reads their result objects, it never runs a
-stage):
+package draws those pictures from the stages' results (it reads their result objects, it never runs a
+stage).  Here the canvas and the pictures every command shares; beside them
+:mod:`spctool.figures.register` (what ``register``/``correlate`` write: surfaces, panels, the overlay),
+:mod:`spctool.figures.heights` (``lithos``) and :mod:`spctool.figures.refine` (``geometry --plot``):
 
 * :func:`register_overlay` — the photo with each landmark's shift (measured − a-priori) drawn as a
   vector magnified by a stated factor, coloured by status, with legend, title and a reference vector;
