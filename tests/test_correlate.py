@@ -1076,12 +1076,9 @@ def test_photo_alignment_is_exactly_zero_at_a_perfect_alignment():
         CorrelateOptions(peak="gradient-photos")
 
 
-def test_noise_biases_the_alignment_whose_regressors_carry_it():
-    """Least squares is unbiased for noise in the fitted image and attenuated by noise in its
-    regressors.  A smooth texture shifted by (0.3, −0.2) cell, white noise of its gradient's rms on
-    one image, 40 draws: the noisy image as the fitted side reads the shift to within a few standard
-    errors and the first-order expansion's error (≈ 1 %); as the regressor it reads it shortened by
-    the attenuation var(∇P)/(var(∇P) + var(∇noise)) ≈ 2/3."""
+def _shifted_texture():
+    """A smooth 61×61 texture P and E = 2·P shifted by d = (0.3, −0.2) cell + 1, with the rms of P's
+    gradient per axis (the noise level of the alignment's noise tests): (n, d, P, E, σ)."""
     n, d = 61, np.array([0.3, -0.2])
     x = np.arange(n, dtype=float)
 
@@ -1090,9 +1087,18 @@ def test_noise_biases_the_alignment_whose_regressors_carry_it():
         return np.sin(r / 4.0 + 0.3) * np.cos(c / 5.0) + 0.5 * np.sin((r + c) / 6.0)
 
     clean_p, clean_e = tex(), 2.0 * tex(d) + 1.0
-    ok = np.ones((n, n), bool)
     g = np.gradient(clean_p)
-    sigma = float(np.sqrt(np.mean(g[0] ** 2 + g[1] ** 2) / 2.0))
+    return n, d, clean_p, clean_e, float(np.sqrt(np.mean(g[0] ** 2 + g[1] ** 2) / 2.0))
+
+
+def test_noise_biases_the_alignment_whose_regressors_carry_it():
+    """Least squares is unbiased for noise in the fitted image and attenuated by noise in its
+    regressors.  A smooth texture shifted by (0.3, −0.2) cell, white noise of its gradient's rms on
+    one image, 40 draws: the noisy image as the fitted side reads the shift to within a few standard
+    errors and the first-order expansion's error (≈ 1 %); as the regressor it reads it shortened by
+    the attenuation var(∇P)/(var(∇P) + var(∇noise)) ≈ 2/3."""
+    n, d, clean_p, clean_e, sigma = _shifted_texture()
+    ok = np.ones((n, n), bool)
     rng = np.random.default_rng(3)
     reads = {"p noisy": ([], []), "e noisy": ([], [])}
     for _ in range(40):
@@ -1213,17 +1219,8 @@ def test_symmetric_alignment_halves_the_bias_of_noise_on_either_side():
     mean of both gradients carries half that noise amplitude and is off by at most half as much
     (measured about a third) whichever image is noisy; the noise-weighted fit finds the noisy side
     (w within 0.1 of the clean image's end) and reads the shift as the unbiased one-sided fit does."""
-    n, d = 61, np.array([0.3, -0.2])
-    x = np.arange(n, dtype=float)
-
-    def tex(s=(0.0, 0.0)):
-        r, c = x[:, None] - s[0], x[None, :] - s[1]
-        return np.sin(r / 4.0 + 0.3) * np.cos(c / 5.0) + 0.5 * np.sin((r + c) / 6.0)
-
-    clean_p, clean_e = tex(), 2.0 * tex(d) + 1.0
+    n, d, clean_p, clean_e, sigma = _shifted_texture()
     ok = np.ones((n, n), bool)
-    g = np.gradient(clean_p)
-    sigma = float(np.sqrt(np.mean(g[0] ** 2 + g[1] ** 2) / 2.0))
     rng = np.random.default_rng(3)
     for noisy in ("p", "e"):
         keys = ("one-sided, noisy regressor", "one-sided, clean regressor", "symmetric", "weighted")

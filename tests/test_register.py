@@ -820,6 +820,25 @@ def _same_bits(one, many):
     assert one.to_table("P").to_text() == many.to_table("P").to_text()
 
 
+def _count_forks(monkeypatch) -> list:
+    """The pids of the children ``os.fork`` makes from now on (forking allowed also under pytest-xdist's
+    threads)."""
+    import spctool.workers as wmod
+
+    forks = []
+    real_fork = os.fork
+
+    def counting_fork():
+        pid = real_fork()
+        if pid:
+            forks.append(pid)
+        return pid
+
+    monkeypatch.setattr(os, "fork", counting_fork)
+    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: True)
+    return forks
+
+
 def test_maplet_space_workers_do_not_change_results(scene, monkeypatch):
     """Maplet space runs its landmarks in processes forked from this one (one landmark per task, claimed
     as they finish); 2 or 3 workers give one thread's result bit for bit — every array, status, note,
@@ -834,17 +853,7 @@ def test_maplet_space_workers_do_not_change_results(scene, monkeypatch):
     names = [f"L{i}" for i in range(5)]
     # a-priori pixels near the truth and one 60 px off (a failure, found alike by every worker count)
     start = np.array([[np.nan, np.nan], [101.3, 99.2], [98.6, 102.4], [160.0, 40.0], [103.9, 97.1]])
-    forks = []
-    real_fork = os.fork
-
-    def counting_fork():
-        pid = real_fork()
-        if pid:
-            forks.append(pid)
-        return pid
-
-    monkeypatch.setattr(os, "fork", counting_fork)
-    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: True)  # also under pytest-xdist's threads
+    forks = _count_forks(monkeypatch)
     monkeypatch.setattr(reg_mod, "_MAPLET_KERNELS_LOADED", False)
     out = {}
     for threads, keep in ((1, True), (2, True), (3, False), (1, False)):
@@ -880,17 +889,7 @@ def test_maplet_space_pool_serves_several_calls_with_one_fork(scene, monkeypatch
     cam2 = rs.pointing_error(scene.camera, 0.4, -0.3)
     maplets = [scene.maplet] * 6
     names = [f"L{i}" for i in range(6)]
-    forks = []
-    real_fork = os.fork
-
-    def counting_fork():
-        pid = real_fork()
-        if pid:
-            forks.append(pid)
-        return pid
-
-    monkeypatch.setattr(os, "fork", counting_fork)
-    monkeypatch.setattr(wmod, "can_fork_tasks", lambda: True)  # also under pytest-xdist's threads
+    forks = _count_forks(monkeypatch)
     calls = [
         (cam1, RegisterOptions(space="maplet"), None, None),
         (cam2, RegisterOptions(space="maplet", steps=(2, 1), grid_half=3), np.full((6, 2), 100.5), "first"),
