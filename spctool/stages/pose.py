@@ -739,6 +739,111 @@ def _fit_rejecting(build, usable, opts, prior, names, status, rejected, warnings
     return problem, state, iterations, converged, history, used
 
 
+def _checked_inputs(landmark_positions, measured, names):
+    """(positions (N, 3), measured pixels (N, 2), N names) as float arrays and strings; a wrong shape
+    or name count is a :class:`SpcUsageError`."""
+    pts_all = np.asarray(landmark_positions, dtype=np.float64)
+    meas_all = np.asarray(measured, dtype=np.float64)
+    if pts_all.ndim != 2 or pts_all.shape[1] != 3:
+        raise SpcUsageError(f"landmark_positions must have shape (N, 3), got {pts_all.shape}")
+    n_all = pts_all.shape[0]
+    if meas_all.shape != (n_all, 2):
+        raise SpcUsageError(f"measured must have shape ({n_all}, 2), got {meas_all.shape}")
+    names = [f"#{i + 1}" for i in range(n_all)] if names is None else [str(x) for x in names]
+    if len(names) != n_all:
+        raise SpcUsageError(f"names has {len(names)} entries for {n_all} landmarks")
+    return pts_all, meas_all, names
+
+
+def _landmark_sigmas(mode, landmark_sigmas, n_all):
+    """(N, 3) km landmark 1σ for ``"estimate"`` / ``"consider"`` (required there); None for ``"fixed"``."""
+    if mode == "fixed":
+        return None
+    if landmark_sigmas is None:
+        raise SpcUsageError(f"landmark_mode {mode!r} needs landmark sigmas (LMK SIGMA_LMK)")
+    lmk_sig = _per_landmark(landmark_sigmas, n_all, "landmark_sigmas", width=3)
+    if not np.all(np.isfinite(lmk_sig)):
+        raise SpcUsageError("landmark sigmas must be finite")
+    return lmk_sig
+
+
+def _pose_prior(opts, prior_sigma_position, prior_sigma_attitude, warnings) -> _Prior:
+    """The a-priori term from SIGMA_VSO / SIGMA_PTG (widened by ``prior_scale``); none without
+    ``use_prior``."""
+    if not opts.use_prior:
+        return _Prior(np.zeros(6))
+    info = np.concatenate(
+        [
+            _prior_info(prior_sigma_position, 3, "prior position sigma", warnings),
+            _prior_info(prior_sigma_attitude, 3, "prior attitude sigma", warnings),
+        ]
+    )
+    return _Prior(info / (opts.prior_scale * opts.prior_scale))
+
+
+def _check_count(count, opts, prior_used):
+    """:class:`PoseError` unless ``count`` landmarks are enough (3 without a prior: 6 unknowns)."""
+    need = opts.min_landmarks if prior_used else max(opts.min_landmarks, 3)
+    if count < need:
+        why = "" if prior_used else " (6 unknowns and no a-priori pose)"
+        raise PoseError(f"too few landmarks: {count} usable, at least {need} needed{why}")
+
+
+def _fit_with_model_error(
+    build, wts_all, modes_all, common, usable, opts, prior, labels, pixel_covariances, error_modes, mode
+):
+    """:func:`_fit_rejecting`; with ``pixel_covariances`` and ``opts.model_error``, the model error τ
+    the residuals show beyond the correlation peaks' covariances, then the fit again with it (twice:
+    the residuals of the refit estimate it again).  ``labels`` = (names, status, rejected, warnings),
+    the last three reset before a refit.  Returns (fit, τ, weights, common covariance used)."""
+    names, status, rejected, warnings = labels
+    before = (list(status), list(rejected), list(warnings))
+    fit = _fit_rejecting(
+        lambda mask: build(mask, wts_all, modes_all), usable, opts, prior, names, status, rejected, warnings
+    )
+    tau, common_used = 0.0, common
+    if pixel_covariances is None or not opts.model_error:
+        return fit, tau, wts_all, common_used
+    base = _covariance_matrices(pixel_covariances, usable.size, opts.sigma_floor_px, wts_all)
+    for _ in range(2):
+        new_tau = _model_error(fit[0], fit[1], base[fit[5]], opts, prior)
+        if abs(new_tau - tau) <= 0.05 * max(new_tau, 1e-12):
+            break
+        tau = new_tau
+        wts_all = np.linalg.inv(base + (tau * tau) * np.eye(2))
+        if opts.common_model_error and mode == "fixed":  # its common part, as large (PoseOptions)
+            shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
+            modes_all = _error_modes(shared, error_modes, usable.size, mode)
+            common_used = shared
+        status[:], rejected[:], warnings[:] = (list(x) for x in before)
+        fit = _fit_rejecting(
+            lambda mask, w=wts_all, e=modes_all: build(mask, w, e),
+            usable, opts, prior, names, status, rejected, warnings,
+        )  # fmt: skip
+    return fit, tau, wts_all, common_used
+
+
+def _scaled_covariance(cov, lmk_cov, red, opts):
+    """(covariance, formal covariance or None, scale, landmark covariances): residuals larger than
+    ``sigma_px`` say so — the covariance is scaled by cost/dof when it exceeds 1 (not in ``"consider"``
+    mode, whose covariance already holds the landmark errors that raise cost/dof)."""
+    if opts.scale_covariance and opts.landmark_mode != "consider" and red > 1.0:
+        scale = float(red)
+        return cov * scale, cov, scale, None if lmk_cov is None else lmk_cov * scale
+    return cov, None, 1.0, lmk_cov
+
+
+def _implausible(red, opts) -> str:
+    """The reason a fit is implausible (cost/dof above ``max_reduced_chi2``), else ''."""
+    if not red > opts.max_reduced_chi2:
+        return ""
+    return (
+        f"cost/dof {red:.3g} > {opts.max_reduced_chi2:g}: the residuals are ~{math.sqrt(red):.3g}x "
+        f"sigma_px {opts.sigma_px:g} px (wrong measurements, another picture's table, or sigma_px "
+        "too small)"
+    )
+
+
 def _solve_pose(
     camera,
     landmark_positions,
@@ -784,104 +889,52 @@ def _solve_pose(
     Raises :class:`PoseError` for too few usable landmarks or degenerate geometry.
     """
     opts = options or PoseOptions()
-    pts_all = np.asarray(landmark_positions, dtype=np.float64)
-    meas_all = np.asarray(measured, dtype=np.float64)
-    if pts_all.ndim != 2 or pts_all.shape[1] != 3:
-        raise SpcUsageError(f"landmark_positions must have shape (N, 3), got {pts_all.shape}")
+    pts_all, meas_all, names = _checked_inputs(landmark_positions, measured, names)
     n_all = pts_all.shape[0]
-    if meas_all.shape != (n_all, 2):
-        raise SpcUsageError(f"measured must have shape ({n_all}, 2), got {meas_all.shape}")
-    names = [f"#{i + 1}" for i in range(n_all)] if names is None else [str(x) for x in names]
-    if len(names) != n_all:
-        raise SpcUsageError(f"names has {len(names)} entries for {n_all} landmarks")
     warnings: list[str] = []
     if estimate_weights not in ("covariance", "uniform"):
         raise SpcUsageError(f"estimate_weights must be 'covariance' or 'uniform', got {estimate_weights!r}")
     sandwich = estimate_weights == "uniform" and pixel_covariances is not None
-    if sandwich and opts.landmark_mode != "fixed":
+    mode = opts.landmark_mode
+    if sandwich and mode != "fixed":
         raise SpcUsageError("estimate_weights 'uniform' with pixel covariances needs landmark_mode 'fixed'")
     wts_all = _measurement_weights(
         opts, meas_all, names, pixel_sigmas, None if sandwich else pixel_covariances, warnings
     )
-    mode = opts.landmark_mode
-    lmk_sig = None
-    if mode != "fixed":
-        if landmark_sigmas is None:
-            raise SpcUsageError(f"landmark_mode {mode!r} needs landmark sigmas (LMK SIGMA_LMK)")
-        lmk_sig = _per_landmark(landmark_sigmas, n_all, "landmark_sigmas", width=3)
-        if not np.all(np.isfinite(lmk_sig)):
-            raise SpcUsageError("landmark sigmas must be finite")
-
-    if opts.use_prior:
-        info = np.concatenate(
-            [
-                _prior_info(prior_sigma_position, 3, "prior position sigma", warnings),
-                _prior_info(prior_sigma_attitude, 3, "prior attitude sigma", warnings),
-            ]
-        )
-        info = info / (opts.prior_scale * opts.prior_scale)
-    else:
-        info = np.zeros(6)
-    prior = _Prior(info)
-    prior_used = prior.n_equations > 0
+    lmk_sig = _landmark_sigmas(mode, landmark_sigmas, n_all)
+    prior = _pose_prior(opts, prior_sigma_position, prior_sigma_attitude, warnings)
     common = _common_covariance(common_covariance, mode)
     modes_all = None if sandwich else _error_modes(common, error_modes, n_all, mode)
-    common_used = common  # with the model error's common part once estimated
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
     usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
-    resid0 = meas_all - pred0
-
-    def check_count(count):
-        need = opts.min_landmarks if prior_used else max(opts.min_landmarks, 3)
-        if count < need:
-            why = "" if prior_used else " (6 unknowns and no a-priori pose)"
-            raise PoseError(f"too few landmarks: {count} usable, at least {need} needed{why}")
-
-    check_count(int(np.count_nonzero(usable)))
-
+    prior_used = prior.n_equations > 0
+    _check_count(int(np.count_nonzero(usable)), opts, prior_used)
     lmk_info_all = None
     if mode == "estimate":
         s = np.where(lmk_sig > 0, lmk_sig, _TINY_SIGMA_KM)
         lmk_info_all = 1.0 / (s * s)
 
-    def build(mask):
+    def build(mask, wts, modes):
         return _Problem(
             camera,
             pts_all[mask],
             meas_all[mask],
-            wts_all[mask],
+            wts[mask],
             prior,
             mode,
             None if lmk_info_all is None else lmk_info_all[mask],
             opts,
-            None if modes_all is None else modes_all[mask],
+            None if modes is None else modes[mask],
         )
 
-    # ---- fit, reject, refit -------------------------------------------------------------------------
-    before = (list(status), list(rejected), list(warnings))
-    problem, state, iterations, converged, history, used = _fit_rejecting(
-        build, usable, opts, prior, names, status, rejected, warnings
-    )
-    tau = 0.0
-    if pixel_covariances is not None and opts.model_error and not sandwich:
-        # the model error the residuals show beyond the correlation peaks' covariances, then the fit
-        # again with it (twice: the residuals of the refit estimate it again)
-        base = _covariance_matrices(pixel_covariances, n_all, opts.sigma_floor_px, wts_all)
-        for _ in range(2):
-            new_tau = _model_error(problem, state, base[used], opts, prior)
-            if abs(new_tau - tau) <= 0.05 * max(new_tau, 1e-12):
-                break
-            tau = new_tau
-            wts_all = np.linalg.inv(base + (tau * tau) * np.eye(2))
-            if opts.common_model_error and mode == "fixed":  # its common part, as large (PoseOptions)
-                shared = (tau * tau) * np.eye(2) + (0.0 if common is None else common)
-                modes_all = _error_modes(shared, error_modes, n_all, mode)
-                common_used = shared
-            status[:], rejected[:], warnings[:] = (list(x) for x in before)
-            problem, state, iterations, converged, history, used = _fit_rejecting(
-                build, usable, opts, prior, names, status, rejected, warnings
-            )
+    # ---- fit, reject, refit (with the model error the residuals show) ------------------------------
+    labels = (names, status, rejected, warnings)
+    fit, tau, wts_all, common_used = _fit_with_model_error(
+        build, wts_all, modes_all, common, usable, opts, prior, labels,
+        None if sandwich else pixel_covariances, error_modes, mode,
+    )  # fmt: skip
+    problem, state, iterations, converged, history, used = fit
 
     # ---- final linearisation: covariance, residuals -----------------------------------------------
     m = int(np.count_nonzero(used))
@@ -898,22 +951,9 @@ def _solve_pose(
     cost, chi2 = problem.cost(state)
     # unknowns 6 (+3M landmark offsets with 3M a-priori equations in "estimate" mode: same dof)
     dof = 2 * m + prior.n_equations - 6
-    # residuals larger than sigma_px say so: the covariance is scaled by cost/dof when it exceeds 1
     red = cost / dof if dof > 0 else math.nan
-    cov_formal, scale = None, 1.0
-    # ("consider" mode: the landmark errors that raise cost/dof are already in the covariance)
-    if opts.scale_covariance and mode != "consider" and red > 1.0:
-        cov_formal, scale = cov, float(red)
-        cov = cov * scale
-        if lmk_cov is not None:
-            lmk_cov = lmk_cov * scale
-    implausible = ""
-    if red > opts.max_reduced_chi2:
-        implausible = (
-            f"cost/dof {red:.3g} > {opts.max_reduced_chi2:g}: the residuals are ~{math.sqrt(red):.3g}x "
-            f"sigma_px {opts.sigma_px:g} px (wrong measurements, another picture's table, or sigma_px "
-            "too small)"
-        )
+    cov, cov_formal, scale, lmk_cov = _scaled_covariance(cov, lmk_cov, red, opts)
+    implausible = _implausible(red, opts)
     # (the prior test reads the a-posteriori covariance of the weights the fit used: with the
     # sandwich, the uniform fit's own, as its derivation needs P = (A + P₀⁻¹)⁻¹)
     gate, prior_check = _consistency(
@@ -926,7 +966,7 @@ def _solve_pose(
     smp1, lin1, front1 = state.camera.project_with_mask(np.where(pts_finite[:, None], pts_after, 0.0))
     pred1 = np.stack([smp1, lin1], axis=-1)
     pred1[~(pts_finite & front1)] = np.nan
-    resid1 = meas_all - pred1
+    resid0, resid1 = meas_all - pred0, meas_all - pred1
     if not converged:
         warnings.append(f"did not converge in {opts.max_iter} iterations")
 
