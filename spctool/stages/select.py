@@ -365,19 +365,10 @@ def _as_vector(a, n, name, dtype=np.float64) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 
 
-def select_maplets(
-    camera, sun, centres, ux, uy, uz, scale, qsz, names=None, options: SelectOptions | None = None, shape=None
-) -> SelectResult:
-    """Stage A: test N candidate maplets against one picture (module docstring for the checks).
-
-    ``camera``: :class:`spctool.geometry.camera.Camera`; ``sun``: body→Sun vector (3,) (normalised
-    here); ``centres`` V (N, 3) km and ``ux``, ``uy``, ``uz`` (N, 3) unit axes, body frame;
-    ``scale`` (N,) km per cell; ``qsz`` (N,) half-size in cells; ``names`` (N,) (default ``"0"``,
-    ``"1"`` …); ``shape``: a geometry shape with ``first_hit`` and ``max_diameter``
-    (:class:`~spctool.geometry.shape.PatchShape` / :class:`~spctool.geometry.shape.TriangleShape`)
-    or None.  Candidate order matters only for ``numlm_mode="spc_sequential"``.
-    """
-    opts = options if options is not None else SelectOptions()
+def _checked_candidates(centres, ux, uy, uz, scale, qsz, names, sun):
+    """The candidates as contiguous float rows (unit axes), scales, QSZ, N names and the unit Sun
+    vector; a wrong shape, a non-positive scale, a negative QSZ or a zero Sun vector is a
+    :class:`SpcUsageError`."""
     v_pts = np.asarray(centres, dtype=np.float64)
     if v_pts.ndim != 2 or v_pts.shape[1] != 3:
         raise SpcUsageError(f"centres must have shape (N, 3), got {v_pts.shape}")
@@ -397,7 +388,54 @@ def select_maplets(
     s_norm = np.linalg.norm(s_hat)
     if not s_norm > 0:
         raise SpcUsageError("the Sun vector must be non-zero")
-    s_hat = s_hat / s_norm
+    return v_pts, ux, uy, uz, scale, qsz, names, s_hat / s_norm
+
+
+def _box_inside(camera, v_pts, ux, uy, box_offset) -> np.ndarray:
+    """(N, 9) whether each point of the candidate's 3×3 box (centre ± ``box_offset`` along Ux, Uy)
+    projects into the picture in front of the camera (L15 Eq. 3.17, erratum 11)."""
+    n = v_pts.shape[0]
+    if not n:
+        return np.zeros((0, 9), bool)
+    kk, jj = np.meshgrid([-1.0, 0.0, 1.0], [-1.0, 0.0, 1.0], indexing="ij")
+    kk = kk.reshape(-1)
+    jj = jj.reshape(-1)
+    off = box_offset[:, None, None] * (
+        kk[None, :, None] * ux[:, None, :] + jj[None, :, None] * uy[:, None, :]
+    )
+    bs, bl, bf = camera.project_with_mask((v_pts[:, None, :] + off).reshape(-1, 3))
+    return (bf & camera.in_image(bs, bl)).reshape(n, 9)
+
+
+def _first_failed(effective, n):
+    """(status (N,) object, selected (N,)): each candidate's status names the first check of
+    :data:`CHECKS` it fails, ``"ok"`` if none."""
+    status = np.full(n, "ok", dtype=object)
+    decided = np.zeros(n, bool)
+    for name in CHECKS:
+        fail = ~effective[name] & ~decided
+        status[fail] = STATUS_OF_CHECK[name]
+        decided |= fail
+    return status, ~decided
+
+
+def select_maplets(
+    camera, sun, centres, ux, uy, uz, scale, qsz, names=None, options: SelectOptions | None = None, shape=None
+) -> SelectResult:
+    """Stage A: test N candidate maplets against one picture (module docstring for the checks).
+
+    ``camera``: :class:`spctool.geometry.camera.Camera`; ``sun``: body→Sun vector (3,) (normalised
+    here); ``centres`` V (N, 3) km and ``ux``, ``uy``, ``uz`` (N, 3) unit axes, body frame;
+    ``scale`` (N,) km per cell; ``qsz`` (N,) half-size in cells; ``names`` (N,) (default ``"0"``,
+    ``"1"`` …); ``shape``: a geometry shape with ``first_hit`` and ``max_diameter``
+    (:class:`~spctool.geometry.shape.PatchShape` / :class:`~spctool.geometry.shape.TriangleShape`)
+    or None.  Candidate order matters only for ``numlm_mode="spc_sequential"``.
+    """
+    opts = options if options is not None else SelectOptions()
+    v_pts, ux, uy, uz, scale, qsz, names, s_hat = _checked_candidates(
+        centres, ux, uy, uz, scale, qsz, names, sun
+    )
+    n = v_pts.shape[0]
     if opts.occlusion is True and shape is None:
         raise SpcUsageError("the occlusion test needs a shape model")
     run_occlusion = shape is not None and opts.occlusion is not False
@@ -456,18 +494,7 @@ def select_maplets(
     size_ok = d_m < r_img * min(camera.npx, camera.nln) * opts.size_factor
 
     # 7. fine in-photo test with the 3×3 box (Eq. 3.17, erratum 11)
-    kk, jj = np.meshgrid([-1.0, 0.0, 1.0], [-1.0, 0.0, 1.0], indexing="ij")
-    kk = kk.reshape(-1)
-    jj = jj.reshape(-1)
-    off = box_offset[:, None, None] * (
-        kk[None, :, None] * ux[:, None, :] + jj[None, :, None] * uy[:, None, :]
-    )
-    box = (v_pts[:, None, :] + off).reshape(-1, 3)
-    if n:
-        bs, bl, bf = camera.project_with_mask(box)
-        inside = (bf & camera.in_image(bs, bl)).reshape(n, 9)
-    else:
-        inside = np.zeros((0, 9), bool)
+    inside = _box_inside(camera, v_pts, ux, uy, box_offset)
     fraction = inside.mean(axis=1) if n else np.zeros(0)
     in_photo = inside.any(axis=1)
 
@@ -501,13 +528,7 @@ def select_maplets(
         "visible": visible,
     }
     effective = dict(checks, resolution=resolution_pass)
-    status = np.full(n, "ok", dtype=object)
-    decided = np.zeros(n, bool)
-    for name in CHECKS:
-        fail = ~effective[name] & ~decided
-        status[fail] = STATUS_OF_CHECK[name]
-        decided |= fail
-    selected = ~decided
+    status, selected = _first_failed(effective, n)
 
     return SelectResult(
         names=names,
