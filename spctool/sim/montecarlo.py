@@ -309,22 +309,21 @@ IMAGE_CONVERGE_TOL = 0.01
 #: (measured there, not adopted)
 MAPLET_CONVERGE_PEAK = "gradient-photo"
 
-#: the image plan's templates (issue 39; s16-50m, 12 × 500, seed 0; docs/benchmarks.md "Per-landmark
-#: targets").  Runs with one perturbation at a time put the image space's excess over the floor and its
-#: 1σ on the per-node height errors (heights alone: worst excess 0.046 px, 1σ 0.045; albedo alone and
-#: all the rest: ≤ 0.01 / 0.02).  Split further (heights only, the prediction fitted on the photo):
-#: template normals from the clean maplet and geometry from the noisy one leave the excess (0.021 px)
-#: and cut the 1σ (0.027); clean geometry with noisy normals leaves the 1σ (0.040) and removes the
-#: excess (0.008); the noisy geometry's part is its cast shadows (template without them: 0.011 px).
-#: A node raised by a third of a cell shades its down-Sun neighbours, a bias in the template's mean, not
-#: a noise that averages out.  So the plan: the prediction fitted on the photo
-#: (:data:`IMAGE_CONVERGE_PEAK`, as in maplet space), templates without cast shadows
-#: (:data:`IMAGE_TEMPLATE_SHADOWS`; the preset's floor is the same without them, 0.072 px worst) and
-#: 2 × 2 rays per pixel at L = 1 (:data:`IMAGE_SUPERSAMPLE`: the template's height noise averaged over
-#: four rays; 1σ 0.041 → 0.037 px).  Worst excess 0.047 → 0.007 px, 1σ 0.049 → 0.037, 1 → 12 of 12
-#: landmarks PASS.  It costs the exact-maplet control's zero-perturbation error (0.005 → 0.059 px at
-#: 2 × 2 rays: there the maplet's own 1 cm relief casts the photo's shadows), which is why register
-#: keeps its shadowed templates
+#: the image plan's templates (issue 39; s16-50m, seed 0; docs/benchmarks.md "Per-landmark targets").
+#: Runs with one perturbation at a time (12 × 100) put image space's excess over the floor and its 1σ
+#: on the per-node height errors (heights alone: worst excess 0.046 px, 1σ 0.045; albedo alone and all
+#: the rest: ≤ 0.01 / 0.02).  Split further (heights only, the template fitted on the photo): template
+#: normals from the clean maplet with the noisy one's geometry leave the excess (0.021 px) and cut the
+#: 1σ (0.027); clean geometry with noisy normals removes the excess (0.008) and leaves the 1σ (0.040);
+#: the noisy geometry's part is its cast shadows (templates without them: 0.011 px).  A node raised by
+#: a third of a cell shades its down-Sun neighbours: a bias of the template's mean, not a noise that
+#: averages out.  So the plan: the template fitted on the photo (:data:`IMAGE_CONVERGE_PEAK`, as in
+#: maplet space), templates without cast shadows (:data:`IMAGE_TEMPLATE_SHADOWS`; the preset's floor is
+#: the same without them, 0.072 px worst) and 2 × 2 rays per pixel at L = 1 (:data:`IMAGE_SUPERSAMPLE`:
+#: the normals' noise averaged over four rays; 1σ 0.041 → 0.039 px on 12 × 100).  12 × 500: worst
+#: excess 0.047 → 0.007 px, 1σ 0.049 → 0.037, 1 → 12 of 12 landmarks PASS, for twice the CPU.  It
+#: costs the exact-maplet control's zero-perturbation error (0.005 → 0.059 px at 2 × 2 rays: there the
+#: maplet's own 1 cm relief casts the photo's shadows), which is why register keeps shadowed templates
 IMAGE_CONVERGE_PEAK = "gradient-photo"
 IMAGE_TEMPLATE_SHADOWS = False
 IMAGE_SUPERSAMPLE = 2
