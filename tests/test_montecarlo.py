@@ -338,9 +338,13 @@ def test_default_plans():
     assert coarse.converge_peak == fine.converge_peak == mc.IMAGE_CONVERGE_PEAK == "gradient-photo"
     assert coarse.image_shadows is fine.image_shadows is mc.IMAGE_TEMPLATE_SHADOWS is False
     assert coarse.supersample == fine.supersample == mc.IMAGE_SUPERSAMPLE == 2
-    assert RegisterOptions().image_shadows and RegisterOptions().converge_peak == "gradient"
-    old = mc.default_plan("image", supersample=1, image_shadows=True, converge_peak="gradient")
-    assert all(o.supersample == 1 and o.image_shadows and o.converge_peak == "gradient" for o in old)
+    # and the fourth-order node slopes (a lower floor: the 1 cm maplets' cell-scale relief kept)
+    assert coarse.template_slopes == fine.template_slopes == mc.IMAGE_TEMPLATE_SLOPES == "fourth"
+    reg = RegisterOptions()
+    assert reg.image_shadows and reg.converge_peak == "gradient" and reg.template_slopes == "spc"
+    before = dict(supersample=1, image_shadows=True, converge_peak="gradient", template_slopes="spc")
+    old = mc.default_plan("image", **before)
+    assert all(all(getattr(o, k) == v for k, v in before.items()) for o in old)
     # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then
     assert coarse.acquire_reach == mc.IMAGE_ACQUIRE_REACH == 48 and coarse.steps[0] == 4
     assert coarse.grid_half == fine.grid_half == mc.IMAGE_GRID_HALF == 3
