@@ -28,12 +28,11 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   The worst landmark's |mean| stays as an informative line beside S16 Table 3's worst (0.208 px).
   Run them alone with ``python benchmarks/run.py accuracy``.
 * image space's plan (issue #39, ``spctool.sim.montecarlo.IMAGE_*``): templates at 2 × 2 rays per pixel
-  without cast shadows, shaded from fourth-order node slopes, the converged stage fitting the template
-  on the photo (``gradient-photo``).  The study's per-node height errors cast shadows the terrain
-  lacks (a bias of the template's mean) and make the template the noisier image; SPC's central
-  differences damp the maplet's cell-scale relief (the floor).  Before (``--supersample 1
-  --image-shadows --template-slopes spc --converge-peak gradient``): worst excess 0.047 px, 1σ 0.049,
-  floor 0.074, 1 of 12 landmarks PASS; now see docs/benchmarks.md "Per-landmark targets".
+  without cast shadows, the converged stage fitting the template on the photo (``gradient-photo``).
+  The study's per-node height errors cast shadows the terrain lacks (a bias of the template's mean)
+  and make the template the noisier image.  Before (``--supersample 1 --image-shadows
+  --converge-peak gradient``): worst excess 0.047 px, 1σ 0.049, floor 0.074, 1 of 12 landmarks PASS;
+  now 0.0067 / 0.037 / 0.072, 12 of 12 (docs/benchmarks.md "Per-landmark targets").
 * ``accuracy montecarlo <space> model error at zero perturbation`` (informative): the worst
   landmark's error with every Table 2 sigma at 0 (``sigma_scale=0``: exact pose, camera, Sun and
   maplet as written).  What remains is the preset's model error — 1 cm maplets smoothed from the
@@ -46,8 +45,7 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   that rendered the photo).  This is the registration's own error.  Image space with templates at the
   photo's supersampling (2), register's (cast shadows, SPC's node slopes), must stay ≤ 0.01 px (a
   regression guard: 0.005 px measured); the Monte Carlo's image plan (no cast shadows, whereas the
-  exact maplets' own 1 cm relief casts the photo's shadows; fourth-order slopes, whereas the photo
-  is shaded with SPC's) and maplet space (with the study's S16
+  exact maplets' own 1 cm relief casts the photo's shadows: 0.059 px) and maplet space (with the study's S16
   settings, and with register's exact extraction and cast shadows) are informative.  Set
   ``SPCTOOL_MC_SCENE_EXACT=FILE`` to reuse that scene.
 * ``accuracy montecarlo image model error at zero perturbation, facet templates, supersample 3``
@@ -320,7 +318,7 @@ BENCHMARKS = [
     ),
     (
         "accuracy montecarlo image zero perturbation, exact maplets, Monte Carlo plan",
-        "(informative: no cast shadows, fourth-order slopes)",
+        "(informative: no cast shadows)",
         _exact_error("image"),
     ),
     (
@@ -341,7 +339,7 @@ BENCHMARKS = [
     # shading's response to the unresolved relief (its common part along the Sun); informative
     (
         "accuracy montecarlo image model error at zero perturbation, facet templates, supersample 3",
-        "(informative: the plan's 0.064 px)",
+        "(informative: the plan's 0.072 px)",
         lambda: _model_error_with(template_shading="facet", supersample=3, image_shadows=True),
     ),
 ]

@@ -338,8 +338,9 @@ def test_default_plans():
     assert coarse.converge_peak == fine.converge_peak == mc.IMAGE_CONVERGE_PEAK == "gradient-photo"
     assert coarse.image_shadows is fine.image_shadows is mc.IMAGE_TEMPLATE_SHADOWS is False
     assert coarse.supersample == fine.supersample == mc.IMAGE_SUPERSAMPLE == 2
-    # and the fourth-order node slopes (a lower floor: the 1 cm maplets' cell-scale relief kept)
-    assert coarse.template_slopes == fine.template_slopes == mc.IMAGE_TEMPLATE_SLOPES == "fourth"
+    # SPC's node slopes (the fourth-order ones lower the floor but amplify the height noise)
+    assert coarse.template_slopes == fine.template_slopes == mc.IMAGE_TEMPLATE_SLOPES == "spc"
+    assert all(o.template_slopes == "fourth" for o in mc.default_plan("image", template_slopes="fourth"))
     reg = RegisterOptions()
     assert reg.image_shadows and reg.converge_peak == "gradient" and reg.template_slopes == "spc"
     before = dict(supersample=1, image_shadows=True, converge_peak="gradient", template_slopes="spc")
