@@ -95,11 +95,16 @@ def test_image_space_reproducible_across_jobs(run_cli, scene_file):
     assert _strip_timing(one) == _strip_timing(two)  # bit for bit, whatever --jobs
     assert one["config"]["space"] == "image" and len(one["config"]["plan"]) == 2
     assert one["landmarks"][0]["ok"] == 2
-    assert [p["supersample"] for p in one["config"]["plan"]] == [1, 1]  # the study's single-ray default
-    ss2 = _doc(run_cli(*args, "--jobs", 1, "--supersample", 2))
-    assert [p["supersample"] for p in ss2["config"]["plan"]] == [2, 2]  # register's templates
-    assert ss2["landmarks"][0]["ok"] == 2
-    assert ss2["landmarks"][0]["sample_mean"] != one["landmarks"][0]["sample_mean"]
+    assert [p["supersample"] for p in one["config"]["plan"]] == [2, 2]  # the study's default (issue 39)
+    assert [p["image_shadows"] for p in one["config"]["plan"]] == [False, False]
+    assert [p["template_slopes"] for p in one["config"]["plan"]] == ["spc", "spc"]
+    before = ("--supersample", 1, "--image-shadows", "--template-slopes", "fourth")
+    ss1 = _doc(run_cli(*args, "--jobs", 1, *before))
+    assert [p["supersample"] for p in ss1["config"]["plan"]] == [1, 1]  # as before issue 39
+    assert [p["image_shadows"] for p in ss1["config"]["plan"]] == [True, True]
+    assert [p["template_slopes"] for p in ss1["config"]["plan"]] == ["fourth", "fourth"]
+    assert ss1["landmarks"][0]["ok"] == 2
+    assert ss1["landmarks"][0]["sample_mean"] != one["landmarks"][0]["sample_mean"]
     # the study's converged stage stops at 0.01 px; --converge-tol sets it (0.005: register's own)
     assert [p["converge_tol"] for p in one["config"]["plan"]] == [0.01, 0.01]
     tight = _doc(run_cli(*args, "--jobs", 1, "--converge-tol", 0.005))
@@ -186,6 +191,10 @@ def test_usage_errors(run_cli, scene_file, tmp_path):
     assert res.exit_code == 2 and "--converge-tol" in res.stderr and "Traceback" not in res.stderr
     res = run_cli("montecarlo", "--scene", scene_file, "--supersample", 2)  # maplet space
     assert res.exit_code == 2 and "use it with --space image" in res.stderr and "Traceback" not in res.stderr
+    for flag in (("--no-image-shadows",), ("--template-slopes", "fourth")):  # maplet space
+        res = run_cli("montecarlo", "--scene", scene_file, *flag)
+        assert res.exit_code == 2 and "use them with --space image" in res.stderr
+        assert "Traceback" not in res.stderr
     (tmp_path / "bad.npz").write_bytes(b"junk")
     res = run_cli("montecarlo", "--scene", tmp_path / "bad.npz")
     assert res.exit_code == 2 and "cannot read the scene" in res.stderr

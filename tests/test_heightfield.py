@@ -765,3 +765,48 @@ def test_kernel_array_passes_fit_arrays_through_and_copies_the_rest():
     m = np.ones(3, bool)
     assert kernel_array(m, np.bool_) is m
     assert kernel_array([1.0, 2.0]).dtype == np.float64  # a list becomes an array
+
+
+# ------------------------------------------------------------------------------------------------
+# fourth-order node slopes (issue 39: the Monte Carlo's image templates)
+
+
+def test_fourth_order_slopes_exact_on_quartic_and_spc_where_five_nodes_are_missing():
+    q = 6
+    X, Y = grid_xy(q)
+    h = 0.3 * X**4 - 0.2 * X**3 * Y + 0.1 * X * Y**3 + 0.05 * Y**4 - X**2 + 0.7 * Y  # a quartic
+    dx = 1.2 * X**3 - 0.6 * X**2 * Y + 0.1 * Y**3 - 2.0 * X
+    dy = -0.2 * X**3 + 0.3 * X * Y**2 + 0.2 * Y**3 + 0.7
+    valid = np.ones(h.shape, bool)
+    valid[7, 9] = False  # nodes one or two from it along an axis fall back to SPC's slopes (not the
+    # node itself: the stencil, like SPC's central difference, does not read the centre)
+    spc = hf.slopes(h, valid)
+    hx, hy = hf.fourth_order_slopes(h, valid, spc.hx, spc.hy)
+    n = h.shape[0]
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    five_x = (i >= 2) & (i <= n - 3) & ~((j == 9) & np.isin(np.abs(i - 7), (1, 2)))
+    five_y = (j >= 2) & (j <= n - 3) & ~((i == 7) & np.isin(np.abs(j - 9), (1, 2)))
+    np.testing.assert_allclose(hx[five_x], dx[five_x], atol=1e-9)  # exact for quartics
+    np.testing.assert_allclose(hy[five_y], dy[five_y], atol=1e-9)
+    assert np.array_equal(hx[~five_x], spc.hx[~five_x]) and np.array_equal(hy[~five_y], spc.hy[~five_y])
+    # SPC's central difference is not exact there (a quartic): the two differ inside
+    assert np.abs(spc.hx[five_x] - dx[five_x]).max() > 0.1
+    # the inputs are not modified
+    assert not np.shares_memory(hx, spc.hx) and np.array_equal(spc.hx, hf.slopes(h, valid).hx)
+
+
+def test_fourth_order_slopes_damp_a_wave_as_the_stencil_says():
+    # h = sin(k x): the stencil returns (8 sin k − sin 2k)/6 · cos(k x), the central difference
+    # sin k · cos(k x); both against the true derivative k cos(k x), worked by hand from the stencils
+    q, k = 8, 2.0
+    X, Y = grid_xy(q)
+    h = np.sin(k * X)
+    spc = hf.slopes(h)
+    hx, hy = hf.fourth_order_slopes(h, None, spc.hx, spc.hy)
+    inner = (slice(2, -2), slice(None))
+    np.testing.assert_allclose(
+        hx[inner], ((8 * np.sin(k) - np.sin(2 * k)) / 6 * np.cos(k * X))[inner], atol=1e-12
+    )
+    np.testing.assert_allclose(spc.hx[inner], (np.sin(k) * np.cos(k * X))[inner], atol=1e-12)
+    np.testing.assert_allclose(hy, 0.0, atol=1e-12)
+    assert (8 * np.sin(k) - np.sin(2 * k)) / 6 / k > np.sin(k) / k  # keeps more of the wave

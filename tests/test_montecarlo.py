@@ -333,7 +333,19 @@ def test_default_plans():
     assert coarse.space == fine.space == "image" and fine.rerender_tol == 0.0
     assert mc.MonteCarloConfig(space="image", plan=(coarse, fine)).steps == [4, 2, 1, 1, 1, 1]
     assert coarse.converge_max == 0 and fine.converge_max > 0  # the fine phase ends converged
-    assert coarse.converge_peak == fine.converge_peak == "gradient"  # image space: register's own
+    # image space (issue 39): the template fitted on the photo, 2 × 2 rays, no cast shadows (the study's
+    # noisy heights cast shadows the terrain lacks); register keeps "gradient", shadows, and 2 rays
+    assert coarse.converge_peak == fine.converge_peak == mc.IMAGE_CONVERGE_PEAK == "gradient-photo"
+    assert coarse.image_shadows is fine.image_shadows is mc.IMAGE_TEMPLATE_SHADOWS is False
+    assert coarse.supersample == fine.supersample == mc.IMAGE_SUPERSAMPLE == 2
+    # SPC's node slopes (the fourth-order ones lower the floor but amplify the height noise)
+    assert coarse.template_slopes == fine.template_slopes == mc.IMAGE_TEMPLATE_SLOPES == "spc"
+    assert all(o.template_slopes == "fourth" for o in mc.default_plan("image", template_slopes="fourth"))
+    reg = RegisterOptions()
+    assert reg.image_shadows and reg.converge_peak == "gradient" and reg.template_slopes == "spc"
+    before = dict(supersample=1, image_shadows=True, converge_peak="gradient", template_slopes="spc")
+    old = mc.default_plan("image", **before)
+    assert all(all(getattr(o, k) == v for k, v in before.items()) for o in old)
     # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then
     assert coarse.acquire_reach == mc.IMAGE_ACQUIRE_REACH == 48 and coarse.steps[0] == 4
     assert coarse.grid_half == fine.grid_half == mc.IMAGE_GRID_HALF == 3
@@ -373,7 +385,10 @@ def test_a_sample_carries_its_templates_to_the_next(scene, monkeypatch):
     from spctool.stages import registrar as regmod
     from spctool.stages import render as rmod
 
-    cfg = _cfg(samples=3, seed=5, sigma_scale=0.3, space="image")
+    # the carry needs the last and the first template at the same rays per pixel: one here (the study's
+    # 2 × 2 plan renders its first template at one ray, so a sample carries nothing to the next)
+    plan = mc.default_plan("image", refine=0, s16_spacings=(5, 4, 3, 2, 1), supersample=1)
+    cfg = mc.MonteCarloConfig(samples=3, seed=5, sigma_scale=0.3, space="image", plan=plan)
     real_hint, real_render = regmod.Registrar._carried_hint, rmod.render
     carried, agree = [], []
 

@@ -221,3 +221,33 @@ def test_patch_set_bounds_equal_the_reference_kernels():
     up, hor, ent = PatchSet(patches).fused_arrays(None)[6:9]
     assert np.all(up == np.inf) and np.all(hor == np.inf) and np.all(ent == np.inf)
     assert not PatchSet(patches).fused_arrays(None)[10].any()
+
+
+@pytest.mark.parametrize("seed, q, missing", [(5, 6, 0.0), (6, 20, 0.1)])
+def test_height_patch_fourth_order_node_slopes(seed, q, missing):
+    """``node_slopes="fourth"``: the slope planes are :func:`heightfield.fourth_order_slopes` of the
+    patch's heights over SPC's; the geometry's grids are the SPC patch's, to the bit."""
+    kw = _patch_kwargs(np.random.default_rng(seed), q, missing)
+    spc, four = HeightPatch(**kw), HeightPatch(**kw, node_slopes="fourth")
+    hx, hy = heightfield.fourth_order_slopes(spc.heights, spc.valid, spc.slopes.hx, spc.slopes.hy)
+    assert (
+        _same(four.slopes.hx, hx)
+        and _same(four.slopes.hy, hy)
+        and _same(four.slopes.usable, spc.slopes.usable)
+    )
+    assert not _same(four.slopes.hx, spc.slopes.hx)
+    assert _same(four.cell_tops, spc.cell_tops) and _same(four.near_steps, spc.near_steps)
+    maps, _ = four.stacked_maps
+    assert _same(maps[1], hx) and _same(maps[2], hy) and _same(maps[0], spc.stacked_maps[0][0])
+    with pytest.raises(SpcUsageError, match="node_slopes"):
+        HeightPatch(**kw, node_slopes="central")
+
+
+def test_node_slope_names_agree_with_the_options_check():
+    from spctool.stages.registrar import RegisterOptions
+    from spctool.stages.render_modes import NODE_SLOPES
+
+    assert NODE_SLOPES == heightfield.NODE_SLOPES
+    assert RegisterOptions().template_slopes == "spc"
+    with pytest.raises(SpcUsageError, match="template_slopes"):
+        RegisterOptions(template_slopes="central")

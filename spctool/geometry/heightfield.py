@@ -154,6 +154,34 @@ def slopes(heights, valid=None) -> Slopes:
     return Slopes(hx, hy, usable)
 
 
+#: node-slope rules of a shaded height patch: SPC's HGT2SLP table (:func:`slopes`) or, where the five
+#: nodes along an axis are valid, the fourth-order central difference (:func:`fourth_order_slopes`)
+NODE_SLOPES = ("spc", "fourth")
+
+
+def fourth_order_slopes(heights, valid, hx, hy):
+    """Node slopes by the fourth-order central difference (h₋₂ − 8h₋₁ + 8h₊₁ − h₊₂)/12 along each axis
+    where the five nodes are valid, else ``hx`` / ``hy`` (SPC's :func:`slopes`, the fallback near the
+    border and missing nodes).  Exact for quartics (the central difference only for quadratics), and it
+    damps a wave of k cells⁻¹ by (8 sin k − sin 2k)/(6k) instead of sin k / k: it keeps more of a 1 cm
+    maplet's cell-scale relief in a template's shading (issue 39: the s16-50m Monte Carlo's image
+    floor).  White height noise σ becomes slope noise √130/12 σ = 0.95σ (central: 0.71σ).
+
+    Returns new (hx, hy) arrays, in cells per cell, axis 0 = x (UX), axis 1 = y (UY).
+    """
+    h, mask = _grid(heights, valid)
+    out = []
+    for axis, base in ((0, hx), (1, hy)):
+        d = np.array(base, dtype=np.float64, copy=True)
+        hm, mm, dm = np.moveaxis(h, axis, 0), np.moveaxis(mask, axis, 0), np.moveaxis(d, axis, 0)
+        ok = mm[:-4] & mm[1:-3] & mm[3:-1] & mm[4:]
+        four = (hm[:-4] - 8.0 * hm[1:-3] + 8.0 * hm[3:-1] - hm[4:]) / 12.0
+        inner = dm[2:-2]
+        inner[ok] = four[ok]
+        out.append(d)
+    return out[0], out[1]
+
+
 def normals_maplet(hx, hy) -> np.ndarray:
     """Unit normals in the maplet frame, (..., 3): (−hx, −hy, 1)/√(1 + hx² + hy²) (L15 Eq. 3.37)."""
     return normals_body(hx, hy, (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))

@@ -82,6 +82,9 @@ class HeightPatch:
 
     ``heights``, ``albedo`` and ``valid`` are (2q+1)×(2q+1) with axis 0 along UX (J) and axis 1 along
     UY (I) (``spc-formats.md`` §1.3).  ``albedo`` defaults to 1, ``valid`` to all nodes.
+    ``node_slopes``: the node slopes its smooth shading interpolates, ``"spc"`` (SPC's HGT2SLP table)
+    or ``"fourth"`` (:func:`spctool.geometry.heightfield.fourth_order_slopes`, SPC's where the five
+    nodes are not valid).
     """
 
     heights: np.ndarray
@@ -93,6 +96,7 @@ class HeightPatch:
     albedo: np.ndarray | None = None
     valid: np.ndarray | None = None
     name: str = ""
+    node_slopes: str = "spc"
 
     def __post_init__(self):
         set_ = object.__setattr__
@@ -100,6 +104,11 @@ class HeightPatch:
         if h.ndim != 2 or h.shape[0] != h.shape[1] or h.shape[0] % 2 != 1 or h.shape[0] < 3:
             raise SpcUsageError(
                 f"patch {self.name!r}: heights must be (2q+1)x(2q+1) with q >= 1, got {h.shape}"
+            )
+        if self.node_slopes not in heightfield.NODE_SLOPES:
+            raise SpcUsageError(
+                f"patch {self.name!r}: node_slopes must be one of {', '.join(heightfield.NODE_SLOPES)}, "
+                f"got {self.node_slopes!r}"
             )
         valid = np.ones(h.shape, bool) if self.valid is None else np.ascontiguousarray(self.valid, dtype=bool)
         alb = np.ones(h.shape) if self.albedo is None else np.ascontiguousarray(self.albedo, dtype=np.float64)
@@ -130,7 +139,7 @@ class HeightPatch:
             set_(self, k, finite_vec3(getattr(self, k), k))
 
     @classmethod
-    def from_maplet(cls, maplet, name: str | None = None) -> HeightPatch:
+    def from_maplet(cls, maplet, name: str | None = None, node_slopes: str = "spc") -> HeightPatch:
         """A patch from any object with heights, albedo, valid, scale, v, ux, uy, uz (e.g. ``Maplet``)."""
         return cls(
             maplet.heights,
@@ -142,6 +151,7 @@ class HeightPatch:
             albedo=getattr(maplet, "albedo", None),
             valid=getattr(maplet, "valid", None),
             name=getattr(maplet, "name", "") if name is None else name,
+            node_slopes=node_slopes,
         )
 
     @property
@@ -167,6 +177,9 @@ class HeightPatch:
         tops = np.empty((n - 1, n - 1))
         near = np.empty((n - 1, n - 1, 4))
         patch_grids(self._maps, self.valid, self._big, NEAR_CELLS, LIT_CELLS, usable, tops, near)
+        if self.node_slopes == "fourth":  # the geometry's grids (tops, near) come from the heights alone
+            hx, hy = heightfield.fourth_order_slopes(self._maps[0], self.valid, self._maps[1], self._maps[2])
+            self._maps[1], self._maps[2] = hx, hy
         return self._maps, usable, tops, near
 
     @cached_property

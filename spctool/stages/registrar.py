@@ -173,7 +173,10 @@ class RegisterOptions:
       (70°); the tests' smaller world (27 landmarks) prefers facet at the views' Sun, 0.029 vs 0.024;
       facet normals differentiate height noise, and with the s16-50m Monte Carlo's 3.33 mm height
       errors on 1 cm cells 10 of 12 landmarks end low-correlation — docs/benchmarks.md "Template
-      shading"), ``template_visibility`` (``"raster"``, the default: supersampled
+      shading"), ``template_slopes`` (the node slopes the smooth shading interpolates: ``"spc"``, the
+      default, SPC's HGT2SLP table, | ``"fourth"``, the fourth-order central difference where five
+      nodes are valid: :func:`spctool.geometry.heightfield.fourth_order_slopes`; the s16-50m Monte
+      Carlo's image plan), ``template_visibility`` (``"raster"``, the default: supersampled
       templates find each sub-ray's terrain cell by rasterising the maplet with the camera's forward
       model, then solve the crossing there — the same template as ``"march"``, the grid march of
       every sub-ray, to the last bit, 10–30 % less time per ss2 template: :class:`RenderOptions`
@@ -224,6 +227,7 @@ class RegisterOptions:
     rerender_tol: float = 0.0005
     rerender_tol_coarse: float = 1.0
     template_shading: str = "smooth"
+    template_slopes: str = "spc"
     template_visibility: str = "raster"
     threads: int | None = None
     template_margin: int = 1
@@ -254,9 +258,13 @@ class RegisterOptions:
             raise SpcUsageError(
                 f"converge_peak must be one of {', '.join(PEAK_METHODS)}, got {self.converge_peak!r}"
             )
-        from spctool.stages.render_modes import SHADINGS, VISIBILITIES  # the renderer's own lists
+        from spctool.stages.render_modes import NODE_SLOPES, SHADINGS, VISIBILITIES  # the renderer's lists
 
-        for name, allowed in (("template_shading", SHADINGS), ("template_visibility", VISIBILITIES)):
+        for name, allowed in (
+            ("template_shading", SHADINGS),
+            ("template_visibility", VISIBILITIES),
+            ("template_slopes", NODE_SLOPES),
+        ):
             if getattr(self, name) not in allowed:
                 raise SpcUsageError(
                     f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
@@ -819,13 +827,16 @@ class Registrar:
         mg = int(self.options.template_margin)
         if lm.patch is None:
             kept = self._kept(lm.maplet)
+            if kept is not None and kept.patch.patches[0].node_slopes != self.options.template_slopes:
+                kept = None  # another phase's slopes: a patch of this one's own
             if kept is not None:
                 lm.patch = kept.patch
                 if lm.footprint is None and kept.window is not None and kept.window[2] == mg:
                     lm.footprint = kept.window[:2]
             else:
                 # packed once per landmark, reused by every render
-                lm.patch = PatchSet([HeightPatch.from_maplet(lm.maplet, name=lm.name)])
+                slopes = self.options.template_slopes
+                lm.patch = PatchSet([HeightPatch.from_maplet(lm.maplet, name=lm.name, node_slopes=slopes)])
                 if self.patch_cache is not None:
                     self.patch_cache[id(lm.maplet)] = _KeptPatch(lm.maplet, lm.patch)
         patch = lm.patch.patches[0]

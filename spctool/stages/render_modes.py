@@ -10,3 +10,7 @@ SHADINGS = ("smooth", "facet")
 
 #: how a one-patch window finds each sub-ray's terrain (:class:`spctool.stages.render.RenderOptions`)
 VISIBILITIES = ("march", "raster")
+
+#: node slopes a smooth-shaded patch interpolates (:data:`spctool.geometry.heightfield.NODE_SLOPES`,
+#: named here for the same reason; a test keeps the two equal)
+NODE_SLOPES = ("spc", "fourth")
