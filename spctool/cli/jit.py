@@ -319,6 +319,7 @@ REGISTER_KERNELS = (
     ("spctool.stages.extract", "_brt0_kernel", "f2 f1 f1 f f f f1"),
     ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),
     ("spctool.geometry._heightkernels", "march_blocked", "f2 b2 b2 f f f f b2"),
+    ("spctool.stages.extract", "_k_recentred", "f2 f2 f2 f f f f f ? i2 i2 ? b2 f2 f2 f2 b2 b2 b2 b2"),
     ("spctool.stages.correlate", "_k_valid", "f2 b2 ? f b2"),
     ("spctool.stages.correlate", "_k_bin", "f2 b2 i i i f f2 b2"),
     ("spctool.stages.correlate", "_k_ncc", "f2 b2 f2 b2 i i i f f2 i2"),

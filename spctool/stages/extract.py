@@ -509,6 +509,49 @@ def _enhance_kernel(nonzero, checks, zeros, out, edges):
                     out[rr, cc] = True
 
 
+@numba.njit(**_JIT)
+def _k_recentred(data, sample0, line0, ds, dl, t_lo, t_hi, floor_value, enhance, checks, zeros,
+                 filtered, visible, smp, lin, image, valid, covered, lit, removed_shadow):  # pragma: no cover
+    """An extraction moved by (``ds``, ``dl``) px, in one pass without the GIL (the re-centred
+    extraction of :meth:`spctool.stages.registrar.Registrar.extraction`, the same float operations
+    as its NumPy form): node pixels ``sample0 + ds``, ``line0 + dl``; ``covered``; BRT0 at every
+    finite node; ``lit``; with ``enhance`` the shadow enhancement (:func:`_enhance_kernel` with
+    ``checks``, ``zeros``) zeroes and records ``removed_shadow``; with ``filtered`` cells not
+    ``visible`` are zeroed; ``valid`` = image > 0.  Every output is (N, N) and overwritten."""
+    n0, n1 = sample0.shape
+    nln, npx = data.shape
+    for r in range(n0):
+        for c in range(n1):
+            s = sample0[r, c] + ds
+            ln = line0[r, c] + dl
+            smp[r, c] = s
+            lin[r, c] = ln
+            ok = np.isfinite(sample0[r, c])
+            covered[r, c] = ok and s >= 1.0 and s < npx and ln >= 1.0 and ln < nln
+            v = _brt0_one(data, s, ln, t_lo, t_hi, floor_value) if ok else 0.0
+            lit[r, c] = ok and v > 0.0
+            image[r, c] = v if lit[r, c] else 0.0
+            removed_shadow[r, c] = False
+    if enhance:
+        nonzero = np.empty((n0, n1), dtype=np.bool_)
+        for r in range(n0):
+            for c in range(n1):
+                nonzero[r, c] = image[r, c] > 0.0
+        zero = np.zeros((n0, n1), dtype=np.bool_)
+        edges = np.zeros((n0, n1), dtype=np.bool_)
+        _enhance_kernel(nonzero, checks, zeros, zero, edges)
+        for r in range(n0):
+            for c in range(n1):
+                if zero[r, c]:
+                    removed_shadow[r, c] = nonzero[r, c]
+                    image[r, c] = 0.0
+    for r in range(n0):
+        for c in range(n1):
+            if filtered and not visible[r, c]:
+                image[r, c] = 0.0
+            valid[r, c] = image[r, c] > 0.0
+
+
 # --------------------------------------------------------------------------------------------------
 # Stage C sampler
 

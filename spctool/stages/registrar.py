@@ -72,9 +72,9 @@ from spctool.stages.correlate import (
 )
 from spctool.stages.extract import (
     ZENITH_EPS,
+    Extraction,
     ExtractOptions,
-    _enhance_kernel,
-    brt0,
+    _k_recentred,
     extract,
     shadow_extension,
     shadow_offsets,
@@ -94,6 +94,7 @@ __all__ = [
 ]
 
 SCHEDULES = ("retina_s16", "autoregister")
+_NO_OFFSETS = np.zeros((0, 2), dtype=np.int64)  # the shadow enhancement's offsets when it does not run
 SPACES = ("maplet", "image")
 
 
@@ -742,40 +743,26 @@ class Registrar:
             grid.ext, grid.camera, grid.shadow = ext, camera, None
             return ext
         ds, dl = float(center[0]) - base.center_sample, float(center[1]) - base.center_line
-        smp = base.sample + ds
-        lin = base.line + dl
-        nln, npx = self.photo.shape
-        node_ok = np.isfinite(base.sample)
-        covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)
-        values = brt0(
-            self.photo,
-            np.where(node_ok, smp, 0.0),
-            np.where(node_ok, lin, 0.0),
-            self.thresholds[0],
-            self.thresholds[1],
-            repair_floor=eopts.repair_floor,
-        )
-        lit = node_ok & (values > 0.0)
-        image = np.where(lit, values, 0.0)
-        removed_shadow = np.zeros(image.shape, dtype=bool)
-        if eopts.apply_filter:
-            # the extract filter's step 1 (shadow enhancement: extract_filter's own offsets and kernel,
-            # computed once per landmark and camera), then steps 2–3 from the first extraction's mask
-            if grid.shadow is None:
-                grid.shadow = self._shadow_offsets(grid.maplet, base)
-            if grid.shadow is not False:
-                checks, zeros = grid.shadow
-                zero = np.zeros(image.shape, dtype=bool)
-                edges = np.zeros(image.shape, dtype=bool)
-                nonzero = image > 0.0
-                _enhance_kernel(nonzero, checks, zeros, zero, edges)
-                removed_shadow = zero & nonzero
-                image[zero] = 0.0
-            image = np.where(base.visible, image, 0.0)
-        return dataclasses.replace(
-            base,
+        # re-sampled, enhanced and filtered in one GIL-free kernel (the extract filter's step 1 with
+        # its own offsets and kernel, computed once per landmark and camera; steps 2–3 from the first
+        # extraction's mask)
+        if eopts.apply_filter and grid.shadow is None:
+            grid.shadow = self._shadow_offsets(grid.maplet, base)
+        enhance = bool(eopts.apply_filter) and grid.shadow is not False
+        checks, zeros = grid.shadow if enhance else (_NO_OFFSETS, _NO_OFFSETS)
+        shape = base.sample.shape
+        smp, lin, image = np.empty(shape), np.empty(shape), np.empty(shape)
+        valid, covered, lit, removed_shadow = (np.empty(shape, dtype=bool) for _ in range(4))
+        _k_recentred(
+            self.photo, base.sample, base.line, ds, dl, self.thresholds[0], self.thresholds[1],
+            float(eopts.repair_floor), enhance, checks, zeros, bool(eopts.apply_filter), base.visible,
+            smp, lin, image, valid, covered, lit, removed_shadow,
+        )  # fmt: skip
+        ext = object.__new__(Extraction)  # dataclasses.replace without its per-field keyword pass
+        ext.__dict__.update(base.__dict__)
+        ext.__dict__.update(
             image=image,
-            valid=image > 0.0,
+            valid=valid,
             covered=covered,
             lit=lit,
             removed_shadow=removed_shadow,
@@ -785,6 +772,7 @@ class Registrar:
             center_line=float(center[1]),
             status="ok",  # criteria were not requested (else the full path ran); "outside" never gets here
         )
+        return ext
 
     def _shadow_offsets(self, m, base):
         """(checks, zeros) of the shadow enhancement for grid ``m`` and this camera, or False when the Sun

@@ -1,0 +1,114 @@
+"""The GIL-free kernels of a maplet-space step (issue 39) against the NumPy code they replaced.
+
+Each kernel fuses a few NumPy operations of :meth:`spctool.stages.registrar.Registrar.extraction` or
+the correlator into one compiled pass that releases the GIL (so that threads can share the landmarks);
+the references below are those NumPy operations, kept here verbatim, and the kernels must give the same
+arrays to the bit on hand-made and random inputs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spctool.stages.extract import _enhance_kernel, _k_recentred, brt0, shadow_offsets
+
+# -- the re-centred extraction ---------------------------------------------------------------------
+
+
+def _recentred_numpy(photo, sample0, line0, ds, dl, t_lo, t_hi, floor, shadow, filtered, visible):
+    """Registrar.extraction's re-centring as NumPy did it before the kernel (``shadow``: (checks,
+    zeros) or False)."""
+    smp = sample0 + ds
+    lin = line0 + dl
+    nln, npx = photo.shape
+    node_ok = np.isfinite(sample0)
+    covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)
+    values = brt0(
+        photo, np.where(node_ok, smp, 0.0), np.where(node_ok, lin, 0.0), t_lo, t_hi, repair_floor=floor
+    )
+    lit = node_ok & (values > 0.0)
+    image = np.where(lit, values, 0.0)
+    removed_shadow = np.zeros(image.shape, dtype=bool)
+    if filtered:
+        if shadow is not False:
+            checks, zeros = shadow
+            zero = np.zeros(image.shape, dtype=bool)
+            edges = np.zeros(image.shape, dtype=bool)
+            nonzero = image > 0.0
+            _enhance_kernel(nonzero, checks, zeros, zero, edges)
+            removed_shadow = zero & nonzero
+            image[zero] = 0.0
+        image = np.where(visible, image, 0.0)
+    return dict(
+        sample=smp, line=lin, image=image, valid=image > 0.0, covered=covered, lit=lit,
+        removed_shadow=removed_shadow,
+    )  # fmt: skip
+
+
+def _recentred_kernel(photo, sample0, line0, ds, dl, t_lo, t_hi, floor, shadow, filtered, visible):
+    shape = sample0.shape
+    out = dict(sample=np.empty(shape), line=np.empty(shape), image=np.empty(shape))
+    out.update((k, np.empty(shape, dtype=bool)) for k in ("valid", "covered", "lit", "removed_shadow"))
+    enhance = filtered and shadow is not False
+    none = np.zeros((0, 2), dtype=np.int64)
+    checks, zeros = shadow if enhance else (none, none)
+    _k_recentred(
+        photo, sample0, line0, float(ds), float(dl), float(t_lo), float(t_hi), float(floor), enhance, checks,
+        zeros, filtered, visible, out["sample"], out["line"], out["image"], out["valid"], out["covered"],
+        out["lit"], out["removed_shadow"],
+    )  # fmt: skip
+    return out
+
+
+def _same(a: dict, b: dict):
+    for k in a:
+        assert a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes(), k
+
+
+def test_recentred_kernel_hand_made_case():
+    """A 6×8 photo with a missing pixel (DN 0), one above T2 and one below T1; nodes inside, on the
+    BRT0 border (sample = NPX is outside), NaN (behind the camera) and negative; a shadow whose edge
+    is at a known cell."""
+    photo = np.arange(1.0, 49.0).reshape(6, 8) * 10.0
+    photo[2, 3] = 0.0  # missing: one corner repaired by planar extrapolation
+    photo[4, 6] = 5000.0  # above T2
+    photo[1, 1] = 15.0  # below T1
+    sample0 = np.array([[1.0, 2.5, 4.2], [7.9, 8.0, np.nan], [-3.0, 3.5, 5.25]])
+    line0 = np.array([[1.0, 1.5, 3.1], [2.0, 2.0, np.nan], [2.0, 4.5, 5.99]])
+    visible = np.array([[True, True, False], [True, True, True], [True, True, True]])
+    checks, zeros = np.array([[0, 1]], dtype=np.int64), np.array([[0, 0], [0, -1]], dtype=np.int64)
+    for ds, dl in ((0.0, 0.0), (0.25, -0.5), (-1.0, 0.75)):
+        for shadow in (False, (checks, zeros)):
+            for filtered in (False, True):
+                args = (photo, sample0, line0, ds, dl, 20.0, 400.0, 1.0, shadow, filtered, visible)
+                ref = _recentred_numpy(*args)
+                _same(ref, _recentred_kernel(*args))
+    # the hand-made expectations themselves: node (0, 0) at pixel (1, 1) reads DN 10; the NaN node is
+    # neither covered nor lit; sample 8.0 (= NPX) is outside the BRT0 domain
+    ref = _recentred_numpy(photo, sample0, line0, 0.0, 0.0, -np.inf, np.inf, 1.0, False, False, visible)
+    assert ref["image"][0, 0] == 10.0 and not ref["covered"][1, 2] and not ref["lit"][1, 2]
+    assert ref["covered"][1, 0] and not ref["covered"][1, 1] and ref["image"][1, 1] == 0.0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_recentred_kernel_random_inputs(seed):
+    """Random photos (with missing DN and thresholds), random node pixels (some NaN, some outside) and
+    the extract filter's own offsets for a random Sun azimuth."""
+    rng = np.random.default_rng(seed)
+    nln, npx = rng.integers(20, 60, size=2)
+    photo = rng.uniform(0.0, 1000.0, size=(nln, npx))
+    photo[rng.random(photo.shape) < 0.1] = 0.0
+    n = int(rng.integers(5, 40))
+    sample0 = rng.uniform(-3.0, npx + 3.0, size=(n, n))
+    line0 = rng.uniform(-3.0, nln + 3.0, size=(n, n))
+    gone = rng.random((n, n)) < 0.1
+    sample0[gone] = np.nan
+    line0[gone] = np.nan
+    visible = rng.random((n, n)) < 0.8
+    az = rng.uniform(0.0, 2 * np.pi)
+    shadow = shadow_offsets((np.cos(az), np.sin(az)), int(rng.integers(1, 6)))
+    for filtered in (False, True):
+        for sh in (False, shadow):
+            args = (photo, sample0, line0, *rng.normal(0.0, 2.0, 2), 50.0, 950.0, 1.0, sh, filtered, visible)
+            _same(_recentred_numpy(*args), _recentred_kernel(*args))
