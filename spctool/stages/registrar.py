@@ -462,6 +462,8 @@ class _Landmark:
         "cast",
         "dark_floor",
         "proj",
+        "popts",
+        "hbin",
         "__weakref__",
     )
 
@@ -483,6 +485,8 @@ class _Landmark:
         self.grid = _Grid(maplet, self._lazy_slopes())  # the maplet's own grid
         self.padded = None  # the grid extended for acquire_reach
         self.proj = None  # (camera, V's pixel with it): image space projects V once per camera object
+        self.popts = None  # (predict options, resolved shadow mode, the options with it)
+        self.hbin = None  # (J_xy, √|det J_xy|): photo pixels per cell, once per extraction geometry
 
     def _lazy_slopes(self):
         """A function giving :attr:`slopes` on first use that holds this landmark weakly: a closure over
@@ -622,7 +626,10 @@ class Registrar:
                 valid = np.asarray(lm.maplet.valid, dtype=bool) & lm.slopes[2]
                 lm.shadow_mode = resolve_shadows(lm.cast & valid, extraction.image, valid)
                 lm.pred = None
-            popts = dataclasses.replace(popts, shadows=lm.shadow_mode or "spc")
+            mode = lm.shadow_mode or "spc"
+            if lm.popts is None or lm.popts[0] is not popts or lm.popts[1] != mode:
+                lm.popts = (popts, mode, dataclasses.replace(popts, shadows=mode))  # once, not every step
+            popts = lm.popts[2]
         if lm.pred is None or lm.pred_camera is not camera:
             lm.pred = predict(
                 lm.maplet, camera.position, self.sun, popts, slopes=lm.slopes, cast_shadows=lm.cast
@@ -680,7 +687,12 @@ class Registrar:
             anchors = dict(extracted_anchor=(q + margin, q + margin), predicted_anchor=(q, q))
             ext = self.extraction(i, camera, center, margin=margin)
         # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
-        h_bin = spacing * math.sqrt(abs(float(np.linalg.det(ext.jxy)))) if ext.jxy is not None else 1.0
+        if ext.jxy is None:
+            h_bin = 1.0
+        else:
+            if lm.hbin is None or lm.hbin[0] is not ext.jxy:  # re-centred extractions share their J_xy
+                lm.hbin = (ext.jxy, math.sqrt(abs(float(np.linalg.det(ext.jxy)))))
+            h_bin = spacing * lm.hbin[1]
         corr = correlate(
             ext.image,
             pred.image,
