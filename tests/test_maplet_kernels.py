@@ -112,3 +112,73 @@ def test_recentred_kernel_random_inputs(seed):
         for sh in (False, shadow):
             args = (photo, sample0, line0, *rng.normal(0.0, 2.0, 2), 50.0, 950.0, 1.0, sh, filtered, visible)
             _same(_recentred_numpy(*args), _recentred_kernel(*args))
+
+
+# -- the correlation's front end -------------------------------------------------------------------
+
+
+def _correlations_equal(a, b):
+    for f in ("surface", "counts", "offset", "covariance", "hessian"):
+        x, y = np.asarray(getattr(a, f)), np.asarray(getattr(b, f))
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), f
+    for f in ("spacing", "status", "peak_index", "peak_fit"):
+        assert getattr(a, f) == getattr(b, f), f
+    assert np.asarray(a.peak).tobytes() == np.asarray(b.peak).tobytes()
+    assert np.asarray(a.subpixel).tobytes() == np.asarray(b.subpixel).tobytes()
+
+
+def _shaded(rng, n, shift=(0.0, 0.0)):
+    """A smooth random texture of n×n cells, moved by ``shift`` cells."""
+    i, j = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    out = np.full((n, n), 100.0)
+    for _ in range(6):
+        k = rng.uniform(0.1, 0.5, 2)
+        phase = k[0] * (i - shift[0]) + k[1] * (j - shift[1]) + rng.uniform(0, 6)
+        out += rng.uniform(5.0, 20.0) * np.sin(phase)
+    return out
+
+
+def test_correlate_maplet_is_correlate_hand_made_case():
+    """A texture and itself moved by (1.3, −0.6) cells: the fused front end reads the same surface,
+    peak and offset as :func:`correlate`, and the offset (least-squares alignment) is the move."""
+    from spctool.stages.correlate import CorrelateOptions, correlate, correlate_maplet
+
+    rng = np.random.default_rng(7)
+    p = _shaded(rng, 41)
+    e = _shaded(np.random.default_rng(7), 41, (1.3, -0.6))
+    ok = np.ones(p.shape, dtype=bool)
+    opts = CorrelateOptions(peak="gradient")
+    ref = correlate(e, p, extracted_valid=ok, predicted_valid=ok, spacing=1, options=opts)
+    got = correlate_maplet(e, ok, p, ok, 1, opts, (20, 20), (20, 20))
+    _correlations_equal(ref, got)
+    assert ref.status == "ok" and np.allclose(ref.offset, (1.3, -0.6), atol=0.1)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_correlate_maplet_is_correlate_random_inputs(seed):
+    """Random textures, masks (with NaN and non-positive pixels), spacings 1–5, anchors (the centre, or
+    a larger search image's), every peak estimator, ``min_value`` None or 0 and a bin fraction."""
+    from spctool.stages.correlate import PEAK_METHODS, CorrelateOptions, correlate, correlate_maplet
+
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(15, 45))
+    margin = int(rng.integers(0, 6)) if seed % 2 else 0
+    p = _shaded(rng, n)
+    e = _shaded(rng, n + 2 * margin, rng.normal(0.0, 2.0, 2))
+    e[rng.random(e.shape) < 0.05] = 0.0
+    e[rng.random(e.shape) < 0.01] = np.nan
+    ve = rng.random(e.shape) < 0.9
+    vp = rng.random(p.shape) < 0.9
+    q = (n - 1) // 2
+    anchors = dict(extracted_anchor=(q + margin, q + margin), predicted_anchor=(q, q))
+    for peak in PEAK_METHODS:
+        for spacing in (1, int(rng.integers(2, 6))):
+            opts = CorrelateOptions(
+                peak=peak, min_value=None if rng.random() < 0.3 else 0.0,
+                bin_min_fraction=float(rng.choice([0.0, 0.5])), grid_half=int(rng.integers(2, 6)),
+            )  # fmt: skip
+            ref = correlate(
+                e, p, extracted_valid=ve, predicted_valid=vp, spacing=spacing, options=opts, **anchors
+            )
+            got = correlate_maplet(e, ve, p, vp, spacing, opts, anchors["extracted_anchor"], (q, q))
+            _correlations_equal(ref, got)

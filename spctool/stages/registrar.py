@@ -66,7 +66,7 @@ from spctool.stages.correlate import (
     PEAK_METHODS,
     CorrelateOptions,
     Correlation,
-    correlate,
+    correlate_maplet,
     correlate_valid,
     resampled_noise_footprint,
 )
@@ -680,11 +680,12 @@ class Registrar:
         lm = self.landmarks[i]
         ext = self.extraction(i, camera, center, apply_criteria)
         pred = self.prediction(i, camera, ext)
-        anchors = {}
+        q0, q1 = (pred.image.shape[0] - 1) // 2, (pred.image.shape[1] - 1) // 2
+        anchors = ((q0, q1), (q0, q1))  # correlate's default: the centre node of the shared grid
         if margin > 0 and ext.status == "ok":
             # the search image: the same resampling on the grid extended by ``margin`` cells
-            q = (pred.image.shape[0] - 1) // 2
-            anchors = dict(extracted_anchor=(q + margin, q + margin), predicted_anchor=(q, q))
+            q = q0
+            anchors = ((q + margin, q + margin), (q, q))
             ext = self.extraction(i, camera, center, margin=margin)
         # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
         if ext.jxy is None:
@@ -693,15 +694,15 @@ class Registrar:
             if lm.hbin is None or lm.hbin[0] is not ext.jxy:  # re-centred extractions share their J_xy
                 lm.hbin = (ext.jxy, math.sqrt(abs(float(np.linalg.det(ext.jxy)))))
             h_bin = spacing * lm.hbin[1]
-        corr = correlate(
+        corr = correlate_maplet(  # correlate(), its masks, binning, surface and grid peak in one kernel
             ext.image,
+            ext.valid,
             pred.image,
-            extracted_valid=ext.valid,
-            predicted_valid=pred.lit,
-            spacing=spacing,
-            options=copts,
+            pred.lit,
+            spacing,
+            copts,
+            *anchors,
             noise_footprint=resampled_noise_footprint(h_bin) if h_bin > 0 else 1.0,
-            **anchors,
         )
         status = corr.status if ext.status == "ok" else ext.status
         shift = ext.jxy @ corr.offset
