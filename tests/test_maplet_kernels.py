@@ -182,3 +182,42 @@ def test_correlate_maplet_is_correlate_random_inputs(seed):
             )
             got = correlate_maplet(e, ve, p, vp, spacing, opts, anchors["extracted_anchor"], (q, q))
             _correlations_equal(ref, got)
+
+
+# -- the shadow enhancement's offsets --------------------------------------------------------------
+
+
+def _shadow_offsets_numpy(sun_xy, ds, lateral=2, band=True, include_edge=True, edge_steps=3):
+    """shadow_offsets as NumPy computed it before its kernel."""
+    from spctool.stages.extract import nint
+
+    sx, sy = float(sun_xy[0]), float(sun_xy[1])
+    k = np.arange(1, edge_steps + 1, dtype=np.float64)
+    checks = nint(np.stack([k * sx, k * sy], axis=-1)).reshape(-1, 2)
+    ks = np.arange(0 if include_edge else 1, ds + 1, dtype=np.float64)
+    js = np.arange(-lateral, lateral + 1, dtype=np.float64) if band else np.unique([-lateral, 0.0, lateral])
+    kk, jj = np.meshgrid(ks, js, indexing="ij")
+    off = np.stack([-kk * sx - jj * sy, -kk * sy + jj * sx], axis=-1).reshape(-1, 2)
+    zeros = np.array(sorted(set(map(tuple, nint(off).tolist()))), dtype=np.int64).reshape(-1, 2)
+    return np.ascontiguousarray(checks, dtype=np.int64), zeros
+
+
+def test_shadow_offsets_kernel_hand_made_and_random():
+    """The Sun along +x (ds 2, the band ±2): checks (1,0), (2,0), (3,0); zeros the 3×5 block
+    k = 0…2 back along −x, j = −2…2 across; then random azimuths (half-way roundings included:
+    azimuths of 45° and 30° put k·ŝ on .5 exactly), extensions, lateral sets and edge rules."""
+    checks, zeros = shadow_offsets((1.0, 0.0), 2)
+    assert checks.tolist() == [[1, 0], [2, 0], [3, 0]]
+    assert zeros.tolist() == [[-k, j] for k in (2, 1, 0) for j in range(-2, 3)]
+    rng = np.random.default_rng(3)
+    azimuths = list(rng.uniform(0.0, 2 * np.pi, 40)) + [np.pi / 4, np.pi / 6, np.pi, 3 * np.pi / 2]
+    for az in azimuths:
+        sun = (np.cos(az), np.sin(az))
+        for ds in (0, 1, int(rng.integers(2, 30))):
+            other = (int(rng.integers(0, 4)), False, False, 2)
+            for lateral, band, edge, steps in ((2, True, True, 3), other):
+                ref = _shadow_offsets_numpy(sun, ds, lateral, band, edge, steps)
+                got = shadow_offsets(sun, ds, lateral, band, edge, steps)
+                for r, g in zip(ref, got):
+                    assert r.dtype == g.dtype and r.shape == g.shape, (az, ds, lateral)
+                    assert np.array_equal(r, g), (az, ds, lateral)

@@ -317,6 +317,7 @@ REGISTER_KERNELS = (
     ("spctool.geometry._heightkernels", "slopes", "f2 b2 f2 f2 b2"),
     ("spctool.geometry.camera", "_k_jac_camera", "f2 F34 i f1 f1 f3"),
     ("spctool.stages.extract", "_brt0_kernel", "f2 f1 f1 f f f f1"),
+    ("spctool.stages.extract", "_k_shadow_offsets", "f f i i ? ? i"),
     ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),
     ("spctool.geometry._heightkernels", "march_blocked", "f2 b2 b2 f f f f b2"),
     ("spctool.stages.extract", "_k_recentred", "f2 f2 f2 f f f f f ? i2 i2 ? b2 f2 f2 f2 b2 b2 b2 b2"),

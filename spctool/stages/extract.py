@@ -391,17 +391,11 @@ def shadow_offsets(sun_xy, ds: int, lateral: int = 2, band: bool = True, include
 
     Returns ``(checks, zeros)``: ``checks`` (edge_steps, 2) = NINT(k·ŝ_xy), k = 1…edge_steps (the
     sunward cells that must be 0 for an edge cell); ``zeros`` (M, 2) = the distinct
-    NINT(−k·ŝ_xy + j·ŝ⊥), k = k₀…ds, j in the lateral set (module docstring), ŝ⊥ = (−ŝ_y, ŝ_x).
+    NINT(−k·ŝ_xy + j·ŝ⊥), k = k₀…ds, j in the lateral set (module docstring), ŝ⊥ = (−ŝ_y, ŝ_x), in
+    ascending (row, column) order.  Computed without the GIL (:func:`_k_shadow_offsets`).
     """
     sx, sy = float(sun_xy[0]), float(sun_xy[1])
-    k = np.arange(1, edge_steps + 1, dtype=np.float64)
-    checks = nint(np.stack([k * sx, k * sy], axis=-1)).reshape(-1, 2)
-    ks = np.arange(0 if include_edge else 1, ds + 1, dtype=np.float64)
-    js = np.arange(-lateral, lateral + 1, dtype=np.float64) if band else np.unique([-lateral, 0.0, lateral])
-    kk, jj = np.meshgrid(ks, js, indexing="ij")
-    off = np.stack([-kk * sx - jj * sy, -kk * sy + jj * sx], axis=-1).reshape(-1, 2)
-    zeros = np.array(sorted(set(map(tuple, nint(off).tolist()))), dtype=np.int64).reshape(-1, 2)
-    return np.ascontiguousarray(checks, dtype=np.int64), zeros
+    return _k_shadow_offsets(sx, sy, int(ds), int(lateral), bool(band), bool(include_edge), int(edge_steps))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -447,6 +441,47 @@ def _brt0_one(data, x, y, t_lo, t_hi, floor_value):
         return 0.0
     v = b0 + (b1 - b0) * fx + (b2 - b0) * fy + (b0 + b3 - b1 - b2) * fx * fy
     return v if v > 0.0 else 0.0
+
+
+@numba.njit(forceinline=True, **_JIT)
+def _nint1(a):
+    """:func:`nint` of one float (sign(a)·⌊|a| + ½⌋, the same operations)."""
+    sign = 1.0 if a > 0.0 else (-1.0 if a < 0.0 else a)
+    return np.int64(sign * math.floor(abs(a) + 0.5))
+
+
+@numba.njit(**_JIT)
+def _k_shadow_offsets(sx, sy, ds, lateral, band, include_edge, edge_steps):  # pragma: no cover - compiled
+    """:func:`shadow_offsets`: the products and sums of its NumPy form element by element (k along the
+    outer loop, j the inner), NINT, and the distinct rows in ascending (row, column) order."""
+    checks = np.empty((max(0, edge_steps), 2), dtype=np.int64)
+    for k in range(1, edge_steps + 1):
+        checks[k - 1, 0] = _nint1(k * sx)
+        checks[k - 1, 1] = _nint1(k * sy)
+    if band:
+        js = np.arange(-lateral, lateral + 1).astype(np.float64)
+    else:
+        js = np.unique(np.array([-float(lateral), 0.0, float(lateral)]))
+    k0 = 0 if include_edge else 1
+    nk = max(0, ds + 1 - k0)
+    raw = np.empty((nk * js.shape[0], 2), dtype=np.int64)
+    t = 0
+    for a in range(nk):
+        kk = float(k0 + a)
+        for jj in js:
+            raw[t, 0] = _nint1(-kk * sx - jj * sy)
+            raw[t, 1] = _nint1(-kk * sy + jj * sx)
+            t += 1
+    if t == 0:
+        return checks, np.empty((0, 2), dtype=np.int64)
+    big = 2 * (np.abs(raw[:, 1]).max() + 1) + 1  # row-major key: sorts and dedups (row, column) pairs
+    keys = np.unique(raw[:, 0] * big + (raw[:, 1] + (big - 1) // 2))
+    zeros = np.empty((keys.shape[0], 2), dtype=np.int64)
+    for r in range(keys.shape[0]):
+        col = keys[r] % big
+        zeros[r, 0] = (keys[r] - col) // big
+        zeros[r, 1] = col - (big - 1) // 2
+    return checks, zeros
 
 
 @numba.njit(**_JIT)
