@@ -221,3 +221,67 @@ def test_shadow_offsets_kernel_hand_made_and_random():
                 for r, g in zip(ref, got):
                     assert r.dtype == g.dtype and r.shape == g.shape, (az, ds, lateral)
                     assert np.array_equal(r, g), (az, ds, lateral)
+
+
+# -- a full extraction's node pixels and samples ---------------------------------------------------
+
+
+def test_node_positions_kernel_is_the_numpy_form():
+    """P = V + SCALE·(x·UX + y·UY + h·UZ) node by node: a hand-made 3×3 maplet (V at the origin, unit
+    axes: P = scale·(x, y, h)) and random frames, scales and heights, to the bit."""
+    from spctool.stages.extract import _k_node_positions, _node_positions
+
+    eye = np.eye(3)
+    h = np.arange(9.0).reshape(3, 3)
+    out = np.empty((3, 3, 3))
+    _k_node_positions(h, 1.0, 2.0, np.zeros(3), eye[0], eye[1], eye[2], out)
+    assert out[0, 2].tolist() == [-2.0, 2.0, 4.0] and out[1, 1].tolist() == [0.0, 0.0, 8.0]
+    rng = np.random.default_rng(11)
+    for _ in range(10):
+        n = 2 * int(rng.integers(1, 30)) + 1
+        q = (n - 1) // 2
+        h = rng.normal(0.0, 3.0, (n, n))
+        v, ux, uy, uz = (rng.normal(0.0, 1000.0, 3) for _ in range(4))
+        scale = float(rng.uniform(0.01, 5.0))
+        x = (np.arange(n, dtype=np.float64) - q)[:, None]
+        y = (np.arange(n, dtype=np.float64) - q)[None, :]
+        out = np.empty((n, n, 3))
+        _k_node_positions(h, float(q), scale, v, ux, uy, uz, out)
+        assert out.tobytes() == _node_positions(x, y, h, scale, v, ux, uy, uz).tobytes()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sample_nodes_kernel_is_the_numpy_form(seed):
+    """Node pixels (some NaN, some behind the camera, some outside), moved or not, V in front or not:
+    node_ok, the NaN'd pixels, covered, lit and the BRT0 image as extract's NumPy form gave them."""
+    from spctool.stages.extract import _k_sample_nodes
+
+    rng = np.random.default_rng(seed)
+    nln, npx = rng.integers(20, 50, size=2)
+    data = rng.uniform(0.0, 500.0, (nln, npx))
+    data[rng.random(data.shape) < 0.1] = 0.0
+    n = int(rng.integers(3, 30))
+    smp0 = rng.uniform(-2.0, npx + 2.0, (n, n))
+    lin0 = rng.uniform(-2.0, nln + 2.0, (n, n))
+    smp0[rng.random((n, n)) < 0.05] = np.nan
+    front = rng.random((n, n)) < 0.9
+    mvalid = rng.random((n, n)) < 0.9
+    for front_v in (True, False):
+        for moved in (False, True):
+            d_s, d_l = rng.normal(0.0, 3.0, 2)
+            smp, lin = smp0.copy(), lin0.copy()
+            if moved:
+                smp, lin = smp + d_s, lin + d_l
+            node_ok = mvalid & front & np.isfinite(smp) & np.isfinite(lin) & front_v
+            smp = np.where(node_ok, smp, np.nan)
+            lin = np.where(node_ok, lin, np.nan)
+            covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)
+            values = brt0(data, smp, lin, 10.0, 450.0, repair_floor=1.0)
+            lit = node_ok & (values > 0.0)
+            image = np.where(lit, values, 0.0)
+            ks, kl = smp0.copy(), lin0.copy()
+            got = [np.empty((n, n), dtype=bool) for _ in range(3)] + [np.empty((n, n))]
+            _k_sample_nodes(data, ks, kl, front, mvalid, front_v, moved, d_s, d_l, 10.0, 450.0, 1.0,
+                            got[0], got[1], got[3], got[2])  # fmt: skip
+            for ref, g in zip((smp, lin, node_ok, covered, lit, image), (ks, kl, *got)):
+                assert ref.dtype == g.dtype and ref.tobytes() == g.tobytes()

@@ -35,7 +35,7 @@ FAMILIES = {
     "camera": (("spctool.geometry.camera", "_k_project_body"),),
     "maplet": (
         ("spctool.geometry._heightkernels", "slopes"),
-        ("spctool.stages.extract", "_brt0_kernel"),
+        ("spctool.stages.extract", "_k_sample_nodes"),
         ("spctool.stages.correlate", "_k_front"),
     ),
     "rays": (("spctool.geometry._raykernels", "trace"), ("spctool.geometry._bvhkernels", "build_patch_tree")),
@@ -313,10 +313,11 @@ HELPED = ("demo", "navigate")
 #: that a register on the demo uses exactly these.
 REGISTER_KERNELS = (
     ("spctool.geometry.camera", "_k_invert", "f1 f1 F34 i F5 f i f2r f1 f1 f2 i1"),
+    ("spctool.stages.extract", "_k_node_positions", "f2 f f f1 f1 f1 f1 f3"),
     ("spctool.geometry.camera", "_k_project_body", "f2 f2r f1r F34 i f1 f1 b1"),
     ("spctool.geometry._heightkernels", "slopes", "f2 b2 f2 f2 b2"),
     ("spctool.geometry.camera", "_k_jac_camera", "f2 F34 i f1 f1 f3"),
-    ("spctool.stages.extract", "_brt0_kernel", "f2 f1 f1 f f f f1"),
+    ("spctool.stages.extract", "_k_sample_nodes", "f2 f2 f2 b2 b2 ? ? f f f f f b2 b2 f2 b2"),
     ("spctool.stages.extract", "_k_shadow_offsets", "f f i i ? ? i"),
     ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),
     ("spctool.geometry._heightkernels", "march_blocked", "f2 b2 b2 f f f f b2"),

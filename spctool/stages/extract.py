@@ -594,11 +594,51 @@ def _k_recentred(data, sample0, line0, ds, dl, t_lo, t_hi, floor_value, enhance,
 def _node_positions(x, y, h, scale, v, ux, uy, uz) -> np.ndarray:
     """P = V + SCALE·(x·UX + y·UY + h·UZ) (N, N, 3), component by component (the same formula as
     :func:`spctool.geometry.heightfield.node_positions`, ~20× faster than broadcasting over a length-3
-    last axis for a 99×99 grid)."""
+    last axis for a 99×99 grid); ``x`` a column (N, 1) and ``y`` a row (1, N) of cell offsets."""
     out = np.empty(h.shape + (3,))
     for k in range(3):
         out[..., k] = v[k] + scale * ((x * ux[k] + y * uy[k]) + h * uz[k])
     return out
+
+
+@numba.njit(**_JIT)
+def _k_node_positions(h, q, scale, v, ux, uy, uz, out):  # pragma: no cover - compiled
+    """:func:`_node_positions` with x = r − q, y = c − q at node (r, c), without the GIL (the same
+    operations in the same order)."""
+    for r in range(h.shape[0]):
+        x = float(r) - q
+        for c in range(h.shape[1]):
+            y = float(c) - q
+            for k in range(3):
+                out[r, c, k] = v[k] + scale * ((x * ux[k] + y * uy[k]) + h[r, c] * uz[k])
+
+
+@numba.njit(**_JIT)
+def _k_sample_nodes(data, smp, lin, front, mvalid, front_v, moved, d_s, d_l, t_lo, t_hi, floor_value,
+                    node_ok, covered, image, lit):  # pragma: no cover - compiled
+    """:func:`extract`'s node sampling at one sample per cell, without the GIL: node pixels moved by
+    (``d_s``, ``d_l``) when ``moved`` (in place), ``node_ok`` (valid, in front, finite, V in front),
+    pixels of the other nodes set to NaN (in place), ``covered``, BRT0 values, ``lit`` and the image
+    (the same operations as its NumPy form)."""
+    nln, npx = data.shape
+    for r in range(smp.shape[0]):
+        for c in range(smp.shape[1]):
+            s = smp[r, c]
+            ln = lin[r, c]
+            if moved:
+                s = s + d_s
+                ln = ln + d_l
+            ok = mvalid[r, c] and front[r, c] and np.isfinite(s) and np.isfinite(ln) and front_v
+            if not ok:
+                s = np.nan
+                ln = np.nan
+            smp[r, c] = s
+            lin[r, c] = ln
+            node_ok[r, c] = ok
+            covered[r, c] = ok and s >= 1.0 and s < npx and ln >= 1.0 and ln < nln
+            v = _brt0_one(data, s, ln, t_lo, t_hi, floor_value)
+            lit[r, c] = ok and v > 0.0
+            image[r, c] = v if lit[r, c] else 0.0
 
 
 def _thresholds(thresholds):
@@ -790,25 +830,41 @@ def extract(photo, maplet, camera, sun, thresholds=None, options: ExtractOptions
         cs, cl = cs0, cl0
 
     # node pixels
-    x = (np.arange(n, dtype=np.float64) - q)[:, None]
-    y = (np.arange(n, dtype=np.float64) - q)[None, :]
+    m = subsample_count(det_j, opts.subsample)
     hz = np.where(mvalid, heights, 0.0)
-    if opts.linearized:
-        smp = cs + j3[0, 0] * x + j3[0, 1] * y + j3[0, 2] * hz
-        lin = cl + j3[1, 0] * x + j3[1, 1] * y + j3[1, 2] * hz
-        front = np.full(heights.shape, front_v)
+    fused = not opts.linearized and m == 1
+    if fused:
+        # the node pixels and their BRT0 samples in two GIL-free kernels (the operations below)
+        pos = np.empty(heights.shape + (3,))
+        _k_node_positions(hz, float(q), scale, v, ux, uy, uz, pos)
+        smp, lin, front = camera.project_with_mask(pos)
+        node_ok, covered, lit = (np.empty(heights.shape, dtype=bool) for _ in range(3))
+        image = np.empty(heights.shape)
+        moved = center_pixel is not None
+        _k_sample_nodes(
+            data, smp, lin, front, mvalid, front_v, moved, cs - cs0, cl - cl0, t_lo, t_hi,
+            float(opts.repair_floor), node_ok, covered, image, lit,
+        )  # fmt: skip
     else:
-        smp, lin, front = camera.project_with_mask(_node_positions(x, y, hz, scale, v, ux, uy, uz))
-        if center_pixel is not None:
-            smp = smp + (cs - cs0)
-            lin = lin + (cl - cl0)
-    node_ok = mvalid & front & np.isfinite(smp) & np.isfinite(lin) & front_v
-    smp = np.where(node_ok, smp, np.nan)
-    lin = np.where(node_ok, lin, np.nan)
+        x = (np.arange(n, dtype=np.float64) - q)[:, None]
+        y = (np.arange(n, dtype=np.float64) - q)[None, :]
+        if opts.linearized:
+            smp = cs + j3[0, 0] * x + j3[0, 1] * y + j3[0, 2] * hz
+            lin = cl + j3[1, 0] * x + j3[1, 1] * y + j3[1, 2] * hz
+            front = np.full(heights.shape, front_v)
+        else:
+            smp, lin, front = camera.project_with_mask(_node_positions(x, y, hz, scale, v, ux, uy, uz))
+            if center_pixel is not None:
+                smp = smp + (cs - cs0)
+                lin = lin + (cl - cl0)
+        node_ok = mvalid & front & np.isfinite(smp) & np.isfinite(lin) & front_v
+        smp = np.where(node_ok, smp, np.nan)
+        lin = np.where(node_ok, lin, np.nan)
 
     # sampling (BRT0), with sub-sample averaging when cells are larger than pixels
-    m = subsample_count(det_j, opts.subsample)
-    if m == 1:
+    if fused:
+        pass  # sampled above
+    elif m == 1:
         covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)  # NaN: False
         values = brt0(data, smp, lin, t_lo, t_hi, repair_floor=opts.repair_floor)
     else:
@@ -828,8 +884,9 @@ def extract(photo, maplet, camera, sun, thresholds=None, options: ExtractOptions
         )
         values = values.reshape(heights.shape)
         covered = cov_flat.reshape(heights.shape)
-    lit = node_ok & (values > 0.0)
-    image = np.where(lit, values, 0.0)
+    if not fused:
+        lit = node_ok & (values > 0.0)
+        image = np.where(lit, values, 0.0)
 
     if opts.apply_filter and front_v:
         fr = extract_filter(image, heights, mvalid, ux, uy, uz, s_hat, e_hat, det_j, opts, slopes=sl)
