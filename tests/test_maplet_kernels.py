@@ -285,3 +285,23 @@ def test_sample_nodes_kernel_is_the_numpy_form(seed):
                             got[0], got[1], got[3], got[2])  # fmt: skip
             for ref, g in zip((smp, lin, node_ok, covered, lit, image), (ks, kl, *got)):
                 assert ref.dtype == g.dtype and ref.tobytes() == g.tobytes()
+
+
+def test_surface_cosines_kernel_is_the_numpy_form():
+    """n̂·d on a grid: a flat maplet gives d_z everywhere, a 45° slope along x gives (d_z − d_x)/√2;
+    random slopes, directions and a given 1/|n| give the NumPy formula's values to the bit."""
+    from spctool.geometry.heightfield import surface_cosines
+
+    zero = np.zeros((3, 3))
+    assert np.array_equal(surface_cosines(zero, zero, (0.6, 0.0, 0.8)), np.full((3, 3), 0.8))
+    one = np.ones((2, 2))
+    assert np.allclose(surface_cosines(one, 0.0 * one, (0.6, 0.0, 0.8)), (0.8 - 0.6) / np.sqrt(2.0))
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        n = int(rng.integers(1, 40))
+        hx, hy = rng.normal(0.0, 1.0, (2, n, n))
+        hx[rng.random((n, n)) < 0.05] = np.nan
+        d = rng.normal(0.0, 1.0, 3)
+        inv = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
+        assert surface_cosines(hx, hy, d).tobytes() == ((d[2] - hx * d[0] - hy * d[1]) * inv).tobytes()
+        assert surface_cosines(hx, hy, d, inv).tobytes() == ((d[2] - hx * d[0] - hy * d[1]) * inv).tobytes()

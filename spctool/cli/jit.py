@@ -320,6 +320,7 @@ REGISTER_KERNELS = (
     ("spctool.stages.extract", "_k_sample_nodes", "f2 f2 f2 b2 b2 ? ? f f f f f b2 b2 f2 b2"),
     ("spctool.stages.extract", "_k_shadow_offsets", "f f i i ? ? i"),
     ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),
+    ("spctool.geometry._heightkernels", "surface_cosines", "f2 f2 f f f f2 ? f2"),
     ("spctool.geometry._heightkernels", "march_blocked", "f2 b2 b2 f f f f b2"),
     ("spctool.stages.extract", "_k_recentred", "f2 f2 f2 f f f f f ? i2 i2 ? b2 f2 f2 f2 b2 b2 b2 b2"),
     ("spctool.stages.correlate", "_k_front", "f2 b2 f2 b2 ? f i i i i i f i f ?"),
