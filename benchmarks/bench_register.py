@@ -410,6 +410,70 @@ def bench_navigate_maplet_two_workers_wall():
     return s["speedup_wall"], f"x (load {s['load']:.1f})", True
 
 
+_THREADS: dict = {}
+
+
+def _maplet_threads():
+    """One thread and two THREADS (no fork: ``SPCTOOL_START_METHOD=spawn`` makes maplet space run its
+    landmarks on threads, as it does where forking is not safe) on the 16-landmark picture,
+    interleaved, 21 pairs after a warm pair: ``{"speedup_wall", "cpu", "load"}`` — medians of each
+    pair's wall ratio and of its ratio of this process's CPU (both threads) — issue 39's lever: the
+    step's GIL-holding glue moved into GIL-free kernels so that threads share one address space.  Wall
+    time: two threads of one process have no critical path to read from CPU times (a thread waiting
+    for the GIL spends none), so on this shared machine the figure means something only at a low load."""
+    if _THREADS:
+        return _THREADS
+    w = _load16()
+
+    def runner(threads):
+        ropts = RegisterOptions(space="maplet", threads=threads)
+
+        def run():
+            r = register(
+                w["photo"], w["camera"], w["sun"], w["maplets"], w["thresholds"], ropts, names=w["names"]
+            )
+            assert int(r.ok.sum()) == len(w["names"])
+
+        return run
+
+    one, two = runner(1), runner(2)
+    saved = os.environ.get("SPCTOOL_START_METHOD")
+    os.environ["SPCTOOL_START_METHOD"] = "spawn"
+    try:
+        one(), two()
+        ratio, cpu = [], []
+        loads = [os.getloadavg()[0]]
+        for _ in range(21):
+            t, c = time.perf_counter(), time.process_time()
+            one()
+            wall1, cpu1 = time.perf_counter() - t, time.process_time() - c
+            t, c = time.perf_counter(), time.process_time()
+            two()
+            wall2, cpu2 = time.perf_counter() - t, time.process_time() - c
+            ratio.append(wall1 / wall2)
+            cpu.append(cpu2 / cpu1)
+        loads.append(os.getloadavg()[0])
+    finally:
+        if saved is None:
+            os.environ.pop("SPCTOOL_START_METHOD", None)
+        else:
+            os.environ["SPCTOOL_START_METHOD"] = saved
+    _THREADS.update(
+        speedup_wall=float(np.median(ratio)), cpu=float(np.median(cpu)), load=float(np.mean(loads))
+    )
+    return _THREADS
+
+
+def bench_maplet_two_threads_wall():
+    s = _maplet_threads()
+    return s["speedup_wall"], f"x (load {s['load']:.1f})", True
+
+
+def bench_maplet_two_threads_cpu():
+    s = _maplet_threads()
+    return s["cpu"], f"x (load {s['load']:.1f})", True
+
+
 _COLD: dict = {}
 
 
@@ -563,6 +627,16 @@ BENCHMARKS = [
         "register maplet S16 pass 16 landmarks, 2 workers vs 1, speed-up (wall)",
         "(informative: the machine's load)",
         bench_maplet_two_workers_wall,
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, 2 threads vs 1 (no fork), speed-up (wall)",
+        "(informative: threads are not the default below 1.7x; the machine's load)",
+        bench_maplet_two_threads_wall,
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, 2 threads' CPU / 1 thread's (no fork)",
+        "(informative)",
+        bench_maplet_two_threads_cpu,
     ),
     (
         "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (CPU critical path)",

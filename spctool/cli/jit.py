@@ -35,8 +35,8 @@ FAMILIES = {
     "camera": (("spctool.geometry.camera", "_k_project_body"),),
     "maplet": (
         ("spctool.geometry._heightkernels", "slopes"),
-        ("spctool.stages.extract", "_brt0_kernel"),
-        ("spctool.stages.correlate", "_k_ncc"),
+        ("spctool.stages.extract", "_k_sample_nodes"),
+        ("spctool.stages.correlate", "_k_front"),
     ),
     "rays": (("spctool.geometry._raykernels", "trace"), ("spctool.geometry._bvhkernels", "build_patch_tree")),
     "render": (("spctool.geometry._patchkernels", "_fused_rays"),),
@@ -313,16 +313,17 @@ HELPED = ("demo", "navigate")
 #: that a register on the demo uses exactly these.
 REGISTER_KERNELS = (
     ("spctool.geometry.camera", "_k_invert", "f1 f1 F34 i F5 f i f2r f1 f1 f2 i1"),
+    ("spctool.stages.extract", "_k_node_positions", "f2 f f f1 f1 f1 f1 f3"),
     ("spctool.geometry.camera", "_k_project_body", "f2 f2r f1r F34 i f1 f1 b1"),
     ("spctool.geometry._heightkernels", "slopes", "f2 b2 f2 f2 b2"),
     ("spctool.geometry.camera", "_k_jac_camera", "f2 F34 i f1 f1 f3"),
-    ("spctool.stages.extract", "_brt0_kernel", "f2 f1 f1 f f f f1"),
+    ("spctool.stages.extract", "_k_sample_nodes", "f2 f2 f2 b2 b2 ? ? f f f f f b2 b2 f2 b2"),
+    ("spctool.stages.extract", "_k_shadow_offsets", "f f i i ? ? i"),
     ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),
+    ("spctool.geometry._heightkernels", "surface_cosines", "f2 f2 f f f f2 ? f2"),
     ("spctool.geometry._heightkernels", "march_blocked", "f2 b2 b2 f f f f b2"),
-    ("spctool.stages.correlate", "_k_valid", "f2 b2 ? f b2"),
-    ("spctool.stages.correlate", "_k_bin", "f2 b2 i i i f f2 b2"),
-    ("spctool.stages.correlate", "_k_ncc", "f2 b2 f2 b2 i i i f f2 i2"),
-    ("spctool.stages.correlate", "_k_grid_peak", "f2 ?"),
+    ("spctool.stages.extract", "_k_recentred", "f2 f2 f2 f f f f f ? i2 i2 ? b2 f2 f2 f2 b2 b2 b2 b2"),
+    ("spctool.stages.correlate", "_k_front", "f2 b2 f2 b2 ? f i i i i i f i f ?"),
     ("spctool.stages.alignment", "_k_alignment", "f2 b2 f2 b2 i i i i i i f2 f1"),
     ("spctool.stages.extract", "_subsample_kernel", "f2 f1r f1r b1 f1r f1r f1r f1r f1 f f f f1 b1"),
 )

@@ -223,6 +223,18 @@ def slopes(h, valid, hx, hy, usable):
 
 
 @njit(cache=True, nogil=True)
+def surface_cosines(hx, hy, d0, d1, d2, inv_norm, have_norm, out):
+    """n̂·d at every node (:func:`spctool.geometry.heightfield.surface_cosines`, the same operations):
+    (d₂ − hx·d₀ − hy·d₁)·s with s = ``inv_norm`` when ``have_norm``, else 1/√(1 + hx² + hy²)."""
+    for i in range(hx.shape[0]):
+        for j in range(hx.shape[1]):
+            x = hx[i, j]
+            y = hy[i, j]
+            s = inv_norm[i, j] if have_norm else 1.0 / math.sqrt(1.0 + x * x + y * y)
+            out[i, j] = (d2 - x * d0 - y * d1) * s
+
+
+@njit(cache=True, nogil=True)
 def normals(hx, hy, ux, uy, uz, out):
     """out[m] = normalise(-hx[m]*ux - hy[m]*uy + uz) over flat arrays hx, hy."""
     for m in range(hx.shape[0]):

@@ -402,6 +402,14 @@ def surface_cosines(hx, hy, direction_maplet, inv_norm=None) -> np.ndarray:
     d = np.asarray(direction_maplet, dtype=np.float64)
     hx = np.asarray(hx, dtype=np.float64)
     hy = np.asarray(hy, dtype=np.float64)
+    if hx.ndim == 2 and hx.shape == hy.shape and (inv_norm is None or np.shape(inv_norm) == hx.shape):
+        # a grid: one GIL-free pass (the same operations)
+        c = np.ascontiguousarray
+        out = np.empty(hx.shape)
+        have = inv_norm is not None
+        norm = c(inv_norm, dtype=np.float64) if have else hx
+        _k.surface_cosines(c(hx), c(hy), float(d[0]), float(d[1]), float(d[2]), norm, have, out)
+        return out
     if inv_norm is None:
         inv_norm = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
     return (d[2] - hx * d[0] - hy * d[1]) * inv_norm

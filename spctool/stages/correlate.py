@@ -759,12 +759,13 @@ def _k_grid_peak(s, strict_8):  # pragma: no cover - compiled
     return 0, r0, c0, all9
 
 
-def _find_peak(s, corr_min, strict_8, peak):
+def _find_peak(s, corr_min, strict_8, peak, grid_peak=None):
     """find_peak plus the Hessian at the grid peak (NaN when there is no 3×3 neighbourhood) and the
     estimate used ("quadric", "parabola", "parabola-fallback" or "").  The Hessian is the quadric's,
     or, when the quadric is rejected, the separable one diag(y₊ + y₋ − 2y₀) of the two parabolas.
-    ``s``: a C-contiguous float64 surface (the checks run in :func:`_k_grid_peak`)."""
-    code, r0, c0, all9 = _k_grid_peak(s, bool(strict_8))
+    ``s``: a C-contiguous float64 surface (the checks run in :func:`_k_grid_peak`, or ``grid_peak`` is
+    its result already)."""
+    code, r0, c0, all9 = _k_grid_peak(s, bool(strict_8)) if grid_peak is None else grid_peak
     if code == 1:
         return "not-found", math.nan, None, (math.nan, math.nan), np.full((2, 2), np.nan), ""
     pk = float(s[r0, c0])
@@ -877,6 +878,63 @@ def correlate(
     return correlate_valid(e, me, p, mp, n, opts, ea, pa, noise_footprint)
 
 
+@numba.njit(**_JIT)
+def _k_binned(v, m, n, a0, a1, need):  # pragma: no cover - compiled
+    """:func:`_bin` of values ``v`` with validity ``m`` (n = 1: both as they are, as correlate_valid
+    passes them): ``(binned, binned valid, binned anchor row, column)``."""
+    if n == 1:
+        return v, m, a0, a1
+    h = n // 2
+    b00 = (0 - a0 + h) // n
+    b01 = (v.shape[0] - 1 - a0 + h) // n
+    b10 = (0 - a1 + h) // n
+    b11 = (v.shape[1] - 1 - a1 + h) // n
+    out = np.zeros((b01 - b00 + 1, b11 - b10 + 1))
+    ok = np.empty(out.shape, dtype=np.bool_)
+    _k_bin(v, m, n, a0 - h + b00 * n, a1 - h + b10 * n, need, out, ok)
+    return out, ok, -b00, -b10
+
+
+@numba.njit(**_JIT)
+def _k_front(e, ve, p, vp, use_min, min_value, n, ea0, ea1, pa0, pa1, need, half, min_valid, strict_8):
+    """:func:`correlate`'s work up to the grid peak in one call without the GIL (maplet space, issue
+    39): both validity masks (:func:`_k_valid`), both binnings (:func:`_k_bin`, as :func:`_bin`), the
+    NCC surface (:func:`_k_ncc`) and the grid peak's checks (:func:`_k_grid_peak`) — the same kernels,
+    called in the same order.  Returns (E_b, E_b valid, P_b, P_b valid, origin row, column, surface,
+    counts, (code, r0, c0, all9))."""
+    me = np.empty(e.shape, dtype=np.bool_)
+    _k_valid(e, ve, use_min, min_value, me)
+    mp = np.empty(p.shape, dtype=np.bool_)
+    _k_valid(p, vp, use_min, min_value, mp)
+    eb, meb, eab0, eab1 = _k_binned(e, me, n, ea0, ea1, need)
+    pb, mpb, pab0, pab1 = _k_binned(p, mp, n, pa0, pa1, need)
+    o0 = eab0 - pab0
+    o1 = eab1 - pab1
+    g = 2 * half + 1
+    surf = np.empty((g, g))
+    cnts = np.empty((g, g), dtype=np.int64)
+    _k_ncc(eb, meb, pb, mpb, o0, o1, half, min_valid, surf, cnts)
+    return eb, meb, pb, mpb, o0, o1, surf, cnts, _k_grid_peak(surf, strict_8)
+
+
+def correlate_maplet(e, ve, p, vp, n: int, opts: CorrelateOptions, ea, pa, noise_footprint: float = 1.0):
+    """:func:`correlate` of a maplet-space step (registrar's ``_maplet_step``): C-contiguous float64
+    images of two dimensions with bool masks of their shapes (an extraction's image and ``valid``, a
+    prediction's image and ``lit``), both anchors given — the same result to the bit, with the masks,
+    binning, surface and grid peak in one GIL-free kernel (:func:`_k_front`) so that threads registering
+    other landmarks run meanwhile."""
+    use_min = opts.min_value is not None
+    need = opts.bin_min_fraction * n * n - 1e-9
+    f, b = np.float64, np.bool_
+    e, ve = np.ascontiguousarray(e, dtype=f), np.ascontiguousarray(ve, dtype=b)
+    p, vp = np.ascontiguousarray(p, dtype=f), np.ascontiguousarray(vp, dtype=b)
+    eb, meb, pb, mpb, o0, o1, surf, cnts, grid_peak = _k_front(
+        e, ve, p, vp, use_min, float(opts.min_value) if use_min else 0.0, int(n), int(ea[0]), int(ea[1]),
+        int(pa[0]), int(pa[1]), need, int(opts.grid_half), float(opts.min_valid), bool(opts.strict_8),
+    )  # fmt: skip
+    return _from_surface(eb, meb, pb, mpb, n, opts, (o0, o1), surf, cnts, noise_footprint, grid_peak)
+
+
 def correlate_valid(e, me, p, mp, n: int, opts: CorrelateOptions, ea, pa, noise_footprint: float = 1.0):
     """:func:`correlate` of images whose masks are already their valid pixels: C-contiguous float64 E and
     P, bool masks ``me``, ``mp`` true only where the pixel is finite (and above ``opts.min_value`` when
@@ -890,9 +948,16 @@ def correlate_valid(e, me, p, mp, n: int, opts: CorrelateOptions, ea, pa, noise_
         eb, meb, eab = _bin(e, me, n, int(ea[0]), int(ea[1]), opts.bin_min_fraction)
         pb, mpb, pab = _bin(p, mp, n, int(pa[0]), int(pa[1]), opts.bin_min_fraction)
     origin = (eab[0] - pab[0], eab[1] - pab[1])
+    surf, cnts = _ncc(eb, meb, pb, mpb, opts.grid_half, opts.min_valid, origin)
+    return _from_surface(eb, meb, pb, mpb, n, opts, origin, surf, cnts, noise_footprint)
+
+
+def _from_surface(eb, meb, pb, mpb, n, opts, origin, surf, cnts, noise_footprint, grid_peak=None):
+    """The rest of :func:`correlate_valid` from the binned images and their NCC surface: the peak, the
+    alignment at it (``opts.peak``), the offset and its covariance."""
     k = opts.grid_half
-    surf, cnts = _ncc(eb, meb, pb, mpb, k, opts.min_valid, origin)
-    status, peak, idx, (dr, dc), hess, fit = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak)
+    found = _find_peak(surf, opts.corr_min, opts.strict_8, opts.peak, grid_peak)
+    status, peak, idx, (dr, dc), hess, fit = found
     if opts.peak in ALIGNMENTS and status in ("ok", "low-correlation"):
         o0, o1 = origin[0] + idx[0] - k, origin[1] + idx[1] - k
         if opts.peak == "gradient":

@@ -391,17 +391,11 @@ def shadow_offsets(sun_xy, ds: int, lateral: int = 2, band: bool = True, include
 
     Returns ``(checks, zeros)``: ``checks`` (edge_steps, 2) = NINT(k·ŝ_xy), k = 1…edge_steps (the
     sunward cells that must be 0 for an edge cell); ``zeros`` (M, 2) = the distinct
-    NINT(−k·ŝ_xy + j·ŝ⊥), k = k₀…ds, j in the lateral set (module docstring), ŝ⊥ = (−ŝ_y, ŝ_x).
+    NINT(−k·ŝ_xy + j·ŝ⊥), k = k₀…ds, j in the lateral set (module docstring), ŝ⊥ = (−ŝ_y, ŝ_x), in
+    ascending (row, column) order.  Computed without the GIL (:func:`_k_shadow_offsets`).
     """
     sx, sy = float(sun_xy[0]), float(sun_xy[1])
-    k = np.arange(1, edge_steps + 1, dtype=np.float64)
-    checks = nint(np.stack([k * sx, k * sy], axis=-1)).reshape(-1, 2)
-    ks = np.arange(0 if include_edge else 1, ds + 1, dtype=np.float64)
-    js = np.arange(-lateral, lateral + 1, dtype=np.float64) if band else np.unique([-lateral, 0.0, lateral])
-    kk, jj = np.meshgrid(ks, js, indexing="ij")
-    off = np.stack([-kk * sx - jj * sy, -kk * sy + jj * sx], axis=-1).reshape(-1, 2)
-    zeros = np.array(sorted(set(map(tuple, nint(off).tolist()))), dtype=np.int64).reshape(-1, 2)
-    return np.ascontiguousarray(checks, dtype=np.int64), zeros
+    return _k_shadow_offsets(sx, sy, int(ds), int(lateral), bool(band), bool(include_edge), int(edge_steps))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -447,6 +441,47 @@ def _brt0_one(data, x, y, t_lo, t_hi, floor_value):
         return 0.0
     v = b0 + (b1 - b0) * fx + (b2 - b0) * fy + (b0 + b3 - b1 - b2) * fx * fy
     return v if v > 0.0 else 0.0
+
+
+@numba.njit(forceinline=True, **_JIT)
+def _nint1(a):
+    """:func:`nint` of one float (sign(a)·⌊|a| + ½⌋, the same operations)."""
+    sign = 1.0 if a > 0.0 else (-1.0 if a < 0.0 else a)
+    return np.int64(sign * math.floor(abs(a) + 0.5))
+
+
+@numba.njit(**_JIT)
+def _k_shadow_offsets(sx, sy, ds, lateral, band, include_edge, edge_steps):  # pragma: no cover - compiled
+    """:func:`shadow_offsets`: the products and sums of its NumPy form element by element (k along the
+    outer loop, j the inner), NINT, and the distinct rows in ascending (row, column) order."""
+    checks = np.empty((max(0, edge_steps), 2), dtype=np.int64)
+    for k in range(1, edge_steps + 1):
+        checks[k - 1, 0] = _nint1(k * sx)
+        checks[k - 1, 1] = _nint1(k * sy)
+    if band:
+        js = np.arange(-lateral, lateral + 1).astype(np.float64)
+    else:
+        js = np.unique(np.array([-float(lateral), 0.0, float(lateral)]))
+    k0 = 0 if include_edge else 1
+    nk = max(0, ds + 1 - k0)
+    raw = np.empty((nk * js.shape[0], 2), dtype=np.int64)
+    t = 0
+    for a in range(nk):
+        kk = float(k0 + a)
+        for jj in js:
+            raw[t, 0] = _nint1(-kk * sx - jj * sy)
+            raw[t, 1] = _nint1(-kk * sy + jj * sx)
+            t += 1
+    if t == 0:
+        return checks, np.empty((0, 2), dtype=np.int64)
+    big = 2 * (np.abs(raw[:, 1]).max() + 1) + 1  # row-major key: sorts and dedups (row, column) pairs
+    keys = np.unique(raw[:, 0] * big + (raw[:, 1] + (big - 1) // 2))
+    zeros = np.empty((keys.shape[0], 2), dtype=np.int64)
+    for r in range(keys.shape[0]):
+        col = keys[r] % big
+        zeros[r, 0] = (keys[r] - col) // big
+        zeros[r, 1] = col - (big - 1) // 2
+    return checks, zeros
 
 
 @numba.njit(**_JIT)
@@ -509,6 +544,49 @@ def _enhance_kernel(nonzero, checks, zeros, out, edges):
                     out[rr, cc] = True
 
 
+@numba.njit(**_JIT)
+def _k_recentred(data, sample0, line0, ds, dl, t_lo, t_hi, floor_value, enhance, checks, zeros,
+                 filtered, visible, smp, lin, image, valid, covered, lit, removed_shadow):  # pragma: no cover
+    """An extraction moved by (``ds``, ``dl``) px, in one pass without the GIL (the re-centred
+    extraction of :meth:`spctool.stages.registrar.Registrar.extraction`, the same float operations
+    as its NumPy form): node pixels ``sample0 + ds``, ``line0 + dl``; ``covered``; BRT0 at every
+    finite node; ``lit``; with ``enhance`` the shadow enhancement (:func:`_enhance_kernel` with
+    ``checks``, ``zeros``) zeroes and records ``removed_shadow``; with ``filtered`` cells not
+    ``visible`` are zeroed; ``valid`` = image > 0.  Every output is (N, N) and overwritten."""
+    n0, n1 = sample0.shape
+    nln, npx = data.shape
+    for r in range(n0):
+        for c in range(n1):
+            s = sample0[r, c] + ds
+            ln = line0[r, c] + dl
+            smp[r, c] = s
+            lin[r, c] = ln
+            ok = np.isfinite(sample0[r, c])
+            covered[r, c] = ok and s >= 1.0 and s < npx and ln >= 1.0 and ln < nln
+            v = _brt0_one(data, s, ln, t_lo, t_hi, floor_value) if ok else 0.0
+            lit[r, c] = ok and v > 0.0
+            image[r, c] = v if lit[r, c] else 0.0
+            removed_shadow[r, c] = False
+    if enhance:
+        nonzero = np.empty((n0, n1), dtype=np.bool_)
+        for r in range(n0):
+            for c in range(n1):
+                nonzero[r, c] = image[r, c] > 0.0
+        zero = np.zeros((n0, n1), dtype=np.bool_)
+        edges = np.zeros((n0, n1), dtype=np.bool_)
+        _enhance_kernel(nonzero, checks, zeros, zero, edges)
+        for r in range(n0):
+            for c in range(n1):
+                if zero[r, c]:
+                    removed_shadow[r, c] = nonzero[r, c]
+                    image[r, c] = 0.0
+    for r in range(n0):
+        for c in range(n1):
+            if filtered and not visible[r, c]:
+                image[r, c] = 0.0
+            valid[r, c] = image[r, c] > 0.0
+
+
 # --------------------------------------------------------------------------------------------------
 # Stage C sampler
 
@@ -516,11 +594,51 @@ def _enhance_kernel(nonzero, checks, zeros, out, edges):
 def _node_positions(x, y, h, scale, v, ux, uy, uz) -> np.ndarray:
     """P = V + SCALE·(x·UX + y·UY + h·UZ) (N, N, 3), component by component (the same formula as
     :func:`spctool.geometry.heightfield.node_positions`, ~20× faster than broadcasting over a length-3
-    last axis for a 99×99 grid)."""
+    last axis for a 99×99 grid); ``x`` a column (N, 1) and ``y`` a row (1, N) of cell offsets."""
     out = np.empty(h.shape + (3,))
     for k in range(3):
         out[..., k] = v[k] + scale * ((x * ux[k] + y * uy[k]) + h * uz[k])
     return out
+
+
+@numba.njit(**_JIT)
+def _k_node_positions(h, q, scale, v, ux, uy, uz, out):  # pragma: no cover - compiled
+    """:func:`_node_positions` with x = r − q, y = c − q at node (r, c), without the GIL (the same
+    operations in the same order)."""
+    for r in range(h.shape[0]):
+        x = float(r) - q
+        for c in range(h.shape[1]):
+            y = float(c) - q
+            for k in range(3):
+                out[r, c, k] = v[k] + scale * ((x * ux[k] + y * uy[k]) + h[r, c] * uz[k])
+
+
+@numba.njit(**_JIT)
+def _k_sample_nodes(data, smp, lin, front, mvalid, front_v, moved, d_s, d_l, t_lo, t_hi, floor_value,
+                    node_ok, covered, image, lit):  # pragma: no cover - compiled
+    """:func:`extract`'s node sampling at one sample per cell, without the GIL: node pixels moved by
+    (``d_s``, ``d_l``) when ``moved`` (in place), ``node_ok`` (valid, in front, finite, V in front),
+    pixels of the other nodes set to NaN (in place), ``covered``, BRT0 values, ``lit`` and the image
+    (the same operations as its NumPy form)."""
+    nln, npx = data.shape
+    for r in range(smp.shape[0]):
+        for c in range(smp.shape[1]):
+            s = smp[r, c]
+            ln = lin[r, c]
+            if moved:
+                s = s + d_s
+                ln = ln + d_l
+            ok = mvalid[r, c] and front[r, c] and np.isfinite(s) and np.isfinite(ln) and front_v
+            if not ok:
+                s = np.nan
+                ln = np.nan
+            smp[r, c] = s
+            lin[r, c] = ln
+            node_ok[r, c] = ok
+            covered[r, c] = ok and s >= 1.0 and s < npx and ln >= 1.0 and ln < nln
+            v = _brt0_one(data, s, ln, t_lo, t_hi, floor_value)
+            lit[r, c] = ok and v > 0.0
+            image[r, c] = v if lit[r, c] else 0.0
 
 
 def _thresholds(thresholds):
@@ -712,25 +830,41 @@ def extract(photo, maplet, camera, sun, thresholds=None, options: ExtractOptions
         cs, cl = cs0, cl0
 
     # node pixels
-    x = (np.arange(n, dtype=np.float64) - q)[:, None]
-    y = (np.arange(n, dtype=np.float64) - q)[None, :]
+    m = subsample_count(det_j, opts.subsample)
     hz = np.where(mvalid, heights, 0.0)
-    if opts.linearized:
-        smp = cs + j3[0, 0] * x + j3[0, 1] * y + j3[0, 2] * hz
-        lin = cl + j3[1, 0] * x + j3[1, 1] * y + j3[1, 2] * hz
-        front = np.full(heights.shape, front_v)
+    fused = not opts.linearized and m == 1
+    if fused:
+        # the node pixels and their BRT0 samples in two GIL-free kernels (the operations below)
+        pos = np.empty(heights.shape + (3,))
+        _k_node_positions(hz, float(q), scale, v, ux, uy, uz, pos)
+        smp, lin, front = camera.project_with_mask(pos)
+        node_ok, covered, lit = (np.empty(heights.shape, dtype=bool) for _ in range(3))
+        image = np.empty(heights.shape)
+        moved = center_pixel is not None
+        _k_sample_nodes(
+            data, smp, lin, front, mvalid, front_v, moved, cs - cs0, cl - cl0, t_lo, t_hi,
+            float(opts.repair_floor), node_ok, covered, image, lit,
+        )  # fmt: skip
     else:
-        smp, lin, front = camera.project_with_mask(_node_positions(x, y, hz, scale, v, ux, uy, uz))
-        if center_pixel is not None:
-            smp = smp + (cs - cs0)
-            lin = lin + (cl - cl0)
-    node_ok = mvalid & front & np.isfinite(smp) & np.isfinite(lin) & front_v
-    smp = np.where(node_ok, smp, np.nan)
-    lin = np.where(node_ok, lin, np.nan)
+        x = (np.arange(n, dtype=np.float64) - q)[:, None]
+        y = (np.arange(n, dtype=np.float64) - q)[None, :]
+        if opts.linearized:
+            smp = cs + j3[0, 0] * x + j3[0, 1] * y + j3[0, 2] * hz
+            lin = cl + j3[1, 0] * x + j3[1, 1] * y + j3[1, 2] * hz
+            front = np.full(heights.shape, front_v)
+        else:
+            smp, lin, front = camera.project_with_mask(_node_positions(x, y, hz, scale, v, ux, uy, uz))
+            if center_pixel is not None:
+                smp = smp + (cs - cs0)
+                lin = lin + (cl - cl0)
+        node_ok = mvalid & front & np.isfinite(smp) & np.isfinite(lin) & front_v
+        smp = np.where(node_ok, smp, np.nan)
+        lin = np.where(node_ok, lin, np.nan)
 
     # sampling (BRT0), with sub-sample averaging when cells are larger than pixels
-    m = subsample_count(det_j, opts.subsample)
-    if m == 1:
+    if fused:
+        pass  # sampled above
+    elif m == 1:
         covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)  # NaN: False
         values = brt0(data, smp, lin, t_lo, t_hi, repair_floor=opts.repair_floor)
     else:
@@ -750,8 +884,9 @@ def extract(photo, maplet, camera, sun, thresholds=None, options: ExtractOptions
         )
         values = values.reshape(heights.shape)
         covered = cov_flat.reshape(heights.shape)
-    lit = node_ok & (values > 0.0)
-    image = np.where(lit, values, 0.0)
+    if not fused:
+        lit = node_ok & (values > 0.0)
+        image = np.where(lit, values, 0.0)
 
     if opts.apply_filter and front_v:
         fr = extract_filter(image, heights, mvalid, ux, uy, uz, s_hat, e_hat, det_j, opts, slopes=sl)

@@ -32,8 +32,10 @@ default numba's thread count, i.e. every core unless ``NUMBA_NUM_THREADS`` says 
 is the one-thread driver's to the last bit.  Image space runs threads (its render and correlation
 kernels release the GIL); maplet space forks worker processes (:func:`spctool.workers.forked_map`, or
 the children of a caller's :class:`spctool.workers.ForkedPool`, forked once for several calls:
-navigate's passes), since its steps are short kernels between small NumPy operations that hold the
-GIL (issue 39: in one thread 48 % of its time is in kernels that release it).
+navigate's passes), since its steps are short kernels between Python and small NumPy operations that
+hold the GIL (issue 39: in one thread ~70 % of its time is in kernels that release it — the re-centred
+extraction and the correlation's front end are one kernel each —, so two threads could gain at most
+1/(0.3 + 0.7/2) ≈ 1.5×; docs/benchmarks.md).
 
 Both drivers end with a **converged full-resolution stage** when their last align step is at
 spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
@@ -555,8 +557,8 @@ def _parallel_s16(
     call; later calls send them ``job``, :func:`register`'s arguments but the photo and maplets, from
     which :func:`_pool_task` makes the same task there), or forked for this call
     (:func:`spctool.workers.forked_map`), since its steps are short kernels between small NumPy
-    operations that hold the GIL (48 % of a landmark's time is in kernels that release it: threads
-    could gain at most 1.3× on two cores).
+    operations that hold the GIL (~70 % of a landmark's time is in kernels that release it: threads
+    could gain at most ~1.5× on two cores).
     The first such call of a process registers landmarks alone until one has run a step, so that
     every kernel is loaded once, here, before the workers are forked with them.  Where forking is
     not safe (:func:`spctool.workers.can_fork_tasks`: another Python thread runs), maplet space uses

@@ -66,15 +66,15 @@ from spctool.stages.correlate import (
     PEAK_METHODS,
     CorrelateOptions,
     Correlation,
-    correlate,
+    correlate_maplet,
     correlate_valid,
     resampled_noise_footprint,
 )
 from spctool.stages.extract import (
     ZENITH_EPS,
+    Extraction,
     ExtractOptions,
-    _enhance_kernel,
-    brt0,
+    _k_recentred,
     extract,
     shadow_extension,
     shadow_offsets,
@@ -94,6 +94,7 @@ __all__ = [
 ]
 
 SCHEDULES = ("retina_s16", "autoregister")
+_NO_OFFSETS = np.zeros((0, 2), dtype=np.int64)  # the shadow enhancement's offsets when it does not run
 SPACES = ("maplet", "image")
 
 
@@ -469,6 +470,8 @@ class _Landmark:
         "cast",
         "dark_floor",
         "proj",
+        "popts",
+        "hbin",
         "__weakref__",
     )
 
@@ -490,6 +493,8 @@ class _Landmark:
         self.grid = _Grid(maplet, self._lazy_slopes())  # the maplet's own grid
         self.padded = None  # the grid extended for acquire_reach
         self.proj = None  # (camera, V's pixel with it): image space projects V once per camera object
+        self.popts = None  # (predict options, resolved shadow mode, the options with it)
+        self.hbin = None  # (J_xy, √|det J_xy|): photo pixels per cell, once per extraction geometry
 
     def _lazy_slopes(self):
         """A function giving :attr:`slopes` on first use that holds this landmark weakly: a closure over
@@ -629,7 +634,10 @@ class Registrar:
                 valid = np.asarray(lm.maplet.valid, dtype=bool) & lm.slopes[2]
                 lm.shadow_mode = resolve_shadows(lm.cast & valid, extraction.image, valid)
                 lm.pred = None
-            popts = dataclasses.replace(popts, shadows=lm.shadow_mode or "spc")
+            mode = lm.shadow_mode or "spc"
+            if lm.popts is None or lm.popts[0] is not popts or lm.popts[1] != mode:
+                lm.popts = (popts, mode, dataclasses.replace(popts, shadows=mode))  # once, not every step
+            popts = lm.popts[2]
         if lm.pred is None or lm.pred_camera is not camera:
             lm.pred = predict(
                 lm.maplet, camera.position, self.sun, popts, slopes=lm.slopes, cast_shadows=lm.cast
@@ -680,23 +688,29 @@ class Registrar:
         lm = self.landmarks[i]
         ext = self.extraction(i, camera, center, apply_criteria)
         pred = self.prediction(i, camera, ext)
-        anchors = {}
+        q0, q1 = (pred.image.shape[0] - 1) // 2, (pred.image.shape[1] - 1) // 2
+        anchors = ((q0, q1), (q0, q1))  # correlate's default: the centre node of the shared grid
         if margin > 0 and ext.status == "ok":
             # the search image: the same resampling on the grid extended by ``margin`` cells
-            q = (pred.image.shape[0] - 1) // 2
-            anchors = dict(extracted_anchor=(q + margin, q + margin), predicted_anchor=(q, q))
+            q = q0
+            anchors = ((q + margin, q + margin), (q, q))
             ext = self.extraction(i, camera, center, margin=margin)
         # photo pixels per binned cell: the bilinear resampling shares noise between finer cells
-        h_bin = spacing * math.sqrt(abs(float(np.linalg.det(ext.jxy)))) if ext.jxy is not None else 1.0
-        corr = correlate(
+        if ext.jxy is None:
+            h_bin = 1.0
+        else:
+            if lm.hbin is None or lm.hbin[0] is not ext.jxy:  # re-centred extractions share their J_xy
+                lm.hbin = (ext.jxy, math.sqrt(abs(float(np.linalg.det(ext.jxy)))))
+            h_bin = spacing * lm.hbin[1]
+        corr = correlate_maplet(  # correlate(), its masks, binning, surface and grid peak in one kernel
             ext.image,
+            ext.valid,
             pred.image,
-            extracted_valid=ext.valid,
-            predicted_valid=pred.lit,
-            spacing=spacing,
-            options=copts,
+            pred.lit,
+            spacing,
+            copts,
+            *anchors,
             noise_footprint=resampled_noise_footprint(h_bin) if h_bin > 0 else 1.0,
-            **anchors,
         )
         status = corr.status if ext.status == "ok" else ext.status
         shift = ext.jxy @ corr.offset
@@ -750,40 +764,26 @@ class Registrar:
             grid.ext, grid.camera, grid.shadow = ext, camera, None
             return ext
         ds, dl = float(center[0]) - base.center_sample, float(center[1]) - base.center_line
-        smp = base.sample + ds
-        lin = base.line + dl
-        nln, npx = self.photo.shape
-        node_ok = np.isfinite(base.sample)
-        covered = node_ok & (smp >= 1.0) & (smp < npx) & (lin >= 1.0) & (lin < nln)
-        values = brt0(
-            self.photo,
-            np.where(node_ok, smp, 0.0),
-            np.where(node_ok, lin, 0.0),
-            self.thresholds[0],
-            self.thresholds[1],
-            repair_floor=eopts.repair_floor,
-        )
-        lit = node_ok & (values > 0.0)
-        image = np.where(lit, values, 0.0)
-        removed_shadow = np.zeros(image.shape, dtype=bool)
-        if eopts.apply_filter:
-            # the extract filter's step 1 (shadow enhancement: extract_filter's own offsets and kernel,
-            # computed once per landmark and camera), then steps 2–3 from the first extraction's mask
-            if grid.shadow is None:
-                grid.shadow = self._shadow_offsets(grid.maplet, base)
-            if grid.shadow is not False:
-                checks, zeros = grid.shadow
-                zero = np.zeros(image.shape, dtype=bool)
-                edges = np.zeros(image.shape, dtype=bool)
-                nonzero = image > 0.0
-                _enhance_kernel(nonzero, checks, zeros, zero, edges)
-                removed_shadow = zero & nonzero
-                image[zero] = 0.0
-            image = np.where(base.visible, image, 0.0)
-        return dataclasses.replace(
-            base,
+        # re-sampled, enhanced and filtered in one GIL-free kernel (the extract filter's step 1 with
+        # its own offsets and kernel, computed once per landmark and camera; steps 2–3 from the first
+        # extraction's mask)
+        if eopts.apply_filter and grid.shadow is None:
+            grid.shadow = self._shadow_offsets(grid.maplet, base)
+        enhance = bool(eopts.apply_filter) and grid.shadow is not False
+        checks, zeros = grid.shadow if enhance else (_NO_OFFSETS, _NO_OFFSETS)
+        shape = base.sample.shape
+        smp, lin, image = np.empty(shape), np.empty(shape), np.empty(shape)
+        valid, covered, lit, removed_shadow = (np.empty(shape, dtype=bool) for _ in range(4))
+        _k_recentred(
+            self.photo, base.sample, base.line, ds, dl, self.thresholds[0], self.thresholds[1],
+            float(eopts.repair_floor), enhance, checks, zeros, bool(eopts.apply_filter), base.visible,
+            smp, lin, image, valid, covered, lit, removed_shadow,
+        )  # fmt: skip
+        ext = object.__new__(Extraction)  # dataclasses.replace without its per-field keyword pass
+        ext.__dict__.update(base.__dict__)
+        ext.__dict__.update(
             image=image,
-            valid=image > 0.0,
+            valid=valid,
             covered=covered,
             lit=lit,
             removed_shadow=removed_shadow,
@@ -793,6 +793,7 @@ class Registrar:
             center_line=float(center[1]),
             status="ok",  # criteria were not requested (else the full path ran); "outside" never gets here
         )
+        return ext
 
     def _shadow_offsets(self, m, base):
         """(checks, zeros) of the shadow enhancement for grid ``m`` and this camera, or False when the Sun
