@@ -137,6 +137,42 @@ def _exec_caching(real_exec, module):
 
     load_overload.__wrapped__ = real_load
     cache.load_overload = load_overload
+    _light_environments()
+
+
+def _light_environments():
+    """A cached kernel's environments rebuilt without importing numba's own modules they name.
+
+    Each function in a cached kernel keeps an ``Environment`` (globals and constants for the few
+    operations that need Python objects); unpickling one imports the module it names to take its
+    globals.  For numba's array constructors that is ``numba.np.arrayobj``, whose import (with
+    ``numba.cpython.unicode``, ``charseq``, ``hashing``) was 0.04-0.07 s of CPU at the first kernel of
+    every command.  Compiled nopython code reads only an environment's constants; its globals are read
+    by object mode alone, which spctool's kernels never use.  So an environment of a numba module not
+    yet imported gets a globals dict holding the module's name only (what numba checks and pickles
+    again); any other, and everything when ``SPCTOOL_NUMBA_REFRESH=1``, numba's own rebuild.
+    """
+    import numba.core.environment as environment
+
+    real = getattr(environment, "_rebuild_env", None)
+    env_class = getattr(environment, "Environment", None)
+    if real is None or env_class is None or not hasattr(env_class, "_memo"):
+        return  # another numba: its own rebuild, untouched
+
+    def _rebuild_env(modname, consts, env_name):
+        if not (isinstance(modname, str) and modname.startswith("numba.")) or modname in sys.modules:
+            return real(modname, consts, env_name)
+        env = environment.lookup_environment(env_name)
+        if env is not None:
+            return env
+        env = env_class({"__name__": modname})
+        env.consts[:] = consts
+        env.env_name = env_name
+        env_class._memo[env_name] = env
+        return env
+
+    _rebuild_env.__wrapped__ = real
+    environment._rebuild_env = _rebuild_env
 
 
 def _exec_arraymath(real_exec, module):
