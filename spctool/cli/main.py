@@ -146,7 +146,7 @@ def _end_process(code) -> None:
         return
     atexit._run_exitfuncs()
     try:
-        for stream in (sys.stdout, sys.stderr):
+        for stream in {id(s): s for s in (sys.stdout, sys.stderr, sys.__stdout__, sys.__stderr__)}.values():
             if stream is not None:
                 stream.flush()
     except Exception:  # noqa: BLE001 - the interpreter's own exit reports it
