@@ -85,7 +85,7 @@ def _exec_numba(real_exec, module):
     for n in hidden:
         sys.modules[n] = None  # `import n` raises ImportError inside numba's own import only
     collecting = gc.isenabled()
-    gc.disable()  # numba's import makes ~40,000 long-lived objects and no garbage worth a collection
+    gc.disable()  # numba's import makes ~50,000 long-lived objects and no garbage worth a collection
     try:
         real_exec(module)
     finally:
