@@ -6,9 +6,16 @@ The working directory is bench_register's 16-landmark world (a q = 64 ICQ shape,
 ``cold`` figure is the best wall (and CPU) time of three new ``spctool`` processes after one that warms the
 caches (numba's kernels, the shape's diameter: what a second command after ``spctool warmup`` finds);
 ``in-process`` is the best of three runs of the same command line through ``cli.main`` in this
-process after one warm-up run (one numba thread: bench_register's setting).  Targets: one picture
-costs at most 1.0 s wall in maplet space and 1.2 s in image space (``register``, ``navigate``,
-``lithos-select``).
+process after one warm-up run (one numba thread: bench_register's setting).  Targets (the issue's,
+on wall time): one picture costs at most 1.0 s wall in maplet space and 1.2 s in image space
+(``register``, ``navigate``, ``lithos-select``).
+
+What the CPU lines measure: the user + system seconds of the whole command, its threads and every
+process it forked and waited for (maplet space forks a worker for 16 maplets of 99×99) — what the
+command costs the machine, the figure a shared machine disturbs least.  It is not the wall time: with
+work split over two cores it is larger than the wall by design (in-process, the work alone, it is the
+calling process's time only, its threads included, its forked worker not).  So the CPU lines carry
+no pass/fail: only the wall lines are held to the targets.
 
     python benchmarks/run.py startup
 """
@@ -46,7 +53,7 @@ _COLD: dict = {}
 
 def _cold(command: str, space: str | None) -> tuple[float, float]:
     """(best wall s, best CPU s) of three new processes (after one that warms the caches); CPU is the
-    process's user + system time, the figure a shared machine disturbs least."""
+    user + system time of the process and of every child it waited for (its forked worker)."""
     key = (command, space)
     if key in _COLD:
         return _COLD[key]
@@ -114,7 +121,7 @@ for _command, _space, _limit in (
     _label = f"startup {_command}" + (f", {_space} space" if _space else "")
     BENCHMARKS += [
         (f"{_label}: cold process, wall", f"<= {_limit} s", _line(_command, _space, "cold", "wall", _limit)),
-        (f"{_label}: cold process, CPU", f"<= {_limit} s", _line(_command, _space, "cold", "cpu", _limit)),
+        (f"{_label}: cold process, CPU", "(all its processes)", _line(_command, _space, "cold", "cpu")),
         (f"{_label}: in-process, wall", "(the work alone)", _line(_command, _space, "warm", "wall")),
         (f"{_label}: in-process, CPU", "(the work alone)", _line(_command, _space, "warm", "cpu")),
     ]

@@ -28,6 +28,7 @@ FLOORS = {
     "errors": 0,
     "jsonsafe": 0,  # JSON values of results (numpy only)
     "workers": 0,  # how local worker processes start (batch, the Monte Carlo)
+    "threads": 0,  # numba's thread count without starting its pool
     "formats": 1,
     "geometry": 2,
     "photometry": 3,

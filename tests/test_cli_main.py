@@ -205,3 +205,101 @@ def test_the_command_line_loads_a_cached_kernel_without_numba_s_registry_refresh
     assert probe(SPCTOOL_NUMBA_REFRESH="1")[2:4] == ["1", "True"]  # numba's refresh at the load
     scanned = probe(SPCTOOL_NUMBA_EXTENSIONS="1")[5:8]  # numba's scan at the first kernel
     assert scanned == ["metadata", "loaded" if lazy == "loaded" else "False", "True"]
+
+
+_NUMBA_ENV_KERNEL = """
+import numba
+import numpy as np
+
+@numba.njit(cache=True)
+def fill(n):
+    a = np.empty(n)  # numba's np.empty: an environment of numba.np.arrayobj in the cached kernel
+    for i in range(n):
+        a[i] = i * 0.5
+    return a
+"""
+
+_NUMBA_ENV_PROBE = """
+import sys
+import spctool.cli.main
+sys.path.insert(0, ".")
+import kernel
+a = kernel.fill(5)
+print(sum(kernel.fill.stats.cache_hits.values()), "numba.np.arrayobj" in sys.modules, a.tolist())
+if len(sys.argv) > 1:  # a kernel compiled after the load, calling the loaded one
+    print(__import__("numba").njit(lambda n: kernel.fill(n)[n - 1])(4), "numba.np.arrayobj" in sys.modules)
+"""
+
+
+def test_the_command_line_loads_a_cached_kernel_without_importing_numba_s_array_module(tmp_path):
+    """Unpickling a cached kernel's environments imported the numba modules they name
+    (numba.np.arrayobj for np.empty: 0.04-0.07 s at every command's first kernel); the command line
+    gives an environment of a numba module not yet imported its name only (nopython code reads only
+    its constants). The kernel's result is the same, a kernel compiled afterwards imports the module
+    as usual, and SPCTOOL_NUMBA_REFRESH=1 keeps numba's rebuild."""
+    import os
+
+    (tmp_path / "kernel.py").write_text(_NUMBA_ENV_KERNEL)
+
+    def probe(*args, **extra):
+        env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_NUMBA_REFRESH"} | extra
+        env["NUMBA_CACHE_DIR"] = str(tmp_path / "cache")
+        cmd = [sys.executable, "-c", _NUMBA_ENV_PROBE, *args]
+        run = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path)
+        assert run.returncode == 0, run.stderr
+        return run.stdout.split("\n")[:2]
+
+    values = "[0.0, 0.5, 1.0, 1.5, 2.0]"
+    assert probe()[0] == f"0 True {values}"  # compiled: numba imports it to compile
+    assert probe() == [f"1 False {values}", ""]  # loaded: not imported
+    assert probe("compile") == [f"1 False {values}", "1.5 True"]  # imported when a kernel compiles
+    assert probe(SPCTOOL_NUMBA_REFRESH="1")[0] == f"1 True {values}"
+
+
+def test_numba_s_thread_count_is_read_without_starting_its_pool():
+    """register and the renderer ask numba's thread count in every command; numba's get_num_threads
+    starts its threading layer to answer (~0.01 s): spctool.threads answers from numba's configuration
+    until the pool runs, and numba's answer after (set_num_threads included)."""
+    code = (
+        "import numba\nfrom numba.np.ufunc import parallel\nfrom spctool.threads import numba_threads\n"
+        "n = numba_threads()\nprint(parallel._is_initialized, n == numba.config.NUMBA_NUM_THREADS)\n"
+        "print(n == numba.get_num_threads(), parallel._is_initialized)\n"
+        "numba.set_num_threads(1)\nprint(numba_threads())\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "True", "True", "True", "1"]
+
+
+_FAST_EXIT_PROBE = """
+import atexit, sys
+
+class Sentinel:
+    def __del__(self):  # runs in the interpreter's teardown only
+        sys.stderr.write("teardown\\n")
+
+sentinel = Sentinel()
+atexit.register(lambda: sys.stderr.write("atexit\\n"))
+from spctool.cli.main import cli
+cli()
+"""
+
+
+def test_the_command_line_ends_its_process_without_the_interpreter_s_teardown(tmp_path):
+    """After a command, the process ends without the interpreter's teardown (0.15-0.3 s of freeing
+    numba's code and every module, spctool.cli.main._end_process): exit handlers still run, both
+    streams are complete, exit codes are kept; SPCTOOL_FULL_EXIT=1 (and any in-process caller) keeps
+    the usual exit."""
+    import os
+
+    def run(*args, **extra):
+        env = {k: v for k, v in os.environ.items() if k != "SPCTOOL_FULL_EXIT"} | extra
+        cmd = [sys.executable, "-c", _FAST_EXIT_PROBE, *args]
+        return subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path)
+
+    for args in (("--help",), ("man", "register"), ("-C", "nowhere", "info")):
+        fast, full = run(*args), run(*args, SPCTOOL_FULL_EXIT="1")
+        assert fast.returncode == full.returncode == (2 if "nowhere" in args else 0)
+        assert fast.stdout == full.stdout and len(fast.stdout if "nowhere" not in args else "x") > 0
+        assert fast.stderr == full.stderr.replace("teardown\n", "")
+        assert fast.stderr.endswith("atexit\n") and full.stderr.endswith("atexit\nteardown\n")

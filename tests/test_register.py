@@ -922,13 +922,13 @@ def test_maplet_space_pool_serves_several_calls_with_one_fork(scene, monkeypatch
 
 
 def test_landmark_workers_default_and_explicit(monkeypatch):
-    """``threads=None``: numba's thread count, maplet space at least two landmarks per worker; an
-    explicit count is used as given, at most one worker per landmark."""
-    import numba
-
+    """``threads=None``: numba's thread count (spctool.threads, without starting numba's pool), maplet
+    space at least two landmarks per worker; an explicit count is used as given, at most one worker
+    per landmark."""
+    import spctool.threads
     from spctool.stages.register import landmark_workers
 
-    monkeypatch.setattr(numba, "get_num_threads", lambda: 2)
+    monkeypatch.setattr(spctool.threads, "numba_threads", lambda: 2)
     assert landmark_workers(RegisterOptions(space="maplet"), 16) == 2
     assert landmark_workers(RegisterOptions(space="maplet"), 3) == 1  # too few landmarks to fork for
     # too little work to fork for (the demo's 12 maplets of 49²), enough (S16's 16 of 99²)
@@ -940,7 +940,7 @@ def test_landmark_workers_default_and_explicit(monkeypatch):
     assert landmark_workers(RegisterOptions(space="maplet", threads=3), 2) == 2
     assert landmark_workers(RegisterOptions(space="maplet", threads=1), 16) == 1
     assert landmark_workers(RegisterOptions(space="maplet", threads=4), 1) == 1
-    monkeypatch.setattr(numba, "get_num_threads", lambda: 1)  # batch's and the Monte Carlo's workers
+    monkeypatch.setattr(spctool.threads, "numba_threads", lambda: 1)  # batch's and the Monte Carlo's workers
     assert landmark_workers(RegisterOptions(space="maplet"), 16) == 1
 
 

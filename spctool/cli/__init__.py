@@ -31,9 +31,13 @@ finds neither SciPy (imported only to check its version, ~0.01-0.03 s) nor PyYAM
 afterwards.  Nor does numba look for third-party extensions (``numba_extensions`` entry points: its
 ``importlib.metadata`` import, loaded lazily instead, and a scan of every installed distribution's
 metadata at the first kernel, ~0.025 s); spctool's kernels use none.  ``SPCTOOL_NUMBA_EXTENSIONS=1``
-loads them as numba does.
+loads them as numba does.  The garbage collector pauses during numba's import (whose objects all
+live as long as the process) and then sets them, and everything imported before, aside for good
+(``gc.freeze``): collections during a command's start cost 0.04-0.07 s of CPU, most of it visiting
+those objects again.
 """
 
+import gc
 import importlib.abc
 import importlib.machinery
 import os
@@ -80,12 +84,17 @@ def _exec_numba(real_exec, module):
         _lazy_module("importlib.metadata")
     for n in hidden:
         sys.modules[n] = None  # `import n` raises ImportError inside numba's own import only
+    collecting = gc.isenabled()
+    gc.disable()  # numba's import makes ~50,000 long-lived objects and no garbage worth a collection
     try:
         real_exec(module)
     finally:
         for n in hidden:
             if n in sys.modules and sys.modules[n] is None:
                 del sys.modules[n]
+        if collecting:
+            gc.freeze()  # what exists now lives as long as the process: later collections skip it
+            gc.enable()
     entrypoints = sys.modules.get("numba.core.entrypoints")
     if not extensions and hasattr(entrypoints, "_already_initialized"):
         entrypoints._already_initialized = True  # no numba_extensions scan at the first kernel
@@ -137,6 +146,42 @@ def _exec_caching(real_exec, module):
 
     load_overload.__wrapped__ = real_load
     cache.load_overload = load_overload
+    _light_environments()
+
+
+def _light_environments():
+    """A cached kernel's environments rebuilt without importing numba's own modules they name.
+
+    Each function in a cached kernel keeps an ``Environment`` (globals and constants for the few
+    operations that need Python objects); unpickling one imports the module it names to take its
+    globals.  For numba's array constructors that is ``numba.np.arrayobj``, whose import (with
+    ``numba.cpython.unicode``, ``charseq``, ``hashing``) was 0.04-0.07 s of CPU at the first kernel of
+    every command.  Compiled nopython code reads only an environment's constants; its globals are read
+    by object mode alone, which spctool's kernels never use.  So an environment of a numba module not
+    yet imported gets a globals dict holding the module's name only (what numba checks and pickles
+    again); any other, and everything when ``SPCTOOL_NUMBA_REFRESH=1``, numba's own rebuild.
+    """
+    import numba.core.environment as environment
+
+    real = getattr(environment, "_rebuild_env", None)
+    env_class = getattr(environment, "Environment", None)
+    if real is None or env_class is None or not hasattr(env_class, "_memo"):
+        return  # another numba: its own rebuild, untouched
+
+    def _rebuild_env(modname, consts, env_name):
+        if not (isinstance(modname, str) and modname.startswith("numba.")) or modname in sys.modules:
+            return real(modname, consts, env_name)
+        env = environment.lookup_environment(env_name)
+        if env is not None:
+            return env
+        env = env_class({"__name__": modname})
+        env.consts[:] = consts
+        env.env_name = env_name
+        env_class._memo[env_name] = env
+        return env
+
+    _rebuild_env.__wrapped__ = real
+    environment._rebuild_env = _rebuild_env
 
 
 def _exec_arraymath(real_exec, module):

@@ -463,9 +463,9 @@ def landmark_workers(opts: RegisterOptions, n: int, cells: int | None = None) ->
     if n < 2:
         return 1
     if opts.threads is None:
-        import numba
+        from spctool.threads import numba_threads
 
-        k = int(numba.get_num_threads())
+        k = numba_threads()
         if opts.space == "maplet":
             k = min(k, n // MAPLET_LANDMARKS_PER_WORKER)
             if cells is not None and cells < MAPLET_MIN_CELLS_TO_FORK:

@@ -63,7 +63,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from spctool.errors import SpcUsageError
@@ -451,8 +450,11 @@ def _trace_fused(
     cand = _NO_CELLS if cand is None else kernel_array(cand, np.int64)
     cells = _NO_CELLS if cells is None else cells
     pos = _NO_POS if pos is None else pos
-    threads = numba.get_num_threads() if threads is None else int(threads)
-    if threads < 2 or n < PARALLEL_MIN_RAYS:  # the calling thread, whole arrays (no views to make)
+    if n >= PARALLEL_MIN_RAYS:  # numba's count asked only when it matters (spctool.threads)
+        from spctool.threads import numba_threads
+
+        threads = numba_threads() if threads is None else int(threads)
+    if n < PARALLEL_MIN_RAYS or threads < 2:  # the calling thread, whole arrays (no views to make)
         _fused_rays(
             origin, dirs, ok, sun_lit, sun, shadows, offset, facet, *arrays, cand, surface, geom, sh, cells,
             pos,
