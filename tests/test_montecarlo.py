@@ -337,7 +337,9 @@ def test_default_plans():
     # noisy heights cast shadows the terrain lacks); register keeps "gradient", shadows, and 2 rays
     assert coarse.converge_peak == fine.converge_peak == mc.IMAGE_CONVERGE_PEAK == "gradient-photo"
     assert coarse.image_shadows is fine.image_shadows is mc.IMAGE_TEMPLATE_SHADOWS is False
-    assert coarse.supersample == fine.supersample == mc.IMAGE_SUPERSAMPLE == 2
+    assert fine.supersample == mc.IMAGE_SUPERSAMPLE == 2
+    assert coarse.supersample == 1  # the coarse phase only acquires: one ray per pixel
+    assert all(o.supersample == 2 for o in mc.default_plan("image", supersample=2))  # as asked
     # SPC's node slopes (the fourth-order ones lower the floor but amplify the height noise)
     assert coarse.template_slopes == fine.template_slopes == mc.IMAGE_TEMPLATE_SLOPES == "spc"
     assert all(o.template_slopes == "fourth" for o in mc.default_plan("image", template_slopes="fourth"))

@@ -189,9 +189,10 @@ def register(cli: click.Group) -> None:
         type=click.IntRange(1, 4),
         default=None,
         metavar="N",
-        help="Image space: N x N rays per pixel of the templates at L = 1 (default: 2, as register, "
-        "with one-ray drafts until the converged stage is near; 1 takes about half the time, and on "
-        "the s16-50m preset its worst landmark's 1 sigma is about 0.041 px instead of 0.037).",
+        help="Image space: N x N rays per pixel of the templates at L = 1 (default: 2 in the fine phase, "
+        "as register, with one-ray drafts until the converged stage is near, and 1 in the coarse phase, "
+        "which only acquires; N sets both phases: 1 takes about half the time, and on the s16-50m preset "
+        "its worst landmark's 1 sigma is about 0.042 px instead of 0.037).",
     )
     @click.option(
         "--image-shadows/--no-image-shadows",
