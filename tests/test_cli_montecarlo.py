@@ -95,7 +95,7 @@ def test_image_space_reproducible_across_jobs(run_cli, scene_file):
     assert _strip_timing(one) == _strip_timing(two)  # bit for bit, whatever --jobs
     assert one["config"]["space"] == "image" and len(one["config"]["plan"]) == 2
     assert one["landmarks"][0]["ok"] == 2
-    assert [p["supersample"] for p in one["config"]["plan"]] == [1, 2]  # coarse one ray, fine 2 x 2 (issue 39)
+    assert [p["supersample"] for p in one["config"]["plan"]] == [1, 2]  # coarse 1 ray, fine 2 x 2
     assert [p["image_shadows"] for p in one["config"]["plan"]] == [False, False]
     assert [p["template_slopes"] for p in one["config"]["plan"]] == ["spc", "spc"]
     before = ("--supersample", 1, "--image-shadows", "--template-slopes", "fourth")
