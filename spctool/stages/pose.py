@@ -66,7 +66,8 @@ worst first, one at a time, and the pose is refitted from the a-priori pose.  Ev
 with its reason in :attr:`PoseResult.rejected`; nothing is dropped silently.
 
 Rooms: the least-squares problem itself (state, normal equations, Jacobi-scaled solve, Gauss–Newton) is
-:mod:`spctool.stages._pose_problem`; the consistency tests are :mod:`spctool.stages.pose_consistency`.
+:mod:`spctool.stages._pose_problem`; the consistency tests are :mod:`spctool.stages.pose_consistency`;
+the usable landmarks and the outlier rejection are :mod:`spctool.stages.pose_outliers`.
 """
 
 from __future__ import annotations
@@ -96,6 +97,7 @@ from spctool.stages.pose_consistency import (
     prior_scale_step,
     prior_test,
 )
+from spctool.stages.pose_outliers import Rejection, fit_rejecting, usable_landmarks
 
 __all__ = [
     "PoseError",
@@ -111,8 +113,6 @@ __all__ = [
 LANDMARK_MODES = ("fixed", "estimate", "consider")
 #: :attr:`PoseResult.verdict` words, most serious first
 POSE_VERDICTS = ("implausible", "prior-contradicted", "inconsistent", "ok")
-#: median of the norm of a 2-D standard normal vector, √(2 ln 2)
-_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 #: landmark sigmas ≤ 0 are held (effectively) fixed at this 1σ (km) in "estimate" mode
 _TINY_SIGMA_KM = 1e-9
 
@@ -233,26 +233,6 @@ class PoseOptions:
         self.max_iter = int(self.max_iter)
         self.min_landmarks = int(self.min_landmarks)
         self.max_halvings = int(self.max_halvings)
-
-
-@dataclass(frozen=True)
-class Rejection:
-    """One landmark left out of the solution, and why."""
-
-    name: str
-    index: int
-    reason: str  # short word: "outlier", "no-measurement", "behind-camera", "no-position"
-    detail: str
-    residual_px: float = math.nan
-
-    def as_dict(self) -> dict:
-        return {
-            "name": self.name,
-            "index": self.index,
-            "reason": self.reason,
-            "detail": self.detail,
-            "residual_px": self.residual_px,
-        }
 
 
 @dataclass
@@ -580,23 +560,6 @@ def _measurement_weights(opts, meas_all, names, pixel_sigmas, pixel_covariances,
     return wts
 
 
-def _outlier_scores(problem, state, opts):
-    """(score, limit, unit, residual px) of every landmark of the fit for the outlier test: the
-    residual in px against ``reject_px``, else its weighted size ρ (with the landmark's position-prior
-    term in ``"estimate"`` mode), robustly rescaled, against ``reject_sigma``."""
-    smp, lin = state.camera.project(problem.pts(state))
-    r = problem.meas - np.stack([smp, lin], axis=-1)
-    rho2 = np.einsum("mi,mij,mj->m", r, problem.wts, r)
-    if state.dlmk is not None:  # "estimate": a landmark's cost also has its position-prior term
-        rho2 = rho2 + np.sum(problem.lmk_info * state.dlmk * state.dlmk, axis=1)
-    rho = np.sqrt(rho2)
-    rpx = np.sqrt(np.sum(r * r, axis=1))
-    if opts.reject_px is not None:
-        return rpx, float(opts.reject_px), "px", rpx
-    c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if opts.robust_scale else 1.0
-    return rho / c, float(opts.reject_sigma), "sigma", rpx
-
-
 def _final_covariance(problem, state, mode, used, pts_all, lmk_sig):
     """The pose covariance at the solution (6 × 6), its condition number, and per mode: ``"consider"``
     the covariance without the landmark errors; ``"estimate"`` the landmark corrections and their
@@ -672,73 +635,6 @@ def _model_error(problem, state, covs, opts, prior) -> float:
     return model_error(r, covs, dof, cap, opts.model_error_quantile)
 
 
-def _usable_landmarks(camera, pts_all, meas_all, names):
-    """(usable (N,), known position (N,), a-priori predicted pixels (N, 2), status words, rejections):
-    a landmark is usable with a known position, a measured pixel and in front of the a-priori camera;
-    the others are named with the reason (``no-position``, ``no-measurement``, ``behind-camera``)."""
-    status = ["ok"] * pts_all.shape[0]
-    rejected: list[Rejection] = []
-    pts_finite = np.all(np.isfinite(pts_all), axis=1)
-    meas_finite = np.all(np.isfinite(meas_all), axis=1)
-    smp0, lin0, front0 = camera.project_with_mask(np.where(pts_finite[:, None], pts_all, 0.0))
-    pred0 = np.stack([smp0, lin0], axis=-1)
-    pred0[~(pts_finite & front0)] = np.nan
-    usable = pts_finite & meas_finite & front0
-    for i in np.flatnonzero(~usable):  # only the unusable few
-        i = int(i)
-        if not pts_finite[i]:
-            word, detail = "no-position", "landmark position unknown"
-        elif not meas_finite[i]:
-            word, detail = "no-measurement", "measured pixel is not a number"
-        else:
-            word, detail = "behind-camera", "landmark behind the a-priori camera"
-        status[i] = word
-        rejected.append(Rejection(names[i], i, word, detail))
-    return usable, pts_finite, pred0, status, rejected
-
-
-def _fit_rejecting(build, usable, opts, prior, names, status, rejected, warnings):
-    """Fit the landmarks ``usable``, then while the outlier test fails drop the worst one and fit again
-    (one at a time, at most ``max_reject_fraction`` of them, never below ``min_landmarks``); the
-    rejections go to ``status``, ``rejected`` and ``warnings``.  Returns (problem, state, iterations,
-    converged, cost history, used)."""
-    used = usable.copy()
-    max_reject = int(math.floor(opts.max_reject_fraction * int(np.count_nonzero(usable))))
-    prior_used = prior.n_equations > 0
-    while True:
-        problem = build(used)
-        state, iterations, converged, history = problem.fit()
-        if not opts.reject_outliers:
-            break
-        idx = np.flatnonzero(used)
-        m = idx.size
-        if 2 * m + prior.n_equations - 6 <= 0:  # no redundancy: nothing can be tested
-            break
-        score, limit, unit, rpx = _outlier_scores(problem, state, opts)
-        worst = int(np.argmax(score))
-        if not score[worst] > limit:
-            break
-        n_rej = int(np.count_nonzero(usable & ~used))
-        if m - 1 < max(opts.min_landmarks, 0 if prior_used else 3) or n_rej + 1 > max_reject:
-            bad = [names[idx[k]] for k in np.flatnonzero(score > limit)]
-            warnings.append(
-                f"outlier test fails for {', '.join(bad)} but no more landmarks may be rejected"
-                f" ({m} used, min_landmarks {opts.min_landmarks}, max_reject_fraction"
-                f" {opts.max_reject_fraction})"
-            )
-            break
-        k = int(idx[worst])
-        detail = (
-            f"residual {rpx[worst]:.3f} px ({score[worst]:.1f} {unit}) > {limit:g} {unit}"
-            if unit == "px"
-            else f"residual {rpx[worst]:.3f} px = {score[worst]:.1f} sigma > {limit:g} sigma"
-        )
-        rejected.append(Rejection(names[k], k, "outlier", detail, float(rpx[worst])))
-        status[k] = "rejected-outlier"
-        used[k] = False
-    return problem, state, iterations, converged, history, used
-
-
 def _checked_inputs(landmark_positions, measured, names):
     """(positions (N, 3), measured pixels (N, 2), N names) as float arrays and strings; a wrong shape
     or name count is a :class:`SpcUsageError`."""
@@ -792,13 +688,13 @@ def _check_count(count, opts, prior_used):
 def _fit_with_model_error(
     build, wts_all, modes_all, common, usable, opts, prior, labels, pixel_covariances, error_modes, mode
 ):
-    """:func:`_fit_rejecting`; with ``pixel_covariances`` and ``opts.model_error``, the model error τ
+    """:func:`~spctool.stages.pose_outliers.fit_rejecting`; with ``pixel_covariances`` and ``opts.model_error``, the model error τ
     the residuals show beyond the correlation peaks' covariances, then the fit again with it (twice:
     the residuals of the refit estimate it again).  ``labels`` = (names, status, rejected, warnings),
     the last three reset before a refit.  Returns (fit, τ, weights, common covariance used)."""
     names, status, rejected, warnings = labels
     before = (list(status), list(rejected), list(warnings))
-    fit = _fit_rejecting(
+    fit = fit_rejecting(
         lambda mask: build(mask, wts_all, modes_all), usable, opts, prior, names, status, rejected, warnings
     )
     tau, common_used = 0.0, common
@@ -816,7 +712,7 @@ def _fit_with_model_error(
             modes_all = _error_modes(shared, error_modes, usable.size, mode)
             common_used = shared
         status[:], rejected[:], warnings[:] = (list(x) for x in before)
-        fit = _fit_rejecting(
+        fit = fit_rejecting(
             lambda mask, w=wts_all, e=modes_all: build(mask, w, e),
             usable, opts, prior, names, status, rejected, warnings,
         )  # fmt: skip
@@ -907,7 +803,7 @@ def _solve_pose(
     modes_all = None if sandwich else _error_modes(common, error_modes, n_all, mode)
 
     # ---- usable landmarks and a-priori residuals ------------------------------------------------
-    usable, pts_finite, pred0, status, rejected = _usable_landmarks(camera, pts_all, meas_all, names)
+    usable, pts_finite, pred0, status, rejected = usable_landmarks(camera, pts_all, meas_all, names)
     prior_used = prior.n_equations > 0
     _check_count(int(np.count_nonzero(usable)), opts, prior_used)
     lmk_info_all = None
