@@ -688,8 +688,9 @@ def _check_count(count, opts, prior_used):
 def _fit_with_model_error(
     build, wts_all, modes_all, common, usable, opts, prior, labels, pixel_covariances, error_modes, mode
 ):
-    """:func:`~spctool.stages.pose_outliers.fit_rejecting`; with ``pixel_covariances`` and ``opts.model_error``, the model error τ
-    the residuals show beyond the correlation peaks' covariances, then the fit again with it (twice:
+    """:func:`~spctool.stages.pose_outliers.fit_rejecting`; with ``pixel_covariances`` and
+    ``opts.model_error``, the model error τ the residuals show beyond the correlation peaks'
+    covariances, then the fit again with it (twice:
     the residuals of the refit estimate it again).  ``labels`` = (names, status, rejected, warnings),
     the last three reset before a refit.  Returns (fit, τ, weights, common covariance used)."""
     names, status, rejected, warnings = labels
