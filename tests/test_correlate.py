@@ -1043,18 +1043,25 @@ def _photo_alignment_reference(e, me, p, mp, origin):
     return coef[1] / coef[0], coef[2] / coef[0], coef[0]
 
 
-@given(seed=st.integers(0, 2**31 - 1), o0=st.integers(-3, 3), o1=st.integers(-3, 3))
-@settings(max_examples=30, deadline=None)
-def test_photo_alignment_matches_a_dense_least_squares(seed, o0, o1):
-    """gradient_offset_photo equals the least squares of the prediction on the photo and its gradient,
-    computed pixel by pixel from the formula (P's own axis neighbours must be valid too, so its
-    border rows and columns are never used)."""
+def _shifted_pair(seed):
+    """A smooth random prediction P (17 × 19), the photo E = 3·P shifted by (1, −1) + 7 + noise,
+    padded by 3, and random masks (90 % valid) for the dense-least-squares alignment checks."""
     rng = np.random.default_rng(seed)
     p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
     e = 3.0 * np.roll(p, (1, -1), axis=(0, 1)) + 7.0 + 0.3 * rng.normal(size=p.shape)
     e = np.pad(e, 3, mode="edge")
     mp = rng.random(p.shape) > 0.1
     me = rng.random(e.shape) > 0.1
+    return p, e, mp, me
+
+
+@given(seed=st.integers(0, 2**31 - 1), o0=st.integers(-3, 3), o1=st.integers(-3, 3))
+@settings(max_examples=30, deadline=None)
+def test_photo_alignment_matches_a_dense_least_squares(seed, o0, o1):
+    """gradient_offset_photo equals the least squares of the prediction on the photo and its gradient,
+    computed pixel by pixel from the formula (P's own axis neighbours must be valid too, so its
+    border rows and columns are never used)."""
+    p, e, mp, me = _shifted_pair(seed)
     dr, dc, good = gradient_offset_photo(e, me, p, mp, (3 + o0, 3 + o1), max_move=1e9)
     rr, rc, gain = _photo_alignment_reference(e, me, p, mp, (3 + o0, 3 + o1))
     assert good == (gain > 0.0)
@@ -1172,12 +1179,7 @@ def _symmetric_alignment_reference(e, me, p, mp, origin, weight):
 def test_symmetric_alignment_matches_a_dense_least_squares(seed, o0, o1, weight):
     """gradient_offset_symmetric equals the formula's least squares computed pixel by pixel, for a
     fixed w and for the w it estimates from the two images' Laplacians."""
-    rng = np.random.default_rng(seed)
-    p = rng.normal(size=(17, 19)).cumsum(axis=0).cumsum(axis=1)
-    e = 3.0 * np.roll(p, (1, -1), axis=(0, 1)) + 7.0 + 0.3 * rng.normal(size=p.shape)
-    e = np.pad(e, 3, mode="edge")
-    mp = rng.random(p.shape) > 0.1
-    me = rng.random(e.shape) > 0.1
+    p, e, mp, me = _shifted_pair(seed)
     dr, dc, w, good = gradient_offset_symmetric(e, me, p, mp, (3 + o0, 3 + o1), weight, max_move=1e9)
     rr, rc, rw, cov = _symmetric_alignment_reference(e, me, p, mp, (3 + o0, 3 + o1), weight)
     assert good == (cov > 0.0)  # a misplaced origin can leave the images anti-correlated: refused

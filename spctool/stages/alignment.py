@@ -138,16 +138,24 @@ def gradient_offset(e, me, p, mp, origin, max_move: float = 1.0):
     return _gradient_offset(*_contiguous(e, me, p, mp), int(origin[0]), int(origin[1]), max_move)
 
 
+def _window(p_shape, e_shape, o0: int, o1: int):
+    """(i0, i1, j0, j1): P's rows i0 ≤ i < i1 and columns j0 ≤ j < j1 that have both axis neighbours
+    in P (central differences) and whose pixel (i + o0, j + o1) and its neighbours lie inside E, for P
+    placed at (o0, o1); None when fewer than one row or column is left."""
+    hp, wp = p_shape
+    he, we = e_shape
+    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
+    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
+    return None if i1 - i0 < 1 or j1 - j0 < 1 else (i0, i1, j0, j1)
+
+
 def _gradient_offset(e, me, p, mp, o0: int, o1: int, max_move: float = 1.0):
     """:func:`gradient_offset` on C-contiguous float64 images and bool masks, P placed at (o0, o1)."""
     nan = (math.nan, math.nan, False)
-    hp, wp = p.shape
-    he, we = e.shape
-    # P rows i with 1 ≤ i ≤ hp − 2 (central differences) whose E row i + o0 is inside E
-    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
-    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
-    if i1 - i0 < 1 or j1 - j0 < 1:
+    window = _window(p.shape, e.shape, o0, o1)
+    if window is None:
         return nan
+    i0, i1, j0, j1 = window
     normal = np.zeros((3, 3))
     rhs = np.zeros(3)
     count = _k_alignment(e, me, p, mp, o0, o1, i0, i1, j0, j1, normal, rhs)
@@ -248,12 +256,10 @@ def gradient_offset_symmetric(e, me, p, mp, origin, weight: float | None = 0.5, 
 def _gradient_offset_symmetric(e, me, p, mp, o0: int, o1: int, weight=0.5, max_move: float = 1.0):
     """:func:`gradient_offset_symmetric` on float64 images and bool masks, P placed at (o0, o1)."""
     nan = (math.nan, math.nan, math.nan, False)
-    hp, wp = p.shape
-    he, we = e.shape
-    i0, i1 = max(1, 1 - o0), min(hp - 1, he - 1 - o0)
-    j0, j1 = max(1, 1 - o1), min(wp - 1, we - 1 - o1)
-    if i1 - i0 < 1 or j1 - j0 < 1:
+    window = _window(p.shape, e.shape, o0, o1)
+    if window is None:
         return nan
+    i0, i1, j0, j1 = window
 
     def five(a, oi, oj):  # centre, row −1, row +1, column −1, column +1 windows
         r0, r1, c0, c1 = i0 + oi, i1 + oi, j0 + oj, j1 + oj
