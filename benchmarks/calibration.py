@@ -89,23 +89,15 @@ def nees(truth_doc, pose):
 
 def picture_figures(root, p, space, weights="uniform"):
     """Per-landmark and per-picture figures of one navigated picture (module docstring)."""
-    from spctool.sim.independent import load_picture
-    from spctool.stages.navigate import NavigateOptions, navigate
+    from spctool.sim.independent import load_picture, navigate_picture
+    from spctool.stages.navigate import NavigateOptions
     from spctool.stages.pose import PoseOptions, solve_pose
     from spctool.stages.register import RegisterOptions
 
-    pic, cam, photo, names, maplets, tp = load_picture(root, p)
-    kw = dict(names=names, prior_sigma_position=pic.sigma_vso, prior_sigma_attitude=pic.sigma_ptg)
+    loaded = load_picture(root, p)
+    pic, cam, photo, names, maplets, tp = loaded
     t = time.process_time()
-    res = navigate(
-        photo,
-        cam,
-        pic.sz,
-        maplets,
-        tuple(pic.thrsh),
-        NavigateOptions(register=RegisterOptions(space=space), weights=weights),
-        **kw,
-    )
+    res = navigate_picture(loaded, NavigateOptions(register=RegisterOptions(space=space), weights=weights))
     cpu = time.process_time() - t
     reg = res.passes[-1].register
     ok = reg.ok & np.all(np.isfinite(reg.covariance), axis=(1, 2))

@@ -106,8 +106,8 @@ def test_low_sun_independent_world_image_space_gains_from_leaving_the_photo_shad
     0.31 → 0.074 px), and says which landmarks it adapted."""
     pytest.importorskip("trimesh")
     from spctool.geometry.shape import embree_available
-    from spctool.sim.independent import IndependentSpec, build_world, load_picture
-    from spctool.stages.navigate import NavigateOptions, navigate
+    from spctool.sim.independent import IndependentSpec, build_world, load_picture, navigate_picture
+    from spctool.stages.navigate import NavigateOptions
 
     if not embree_available():
         pytest.skip("embreex not installed")
@@ -116,17 +116,10 @@ def test_low_sun_independent_world_image_space_gains_from_leaving_the_photo_shad
     for mode in ("use", "auto"):
         e = []
         for p in doc["pictures"]:
-            pic, cam, photo, names, maplets, true_px = load_picture(tmp_path, p)
-            res = navigate(
-                photo,
-                cam,
-                pic.sz,
-                maplets,
-                tuple(pic.thrsh),
-                NavigateOptions(register=RegisterOptions(space="image", photo_shadows=mode)),
-                names=names,
-                prior_sigma_position=pic.sigma_vso,
-                prior_sigma_attitude=pic.sigma_ptg,
+            loaded = load_picture(tmp_path, p)
+            true_px = loaded[5]
+            res = navigate_picture(
+                loaded, NavigateOptions(register=RegisterOptions(space="image", photo_shadows=mode))
             )
             reg = res.passes[-1].register
             assert res.status == "ok" and reg.ok.all()

@@ -28,7 +28,7 @@ import pytest
 
 pytest.importorskip("trimesh")
 from spctool.geometry.shape import embree_available  # noqa: E402
-from spctool.sim.independent import load_picture  # noqa: E402
+from spctool.sim.independent import load_picture, navigate_picture  # noqa: E402
 
 # the worlds take a minute or two to ray-trace: slow (CI runs them, tests/conftest.py)
 pytestmark = [pytest.mark.skipif(not embree_available(), reason="embreex not installed"), pytest.mark.slow]
@@ -50,23 +50,12 @@ def worlds(tmp_path_factory):
 
 
 def _navigate(root, pic_doc, space="maplet", passes=2, **register):
-    from spctool.stages.navigate import NavigateOptions, navigate
+    from spctool.stages.navigate import NavigateOptions
     from spctool.stages.register import RegisterOptions
 
-    pic, cam, photo, names, maplets, truth = load_picture(root, pic_doc)
+    loaded = load_picture(root, pic_doc)
     opts = NavigateOptions(passes=passes, register=RegisterOptions(space=space, **register))
-    res = navigate(
-        photo,
-        cam,
-        pic.sz,
-        maplets,
-        tuple(pic.thrsh),
-        opts,
-        names=names,
-        prior_sigma_position=pic.sigma_vso,
-        prior_sigma_attitude=pic.sigma_ptg,
-    )
-    return res, truth
+    return navigate_picture(loaded, opts), loaded[5]
 
 
 def _errors(reg, truth):

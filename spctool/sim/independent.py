@@ -467,3 +467,23 @@ def load_picture(root, pic_doc: dict):
         [wd.read_maplet(n) for n in names],
         np.array([pic_doc["pixels"][n] for n in names]),
     )
+
+
+def navigate_picture(loaded, options):
+    """Two-pass ``navigate`` of one picture read by :func:`load_picture` (``loaded``, its tuple) with
+    ``options`` (:class:`~spctool.stages.navigate.NavigateOptions`) and the SUM's SIGMA_VSO/SIGMA_PTG
+    as the prior, as ``spctool navigate`` runs it."""
+    from spctool.stages.navigate import navigate
+
+    pic, cam, photo, names, maplets, _ = loaded
+    return navigate(
+        photo,
+        cam,
+        pic.sz,
+        maplets,
+        tuple(pic.thrsh),
+        options,
+        names=names,
+        prior_sigma_position=pic.sigma_vso,
+        prior_sigma_attitude=pic.sigma_ptg,
+    )
