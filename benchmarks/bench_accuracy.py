@@ -95,19 +95,11 @@ def _register_options(space, shading=None):
 
 
 def _run(pic, cam, photo, names, maplets, space, shading=None, **nav):  # navigate's defaults unless given
-    from spctool.stages.navigate import NavigateOptions, navigate
+    from spctool.sim.independent import navigate_picture
+    from spctool.stages.navigate import NavigateOptions
 
-    return navigate(
-        photo,
-        cam,
-        pic.sz,
-        maplets,
-        tuple(pic.thrsh),
-        NavigateOptions(register=_register_options(space, shading), **nav),
-        names=names,
-        prior_sigma_position=pic.sigma_vso,
-        prior_sigma_attitude=pic.sigma_ptg,
-    )
+    loaded = (pic, cam, photo, names, maplets, None)
+    return navigate_picture(loaded, NavigateOptions(register=_register_options(space, shading), **nav))
 
 
 def _figures(truth, space, sun="high", shading=None):
