@@ -476,6 +476,88 @@ def bench_maplet_two_threads_cpu():
     return s["cpu"], f"x (load {s['load']:.1f})", True
 
 
+_WHERE: dict = {}
+
+
+def _maplet_where():
+    """Where a two-worker maplet pass spends what one thread does not (issue 39's 1.7×): the same
+    16-landmark pass with its landmark tasks timed (thread CPU, written to shared memory by whichever
+    process ran each), 15 pairs after a warm pair, one worker (the same code path, no fork) against two;
+    medians of ``{"inflation"}`` — the landmarks' CPU in two processes together over the same
+    landmarks' CPU in one (page faults after the fork and the two cores' shared caches and memory) —
+    and ``{"pages"}``: pages the child writes from its fork to its last landmark (its ``ru_minflt``;
+    each a new page: copy-on-write or zero-fill), ``"overhead_ms"``: the critical process's CPU beyond
+    its landmarks (set-up, the fork, the claims and results), ``"load"``."""
+    if _WHERE:
+        return _WHERE
+    import mmap
+    import resource
+
+    from spctool import workers
+
+    w = _load16()
+    shared = np.frombuffer(mmap.mmap(-1, 8 * 80), dtype=np.float64)  # [0:32] task CPU, [32:64] by parent
+    parent, forked_map = os.getpid(), workers.forked_map
+
+    def timed(task, n, count, on_result=None):
+        shared[:] = 0.0
+
+        def one(i):
+            t = time.thread_time()
+            rec = task(i)
+            shared[i] = time.thread_time() - t
+            shared[32 + i] = os.getpid() == parent
+            if os.getpid() != parent:
+                shared[79] = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            return rec
+
+        return forked_map(one, n, count, on_result)
+
+    def run():
+        register(w["photo"], w["camera"], w["sun"], w["maplets"], w["thresholds"],
+                 RegisterOptions(space="maplet", threads=2), names=w["names"])  # fmt: skip
+
+    rows = []
+    loads = [os.getloadavg()[0]]
+    try:
+        workers.forked_map = timed
+        run(), run()
+        for _ in range(15):
+            workers.forked_map = lambda task, n, count, on_result=None: timed(task, n, 1, on_result)
+            run()
+            one = shared[:32].sum()
+            workers.forked_map = timed
+            k, c = workers.children_cpu(), time.process_time()
+            run()
+            cpu_parent, cpu_child = time.process_time() - c, workers.children_cpu() - k
+            mine = shared[32:64] > 0
+            tasks_parent, tasks_child = shared[:32][mine].sum(), shared[:32][~mine].sum()
+            crit = max((cpu_parent, tasks_parent), (cpu_child, tasks_child))
+            rows.append(((tasks_parent + tasks_child) / one, shared[79], (crit[0] - crit[1]) * 1e3))
+    finally:
+        workers.forked_map = forked_map
+    loads.append(os.getloadavg()[0])
+    med = np.median(np.array(rows), axis=0)
+    _WHERE.update(inflation=float(med[0]), pages=float(med[1]), overhead_ms=float(med[2]))
+    _WHERE["load"] = float(np.mean(loads))
+    return _WHERE
+
+
+def bench_maplet_where_inflation():
+    s = _maplet_where()
+    return s["inflation"], f"x (load {s['load']:.1f})", True
+
+
+def bench_maplet_where_pages():
+    s = _maplet_where()
+    return s["pages"], "pages", True
+
+
+def bench_maplet_where_overhead():
+    s = _maplet_where()
+    return s["overhead_ms"], f"ms (load {s['load']:.1f})", True
+
+
 _COLD: dict = {}
 
 
@@ -639,6 +721,21 @@ BENCHMARKS = [
         "register maplet S16 pass 16 landmarks, 2 threads' CPU / 1 thread's (no fork)",
         "(informative)",
         bench_maplet_two_threads_cpu,
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, 2 workers: landmarks' CPU in two processes / in one",
+        "(informative: page faults after the fork, shared caches)",
+        bench_maplet_where_inflation,
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, 2 workers: pages the child writes",
+        "(informative: each a new page)",
+        bench_maplet_where_pages,
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, 2 workers: critical process's CPU beyond its landmarks",
+        "(informative: set-up, fork, claims, results)",
+        bench_maplet_where_overhead,
     ),
     (
         "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (CPU critical path)",
