@@ -31,7 +31,8 @@ from spctool.stages.register import RegisterOptions, register  # noqa: E402
 _MODULES = (
     "spctool.stages.register", "spctool.stages.registrar", "spctool.stages.extract", "spctool.stages.predict",
     "spctool.stages.correlate", "spctool.stages.alignment", "spctool.geometry.heightfield",
-    "spctool.geometry._heightkernels", "spctool.geometry.camera", "spctool.geometry.frames",
+    "spctool.geometry._heightkernels", "spctool.geometry.camera", "spctool.geometry._camerakernels",
+    "spctool.geometry.frames",
     "spctool.photometry",
 )  # fmt: skip
 

@@ -32,7 +32,7 @@ from spctool.cli.common import Context, pass_context
 #: sentinel kernels per family: (module, function); a family is warm when its kernels' cache index
 #: files exist (kernels inlined into others have none and are not listed)
 FAMILIES = {
-    "camera": (("spctool.geometry.camera", "_k_project_body"),),
+    "camera": (("spctool.geometry._camerakernels", "_k_project_body"),),
     "maplet": (
         ("spctool.geometry._heightkernels", "slopes"),
         ("spctool.stages.extract", "_k_sample_nodes"),
@@ -312,11 +312,11 @@ HELPED = ("demo", "navigate")
 #: int64, bool, uint8 array, ``r`` read-only; FN a tuple of N float64.  tests/test_progress.py checks
 #: that a register on the demo uses exactly these.
 REGISTER_KERNELS = (
-    ("spctool.geometry.camera", "_k_invert", "f1 f1 F34 i F5 f i f2r f1 f1 f2 i1"),
+    ("spctool.geometry._camerakernels", "_k_invert", "f1 f1 F34 i F5 f i f2r f1 f1 f2 i1"),
     ("spctool.stages.extract", "_k_node_positions", "f2 f f f1 f1 f1 f1 f3"),
-    ("spctool.geometry.camera", "_k_project_body", "f2 f2r f1r F34 i f1 f1 b1"),
+    ("spctool.geometry._camerakernels", "_k_project_body", "f2 f2r f1r F34 i f1 f1 b1"),
     ("spctool.geometry._heightkernels", "slopes", "f2 b2 f2 f2 b2"),
-    ("spctool.geometry.camera", "_k_jac_camera", "f2 F34 i f1 f1 f3"),
+    ("spctool.geometry._camerakernels", "_k_jac_camera", "f2 F34 i f1 f1 f3"),
     ("spctool.stages.extract", "_k_sample_nodes", "f2 f2 f2 b2 b2 ? ? f f f f f b2 b2 f2 b2"),
     ("spctool.stages.extract", "_k_shadow_offsets", "f f i i ? ? i"),
     ("spctool.stages.extract", "_enhance_kernel", "b2 i2 i2 b2 b2"),

@@ -63,7 +63,7 @@ def _cubic_at(g, a, b, wa, wb):
 @numba.njit(**_JIT)
 def _k_cubic(smp, lin, gxn, gyn, s0, l0, step, good, rot, dirs, redo):
     """Directions from the bicubic interpolant of the grid's exact inverses (no Newton step) in the
-    cells that ``camera._k_cubic_cells`` found ``good``; ``redo`` elsewhere."""
+    cells that ``_camerakernels._k_cubic_cells`` found ``good``; ``redo`` elsewhere."""
     rr = rotation_tuple(rot)
     ns = gxn.shape[0]
     nl = gxn.shape[1]
