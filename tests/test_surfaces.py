@@ -1,6 +1,6 @@
 """A height patch's render-ready set-up (:mod:`spctool.geometry.surfaces`) against its references.
 
-:class:`HeightPatch` sanitises its grids in one pass (``_heightkernels.patch_maps``) and derives the
+:class:`HeightPatch` sanitises its grids in one pass (``_patchgrids.patch_maps``) and derives the
 slopes, cell tops and both near-step reaches in one call (``patch_grids``); :class:`PatchSet` computes
 the Sun's upwind maxima and horizon bounds in one sweep (``sun_bounds``).  Each is held to the last bit
 to the separate reference computations it replaces (``np.where``/``np.isfinite`` sanitation,
@@ -17,6 +17,7 @@ import pytest
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import _heightkernels as hk
+from spctool.geometry import _patchgrids as pg
 from spctool.geometry import heightfield
 from spctool.geometry.surfaces import LIT_CELLS, NEAR_CELLS, HeightPatch, PatchSet
 
@@ -59,7 +60,7 @@ def test_patch_grids_equal_the_reference_kernels(seed):
     albedo = rng.uniform(0.5, 1.5, size=h.shape)
     maps = np.empty((4, n0, n1))
     ok = np.empty((n0, n1), bool)
-    zlo, zhi = hk.patch_maps(h, valid, albedo, maps, ok)
+    zlo, zhi = pg.patch_maps(h, valid, albedo, maps, ok)
     assert _same(ok, valid) and _same(maps[0], h) and _same(maps[3], np.where(valid, albedo, 0.0))
     if valid.any():
         assert (zlo, zhi) == (h[valid].min(), h[valid].max())
@@ -71,7 +72,7 @@ def test_patch_grids_equal_the_reference_kernels(seed):
         got_usable = np.empty(h.shape, bool)
         got_tops = np.empty((n0 - 1, n1 - 1))
         near = np.empty((n0 - 1, n1 - 1, 4))
-        hk.patch_grids(maps, valid, big, ra, rb, got_usable, got_tops, near)
+        pg.patch_grids(maps, valid, big, ra, rb, got_usable, got_tops, near)
         assert _same(maps[1], hx) and _same(maps[2], hy) and _same(got_usable, usable)
         assert _same(got_tops, tops)
         for c, reach in ((0, ra), (2, rb)):
@@ -86,11 +87,11 @@ def test_patch_maps_drops_non_finite_heights():
     valid = np.ones((5, 5), bool)
     valid[0, 0] = False
     maps, ok = np.empty((4, 5, 5)), np.empty((5, 5), bool)
-    zlo, zhi = hk.patch_maps(h, valid, np.full((5, 5), 2.0), maps, ok)
+    zlo, zhi = pg.patch_maps(h, valid, np.full((5, 5), 2.0), maps, ok)
     want = valid & np.isfinite(h)
     assert _same(ok, want) and _same(maps[0], np.where(want, h, 0.0))
     assert _same(maps[3], np.where(want, 2.0, 0.0)) and (zlo, zhi) == (1.0, 24.0)
-    assert hk.patch_maps(h, np.zeros((5, 5), bool), h, maps, ok) == (np.inf, -np.inf)
+    assert pg.patch_maps(h, np.zeros((5, 5), bool), h, maps, ok) == (np.inf, -np.inf)
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -106,7 +107,7 @@ def test_sun_bounds_equal_upwind_max_and_horizon_bound(seed):
         hk.horizon_bound(tops, au, aw, az, want_hor, want_ent)
         # into plane 1 of padded stacks: the rest untouched
         up, hor, ent = (np.full((3, m0 + 2, m1 + 1), 7.0) for _ in range(3))
-        hk.sun_bounds(tops, au, aw, az, 1, up, hor, ent)
+        pg.sun_bounds(tops, au, aw, az, 1, up, hor, ent)
         for got, want in ((up, want_up), (hor, want_hor), (ent, want_ent)):
             assert _same(got[1, :m0, :m1], want), (au, aw, az)
             assert np.all(got[0] == 7.0) and np.all(got[2] == 7.0)

@@ -29,7 +29,7 @@ import numpy as np
 
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
-from spctool.geometry._heightkernels import patch_grids, patch_maps, sun_bounds
+from spctool.geometry._patchgrids import patch_grids, patch_maps, sun_bounds
 from spctool.geometry._patchkernels import (
     _crossings,
     _in_boxes,
@@ -170,7 +170,7 @@ class HeightPatch:
 
     @cached_property
     def _grids(self):
-        """(stacked maps, usable, cell tops, near steps): :func:`spctool.geometry._heightkernels.patch_grids`
+        """(stacked maps, usable, cell tops, near steps): :func:`spctool.geometry._patchgrids.patch_grids`
         fills the slopes' planes of the maps and computes the other grids, every derived grid in one call."""
         n = self.heights.shape[0]
         usable = np.empty((n, n), bool)
