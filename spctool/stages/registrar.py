@@ -884,7 +884,12 @@ class Registrar:
             part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint, return_cells=True)
             lm.hits = (camera, frac.copy(), nss, win, part)
             if self.patch_cache is not None and lm.proj is not None and lm.proj[0] is camera:
-                self.patch_cache[("template", lm.name)] = (lm.proj[1], lm.hits)
+                # the last render, and the last at this supersampling (a later call's first template
+                # under another camera is hinted only by one with its own rays: _carried_hint)
+                self.patch_cache[("template", lm.name)] = self.patch_cache[("template", lm.name, nss)] = (
+                    lm.proj[1],
+                    lm.hits,
+                )
         if part is not None and (cs0, cl0) == (s0, l0):
             rend = part  # the whole window in the photo: the render is the template
         else:  # sky (radiance and coverage 0) left of / above the photo
@@ -917,8 +922,15 @@ class Registrar:
         cam_old, f_old, k, win_old, prev = hits
         if cam_old is camera:
             return _cells_hint(hits, camera, frac, nss, window, n)
-        if k != nss:
-            return None
+        if k != nss:  # another camera: the last template with this one's rays (the image plan's coarse
+            # phase renders one ray per pixel, its fine phase ends on 2 × 2)
+            carried = self.patch_cache.get(("template", lm.name, nss))
+            if carried is None:
+                return None
+            v_old, hits = carried
+            cam_old, f_old, k, win_old, prev = hits
+            if cam_old is camera:
+                return None
         from spctool.stages.render import predicted_cells
 
         v_new = lm.proj[1]

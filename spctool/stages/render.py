@@ -534,7 +534,8 @@ def _fused_chunk(
         sun_shade,
         options.shadows,
         options.shadow_offset_cells,
-        pset.fused_arrays(sun_shade, fast),
+        # the Sun's bounds only serve the cast-shadow test (without it: +inf, computed once per set)
+        pset.fused_arrays(sun_shade if options.shadows else None, fast),
         threads=options.threads,
         facet=options.shading == "facet",
         cand=cand,
