@@ -356,6 +356,12 @@ def test_default_plans():
     assert o.converge_tol == RegisterOptions().converge_tol == 0.005
     assert mc.default_plan("image", converge_tol=0.005)[1].converge_tol == 0.005
     assert len(mc.default_plan("image", refine=0)) == 1
+    # the converged stage's cost (issue 39): drafts to 0.05 px (at most 3), then the first 2 × 2
+    # template ends it below 0.03 px; register keeps 0.15 px, no cap, every full step verified
+    assert (fine.converge_draft_tol, fine.converge_draft_max, fine.converge_accept) == (
+        mc.IMAGE_DRAFT_TOL, mc.IMAGE_DRAFT_MAX, mc.IMAGE_CONVERGE_ACCEPT) == (0.05, 3, 0.03)  # fmt: skip
+    assert (reg.converge_draft_tol, reg.converge_draft_max, reg.converge_accept) == (0.15, 0, 0.0)
+    assert mc.default_plan("image", converge_accept=0.0)[1].converge_accept == 0.0
     with pytest.raises(SpcUsageError):
         mc.default_plan("pixel")
     with pytest.raises(SpcUsageError):
@@ -641,6 +647,30 @@ def test_s16_spec_camera_and_scene_window():
     px = 0.05 * cam.ifov
     expected = math.sqrt(2) * 49.5e-5 / px + 5 * math.hypot(1.667e-4 / px, math.radians(0.05) / cam.ifov) + 60
     assert mcs.scene_window_half(cam, m) == math.ceil(expected)
+
+
+def test_zero_perturbation_floor_is_registered_without_the_accepted_step(scene, monkeypatch):
+    """The image plan's samples may end on an unverified full step (``converge_accept``), whose error
+    averages out of their means but not out of the floor's one registration: the floor runs the plan
+    with it off, and otherwise the same phases."""
+    plan = mc.default_plan("image", s16_spacings=(5, 4, 3, 2, 1))
+    assert plan[1].converge_accept > 0
+    cfg = mc.MonteCarloConfig(samples=1, space="image", plan=plan)
+    seen = []
+    real = mc.register_sample
+
+    def spy(scene_, p, plan_, carry=None):
+        seen.append(plan_)
+        return real(scene_, p, plan_, carry)
+
+    monkeypatch.setattr(mc, "register_sample", spy)
+    floor = mc.zero_floor(scene, cfg)
+    (used,) = seen
+    assert [o.converge_accept for o in used] == [0.0, 0.0]
+    assert [dataclasses.replace(o, converge_accept=a) for o, a in zip(used, (0.0, 0.03))] == list(plan)
+    zero = {q.name: np.zeros(q.size) for q in mc.PARAMETERS}
+    ref = real(scene, mc.Perturbed(scene.camera, scene.sun, scene.maplets[0], zero), used)
+    assert _same(floor[0], scene.truth[0] - ref.measured[0])
 
 
 def test_zero_perturbation_floor_is_reported_beside_the_bias(scene):

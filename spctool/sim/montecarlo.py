@@ -299,6 +299,20 @@ IMAGE_GRID_HALF = 3
 #: the path alone moves samples as far), 0.7 fewer renders per sample: 47 → 40 s on 2 jobs
 IMAGE_CONVERGE_TOL = 0.01
 
+#: the image plan's converged stage (issue 39, the plan's cost): its one-ray drafts run until a move is
+#: below IMAGE_DRAFT_TOL px (register's 0.15; at most IMAGE_DRAFT_MAX of them), and its first 2 × 2
+#: template ends it when that step moves the estimate by less than IMAGE_CONVERGE_ACCEPT px (its secant
+#: move taken: :attr:`RegisterOptions.converge_accept`).  Where the drafts stopped at 0.15 px, a
+#: sample's first full step moved 0.028 px (median) and a second full template followed in 90 % of the
+#: samples, a third in 20 %: 2.1 of them per sample at four times a draft's rays.  Now 1.35 full templates
+#: and 1.7 drafts.  The accepted move's error (a fraction of it: the secant's gain error) is a noise that
+#: averages out of the means: s16-50m, 12 × 100 against the stage converged to 0.001 px, per-sample rms
+#: 0.0025 px, every landmark's mean within 0.0007 px (docs/benchmarks.md "image plan's cost").  Not out
+#: of one registration, so the zero-perturbation floor is registered without it (:func:`zero_floor`)
+IMAGE_DRAFT_TOL = 0.05
+IMAGE_DRAFT_MAX = 3
+IMAGE_CONVERGE_ACCEPT = 0.03
+
 
 #: the maplet plan's converged-stage estimator: the least-squares alignment with the photo's gradient as
 #: regressor (:func:`spctool.stages.alignment.gradient_offset_photo`).  The study's maplets carry an
@@ -372,7 +386,10 @@ def default_plan(
       rendered once (re-rendered only if its sub-pixel placement moves by more than half a bin),
       then ``refine`` steps at L = 1 that re-render the template at the current estimate every time,
       ending with register's converged stage (the coarse phase then runs its schedule only), stopped
-      at moves below :data:`IMAGE_CONVERGE_TOL` (0.01 px, where register's default is 0.005).  Its
+      at moves below :data:`IMAGE_CONVERGE_TOL` (0.01 px, where register's default is 0.005), or at
+      its first full template's move below :data:`IMAGE_CONVERGE_ACCEPT` (0.03 px) after one-ray drafts
+      to :data:`IMAGE_DRAFT_TOL` (0.05 px; ``converge_accept=0, converge_draft_tol=0.15,
+      converge_draft_max=0`` is the plan before, with the same measurements as then).  Its
       templates have no cast shadows and, in the fine phase, 2 × 2 rays per pixel at L = 1 (the coarse
       phase, which only acquires, one ray), and the converged stage fits the
       template on the photo (:data:`IMAGE_SUPERSAMPLE`, :data:`IMAGE_TEMPLATE_SHADOWS`,
@@ -435,6 +452,9 @@ def default_plan(
                 grid_half=IMAGE_GRID_HALF,
                 rerender_tol=0.0,
                 converge_tol=IMAGE_CONVERGE_TOL,
+                converge_draft_tol=IMAGE_DRAFT_TOL,
+                converge_draft_max=IMAGE_DRAFT_MAX,
+                converge_accept=IMAGE_CONVERGE_ACCEPT,
             )
             fine.update({k: v for k, v in changes.items() if k not in ("steps", "grid_half")})
             fine["steps"] = (1,) * refine
@@ -702,12 +722,15 @@ def _run_chunk(landmark: int, start: int, stop: int):
 def zero_floor(scene, config: MonteCarloConfig) -> np.ndarray:
     """(L, 2) truth − measured of every landmark registered with its knowledge unperturbed (the
     a-priori pose, maplet, camera and Sun of ``scene``, ``config.plan``): the bias the study would
-    show with every Table 2 sigma at zero — the floor its per-landmark means are to be read against."""
+    show with every Table 2 sigma at zero — the floor its per-landmark means are to be read against.
+    Each converged stage ends on a verified step (``converge_accept`` off: the samples' shortcut
+    leaves an error that averages out of their means, not out of one registration)."""
     out = np.full((len(scene), 2), np.nan)
     zero = {p.name: np.zeros(p.size) for p in PARAMETERS}
+    plan = tuple(dataclasses.replace(o, converge_accept=0.0) if o.converge_accept else o for o in config.plan)
     for i in range(len(scene)):
         p = Perturbed(scene.camera, scene.sun, scene.maplets[i], zero)
-        res = register_sample(scene, p, config.plan)
+        res = register_sample(scene, p, plan)
         if res.status[0] == "ok":
             out[i] = scene.truth[i] - res.measured[0]
     return out

@@ -162,9 +162,14 @@ class RegisterOptions:
     * image space: ``supersample`` (rays per pixel axis of the template, 2; ``supersample_coarse``,
       1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``converge_draft`` (True: the
       converged stage's steps render at ``supersample_coarse``, a quarter of the rays, until one
-      moves the estimate by less than 0.15 px (``register._DRAFT_TOL``), then at ``supersample``;
-      it only stops on a full template, so the result is that template's zero; the draft steps only
-      bring it near first), ``image_shadows`` (use
+      moves the estimate by less than ``converge_draft_tol`` (0.15 px) or ``converge_draft_max`` of
+      them have run (0: no cap but ``converge_max``), then at ``supersample``; it only stops on a full
+      template, so the result is that template's zero; the draft steps only bring it near first),
+      ``converge_accept`` (px, 0 = off: the stage also ends at its first full-template step when that
+      step moves the estimate by less than this — the step's secant move taken, not verified by
+      another template, as a step below ``converge_tol`` is; the Monte Carlo's image plan, whose
+      drafts leave the first full step a few hundredths of a pixel to go: its error, a fraction of
+      that move, averages out of the study's means), ``image_shadows`` (use
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
@@ -224,6 +229,9 @@ class RegisterOptions:
     supersample: int = 2
     supersample_coarse: int = 1
     converge_draft: bool = True
+    converge_draft_tol: float = 0.15
+    converge_draft_max: int = 0
+    converge_accept: float = 0.0
     image_shadows: bool = True
     rerender_tol: float = 0.0005
     rerender_tol_coarse: float = 1.0
@@ -294,6 +302,13 @@ class RegisterOptions:
         self.acquire_reach = int(self.acquire_reach)
         if not float(self.converge_tol) > 0.0:
             raise SpcUsageError(f"converge_tol must be > 0 px, got {self.converge_tol}")
+        if not float(self.converge_draft_tol) > 0.0:
+            raise SpcUsageError(f"converge_draft_tol must be > 0 px, got {self.converge_draft_tol}")
+        if int(self.converge_draft_max) != self.converge_draft_max or int(self.converge_draft_max) < 0:
+            raise SpcUsageError(f"converge_draft_max must be an integer >= 0, got {self.converge_draft_max}")
+        self.converge_draft_max = int(self.converge_draft_max)
+        if not float(self.converge_accept) >= 0.0:
+            raise SpcUsageError(f"converge_accept must be >= 0 px, got {self.converge_accept}")
         if int(self.converge_max) != self.converge_max or int(self.converge_max) < 0:
             raise SpcUsageError(f"converge_max must be an integer >= 0, got {self.converge_max}")
         self.converge_max = int(self.converge_max)
