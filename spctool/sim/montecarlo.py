@@ -83,11 +83,14 @@ Speed.  Everything that does not change per sample (the photo as float64, the tr
 designs) is computed once; samples run in chunks on ``jobs`` worker processes (forked where
 :func:`spctool.workers.start_method` finds it safe: they start with the scene and the loaded modules,
 no import, no 40 MB pickle of the photo; else spawned), each capped at one numba thread.  Maplet
-space costs one registration with 12 extraction/correlation steps per sample; image space about four template
-renders (:mod:`spctool.stages.render`, ray-traced with cast shadows), which dominate its cost; each
-sample hands its last template to the landmark's next one (``register_sample``'s ``carry``), whose
-first template starts most rays in the cell they hit (a hint only: the same results; only between
-templates with the same rays per pixel, so not with the image plan's 2 × 2, whose first template has one).
+space costs one registration with 12 extraction/correlation steps per sample; image space about three
+template renders (:mod:`spctool.stages.render`), which dominate its cost: the coarse phase acquires
+with the landmark's unperturbed template, rendered once per landmark (:func:`acquisition_template`),
+the fine phase renders one-ray drafts (1.6 per sample) and 2 × 2 templates (1.4; issue 39: the first
+one ends the stage when its move is below :data:`IMAGE_CONVERGE_ACCEPT`).  Each sample hands its last
+templates, the last per rays per pixel, to the landmark's next one (``register_sample``'s ``carry``),
+whose first template of each kind starts most rays in the cell they hit (a hint only: the same
+results).
 """
 
 from __future__ import annotations
@@ -389,7 +392,8 @@ def default_plan(
       at moves below :data:`IMAGE_CONVERGE_TOL` (0.01 px, where register's default is 0.005), or at
       its first full template's move below :data:`IMAGE_CONVERGE_ACCEPT` (0.03 px) after one-ray drafts
       to :data:`IMAGE_DRAFT_TOL` (0.05 px; ``converge_accept=0, converge_draft_tol=0.15,
-      converge_draft_max=0`` is the plan before, with the same measurements as then).  Its
+      converge_draft_max=0`` is the stage before; :func:`run` also has every sample's coarse phase
+      acquire with the landmark's unperturbed template, :func:`acquisition_template`).  Its
       templates have no cast shadows and, in the fine phase, 2 × 2 rays per pixel at L = 1 (the coarse
       phase, which only acquires, one ray), and the converged stage fits the
       template on the photo (:data:`IMAGE_SUPERSAMPLE`, :data:`IMAGE_TEMPLATE_SHADOWS`,
