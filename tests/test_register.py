@@ -1222,9 +1222,13 @@ def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypat
     first = register(*args, patch_cache=cache)
     second = register(*args, patch_cache=cache)
     assert len(built) == 1 and [k for k in cache if not isinstance(k, tuple)] == [id(scene.maplet)]
-    # and the landmark's last template, under its name (a hint for a later call's first template)
-    # (and the settings made from the options, once for both calls)
-    assert sorted(k[0] for k in cache if isinstance(k, tuple)) == ["options", "template"]
+    # and the landmark's last template, under its name, and the last per rays per pixel (hints for a
+    # later call's first template) (and the settings made from the options, once for both calls)
+    assert sorted(k[0] for k in cache if isinstance(k, tuple)) == ["options"] + ["template"] * 3
+    name = next(k[1] for k in cache if isinstance(k, tuple) and k[0] == "template")
+    per_rays = {("template", name, n) for n in (1, 2)}  # the one-ray drafts, the 2 × 2 templates
+    templates = {k for k in cache if isinstance(k, tuple) and k[0] == "template"}
+    assert templates == {("template", name)} | per_rays
     assert cache[("options", id(opts))][0] is opts
     assert projected == [cam]  # the second call reused the window
     plain = register(*args)
