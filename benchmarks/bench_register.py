@@ -39,7 +39,9 @@ landmark on one core; a 16-landmark picture cold 7.2 s):
   (12 landmarks × 500 samples; scene from ``SPCTOOL_MC_SCENE`` when set, its build not timed).
   Target ≤ 20 s for the study (``timing.run_s``: the 6000 registrations on the 2 workers; issue 17,
   met by the plan before issue 39 — one ray, shadowed templates, ``gradient`` — which issue 39's
-  per-landmark targets replaced with 2 × 2 rays in the fine phase: ~46 s on quiet cores); the
+  per-landmark targets replaced with 2 × 2 rays in the fine phase: ~46 s on quiet cores, ~0.7× that
+  since its first full template may end the converged stage and its coarse phase acquires with each
+  landmark's unperturbed template, docs/benchmarks.md "The image plan's cost"); the
   ``whole command`` line is the same process's wall from start to exit (interpreter, imports, scene
   file, the designs, the study and the report).
 

@@ -786,6 +786,50 @@ def test_converged_stage_drafts_then_ends_on_full_templates(scene, monkeypatch, 
     assert not reg_mod._drafts(RegisterOptions(space="maplet"))
 
 
+def test_converged_stage_draft_tolerance_cap_and_accepted_first_full_step(scene, monkeypatch):
+    """``converge_draft_tol`` / ``converge_draft_max``: the drafts run until a move is below the
+    tolerance or the cap is reached; ``converge_accept``: the first full template ends the stage when
+    its move is below it (its secant move taken).  Counted by the templates rendered; the accepted
+    estimate is within a fraction of its last move of the stage verified to the end, and of the truth."""
+    import spctool.stages.render as rmod
+
+    rays = []
+    real = rmod.render
+
+    def counting(camera, sun, shape=None, patches=(), options=None, **k):
+        rays.append(int(options.supersample))
+        return real(camera, sun, shape, patches, options, **k)
+
+    monkeypatch.setattr(rmod, "render", counting)
+    cam = rs.pointing_error(scene.camera, 4.6, -2.3)
+
+    def run(**kw):
+        rays.clear()
+        opts = RegisterOptions(space="image", steps=(4, 1), threads=1, **kw)
+        r = register(scene.photo, cam, scene.sun, [scene.maplet], scene.thresholds, opts)
+        assert r.status == ["ok"]
+        return r, rays.count(1) - 1, rays.count(2)  # drafts (the L = 4 template is one ray too), fulls
+
+    verified, d0, f0 = run(converge_tol=0.001)
+    assert d0 >= 1 and f0 >= 2
+    # a draft tolerance no move reaches: the cap ends the drafts (the schedule's own L = 1 step included)
+    _, capped, _ = run(converge_tol=0.001, converge_draft_tol=1e-9, converge_draft_max=3)
+    assert capped == 3
+    _, one, _ = run(converge_tol=0.001, converge_draft_tol=1e-9, converge_draft_max=1)
+    assert one == 1
+    # the first full step accepted: one 2 × 2 template, the estimate near the verified one
+    accepted, d1, f1 = run(converge_tol=0.001, converge_draft_tol=0.02, converge_accept=0.5)
+    assert f1 == 1 and d1 >= d0
+    assert np.hypot(*(accepted.measured[0] - verified.measured[0])) < 0.01
+    assert np.all(_err(accepted, scene.truth_pixel) < 0.05)
+    # a bound below the first full move: verified steps as before
+    strict, _, f2 = run(converge_tol=0.001, converge_draft_tol=0.02, converge_accept=1e-6)
+    assert f2 >= 2 and np.hypot(*(strict.measured[0] - verified.measured[0])) < 0.005
+    for bad in (dict(converge_draft_tol=0.0), dict(converge_draft_max=-1), dict(converge_accept=-0.1)):
+        with pytest.raises(SpcUsageError):
+            RegisterOptions(**bad)
+
+
 def test_image_space_threads_do_not_change_results(scene):
     """Landmarks run in parallel (one thread per landmark task); N threads give one thread's result
     bit for bit."""
@@ -1178,9 +1222,13 @@ def test_patch_cache_builds_each_patch_once_and_changes_nothing(scene, monkeypat
     first = register(*args, patch_cache=cache)
     second = register(*args, patch_cache=cache)
     assert len(built) == 1 and [k for k in cache if not isinstance(k, tuple)] == [id(scene.maplet)]
-    # and the landmark's last template, under its name (a hint for a later call's first template)
-    # (and the settings made from the options, once for both calls)
-    assert sorted(k[0] for k in cache if isinstance(k, tuple)) == ["options", "template"]
+    # and the landmark's last template, under its name, and the last per rays per pixel (hints for a
+    # later call's first template) (and the settings made from the options, once for both calls)
+    assert sorted(k[0] for k in cache if isinstance(k, tuple)) == ["options"] + ["template"] * 3
+    name = next(k[1] for k in cache if isinstance(k, tuple) and k[0] == "template")
+    per_rays = {("template", name, n) for n in (1, 2)}  # the one-ray drafts, the 2 × 2 templates
+    templates = {k for k in cache if isinstance(k, tuple) and k[0] == "template"}
+    assert templates == {("template", name)} | per_rays
     assert cache[("options", id(opts))][0] is opts
     assert projected == [cam]  # the second call reused the window
     plain = register(*args)

@@ -293,22 +293,32 @@ def test_cells_hint_rules():
     assert _cells_hint(None, cam, f0, 1, win, n) is None
     assert _cells_hint(hits, other, f0, 1, win, n) is None
     assert _cells_hint(hits, cam, f0, 1, (1, 3, 1, 3), n) is None
+    # a finer supersampling: the one-ray positions read at its sub-rays, any phase (sub-ray c of 2 looks
+    # through s0 + (c + ½)/2 − ½ − f: the one-ray lattice's c/2 − ¼ + (f0 − f))
+    for df in ([0.9 * _HINT_REACH, 0.0], [-0.7, 0.4]):
+        up = _cells_hint(hits, cam, f0 + df, 2, win, n)
+        want = _predict_brute(pos, -0.25 - df[0], -0.25 - df[1], n, (4, 6), 0.5)
+        np.testing.assert_array_equal(up, want)
+        assert (up >= 0).sum() >= 6
+    # without positions: its cells repeated over the sub-rays, within reach of its phase only
+    bare = (cam, f0, 1, win, rmod.Rendering(*(np.zeros((2, 3)),) * 4, win, RenderOptions(), cells, None))
     near = f0 + [0.9 * _HINT_REACH, 0.0]
-    up = _cells_hint(hits, cam, near, 2, win, n)
+    up = _cells_hint(bare, cam, near, 2, win, n)
     np.testing.assert_array_equal(up, np.repeat(np.repeat(cells, 2, 0), 2, 1))
-    assert _cells_hint(hits, cam, f0 + [1.1 * _HINT_REACH, 0.0], 2, win, n) is None
+    assert _cells_hint(bare, cam, f0 + [1.1 * _HINT_REACH, 0.0], 2, win, n) is None
     fine = rmod.Rendering(*(np.zeros((2, 3)),) * 4, (1, 3, 1, 2), RenderOptions(supersample=2), up, None)
     assert _cells_hint((cam, near, 2, win, fine), cam, near, 1, win, n) is None
 
 
-def _predict_brute(pos, ds, dl, n, shape=None):
+def _predict_brute(pos, ds, dl, n, shape=None, step=1.0):
     """:func:`predict_cells` by NumPy: bilinear positions where all four neighbours hit, else the
-    nearest lattice point's, else −2 (``shape``: the output's, default ``pos``'s lattice)."""
+    nearest lattice point's, else −2 (``shape``: the output's, default ``pos``'s lattice; ``step``: the
+    output's spacing on ``pos``'s lattice)."""
     nl, ns = pos.shape[:2]
     out = np.full(pos.shape[:2] if shape is None else shape, -2, np.int64)
     for r in range(out.shape[0]):
         for c in range(out.shape[1]):
-            y, x = r + dl, c + ds
+            y, x = r * step + dl, c * step + ds
             b, a = min(int(np.floor(y)), nl - 2), min(int(np.floor(x)), ns - 2)
             uw = None
             if 0 <= b and 0 <= a and 0 <= y - b <= 1 and 0 <= x - a <= 1:
@@ -345,6 +355,10 @@ def test_predict_cells_against_numpy(seed):
         predict_cells(pos, 1.25, -0.5, n, out)
         np.testing.assert_array_equal(out, _predict_brute(pos, 1.25, -0.5, n, shape), err_msg=str(shape))
         assert np.all(out[:, 6:] == -2)  # more than half a lattice step beyond the earlier lattice
+    # a finer lattice (half the spacing: 2 × 2 sub-rays after a one-ray render)
+    out = np.empty((14, 12), np.int64)
+    predict_cells(pos, -0.25 + 0.3, -0.25 - 0.2, n, out, 0.5)
+    np.testing.assert_array_equal(out, _predict_brute(pos, 0.05, -0.45, n, (14, 12), 0.5))
 
 
 @pytest.mark.parametrize("shift", [0.05, 0.25, 0.5])
@@ -362,6 +376,31 @@ def test_predicted_cells_find_most_hits_at_another_phase(shift):
     hit = now.cells >= 0
     assert np.mean(pred[hit] == now.cells[hit]) > 0.85
     assert np.mean(pred[hit] == now.cells[hit]) > np.mean(prev.cells[hit] == now.cells[hit]) - 1e-9
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.2, 0.45])
+def test_one_ray_positions_predict_a_finer_render(shift):
+    """A 2 × 2 template after a one-ray render of the same camera (the converged stage's first full
+    template after its drafts): the one-ray hit positions read at each sub-ray
+    (``predicted_cells(..., supersample=2)``) find the cell of nearly every hit, where the one-ray
+    cells repeated over each pixel's sub-rays miss a quarter of them; the render is the same either way."""
+    patches, sun, cam = _world(*WORLDS[0][:5])
+    n = patches[0].heights.shape[0]
+    one = RenderOptions(supersample=1, ray_inverse="grid", threads=1)
+    two = dataclasses.replace(one, supersample=2)
+    prev = render(cam, sun, None, patches[:1], one, return_cells=True)
+    f = np.array([shift, -0.6 * shift])
+    now = render(cam.with_ctr(cam.ctr + f), sun, None, patches[:1], two, return_cells=True)
+    pred = rmod.predicted_cells(prev, -f, n, now.cells.shape, supersample=2)
+    hit = now.cells >= 0
+    assert np.mean(pred[hit] == now.cells[hit]) > 0.9
+    if shift == 0.0:  # what the repeated cells find, for comparison
+        rep = np.repeat(np.repeat(prev.cells, 2, 0), 2, 1)
+        assert np.mean(pred[hit] == now.cells[hit]) > np.mean(rep[hit] == now.cells[hit]) + 0.05
+    got = render(cam.with_ctr(cam.ctr + f), sun, None, patches[:1], two, cells=pred, return_cells=True)
+    assert_same_rendering(got, now)
+    with pytest.raises(ValueError, match="shape"):
+        rmod.predicted_cells(prev, -f, n, supersample=2)
 
 
 def test_visibility_option_is_checked():

@@ -616,12 +616,13 @@ def lit_corridor(geo, maps, valids, ns, sun, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def predict_cells(pos, ds, dl, n, out):
+def predict_cells(pos, ds, dl, n, out, step=1.0):
     """out (H, W) int64: the terrain cell i·(n − 1) + j (n nodes per side) where each sub-ray of a render
     is expected to hit, from ``pos`` (H', W', 2), an earlier render's hit positions (u, w) on a lattice
-    of the same spacing (NaN: no hit): sub-ray (r, c) of this render sits where the earlier one's
-    (r + ``dl``, c + ``ds``) sat.  The positions interpolated there (bilinear where all four neighbours
-    hit, else the nearest lattice point's), −2 (march) where none is known.  A hint for
+    ``step`` times this one's spacing (1: the same; ½: this render has twice its sub-rays per pixel
+    axis; NaN: no hit): sub-ray (r, c) of this render sits where the earlier one's
+    (r·step + ``dl``, c·step + ``ds``) sat.  The positions interpolated there (bilinear where all four
+    neighbours hit, else the nearest lattice point's), −2 (march) where none is known.  A hint for
     :func:`_fused_rays`' ``cand``: a wrong cell costs a march, never a different hit (:func:`_cell_hit`)."""
     nl, ns = pos.shape[0], pos.shape[1]
     last = n - 2
@@ -631,7 +632,7 @@ def predict_cells(pos, ds, dl, n, out):
     fxs = np.empty(w_out)
     near = np.empty(w_out, np.int64)
     for c in range(w_out):
-        x = c + ds
+        x = c * step + ds  # c + ds exactly at step 1
         a = min(int(math.floor(x)), ns - 2)
         fx = x - a
         col[c] = a if (0 <= a and 0.0 <= fx <= 1.0) else -1
@@ -639,7 +640,7 @@ def predict_cells(pos, ds, dl, n, out):
         cn = int(math.floor(x + 0.5))
         near[c] = cn if 0 <= cn < ns else -1
     for r in range(out.shape[0]):
-        y = r + dl
+        y = r * step + dl
         b = min(int(math.floor(y)), nl - 2)  # the last line itself interpolates with weight 1
         fy = y - b
         rows = 0 <= b and 0.0 <= fy <= 1.0

@@ -83,11 +83,14 @@ Speed.  Everything that does not change per sample (the photo as float64, the tr
 designs) is computed once; samples run in chunks on ``jobs`` worker processes (forked where
 :func:`spctool.workers.start_method` finds it safe: they start with the scene and the loaded modules,
 no import, no 40 MB pickle of the photo; else spawned), each capped at one numba thread.  Maplet
-space costs one registration with 12 extraction/correlation steps per sample; image space about four template
-renders (:mod:`spctool.stages.render`, ray-traced with cast shadows), which dominate its cost; each
-sample hands its last template to the landmark's next one (``register_sample``'s ``carry``), whose
-first template starts most rays in the cell they hit (a hint only: the same results; only between
-templates with the same rays per pixel, so not with the image plan's 2 × 2, whose first template has one).
+space costs one registration with 12 extraction/correlation steps per sample; image space about three
+template renders (:mod:`spctool.stages.render`), which dominate its cost: the coarse phase acquires
+with the landmark's unperturbed template, rendered once per landmark (:func:`acquisition_template`),
+the fine phase renders one-ray drafts (1.6 per sample) and 2 × 2 templates (1.4; issue 39: the first
+one ends the stage when its move is below :data:`IMAGE_CONVERGE_ACCEPT`).  Each sample hands its last
+templates, the last per rays per pixel, to the landmark's next one (``register_sample``'s ``carry``),
+whose first template of each kind starts most rays in the cell they hit (a hint only: the same
+results).
 """
 
 from __future__ import annotations
@@ -299,6 +302,20 @@ IMAGE_GRID_HALF = 3
 #: the path alone moves samples as far), 0.7 fewer renders per sample: 47 → 40 s on 2 jobs
 IMAGE_CONVERGE_TOL = 0.01
 
+#: the image plan's converged stage (issue 39, the plan's cost): its one-ray drafts run until a move is
+#: below IMAGE_DRAFT_TOL px (register's 0.15; at most IMAGE_DRAFT_MAX of them), and its first 2 × 2
+#: template ends it when that step moves the estimate by less than IMAGE_CONVERGE_ACCEPT px (its secant
+#: move taken: :attr:`RegisterOptions.converge_accept`).  Where the drafts stopped at 0.15 px, a
+#: sample's first full step moved 0.028 px (median) and a second full template followed in 90 % of the
+#: samples, a third in 20 %: 2.1 of them per sample at four times a draft's rays.  Now 1.35 full templates
+#: and 1.7 drafts.  The accepted move's error (a fraction of it: the secant's gain error) is a noise that
+#: averages out of the means: s16-50m, 12 × 100 against the stage converged to 0.001 px, per-sample rms
+#: 0.0025 px, every landmark's mean within 0.0007 px (docs/benchmarks.md "image plan's cost").  Not out
+#: of one registration, so the zero-perturbation floor is registered without it (:func:`zero_floor`)
+IMAGE_DRAFT_TOL = 0.05
+IMAGE_DRAFT_MAX = 3
+IMAGE_CONVERGE_ACCEPT = 0.03
+
 
 #: the maplet plan's converged-stage estimator: the least-squares alignment with the photo's gradient as
 #: regressor (:func:`spctool.stages.alignment.gradient_offset_photo`).  The study's maplets carry an
@@ -372,7 +389,11 @@ def default_plan(
       rendered once (re-rendered only if its sub-pixel placement moves by more than half a bin),
       then ``refine`` steps at L = 1 that re-render the template at the current estimate every time,
       ending with register's converged stage (the coarse phase then runs its schedule only), stopped
-      at moves below :data:`IMAGE_CONVERGE_TOL` (0.01 px, where register's default is 0.005).  Its
+      at moves below :data:`IMAGE_CONVERGE_TOL` (0.01 px, where register's default is 0.005), or at
+      its first full template's move below :data:`IMAGE_CONVERGE_ACCEPT` (0.03 px) after one-ray drafts
+      to :data:`IMAGE_DRAFT_TOL` (0.05 px; ``converge_accept=0, converge_draft_tol=0.15,
+      converge_draft_max=0`` is the stage before; :func:`run` also has every sample's coarse phase
+      acquire with the landmark's unperturbed template, :func:`acquisition_template`).  Its
       templates have no cast shadows and, in the fine phase, 2 × 2 rays per pixel at L = 1 (the coarse
       phase, which only acquires, one ray), and the converged stage fits the
       template on the photo (:data:`IMAGE_SUPERSAMPLE`, :data:`IMAGE_TEMPLATE_SHADOWS`,
@@ -435,6 +456,9 @@ def default_plan(
                 grid_half=IMAGE_GRID_HALF,
                 rerender_tol=0.0,
                 converge_tol=IMAGE_CONVERGE_TOL,
+                converge_draft_tol=IMAGE_DRAFT_TOL,
+                converge_draft_max=IMAGE_DRAFT_MAX,
+                converge_accept=IMAGE_CONVERGE_ACCEPT,
             )
             fine.update({k: v for k, v in changes.items() if k not in ("steps", "grid_half")})
             fine["steps"] = (1,) * refine
@@ -634,16 +658,36 @@ class MonteCarloResult:
         return self.status == "ok"
 
 
-def register_sample(scene, p: Perturbed, plan, carry: dict | None = None) -> object:
+def acquisition_template(scene, landmark: int, plan):
+    """Image space: the template of landmark ``landmark``'s unperturbed knowledge (``scene``'s camera,
+    Sun and maplet) as the plan's first phase renders it for its coarse steps, or None (maplet space,
+    or no template).  Every sample's coarse phase acquires with it (:func:`register_sample`'s
+    ``acquire``; :class:`spctool.stages.registrar.AcquisitionTemplate`) instead of rendering its own
+    perturbed maplet: one template per landmark, which depends on the scene only, so a sample's result
+    still depends only on (seed, landmark, sample)."""
+    from spctool.stages.registrar import AcquisitionTemplate
+
+    opts = plan[0]
+    if opts.space != "image":
+        return None
+    m = scene.maplets[landmark]
+    return AcquisitionTemplate.render_for(scene.photo, scene.camera, scene.sun, m, scene.thresholds, opts)
+
+
+def register_sample(scene, p: Perturbed, plan, carry: dict | None = None, acquire=None) -> object:
     """Register one perturbed landmark with every phase of ``plan``; each phase after the first starts
     at the previous phase's measurement and runs only if that one succeeded.  Returns the
     :class:`spctool.stages.register.RegisterResult` of the last phase run, with the first phase's
     a-priori pixel and the iterations of all phases.  ``carry``: a dict kept by the caller across the
     samples of a landmark, through which image space hands each sample's last template to the next
     one's first (:meth:`spctool.stages.registrar.Registrar._carried_hint`: where its rays hit; the
-    results do not depend on it)."""
+    results do not depend on it).  ``acquire``: image space, the landmark's
+    :func:`acquisition_template`, with which the first phase's coarse steps acquire (None: they render
+    the sample's own)."""
     # image space: the perturbed maplet's render-ready patch, built once for all phases, and the templates
     cache: dict = {} if carry is None else dict(carry)
+    if acquire is not None:
+        cache[("acquire", getattr(p.maplet, "name", "") or "#1")] = acquire
     res = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, plan[0], patch_cache=cache)
     apriori, iters = res.apriori.copy(), res.iterations.copy()
     for opts in plan[1:]:
@@ -657,7 +701,7 @@ def register_sample(scene, p: Perturbed, plan, carry: dict | None = None) -> obj
     res.apriori, res.iterations = apriori, iters
     if carry is not None:  # templates and the settings made from the options (the patches are this sample's)
         carry.clear()
-        carry.update((k, v) for k, v in cache.items() if isinstance(k, tuple))
+        carry.update((k, v) for k, v in cache.items() if isinstance(k, tuple) and k[0] != "acquire")
     return res
 
 
@@ -686,9 +730,12 @@ def _run_chunk(landmark: int, start: int, stop: int):
     iters = np.zeros(n, np.int64)
     status = []
     carry: dict = {}
+    acquire = _WORKER.setdefault("acquire", {})  # per landmark, made once per worker
+    if landmark not in acquire:
+        acquire[landmark] = acquisition_template(scene, landmark, config.plan)
     for k, j in enumerate(range(start, stop)):
         p = perturb(scene, landmark, designs[landmark][j], j, config)
-        res = register_sample(scene, p, config.plan, carry)
+        res = register_sample(scene, p, config.plan, carry, acquire[landmark])
         apriori[k], measured[k], rho[k], iters[k] = (
             res.apriori[0],
             res.measured[0],
@@ -702,12 +749,15 @@ def _run_chunk(landmark: int, start: int, stop: int):
 def zero_floor(scene, config: MonteCarloConfig) -> np.ndarray:
     """(L, 2) truth − measured of every landmark registered with its knowledge unperturbed (the
     a-priori pose, maplet, camera and Sun of ``scene``, ``config.plan``): the bias the study would
-    show with every Table 2 sigma at zero — the floor its per-landmark means are to be read against."""
+    show with every Table 2 sigma at zero — the floor its per-landmark means are to be read against.
+    Each converged stage ends on a verified step (``converge_accept`` off: the samples' shortcut
+    leaves an error that averages out of their means, not out of one registration)."""
     out = np.full((len(scene), 2), np.nan)
     zero = {p.name: np.zeros(p.size) for p in PARAMETERS}
+    plan = tuple(dataclasses.replace(o, converge_accept=0.0) if o.converge_accept else o for o in config.plan)
     for i in range(len(scene)):
         p = Perturbed(scene.camera, scene.sun, scene.maplets[i], zero)
-        res = register_sample(scene, p, config.plan)
+        res = register_sample(scene, p, plan, acquire=acquisition_template(scene, i, plan))
         if res.status[0] == "ok":
             out[i] = scene.truth[i] - res.measured[0]
     return out

@@ -678,6 +678,7 @@ def _broyden_step(jac, f, dc, df):
 
 
 #: the converged stage's draft steps (``converge_draft``) end with the first that moves by less than this
+#: (register's default; :attr:`RegisterOptions.converge_draft_tol`)
 _DRAFT_TOL = 0.15
 
 
@@ -714,12 +715,15 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
     the converged estimate (``ok``).
 
     ``draft`` (``converge_draft``, image space): the steps render their templates at
-    ``supersample_coarse`` until one moves by less than ``_DRAFT_TOL``; from then on at
+    ``supersample_coarse`` until one moves by less than ``converge_draft_tol`` (or
+    ``converge_draft_max`` drafts, the seed's included, have run); from then on at
     ``supersample``, with the secant Jacobian kept but no secant across the change of template (a
     draft and a full template read slightly different zeros).  ``draft`` says whether ``seed`` came
-    from a draft step.  The stage ends only on a full step."""
+    from a draft step.  The stage ends only on a full step: the first one already when it moves by
+    less than ``converge_accept`` (its secant move taken)."""
     opts = reg.options
     tol = opts.converge_tol
+    draft_tol, draft_max = opts.converge_draft_tol, opts.converge_draft_max
     if opts.converge_peak != opts.peak and seed is None:
         moved = math.inf  # at least one step reads the estimate with the stage's own estimator
     st_ok = None
@@ -727,8 +731,10 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
     jac = result.converge_jacobian[i]
     jac = jac.copy() if np.all(np.isfinite(jac)) else -np.eye(2)  # a start from a previous pass, else −I
     prev = seed  # (c, F) of the previous step (``seed``: the schedule's last step, read the same way)
-    if draft and moved < _DRAFT_TOL:  # the seed's draft already came close: full templates now
-        draft, prev, moved = False, None, math.inf
+    drafts = int(bool(draft) and seed is not None)  # draft steps run (the seed's)
+    if draft and (moved < draft_tol or (draft_max and drafts >= draft_max)):
+        draft, prev, moved = False, None, math.inf  # the seed's draft already came close: full templates now
+    full = 0  # full-template steps run
     k = 0
     while not moved < tol:
         if k >= opts.converge_max:
@@ -752,13 +758,17 @@ def _converge(reg: Registrar, i, camera, c, moved, result, last, factor, seed=No
         new = c + move
         moved = float(np.hypot(*(new - c)))
         if draft:
-            if moved < _DRAFT_TOL:  # close: the next steps read full templates, from here
-                draft, prev, moved = False, None, math.inf
+            drafts += 1
+            if moved < draft_tol or (draft_max and drafts >= draft_max):
+                draft, prev, moved = False, None, math.inf  # close: full templates from here
                 hist = []
             c = new
             hist.append(c)
             continue
         st_ok = st
+        full += 1
+        if full == 1 and moved < opts.converge_accept:  # close enough on the first full template
+            return "ok", new, st_ok
         back = [j for j in range(len(hist) - 1) if np.hypot(*(new - hist[j])) < tol]
         if back and moved >= tol:
             cycle = np.array(hist[back[-1] :])

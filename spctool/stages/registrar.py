@@ -162,9 +162,14 @@ class RegisterOptions:
     * image space: ``supersample`` (rays per pixel axis of the template, 2; ``supersample_coarse``,
       1, for the steps at spacing ≥ 2, whose bins average n² pixels), ``converge_draft`` (True: the
       converged stage's steps render at ``supersample_coarse``, a quarter of the rays, until one
-      moves the estimate by less than 0.15 px (``register._DRAFT_TOL``), then at ``supersample``;
-      it only stops on a full template, so the result is that template's zero; the draft steps only
-      bring it near first), ``image_shadows`` (use
+      moves the estimate by less than ``converge_draft_tol`` (0.15 px) or ``converge_draft_max`` of
+      them have run (0: no cap but ``converge_max``), then at ``supersample``; it only stops on a full
+      template, so the result is that template's zero; the draft steps only bring it near first),
+      ``converge_accept`` (px, 0 = off: the stage also ends at its first full-template step when that
+      step moves the estimate by less than this — the step's secant move taken, not verified by
+      another template, as a step below ``converge_tol`` is; the Monte Carlo's image plan, whose
+      drafts leave the first full step a few hundredths of a pixel to go: its error, a fraction of
+      that move, averages out of the study's means), ``image_shadows`` (use
       shadowed pixels, True), ``rerender_tol`` (px: a spacing-1 step re-renders the template when its
       sub-pixel phase moved by more than this, 0.0005), ``rerender_tol_coarse`` (px per unit spacing, the
       same for spacing ≥ 2 steps, 1.0: never, as phases differ by < 1 px), ``template_shading``
@@ -224,6 +229,9 @@ class RegisterOptions:
     supersample: int = 2
     supersample_coarse: int = 1
     converge_draft: bool = True
+    converge_draft_tol: float = 0.15
+    converge_draft_max: int = 0
+    converge_accept: float = 0.0
     image_shadows: bool = True
     rerender_tol: float = 0.0005
     rerender_tol_coarse: float = 1.0
@@ -294,6 +302,13 @@ class RegisterOptions:
         self.acquire_reach = int(self.acquire_reach)
         if not float(self.converge_tol) > 0.0:
             raise SpcUsageError(f"converge_tol must be > 0 px, got {self.converge_tol}")
+        if not float(self.converge_draft_tol) > 0.0:
+            raise SpcUsageError(f"converge_draft_tol must be > 0 px, got {self.converge_draft_tol}")
+        if int(self.converge_draft_max) != self.converge_draft_max or int(self.converge_draft_max) < 0:
+            raise SpcUsageError(f"converge_draft_max must be an integer >= 0, got {self.converge_draft_max}")
+        self.converge_draft_max = int(self.converge_draft_max)
+        if not float(self.converge_accept) >= 0.0:
+            raise SpcUsageError(f"converge_accept must be >= 0 px, got {self.converge_accept}")
         if int(self.converge_max) != self.converge_max or int(self.converge_max) < 0:
             raise SpcUsageError(f"converge_max must be an integer >= 0, got {self.converge_max}")
         self.converge_max = int(self.converge_max)
@@ -446,6 +461,47 @@ class _KeptPatch:
         self.maplet = maplet
         self.patch = patch
         self.window = None
+
+
+@dataclass(frozen=True)
+class AcquisitionTemplate:
+    """A landmark's template for the steps at spacing ≥ 2 of calls that share it through
+    :attr:`Registrar.patch_cache` (key ``("acquire", name)``): the Monte Carlo's coarse phase, whose
+    every sample would otherwise render its own perturbed maplet only to acquire (±48 px binned by 4),
+    uses the template of the landmark's unperturbed knowledge, rendered once (:meth:`render_for`).
+    A template says where V is by where it sits: rendered with the rays through p (phase 0) and V at
+    pixel ``v_pixel`` of ``window``, it is another camera's template at the phase that puts V there
+    (:meth:`placed`).  Its shading is the other knowledge's, so it only acquires: the full-resolution
+    steps render their own (a spacing-1 step re-renders it once the phase moved by more than
+    ``rerender_tol``)."""
+
+    rendering: object  #: :class:`spctool.stages.render.Rendering`, rendered at phase 0
+    v_pixel: tuple  #: V's pixel (sample, line) under the camera it was rendered with
+    window: tuple  #: (s0, s1, l0, l1) of the rendering
+
+    @classmethod
+    def render_for(cls, photo, camera, sun, maplet, thresholds, options: RegisterOptions, name=None):
+        """The template of ``maplet`` seen with ``camera`` and ``sun`` as a step at spacing ≥ 2 of
+        ``options`` renders it (``supersample_coarse`` rays), at phase 0; None where it has none
+        (off the photo)."""
+        reg = Registrar(photo, sun, [maplet], thresholds, options, names=None if name is None else [name])
+        lm = reg.landmarks[0]
+        lm.proj = (camera, np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2))
+        rend, _, window = reg._template(lm, camera, np.zeros(2), 2)
+        if rend is None:
+            return None
+        return cls(rend, tuple(lm.proj[1].tolist()), tuple(window))
+
+    def placed(self, camera, v_pixel):
+        """(rendering, (camera, phase, window)): this template for a camera that puts V at ``v_pixel``:
+        the window moved by the whole pixels between the two V pixels, the phase the rest (V at
+        ``v_pixel`` + phase, where the rendering has it)."""
+        (a_s, a_l), (b_s, b_l) = self.v_pixel, v_pixel.tolist()
+        k_s, k_l = _rint(b_s - a_s), _rint(b_l - a_l)
+        phase = np.array([a_s + k_s - b_s, a_l + k_l - b_l])
+        s0, s1, l0, l1 = self.window
+        ks, kl = int(k_s), int(k_l)
+        return self.rendering, (camera, phase, (s0 + ks, s1 + ks, l0 + kl, l1 + kl))
 
 
 class _Landmark:
@@ -841,6 +897,10 @@ class Registrar:
                 if self.patch_cache is not None:
                     self.patch_cache[id(lm.maplet)] = _KeptPatch(lm.maplet, lm.patch)
         patch = lm.patch.patches[0]
+        if lm.tmpl is None and spacing >= 2 and self.patch_cache is not None:
+            shared = self.patch_cache.get(("acquire", lm.name))
+            if shared is not None and lm.proj is not None and lm.proj[0] is camera:
+                lm.tmpl, lm.tmpl_key = shared.placed(camera, lm.proj[1])
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
         nss = int(self.options.supersample if spacing <= 1 and not draft else self.options.supersample_coarse)
@@ -884,7 +944,12 @@ class Registrar:
             part = render(shifted, self.sun, None, lm.patch, ropts, window=win, cells=hint, return_cells=True)
             lm.hits = (camera, frac.copy(), nss, win, part)
             if self.patch_cache is not None and lm.proj is not None and lm.proj[0] is camera:
-                self.patch_cache[("template", lm.name)] = (lm.proj[1], lm.hits)
+                # the last render, and the last at this supersampling (a later call's first template
+                # under another camera is hinted only by one with its own rays: _carried_hint)
+                self.patch_cache[("template", lm.name)] = self.patch_cache[("template", lm.name, nss)] = (
+                    lm.proj[1],
+                    lm.hits,
+                )
         if part is not None and (cs0, cl0) == (s0, l0):
             rend = part  # the whole window in the photo: the render is the template
         else:  # sky (radiance and coverage 0) left of / above the photo
@@ -917,8 +982,15 @@ class Registrar:
         cam_old, f_old, k, win_old, prev = hits
         if cam_old is camera:
             return _cells_hint(hits, camera, frac, nss, window, n)
-        if k != nss:
-            return None
+        if k != nss:  # another camera: the last template with this one's rays (the image plan's coarse
+            # phase renders one ray per pixel, its fine phase ends on 2 × 2)
+            carried = self.patch_cache.get(("template", lm.name, nss))
+            if carried is None:
+                return None
+            v_old, hits = carried
+            cam_old, f_old, k, win_old, prev = hits
+            if cam_old is camera:
+                return None
         from spctool.stages.render import predicted_cells
 
         v_new = lm.proj[1]
@@ -1076,9 +1148,10 @@ def _cells_hint(hits, camera, frac, nss: int, window, n: int):
     """The cells a template at phase ``frac`` is expected to hit, from the landmark's last render (same
     camera object and window), or None: at the same supersampling its hit positions moved by the
     change of phase (:func:`spctool.stages.render.predicted_cells`: any phase; on the s16-50m maplets
-    a re-render costs 0.4 ms where a march costs 0.7); from a one-ray render, its cells repeated over
-    the sub-rays of each pixel when the phase is within :data:`_HINT_REACH`.  ``n``: the patch's nodes
-    per side."""
+    a re-render costs 0.4 ms where a march costs 0.7); from a one-ray render at a finer supersampling,
+    its hit positions read at the finer sub-rays (any phase), or, where it kept none, its cells
+    repeated over the sub-rays of each pixel when the phase is within :data:`_HINT_REACH`.  ``n``: the
+    patch's nodes per side."""
     if hits is None:
         return None
     cam, f, k, win, prev = hits
@@ -1088,6 +1161,14 @@ def _cells_hint(hits, camera, frac, nss: int, window, n: int):
         from spctool.stages.render import predicted_cells
 
         return predicted_cells(prev, f - frac, n)
+    if k == 1 and prev.positions is not None:
+        # a one-ray render's hit positions read at the finer sub-rays (any phase): on the s16-50m Monte
+        # Carlo's 2 × 2 templates after a one-ray draft, 27 % of the repeated cells below miss (a march
+        # each) and the template costs 13 % more than with its own cells
+        from spctool.stages.render import predicted_cells
+
+        shape = (prev.cells.shape[0] * nss, prev.cells.shape[1] * nss)
+        return predicted_cells(prev, f - frac, n, shape, supersample=nss)
     if k == 1 and np.max(np.abs(f - frac)) <= _HINT_REACH:
         return np.repeat(np.repeat(prev.cells, nss, axis=0), nss, axis=1)
     return None

@@ -534,7 +534,8 @@ def _fused_chunk(
         sun_shade,
         options.shadows,
         options.shadow_offset_cells,
-        pset.fused_arrays(sun_shade, fast),
+        # the Sun's bounds only serve the cast-shadow test (without it: +inf, computed once per set)
+        pset.fused_arrays(sun_shade if options.shadows else None, fast),
         threads=options.threads,
         facet=options.shading == "facet",
         cand=cand,
@@ -638,7 +639,9 @@ def _render(
     return Rendering(rad, cov, shd, sid, (s0, s1, l0, l1), options, out_cells, out_pos)
 
 
-def predicted_cells(previous: Rendering, shift, n: int, shape=None) -> np.ndarray | None:
+def predicted_cells(
+    previous: Rendering, shift, n: int, shape=None, supersample: int | None = None
+) -> np.ndarray | None:
     """The cells a render of the same single patch at the same supersampling is expected to hit (its
     ``cells`` hint), from ``previous`` (a ``return_cells`` render): this render's pixel (sample, line) of
     its window sits where ``previous``'s window pixel + ``shift`` (samples, lines; fractional) sat — e.g.
@@ -647,14 +650,24 @@ def predicted_cells(previous: Rendering, shift, n: int, shape=None) -> np.ndarra
     ``shape``: this render's (lines·nss, samples·nss) when its window differs (default ``previous``'s).
     The hit positions interpolated there (:func:`predict_cells`) find the right cell for most rays
     whatever the shift, where the earlier render's own cells (the shift rounded) miss about half of
-    them at a quarter pixel (each miss costs a march; the rendering is the same either way).  None
-    when ``previous`` kept no positions or the shift is not finite."""
+    them at a quarter pixel (each miss costs a march; the rendering is the same either way).
+    ``supersample``: this render's sub-rays per pixel axis m when they differ from ``previous``'s k
+    (e.g. a 2 × 2 template after a one-ray draft): sub-ray c of this render looks through
+    s0 + (c + ½)/m − ½ − f, which ``previous``'s lattice holds at c·k/m + k/(2m) − ½ + k·shift
+    (``shape`` then required).  None when ``previous`` kept no positions or the shift is not finite."""
     pos = previous.positions
     if pos is None or not np.all(np.isfinite(shift)):
         return None
-    nss = int(previous.options.supersample)
+    k = int(previous.options.supersample)
+    m = k if supersample is None else int(supersample)
+    if shape is None and m != k:
+        raise ValueError("predicted_cells: another supersampling needs the output shape")
     out = np.empty(pos.shape[:2] if shape is None else tuple(int(v) for v in shape), np.int64)
-    predict_cells(pos, float(shift[0]) * nss, float(shift[1]) * nss, int(n), out)
+    if m == k:
+        predict_cells(pos, float(shift[0]) * k, float(shift[1]) * k, int(n), out)
+    else:
+        step, base = k / m, k / (2.0 * m) - 0.5
+        predict_cells(pos, base + float(shift[0]) * k, base + float(shift[1]) * k, int(n), out, step)
     return out
 
 
