@@ -441,64 +441,6 @@ def test_a_sample_carries_its_templates_to_the_next(scene, monkeypatch, study_pl
     assert len(agree) >= 2 and min(agree) > 0.5
 
 
-def test_acquisition_template_placed_for_another_camera():
-    """Hand-worked: a template rendered at phase 0 with V at (10.3, 20.8) of window (5, 15, 12, 30) is,
-    for a camera that puts V at (12.9, 19.6), the template at phase (0.4, 0.2) of the window moved by
-    (3, −1) px: V at (12.9, 19.6) + phase = (13.3, 19.8), where the moved rendering has it."""
-    from spctool.stages.registrar import AcquisitionTemplate
-
-    t = AcquisitionTemplate("R", (10.3, 20.8), (5, 15, 12, 30))
-    cam = object()
-    rend, (c, phase, window) = t.placed(cam, np.array([12.9, 19.6]))
-    assert rend == "R" and c is cam and window == (8, 18, 11, 29)
-    np.testing.assert_allclose(phase, [0.4, 0.2], atol=1e-12)
-    _, (_, same, w0) = t.placed(cam, np.array([10.3, 20.8]))
-    assert w0 == t.window and np.all(same == 0.0)
-
-
-def test_samples_acquire_with_the_landmarks_unperturbed_template(scene, monkeypatch):
-    """Image space: the coarse phase of every sample acquires with the template of the landmark's
-    unperturbed knowledge (:func:`mc.acquisition_template`), rendering none of its own at spacing ≥ 2;
-    with the unperturbed knowledge itself (the floor) that is the template it would render, so the
-    measurement is the same bit for bit; perturbed samples end within the stage's tolerances of
-    acquiring with their own; and the study's results do not depend on the chunks (nor on the jobs:
-    the template depends on the scene only)."""
-    from spctool.stages import render as rmod
-
-    plan = mc.default_plan("image", s16_spacings=(5, 4, 3, 2, 1))
-    cfg = mc.MonteCarloConfig(samples=3, seed=3, sigma_scale=0.5, space="image", plan=plan)
-    acq = mc.acquisition_template(scene, 0, plan)
-    assert acq is not None and acq.rendering.options.supersample == 1
-    zero = {q.name: np.zeros(q.size) for q in mc.PARAMETERS}
-    p0 = mc.Perturbed(scene.camera, scene.sun, scene.maplets[0], zero)
-    assert _same(
-        mc.register_sample(scene, p0, plan, acquire=acq).measured,
-        mc.register_sample(scene, p0, plan).measured,
-    )
-    real, renders = rmod.render, []
-
-    def counting(*args, **kw):
-        renders.append(int(args[4].supersample))
-        return real(*args, **kw)
-
-    monkeypatch.setattr(rmod, "render", counting)
-    for j in range(3):
-        p = mc.perturb(scene, 0, mc.design(cfg, 0)[j], j, cfg)
-        renders.clear()
-        shared = mc.register_sample(scene, p, plan, acquire=acq)
-        n_shared = len(renders)
-        renders.clear()
-        own = mc.register_sample(scene, p, plan)
-        assert n_shared < len(renders)  # no coarse template of its own
-        assert shared.status == own.status == ["ok"]
-        assert np.hypot(*(shared.measured[0] - own.measured[0])) < 0.02
-    monkeypatch.setattr(rmod, "render", real)
-    one = mc.run(scene, cfg, jobs=1)
-    again = mc.run(scene, cfg, jobs=1, chunk=1)
-    assert _same(one.measured, again.measured) and np.array_equal(one.status, again.status)
-    assert _same(one.floor, again.floor)
-
-
 # --------------------------------------------------------------------------------------------------
 # statistics and report
 
@@ -717,9 +659,9 @@ def test_zero_perturbation_floor_is_registered_without_the_accepted_step(scene, 
     seen = []
     real = mc.register_sample
 
-    def spy(scene_, p, plan_, carry=None, acquire=None):
+    def spy(scene_, p, plan_, carry=None):
         seen.append(plan_)
-        return real(scene_, p, plan_, carry, acquire)
+        return real(scene_, p, plan_, carry)
 
     monkeypatch.setattr(mc, "register_sample", spy)
     floor = mc.zero_floor(scene, cfg)

@@ -658,36 +658,16 @@ class MonteCarloResult:
         return self.status == "ok"
 
 
-def acquisition_template(scene, landmark: int, plan):
-    """Image space: the template of landmark ``landmark``'s unperturbed knowledge (``scene``'s camera,
-    Sun and maplet) as the plan's first phase renders it for its coarse steps, or None (maplet space,
-    or no template).  Every sample's coarse phase acquires with it (:func:`register_sample`'s
-    ``acquire``; :class:`spctool.stages.registrar.AcquisitionTemplate`) instead of rendering its own
-    perturbed maplet: one template per landmark, which depends on the scene only, so a sample's result
-    still depends only on (seed, landmark, sample)."""
-    from spctool.stages.registrar import AcquisitionTemplate
-
-    opts = plan[0]
-    if opts.space != "image":
-        return None
-    m = scene.maplets[landmark]
-    return AcquisitionTemplate.render_for(scene.photo, scene.camera, scene.sun, m, scene.thresholds, opts)
-
-
-def register_sample(scene, p: Perturbed, plan, carry: dict | None = None, acquire=None) -> object:
+def register_sample(scene, p: Perturbed, plan, carry: dict | None = None) -> object:
     """Register one perturbed landmark with every phase of ``plan``; each phase after the first starts
     at the previous phase's measurement and runs only if that one succeeded.  Returns the
     :class:`spctool.stages.register.RegisterResult` of the last phase run, with the first phase's
     a-priori pixel and the iterations of all phases.  ``carry``: a dict kept by the caller across the
     samples of a landmark, through which image space hands each sample's last template to the next
     one's first (:meth:`spctool.stages.registrar.Registrar._carried_hint`: where its rays hit; the
-    results do not depend on it).  ``acquire``: image space, the landmark's
-    :func:`acquisition_template`, with which the first phase's coarse steps acquire (None: they render
-    the sample's own)."""
+    results do not depend on it)."""
     # image space: the perturbed maplet's render-ready patch, built once for all phases, and the templates
     cache: dict = {} if carry is None else dict(carry)
-    if acquire is not None:
-        cache[("acquire", getattr(p.maplet, "name", "") or "#1")] = acquire
     res = register(scene.photo, p.camera, p.sun, [p.maplet], scene.thresholds, plan[0], patch_cache=cache)
     apriori, iters = res.apriori.copy(), res.iterations.copy()
     for opts in plan[1:]:
@@ -701,7 +681,7 @@ def register_sample(scene, p: Perturbed, plan, carry: dict | None = None, acquir
     res.apriori, res.iterations = apriori, iters
     if carry is not None:  # templates and the settings made from the options (the patches are this sample's)
         carry.clear()
-        carry.update((k, v) for k, v in cache.items() if isinstance(k, tuple) and k[0] != "acquire")
+        carry.update((k, v) for k, v in cache.items() if isinstance(k, tuple))
     return res
 
 
@@ -730,12 +710,9 @@ def _run_chunk(landmark: int, start: int, stop: int):
     iters = np.zeros(n, np.int64)
     status = []
     carry: dict = {}
-    acquire = _WORKER.setdefault("acquire", {})  # per landmark, made once per worker
-    if landmark not in acquire:
-        acquire[landmark] = acquisition_template(scene, landmark, config.plan)
     for k, j in enumerate(range(start, stop)):
         p = perturb(scene, landmark, designs[landmark][j], j, config)
-        res = register_sample(scene, p, config.plan, carry, acquire[landmark])
+        res = register_sample(scene, p, config.plan, carry)
         apriori[k], measured[k], rho[k], iters[k] = (
             res.apriori[0],
             res.measured[0],
@@ -757,7 +734,7 @@ def zero_floor(scene, config: MonteCarloConfig) -> np.ndarray:
     plan = tuple(dataclasses.replace(o, converge_accept=0.0) if o.converge_accept else o for o in config.plan)
     for i in range(len(scene)):
         p = Perturbed(scene.camera, scene.sun, scene.maplets[i], zero)
-        res = register_sample(scene, p, plan, acquire=acquisition_template(scene, i, plan))
+        res = register_sample(scene, p, plan)
         if res.status[0] == "ok":
             out[i] = scene.truth[i] - res.measured[0]
     return out

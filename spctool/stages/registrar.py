@@ -463,47 +463,6 @@ class _KeptPatch:
         self.window = None
 
 
-@dataclass(frozen=True)
-class AcquisitionTemplate:
-    """A landmark's template for the steps at spacing ≥ 2 of calls that share it through
-    :attr:`Registrar.patch_cache` (key ``("acquire", name)``): the Monte Carlo's coarse phase, whose
-    every sample would otherwise render its own perturbed maplet only to acquire (±48 px binned by 4),
-    uses the template of the landmark's unperturbed knowledge, rendered once (:meth:`render_for`).
-    A template says where V is by where it sits: rendered with the rays through p (phase 0) and V at
-    pixel ``v_pixel`` of ``window``, it is another camera's template at the phase that puts V there
-    (:meth:`placed`).  Its shading is the other knowledge's, so it only acquires: the full-resolution
-    steps render their own (a spacing-1 step re-renders it once the phase moved by more than
-    ``rerender_tol``)."""
-
-    rendering: object  #: :class:`spctool.stages.render.Rendering`, rendered at phase 0
-    v_pixel: tuple  #: V's pixel (sample, line) under the camera it was rendered with
-    window: tuple  #: (s0, s1, l0, l1) of the rendering
-
-    @classmethod
-    def render_for(cls, photo, camera, sun, maplet, thresholds, options: RegisterOptions, name=None):
-        """The template of ``maplet`` seen with ``camera`` and ``sun`` as a step at spacing ≥ 2 of
-        ``options`` renders it (``supersample_coarse`` rays), at phase 0; None where it has none
-        (off the photo)."""
-        reg = Registrar(photo, sun, [maplet], thresholds, options, names=None if name is None else [name])
-        lm = reg.landmarks[0]
-        lm.proj = (camera, np.asarray(camera.project(lm.v[None, :]), dtype=np.float64).reshape(2))
-        rend, _, window = reg._template(lm, camera, np.zeros(2), 2)
-        if rend is None:
-            return None
-        return cls(rend, tuple(lm.proj[1].tolist()), tuple(window))
-
-    def placed(self, camera, v_pixel):
-        """(rendering, (camera, phase, window)): this template for a camera that puts V at ``v_pixel``:
-        the window moved by the whole pixels between the two V pixels, the phase the rest (V at
-        ``v_pixel`` + phase, where the rendering has it)."""
-        (a_s, a_l), (b_s, b_l) = self.v_pixel, v_pixel.tolist()
-        k_s, k_l = _rint(b_s - a_s), _rint(b_l - a_l)
-        phase = np.array([a_s + k_s - b_s, a_l + k_l - b_l])
-        s0, s1, l0, l1 = self.window
-        ks, kl = int(k_s), int(k_l)
-        return self.rendering, (camera, phase, (s0 + ks, s1 + ks, l0 + kl, l1 + kl))
-
-
 class _Landmark:
     """Per-landmark state reused across steps: slopes (maplet space and predictions; computed on first
     use, which an image-space template never makes), prediction (per camera), template cache."""
@@ -897,10 +856,6 @@ class Registrar:
                 if self.patch_cache is not None:
                     self.patch_cache[id(lm.maplet)] = _KeptPatch(lm.maplet, lm.patch)
         patch = lm.patch.patches[0]
-        if lm.tmpl is None and spacing >= 2 and self.patch_cache is not None:
-            shared = self.patch_cache.get(("acquire", lm.name))
-            if shared is not None and lm.proj is not None and lm.proj[0] is camera:
-                lm.tmpl, lm.tmpl_key = shared.placed(camera, lm.proj[1])
         tol = self.options.rerender_tol if spacing <= 1 else self.options.rerender_tol_coarse * spacing
         # coarse steps bin n pixels: their template needs fewer rays per pixel (supersample_coarse)
         nss = int(self.options.supersample if spacing <= 1 and not draft else self.options.supersample_coarse)
