@@ -33,10 +33,8 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   and make the template the noisier image.  Before (``--supersample 1 --image-shadows
   --converge-peak gradient``): worst excess 0.047 px, 1σ 0.049, floor 0.074, 1 of 12 landmarks PASS;
   now 0.0067 / 0.037 / 0.072, 12 of 12 (docs/benchmarks.md "Per-landmark targets").  Its cost
-  (``IMAGE_CONVERGE_ACCEPT``, ``IMAGE_DRAFT_TOL``, ``acquisition_template``): the first 2 × 2 template
-  ends the converged stage below 0.03 px, the coarse phase acquires with each landmark's unperturbed
-  template; 12 of 12 at seed 0 (worst excess 0.0077 px, 1σ 0.037), 0.7× the CPU ("The image plan's
-  cost").
+  (``IMAGE_CONVERGE_ACCEPT``, ``IMAGE_DRAFT_TOL``): the first 2 × 2 template ends the converged stage
+  below 0.03 px after one-ray drafts to 0.05 px (docs/benchmarks.md "The image plan's cost").
 * ``accuracy montecarlo <space> model error at zero perturbation`` (informative): the worst
   landmark's error with every Table 2 sigma at 0 (``sigma_scale=0``: exact pose, camera, Sun and
   maplet as written).  What remains is the preset's model error — 1 cm maplets smoothed from the

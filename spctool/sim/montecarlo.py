@@ -85,9 +85,9 @@ designs) is computed once; samples run in chunks on ``jobs`` worker processes (f
 no import, no 40 MB pickle of the photo; else spawned), each capped at one numba thread.  Maplet
 space costs one registration with 12 extraction/correlation steps per sample; image space about three
 template renders (:mod:`spctool.stages.render`), which dominate its cost: the coarse phase acquires
-with the landmark's unperturbed template, rendered once per landmark (:func:`acquisition_template`),
-the fine phase renders one-ray drafts (1.6 per sample) and 2 × 2 templates (1.4; issue 39: the first
-one ends the stage when its move is below :data:`IMAGE_CONVERGE_ACCEPT`).  Each sample hands its last
+with one one-ray template of the sample's own perturbed maplet, the fine phase renders one-ray drafts
+(1.6 per sample) and 2 × 2 templates (1.4; issue 39: the first one ends the stage when its move is
+below :data:`IMAGE_CONVERGE_ACCEPT`).  Each sample hands its last
 templates, the last per rays per pixel, to the landmark's next one (``register_sample``'s ``carry``),
 whose first template of each kind starts most rays in the cell they hit (a hint only: the same
 results).
@@ -392,8 +392,7 @@ def default_plan(
       at moves below :data:`IMAGE_CONVERGE_TOL` (0.01 px, where register's default is 0.005), or at
       its first full template's move below :data:`IMAGE_CONVERGE_ACCEPT` (0.03 px) after one-ray drafts
       to :data:`IMAGE_DRAFT_TOL` (0.05 px; ``converge_accept=0, converge_draft_tol=0.15,
-      converge_draft_max=0`` is the stage before; :func:`run` also has every sample's coarse phase
-      acquire with the landmark's unperturbed template, :func:`acquisition_template`).  Its
+      converge_draft_max=0`` is the stage before).  Its
       templates have no cast shadows and, in the fine phase, 2 × 2 rays per pixel at L = 1 (the coarse
       phase, which only acquires, one ray), and the converged stage fits the
       template on the photo (:data:`IMAGE_SUPERSAMPLE`, :data:`IMAGE_TEMPLATE_SHADOWS`,
