@@ -340,6 +340,12 @@ IMAGE_SUPERSAMPLE = 2
 #: 0.037 → 0.0395 px (12 of 12 PASS); seed 1, 0.043 px and 9 of 12 PASS.  Measured, not adopted
 IMAGE_TEMPLATE_SLOPES = "spc"
 
+#: the image plan's template shading (issue 39, the image floor): ``"gouraud"``, the radiance computed at
+#: the maplet's nodes and interpolated (:func:`spctool.stages.render.node_radiance`), as maplet space
+#: predicts the brightness at the nodes, instead of register's ``"smooth"`` (node slopes interpolated,
+#: then shaded).  PROVISIONAL: figures in docs/benchmarks.md "The image floor"
+IMAGE_TEMPLATE_SHADING = "gouraud"
+
 
 def acquire_reach_for(sigma_scale: float) -> int:
     """The maplet plan's first-step reach (cells) for Table 2's sigmas multiplied by ``sigma_scale``."""
@@ -408,6 +414,7 @@ def default_plan(
         return (RegisterOptions(**opts),)
     if space == "image":
         templates = dict(
+            template_shading=IMAGE_TEMPLATE_SHADING,
             supersample=IMAGE_SUPERSAMPLE,
             image_shadows=IMAGE_TEMPLATE_SHADOWS,
             converge_peak=IMAGE_CONVERGE_PEAK,
