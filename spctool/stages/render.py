@@ -16,7 +16,9 @@ Surfaces (:mod:`spctool.geometry.surfaces`)
   the simulator's fine truth patches.  Rays meet the bilinear terrain exactly
   (:func:`spctool.geometry.heightfield.intersect_rays`); shading normals are the bilinear
   interpolation of SPC's node slopes (HGT2SLP table, ``spc-algorithms.md`` §3.1), albedo the
-  bilinear map albedo.
+  bilinear map albedo (``shading="facet"``: the flat triangle's normal; ``shading="gouraud"``: the
+  radiance computed at the nodes, as SPC's prediction computes it (``spc-algorithms.md`` §3.2), and
+  interpolated bilinearly at the hit, :func:`node_radiance`).
 
 Composition rule: inside a patch's footprint — the column |x|, |y| ≤ QSZ and
 h_min − 1 ≤ z ≤ h_max + 1 (cells) — the patch *replaces* the shape.  Each ray takes the nearest of
