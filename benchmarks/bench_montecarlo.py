@@ -47,7 +47,8 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   that rendered the photo).  This is the registration's own error.  Image space with templates at the
   photo's supersampling (2), register's (cast shadows, SPC's node slopes), must stay ≤ 0.01 px (a
   regression guard: 0.005 px measured); the Monte Carlo's image plan (no cast shadows, whereas the
-  exact maplets' own 1 cm relief casts the photo's shadows: 0.059 px) and maplet space (with the study's S16
+  exact maplets' own 1 cm relief casts the photo's shadows, and gouraud templates, whereas spctool's own
+  smooth shading rendered that photo: 0.071 px; 0.059 with smooth ones) and maplet space (with the study's S16
   settings, and with register's exact extraction and cast shadows) are informative.  Set
   ``SPCTOOL_MC_SCENE_EXACT=FILE`` to reuse that scene.
 * ``accuracy montecarlo image model error at zero perturbation, facet templates, supersample 3``
@@ -58,6 +59,9 @@ of the Table 2 perturbations (per-cell height/albedo errors), seed 0, in both sp
   0.064 / 0.034 / 0.042 px at 1 / 2 / 3 / 4 rays (with the plan before issue 39's image change;
   0.034 with today's converged stage): below maplet space's 0.043.  Not a default: facet normals
   differentiate the study's per-node height errors (docs/benchmarks.md "Template shading").
+* ``accuracy montecarlo image model error at zero perturbation, smooth templates`` (informative, issue
+  #39): the image plan's floor with register's smooth shading instead of its gouraud templates (0.072
+  against 0.064 px: docs/benchmarks.md "What separates the image floor from maplet space's").
 
 Each space is run once per process; its figures are served from that run.
 """
@@ -316,11 +320,13 @@ BENCHMARKS = [
     (
         "accuracy montecarlo image zero perturbation, exact maplets, register's templates at supersample 2",
         "<= 0.01 px (the registration's own error)",
-        _exact_error("image", 0.01, supersample=2, image_shadows=True, template_slopes="spc"),
+        _exact_error(
+            "image", 0.01, supersample=2, image_shadows=True, template_slopes="spc", template_shading="smooth"
+        ),
     ),
     (
         "accuracy montecarlo image zero perturbation, exact maplets, Monte Carlo plan",
-        "(informative: no cast shadows)",
+        "(informative: no cast shadows, gouraud)",
         _exact_error("image"),
     ),
     (
@@ -341,8 +347,15 @@ BENCHMARKS = [
     # shading's response to the unresolved relief (its common part along the Sun); informative
     (
         "accuracy montecarlo image model error at zero perturbation, facet templates, supersample 3",
-        "(informative: the plan's 0.072 px)",
+        "(informative: the plan's 0.064 px)",
         lambda: _model_error_with(template_shading="facet", supersample=3, image_shadows=True),
+    ),
+    # issue 39, image-space floor (engineer F): the plan before its gouraud templates (smooth shading:
+    # the node slopes interpolated, then shaded); informative
+    (
+        "accuracy montecarlo image model error at zero perturbation, smooth templates",
+        "(informative: the plan's gouraud 0.064 px)",
+        lambda: _model_error_with(template_shading="smooth"),
     ),
 ]
 

@@ -98,11 +98,14 @@ def test_image_space_reproducible_across_jobs(run_cli, scene_file):
     assert [p["supersample"] for p in one["config"]["plan"]] == [1, 2]  # coarse 1 ray, fine 2 x 2
     assert [p["image_shadows"] for p in one["config"]["plan"]] == [False, False]
     assert [p["template_slopes"] for p in one["config"]["plan"]] == ["spc", "spc"]
+    assert [p["template_shading"] for p in one["config"]["plan"]] == ["gouraud", "gouraud"]
     before = ("--supersample", 1, "--image-shadows", "--template-slopes", "fourth")
+    before += ("--template-shading", "smooth")
     ss1 = _doc(run_cli(*args, "--jobs", 1, *before))
     assert [p["supersample"] for p in ss1["config"]["plan"]] == [1, 1]  # as before issue 39
     assert [p["image_shadows"] for p in ss1["config"]["plan"]] == [True, True]
     assert [p["template_slopes"] for p in ss1["config"]["plan"]] == ["fourth", "fourth"]
+    assert [p["template_shading"] for p in ss1["config"]["plan"]] == ["smooth", "smooth"]
     assert ss1["landmarks"][0]["ok"] == 2
     assert ss1["landmarks"][0]["sample_mean"] != one["landmarks"][0]["sample_mean"]
     # the study's converged stage stops at 0.01 px; --converge-tol sets it (0.005: register's own)
@@ -191,7 +194,8 @@ def test_usage_errors(run_cli, scene_file, tmp_path):
     assert res.exit_code == 2 and "--converge-tol" in res.stderr and "Traceback" not in res.stderr
     res = run_cli("montecarlo", "--scene", scene_file, "--supersample", 2)  # maplet space
     assert res.exit_code == 2 and "use it with --space image" in res.stderr and "Traceback" not in res.stderr
-    for flag in (("--no-image-shadows",), ("--template-slopes", "fourth")):  # maplet space
+    flags = (("--no-image-shadows",), ("--template-slopes", "fourth"), ("--template-shading", "smooth"))
+    for flag in flags:  # maplet space
         res = run_cli("montecarlo", "--scene", scene_file, *flag)
         assert res.exit_code == 2 and "use them with --space image" in res.stderr
         assert "Traceback" not in res.stderr

@@ -343,9 +343,14 @@ def test_default_plans():
     # SPC's node slopes (the fourth-order ones lower the floor but amplify the height noise)
     assert coarse.template_slopes == fine.template_slopes == mc.IMAGE_TEMPLATE_SLOPES == "spc"
     assert all(o.template_slopes == "fourth" for o in mc.default_plan("image", template_slopes="fourth"))
+    # the radiance interpolated from the nodes (maplet space's prediction), not the slopes (register's)
+    assert coarse.template_shading == fine.template_shading == mc.IMAGE_TEMPLATE_SHADING == "gouraud"
+    assert all(o.template_shading == "smooth" for o in mc.default_plan("image", template_shading="smooth"))
     reg = RegisterOptions()
     assert reg.image_shadows and reg.converge_peak == "gradient" and reg.template_slopes == "spc"
+    assert reg.template_shading == "smooth"
     before = dict(supersample=1, image_shadows=True, converge_peak="gradient", template_slopes="spc")
+    before["template_shading"] = "smooth"
     old = mc.default_plan("image", **before)
     assert all(all(getattr(o, k) == v for k, v in before.items()) for o in old)
     # ±48 px at L = 4 (25 × 25 bins), then ±3 bins: the estimate is within a bin or two by then

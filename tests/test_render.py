@@ -275,6 +275,7 @@ def _rough_patches():
         RenderOptions(photometry="lambert", use_albedo=False),
         RenderOptions(photometry="fixed", shadows=False),
         RenderOptions(shading="facet", ray_inverse="grid", threads=1),
+        RenderOptions(shading="gouraud", supersample=2, photometry="mcewen"),
     ],
 )
 def test_fused_patch_path_equals_the_general_path(opts):
@@ -439,6 +440,74 @@ def test_facet_shading_is_per_triangle_lambert():
     assert inner.sum() > 1500
     np.testing.assert_allclose(got.radiance.ravel()[inner], want[inner], rtol=1e-9, atol=1e-12)
     assert np.max(np.abs(smooth.radiance.ravel()[inner] - want[inner])) > 0.05
+
+
+def test_gouraud_shading_interpolates_the_node_radiances():
+    """``shading="gouraud"`` equals an independent computation on the planar-facet scene of the facet
+    test (every cell flat, so each ray's hit is a brute-force triangle crossing): the radiance at each
+    node — Lambert μ₀ of the normal from the central-difference node slopes, times the albedo —
+    interpolated bilinearly at the hit.  It differs from the smooth shading (the interpolated slopes
+    shaded), and :func:`node_radiance` is SPC's prediction (Stage B) at the nodes."""
+    from spctool.stages.predict import PredictOptions, predict
+    from spctool.stages.render import node_radiance
+
+    ux, uy, uz = _frame()
+    v = np.array([0.2, 0.05, 0.3])
+    scale, q = 0.001, 8
+    rng = np.random.default_rng(11)
+    f = np.concatenate([[0.0], np.cumsum(rng.uniform(-0.8, 0.8, 2 * q))])
+    g = np.concatenate([[0.0], np.cumsum(rng.uniform(-0.8, 0.8, 2 * q))])
+    heights = f[:, None] + g[None, :]
+    alb = 1.0 + 0.3 * rng.uniform(-1, 1, heights.shape)
+    patch = HeightPatch(heights, scale, v, ux, uy, uz, albedo=alb)
+    sun = 0.5 * ux + 0.3 * uy + uz
+    sun /= np.linalg.norm(sun)
+    cam = _camera(v + 0.05 * (uz + 0.2 * ux - 0.1 * uy), v, npx=60, nln=60)
+    opts = RenderOptions(photometry="lambert", shadows=False, shading="gouraud")
+    got = render(cam, sun, None, [patch], opts)
+    smooth = render(cam, sun, None, [patch], RenderOptions(photometry="lambert", shadows=False))
+    # independent: node normals from central differences (interior nodes), Lambert at the nodes
+    n = 2 * q + 1
+    hx = np.zeros((n, n))
+    hy = np.zeros((n, n))
+    hx[1:-1] = 0.5 * (heights[2:] - heights[:-2])
+    hy[:, 1:-1] = 0.5 * (heights[:, 2:] - heights[:, :-2])
+    nrm = -hx[..., None] * ux - hy[..., None] * uy + uz
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    node_r = np.maximum(nrm @ sun, 0.0) * alb
+    idx = np.arange(n) - q
+    xx, yy = np.meshgrid(idx, idx, indexing="ij")
+    nodes = patch.to_body(np.stack([xx, yy, heights], -1).reshape(-1, 3)).reshape(n, n, 3)
+    tris = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            tris.append([nodes[i, j], nodes[i + 1, j], nodes[i + 1, j + 1]])
+            tris.append([nodes[i, j], nodes[i, j + 1], nodes[i + 1, j + 1]])
+    ss, ll = _pixels(cam)
+    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
+    t, k = _triangle_hits(cam.position, d, np.array(tris))
+    hit = k >= 0
+    loc = patch.to_local(np.where(hit[:, None], cam.position + t[:, None] * d, v))
+    # cells whose four corners are interior nodes (central differences there)
+    inner = hit & (np.abs(loc[:, 0]) < q - 1.01) & (np.abs(loc[:, 1]) < q - 1.01)
+    assert inner.sum() > 1000
+    u, w = loc[inner, 0] + q, loc[inner, 1] + q
+    i, j = np.floor(u).astype(int), np.floor(w).astype(int)
+    fu, fw = u - i, w - j
+    want = (
+        (1 - fu) * (1 - fw) * node_r[i, j] + fu * (1 - fw) * node_r[i + 1, j]
+        + (1 - fu) * fw * node_r[i, j + 1] + fu * fw * node_r[i + 1, j + 1]
+    )  # fmt: skip
+    np.testing.assert_allclose(got.radiance.ravel()[inner], want, rtol=1e-9, atol=1e-12)
+    assert np.max(np.abs(smooth.radiance.ravel()[inner] - want)) > 0.01
+    # node_radiance is the prediction at the nodes (a camera far along the view: one view direction)
+    e = uz + 0.2 * ux - 0.1 * uy
+    far = v + 1e9 * e / np.linalg.norm(e)
+    for model in ("spc", "lambert"):
+        pred = predict(patch, far, sun, PredictOptions(photometry=model, shadows="spc"))
+        nr = node_radiance(patch, far, sun, RenderOptions(photometry=model))
+        np.testing.assert_allclose(nr[pred.lit], pred.image[pred.lit], rtol=1e-9)
+        assert pred.lit.sum() > 200 and np.all(nr[~pred.lit] <= 1e-12)
 
 
 @pytest.mark.slow

@@ -9,6 +9,9 @@ the exact ray casting of :mod:`spctool.geometry._heightkernels` without NumPy te
   the pixels are the same to the last bit; n < 8).
 * :func:`shade_subrays` — the photometric law of :mod:`spctool.photometry` per sub-ray (times the
   albedo, 0 in shadow), on the fused kernel's (μ0, μ, cos α, albedo) without NumPy temporaries.
+* :func:`node_geometry`, :func:`gouraud_subrays` — ``shading="gouraud"``: the shading geometry at a
+  patch's nodes (shaded by :func:`shade_subrays`), and per sub-ray: the node radiances interpolated
+  bilinearly at the sub-ray's grid position (0 in shadow).
 * :func:`terrain_cells` — visibility by rasterisation (issue 17's "render forward"): the maplet's cells,
   projected by the camera's forward model, drawn as two triangles each into a depth buffer on the
   sub-ray lattice; the fused kernel then solves each sub-ray's crossing in the cell found (one quadratic)
@@ -100,6 +103,63 @@ def shade_subrays(geom, sh, law, beta, alpha0, use_albedo, out):
             else:
                 r = (1.0 - b) * mu0 + b * lommel
         out[k] = r * geom[k, 3] if use_albedo else r
+
+
+@njit(cache=True, nogil=True)
+def node_geometry(hx, hy, rot, points, position, sun, out):
+    """The shading geometry of every node of a patch, as :func:`shade_subrays` reads it:
+    ``out[k]`` = (μ0, μ, cos α, 0) of node k with the unit normal normalise(−hx·UX − hy·UY + UZ)
+    (``rot`` = UX, UY, UZ as columns; :func:`spctool.geometry.heightfield.normals_body`), the unit Sun
+    ``sun`` and the unit vector from the node's body point ``points[k]`` to ``position``.  ``hx``,
+    ``hy``: flat (N,), ``points`` (N, 3)."""
+    for k in range(hx.shape[0]):
+        a = -hx[k]
+        b = -hy[k]
+        n0 = a * rot[0, 0] + b * rot[0, 1] + rot[0, 2]
+        n1 = a * rot[1, 0] + b * rot[1, 1] + rot[1, 2]
+        n2 = a * rot[2, 0] + b * rot[2, 1] + rot[2, 2]
+        nn = 1.0 / math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        e0 = position[0] - points[k, 0]
+        e1 = position[1] - points[k, 1]
+        e2 = position[2] - points[k, 2]
+        en = 1.0 / math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        e0 *= en
+        e1 *= en
+        e2 *= en
+        out[k, 0] = (n0 * sun[0] + n1 * sun[1] + n2 * sun[2]) * nn
+        out[k, 1] = (n0 * e0 + n1 * e1 + n2 * e2) * nn
+        out[k, 2] = sun[0] * e0 + sun[1] * e1 + sun[2] * e2
+        out[k, 3] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def gouraud_subrays(pos, surface, sh, planes, ns, out):
+    """``shading="gouraud"`` per sub-ray: for every sub-ray k that hit patch p = ``surface[k]`` ≥ 0,
+    ``out[k]`` = the bilinear interpolation of ``planes[p]`` (the patch's node radiances, n × n of the
+    padded (P, n_max, n_max); ``ns[p]`` = n) at its grid position ``pos[k]`` = (u, w) (index
+    coordinates, clamped to the grid; the cell and weights of the fused kernel's own interpolation),
+    or 0 where it is in cast shadow (``sh[k]``).  Other sub-rays (sky, the shape) are left as they are.
+    """
+    for k in range(out.shape[0]):
+        p = surface[k]
+        if p < 0:
+            continue
+        if sh[k]:
+            out[k] = 0.0
+            continue
+        n = ns[p]
+        u = min(max(pos[k, 0], 0.0), n - 1.0)
+        w = min(max(pos[k, 1], 0.0), n - 1.0)
+        i = min(int(math.floor(u)), n - 2)
+        j = min(int(math.floor(w)), n - 2)
+        fu = u - i
+        fw = w - j
+        out[k] = (
+            (1 - fu) * (1 - fw) * planes[p, i, j]
+            + fu * (1 - fw) * planes[p, i + 1, j]
+            + (1 - fu) * fw * planes[p, i, j + 1]
+            + fu * fw * planes[p, i + 1, j + 1]
+        )
 
 
 #: barycentric slack of :func:`terrain_cells`: a sub-ray on a shared edge is inside both triangles

@@ -333,6 +333,8 @@ class PatchSet:
         self.his = np.zeros((n, 3))
         self._fused = None
         self._up = None
+        #: the renderer's node radiances for ``shading="gouraud"`` (its cache: one camera position and Sun)
+        self._node_radiance = None
         for k, p in enumerate(self.patches):
             lo, hi = p.box()
             zc = 0.5 * (lo[2] + hi[2])

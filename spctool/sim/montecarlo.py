@@ -357,6 +357,21 @@ IMAGE_SUPERSAMPLE = 2
 #: 0.037 → 0.0395 px (12 of 12 PASS); seed 1, 0.043 px and 9 of 12 PASS.  Measured, not adopted
 IMAGE_TEMPLATE_SLOPES = "spc"
 
+#: the image plan's template shading (issue 39, the image floor; docs/benchmarks.md "The image floor"):
+#: ``"gouraud"``, the radiance computed at the maplet's nodes and interpolated
+#: (:func:`spctool.stages.render.node_radiance`), as maplet space predicts the brightness at the nodes,
+#: instead of register's ``"smooth"`` (the node slopes interpolated, then shaded).  Crossing the two
+#: spaces' images at zero perturbation put the part of the floor common to the landmarks (along the
+#: Sun) on the template's brightness, not on the pixel grid or the estimator; the photo averages the
+#: photometric law over relief finer than the maplet, and the law is concave in the slope, so shading
+#: the interpolated slopes is brighter (99 % of template pixels) than interpolating the shaded nodes.
+#: s16-50m, zero perturbation: worst landmark 0.072 → 0.064 px, mean line floor +0.021 → +0.012 (maplet
+#: space: +0.006, or +0.011 with the exact extraction); 12 × 500: seed 0 12 of 12 PASS (worst excess
+#: 0.0067 → 0.0061 px, 1σ 0.037 → 0.038), seed 1 11 of 12 as before (B02631's 1σ 0.0410 → 0.0413); the
+#: same CPU per registration (pairs' median ratio 1.03).  It costs the exact-maplet control (0.059 →
+#: 0.071 px), whose photo spctool's own smooth shading rendered from the maplet's surface
+IMAGE_TEMPLATE_SHADING = "gouraud"
+
 
 def acquire_reach_for(sigma_scale: float) -> int:
     """The maplet plan's first-step reach (cells) for Table 2's sigmas multiplied by ``sigma_scale``."""
@@ -397,7 +412,9 @@ def default_plan(
       phase, which only acquires, one ray), and the converged stage fits the
       template on the photo (:data:`IMAGE_SUPERSAMPLE`, :data:`IMAGE_TEMPLATE_SHADOWS`,
       :data:`IMAGE_CONVERGE_PEAK`: the study's per-node height errors cast spurious shadows and make the
-      template the noisier image); ``supersample=1, image_shadows=True, converge_peak="gradient"`` is
+      template the noisier image); its templates interpolate the radiance shaded at the nodes
+      (:data:`IMAGE_TEMPLATE_SHADING`, ``"gouraud"``: the lower zero-perturbation floor);
+      ``supersample=1, image_shadows=True, converge_peak="gradient", template_shading="smooth"`` is
       the plan before issue 39.
 
     ``changes`` are applied to every phase's :class:`RegisterOptions`.
@@ -428,6 +445,7 @@ def default_plan(
         return (RegisterOptions(**opts),)
     if space == "image":
         templates = dict(
+            template_shading=IMAGE_TEMPLATE_SHADING,
             supersample=IMAGE_SUPERSAMPLE,
             image_shadows=IMAGE_TEMPLATE_SHADOWS,
             converge_peak=IMAGE_CONVERGE_PEAK,

@@ -39,7 +39,8 @@ one Newton step where that is not exact to 1e-7 px:
 :meth:`spctool.geometry.camera.Camera.pixel_to_direction_lattice`);
 :func:`spctool.stages.register.register` parallelises across landmarks instead (``threads``), with
 results identical to one thread.  ``template_shading``:
-``smooth`` (interpolated node slopes) or ``facet`` (flat triangles, two per cell; albedo bilinear).
+``smooth`` (interpolated node slopes), ``facet`` (flat triangles, two per cell; albedo bilinear) or
+``gouraud`` (the radiance shaded at the nodes, interpolated).
 With ``image_shadows`` (default) the template's shadowed pixels are *used*, dark — the point of
 ray-traced shadows; photo pixels then count when 0 < DN ≤ T2 (T1 is not applied; DN 0 is SPC's
 missing data), template pixels where every sub-ray hit the maplet.  With ``photo_shadows="auto"``
@@ -179,7 +180,9 @@ class RegisterOptions:
       (70°); the tests' smaller world (27 landmarks) prefers facet at the views' Sun, 0.029 vs 0.024;
       facet normals differentiate height noise, and with the s16-50m Monte Carlo's 3.33 mm height
       errors on 1 cm cells 10 of 12 landmarks end low-correlation — docs/benchmarks.md "Template
-      shading"), ``template_slopes`` (the node slopes the smooth shading interpolates: ``"spc"``, the
+      shading"; ``"gouraud"``: the radiance shaded at the nodes and interpolated, as maplet space
+      predicts it, the s16-50m Monte Carlo's image plan: docs/benchmarks.md "The image floor"),
+      ``template_slopes`` (the node slopes the smooth shading interpolates: ``"spc"``, the
       default, SPC's HGT2SLP table, | ``"fourth"``, the fourth-order central difference where five
       nodes are valid: :func:`spctool.geometry.heightfield.fourth_order_slopes`; the s16-50m Monte
       Carlo's image plan), ``template_visibility`` (``"raster"``, the default: supersampled

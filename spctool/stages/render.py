@@ -16,7 +16,9 @@ Surfaces (:mod:`spctool.geometry.surfaces`)
   the simulator's fine truth patches.  Rays meet the bilinear terrain exactly
   (:func:`spctool.geometry.heightfield.intersect_rays`); shading normals are the bilinear
   interpolation of SPC's node slopes (HGT2SLP table, ``spc-algorithms.md`` §3.1), albedo the
-  bilinear map albedo.
+  bilinear map albedo (``shading="facet"``: the flat triangle's normal; ``shading="gouraud"``: the
+  radiance computed at the nodes, as SPC's prediction computes it (``spc-algorithms.md`` §3.2), and
+  interpolated bilinearly at the hit, :func:`node_radiance`).
 
 Composition rule: inside a patch's footprint — the column |x|, |y| ≤ QSZ and
 h_min − 1 ≤ z ≤ h_max + 1 (cells) — the patch *replaces* the shape.  Each ray takes the nearest of
@@ -68,7 +70,14 @@ import numpy as np
 from spctool.errors import SpcUsageError
 from spctool.geometry import heightfield
 from spctool.geometry._patchkernels import SHAPE, SKY, _fused_rays, predict_cells, usable_cells
-from spctool.geometry._rasterkernels import LAW_CODES, bin_subrays, shade_subrays, terrain_cells
+from spctool.geometry._rasterkernels import (
+    LAW_CODES,
+    bin_subrays,
+    gouraud_subrays,
+    node_geometry,
+    shade_subrays,
+    terrain_cells,
+)
 from spctool.geometry.heightfield import kernel_array
 from spctool.geometry.surfaces import (
     HeightPatch,
@@ -87,6 +96,7 @@ __all__ = [
     "Rendering",
     "SurfaceHits",
     "render",
+    "node_radiance",
     "predicted_cells",
     "trace",
     "shade",
@@ -119,7 +129,10 @@ class RenderOptions:
     shape cells, before a shadow ray from a shape point may hit the shape; ``shadow_lift_shape``: such
     rays start this far (shape cells) above the shape along its shading normal.  ``shading``: patch
     shading normals ``"smooth"`` (bilinear interpolation of SPC's node slopes) or ``"facet"`` (the flat
-    triangle under the hit, two per cell; albedo stays bilinear).  ``ray_inverse``: pixel → ray by
+    triangle under the hit, two per cell; albedo stays bilinear), or ``"gouraud"``: the radiance
+    R·albedo computed at the nodes (each node's slopes, its view direction; :func:`node_radiance`) and
+    interpolated bilinearly at the hit, the brightness interpolated instead of the normals (cast
+    shadows as the others; shape hits shaded as always).  ``ray_inverse``: pixel → ray by
     ``"newton"`` per sub-ray (:meth:`Camera.pixel_to_direction`) or ``"grid"`` (exact inverses on a
     coarse grid, interpolated bicubically where that is exact to 1e-7 px, else one Newton step per
     sub-ray: :meth:`Camera.pixel_to_direction_lattice`, the same rays to ~1e-7 px).  ``threads``:
@@ -526,6 +539,9 @@ def _fused_chunk(
     without the exact shadow shortcuts, as the reference for them; ``cand``, ``cells``:
     :func:`_trace_fused`'s)."""
     sun_shade = sun / np.linalg.norm(sun)  # shadowed() and shade() normalise once more
+    gouraud = options.shading == "gouraud"
+    if gouraud and pos is None:  # the hits' grid positions, where the node radiances are interpolated
+        pos = np.empty((dirs.shape[0], 2))
     surface, geom, sh = _trace_fused(
         origin,
         dirs,
@@ -546,9 +562,75 @@ def _fused_chunk(
     # shade(): the photometric law of spctool.photometry on (μ₀, μ, α), times the albedo — on every
     # sub-ray (the kernel leaves sky dark: 0), element by element the arithmetic of the hits alone
     r = np.empty(geom.shape[0])
+    if gouraud:
+        planes, ns = _node_radiance_planes(pset, origin, sun_shade, options)
+        r[:] = 0.0  # sky
+        gouraud_subrays(pos, surface, sh, planes, ns, r)
+        return hit, r, sh, surface
     law = LAW_CODES[options.photometry]
     shade_subrays(geom, sh, law, FIXED_BETA, ALPHA0_DEG, bool(options.use_albedo), r)
     return hit, r, sh, surface
+
+
+def node_radiance(patch: HeightPatch, position, sun, options: RenderOptions | None = None) -> np.ndarray:
+    """(n, n) radiance of every node of ``patch`` for ``shading="gouraud"``: R(μ₀, μ, α) of
+    ``options.photometry`` with the node's shading normal (its node slopes, the ones ``"smooth"``
+    interpolates: :attr:`HeightPatch.slopes`), the unit Sun ``sun`` and the unit vector from the node to
+    ``position`` (the camera, body km), times the node's albedo when ``options.use_albedo``; 0 where
+    the node is not valid.  What :func:`spctool.stages.predict.predict` computes at the nodes (SPC's
+    prediction, with a view direction per node)."""
+    options = options or RenderOptions()
+    hx, hy, _ = patch.slopes
+    s = np.asarray(sun, dtype=np.float64)
+    n = hx.size
+    geom = np.empty((n, 4))
+    node_geometry(
+        kernel_array(hx).reshape(-1), kernel_array(hy).reshape(-1), kernel_array(patch.rotation),
+        kernel_array(patch.node_points).reshape(-1, 3), kernel_array(position),
+        kernel_array(s / np.linalg.norm(s)), geom,
+    )  # fmt: skip
+    geom[:, 3] = patch.albedo.reshape(-1)
+    r = np.empty(n)
+    law = LAW_CODES[options.photometry]
+    shade_subrays(geom, np.zeros(n, bool), law, FIXED_BETA, ALPHA0_DEG, bool(options.use_albedo), r)
+    return np.where(patch.valid, r.reshape(hx.shape), 0.0)
+
+
+def _node_radiance_planes(pset: PatchSet, origin, sun, options: RenderOptions):
+    """(planes (P, n_max, n_max), ns (P,)): :func:`node_radiance` of every patch of ``pset`` (zero-padded),
+    kept on the set for one camera position, Sun and photometry (a template re-rendered at another
+    sub-pixel phase moves the camera's CTR, not its position: one computation per landmark and pose)."""
+    key = (
+        tuple(np.asarray(origin, dtype=np.float64).tolist()),
+        tuple(np.asarray(sun, dtype=np.float64).tolist()),
+        options.photometry,
+        bool(options.use_albedo),
+    )
+    got = pset._node_radiance
+    if got is None or got[0] != key:
+        ns = np.array([p.heights.shape[0] for p in pset.patches], np.int64)
+        nmax = int(ns.max())
+        planes = np.zeros((len(pset.patches), nmax, nmax))
+        for k, p in enumerate(pset.patches):
+            planes[k, : ns[k], : ns[k]] = node_radiance(p, origin, sun, options)
+        got = pset._node_radiance = (key, planes, ns)
+    return got[1], got[2]
+
+
+def _gouraud_hits(hits: SurfaceHits, pset: PatchSet, origin, sun, options: RenderOptions, sh, r) -> None:
+    """``shading="gouraud"`` on the reference path (:func:`trace` → :func:`shade`): the patch hits' ``r``
+    replaced by the node radiances interpolated at their maplet-frame position (0 in cast shadow)."""
+    m = np.flatnonzero(hits.surface >= 0)
+    if m.size == 0:
+        return
+    planes, ns = _node_radiance_planes(pset, origin, sun, options)
+    pos = np.empty((m.size, 2))
+    q = ((ns - 1) // 2)[hits.surface[m]]
+    pos[:, 0] = hits.local[m, 0] + q
+    pos[:, 1] = hits.local[m, 1] + q
+    out = r[m].copy()
+    gouraud_subrays(pos, hits.surface[m].astype(np.int64), np.asarray(sh, bool)[m], planes, ns, out)
+    r[m] = out
 
 
 def _render(
@@ -625,6 +707,8 @@ def _render(
                 else np.zeros(hits.surface.shape[0], bool)
             )
             r = shade(hits, dirs, sun, options=options, shadow=sh)
+            if options.shading == "gouraud":
+                _gouraud_hits(hits, plist, origin, sun, options, sh, r)
             hit, surface = hits.hit, hits.surface
         if progress is not None:
             progress(b - a)

@@ -6,7 +6,7 @@ shading").
 """
 
 #: shading normals of height patches (:class:`spctool.stages.render.RenderOptions`)
-SHADINGS = ("smooth", "facet")
+SHADINGS = ("smooth", "facet", "gouraud")
 
 #: how a one-patch window finds each sub-ray's terrain (:class:`spctool.stages.render.RenderOptions`)
 VISIBILITIES = ("march", "raster")
