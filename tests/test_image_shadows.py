@@ -8,7 +8,7 @@ import pytest
 
 from spctool.errors import SpcUsageError
 from spctool.stages.image_shadows import dark_floor, dark_floor_note, dark_pixels
-from spctool.stages.registrar import RegisterOptions
+from spctool.stages.register_options import RegisterOptions
 
 
 def _scene(rng, shadow_cols=10, photo_extra=3, noise=20.0):

@@ -245,7 +245,7 @@ def test_height_patch_fourth_order_node_slopes(seed, q, missing):
 
 
 def test_node_slope_names_agree_with_the_options_check():
-    from spctool.stages.registrar import RegisterOptions
+    from spctool.stages.register_options import RegisterOptions
     from spctool.stages.render_modes import NODE_SLOPES
 
     assert NODE_SLOPES == heightfield.NODE_SLOPES

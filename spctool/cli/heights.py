@@ -139,7 +139,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     from spctool.formats.maplet import write_map
     from spctool.stages.find_heights import FindHeightsOptions, find_heights, landmark_with, maplet_with
     from spctool.stages.photoclinometry import SolveOptions
-    from spctool.stages.registrar import RegisterOptions
+    from spctool.stages.register_options import RegisterOptions
 
     try:
         spacings = tuple(int(t) for t in kw["acquire_spacings"].replace(" ", ",").split(",") if t)

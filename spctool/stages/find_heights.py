@@ -81,7 +81,7 @@ from spctool.stages import slope_integration as si
 from spctool.stages.extract import ExtractOptions, extract
 from spctool.stages.predict import pearson
 from spctool.stages.register import register
-from spctool.stages.registrar import RegisterOptions
+from spctool.stages.register_options import RegisterOptions
 
 __all__ = [
     "FindHeightsOptions",

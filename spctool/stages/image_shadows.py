@@ -19,7 +19,7 @@ template pixel 0.044 px; as is 0.045 px; **the photo's pixels at its dark level 
 −0.002 px.  The 3 px margin (:data:`AUTO_DARK_MARGIN_PX`) is the one whose remaining common error
 the calibrated covariance covers (95 % ellipse: 0.82 → 0.85 at 2 px, 0.96 at 3 px).
 
-So ``photo_shadows="auto"`` (:class:`spctool.stages.registrar.RegisterOptions`, the default) leaves out
+So ``photo_shadows="auto"`` (:class:`spctool.stages.register_options.RegisterOptions`, the default) leaves out
 of every full-resolution correlation of a landmark the photo pixels at or below a *dark floor* it
 reads, once, from the photo under the landmark's own template (:func:`dark_floor`), and those within
 :data:`AUTO_DARK_MARGIN_PX` of one (:func:`dark_pixels`):

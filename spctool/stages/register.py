@@ -90,15 +90,8 @@ import numpy as np
 from spctool.stages.image_shadows import dark_floor_note
 from spctool.stages.pose import PoseError, solve_pose
 from spctool.stages.predict import cast_shadow_note
-from spctool.stages.registrar import (
-    SCHEDULES,
-    SPACES,
-    LandmarkStep,
-    RegisterOptions,
-    Registrar,
-    correlate_landmark,
-    schedule_steps,
-)
+from spctool.stages.register_options import SCHEDULES, SPACES, RegisterOptions, schedule_steps
+from spctool.stages.registrar import LandmarkStep, Registrar, correlate_landmark
 
 __all__ = [
     "SCHEDULES",
