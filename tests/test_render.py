@@ -393,16 +393,16 @@ def _triangle_hits(o, d, tri):
     return best_t, best_k
 
 
-def test_facet_shading_is_per_triangle_lambert():
+def _planar_facet_scene(seed):
     """A planar-facet scene (heights f(x) + g(y), piecewise linear: every cell is flat, each face tilts
-    its own way) rendered with ``shading="facet"`` equals an independent computation: rays through the
-    pixel centres meet the triangles (brute-force Möller–Trumbore), radiance = Lambert μ₀ of the hit
-    triangle's normal times the bilinear albedo.  The smooth shading (interpolated node slopes) does
-    not: that is what the option is for."""
+    its own way) and the brute-force crossing of every pixel-centre ray with its triangles (two per
+    cell along the (i, j)-(i+1, j+1) diagonal, Möller–Trumbore): a dict of the frame, patch, Sun and
+    camera and, per pixel, ``t``, the triangle index ``k`` (−1: no hit), ``hit``, the ray ``d``, the
+    ``tris`` and the hit's maplet coordinates ``loc``."""
     ux, uy, uz = _frame()
     v = np.array([0.2, 0.05, 0.3])
     scale, q = 0.001, 8
-    rng = np.random.default_rng(5)
+    rng = np.random.default_rng(seed)
     f = np.concatenate([[0.0], np.cumsum(rng.uniform(-0.8, 0.8, 2 * q))])
     g = np.concatenate([[0.0], np.cumsum(rng.uniform(-0.8, 0.8, 2 * q))])
     heights = f[:, None] + g[None, :]
@@ -411,10 +411,6 @@ def test_facet_shading_is_per_triangle_lambert():
     sun = 0.5 * ux + 0.3 * uy + uz
     sun /= np.linalg.norm(sun)
     cam = _camera(v + 0.05 * (uz + 0.2 * ux - 0.1 * uy), v, npx=60, nln=60)
-    opts = RenderOptions(photometry="lambert", shadows=False, shading="facet")
-    got = render(cam, sun, None, [patch], opts)
-    smooth = render(cam, sun, None, [patch], RenderOptions(photometry="lambert", shadows=False))
-    # independent: the triangles in the body frame, two per cell along the (i, j)-(i+1, j+1) diagonal
     n = 2 * q + 1
     idx = np.arange(n) - q
     xx, yy = np.meshgrid(idx, idx, indexing="ij")
@@ -429,11 +425,26 @@ def test_facet_shading_is_per_triangle_lambert():
     d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
     t, k = _triangle_hits(cam.position, d, tris)
     hit = k >= 0
+    loc = patch.to_local(np.where(hit[:, None], cam.position + t[:, None] * d, v))
+    return dict(ux=ux, uy=uy, uz=uz, v=v, q=q, heights=heights, alb=alb, patch=patch, sun=sun, cam=cam,
+                tris=tris, d=d, t=t, k=k, hit=hit, loc=loc)  # fmt: skip
+
+
+def test_facet_shading_is_per_triangle_lambert():
+    """A planar-facet scene (heights f(x) + g(y), piecewise linear: every cell is flat, each face tilts
+    its own way) rendered with ``shading="facet"`` equals an independent computation: rays through the
+    pixel centres meet the triangles (brute-force Möller–Trumbore), radiance = Lambert μ₀ of the hit
+    triangle's normal times the bilinear albedo.  The smooth shading (interpolated node slopes) does
+    not: that is what the option is for."""
+    sc = _planar_facet_scene(5)
+    ux, uy, uz, v, q, patch, sun, cam = (sc[x] for x in ("ux", "uy", "uz", "v", "q", "patch", "sun", "cam"))
+    opts = RenderOptions(photometry="lambert", shadows=False, shading="facet")
+    got = render(cam, sun, None, [patch], opts)
+    smooth = render(cam, sun, None, [patch], RenderOptions(photometry="lambert", shadows=False))
+    tris, k, hit, loc = sc["tris"], sc["k"], sc["hit"], sc["loc"]
     nrm = np.cross(tris[k, 1] - tris[k, 0], tris[k, 2] - tris[k, 0])
     nrm *= np.sign(nrm @ uz)[:, None]
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    pts = cam.position + t[:, None] * d
-    loc = patch.to_local(np.where(hit[:, None], pts, v))
     a = patch.interpolate(loc[:, 0], loc[:, 1])[3]
     want = np.where(hit, np.maximum(nrm @ sun, 0.0) * a, 0.0)
     inner = hit & (np.abs(loc[:, 0]) < q - 0.01) & (np.abs(loc[:, 1]) < q - 0.01)
@@ -451,18 +462,9 @@ def test_gouraud_shading_interpolates_the_node_radiances():
     from spctool.stages.predict import PredictOptions, predict
     from spctool.stages.render import node_radiance
 
-    ux, uy, uz = _frame()
-    v = np.array([0.2, 0.05, 0.3])
-    scale, q = 0.001, 8
-    rng = np.random.default_rng(11)
-    f = np.concatenate([[0.0], np.cumsum(rng.uniform(-0.8, 0.8, 2 * q))])
-    g = np.concatenate([[0.0], np.cumsum(rng.uniform(-0.8, 0.8, 2 * q))])
-    heights = f[:, None] + g[None, :]
-    alb = 1.0 + 0.3 * rng.uniform(-1, 1, heights.shape)
-    patch = HeightPatch(heights, scale, v, ux, uy, uz, albedo=alb)
-    sun = 0.5 * ux + 0.3 * uy + uz
-    sun /= np.linalg.norm(sun)
-    cam = _camera(v + 0.05 * (uz + 0.2 * ux - 0.1 * uy), v, npx=60, nln=60)
+    sc = _planar_facet_scene(11)
+    ux, uy, uz, v, q, patch, sun, cam = (sc[x] for x in ("ux", "uy", "uz", "v", "q", "patch", "sun", "cam"))
+    heights, alb = sc["heights"], sc["alb"]
     opts = RenderOptions(photometry="lambert", shadows=False, shading="gouraud")
     got = render(cam, sun, None, [patch], opts)
     smooth = render(cam, sun, None, [patch], RenderOptions(photometry="lambert", shadows=False))
@@ -475,19 +477,7 @@ def test_gouraud_shading_interpolates_the_node_radiances():
     nrm = -hx[..., None] * ux - hy[..., None] * uy + uz
     nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
     node_r = np.maximum(nrm @ sun, 0.0) * alb
-    idx = np.arange(n) - q
-    xx, yy = np.meshgrid(idx, idx, indexing="ij")
-    nodes = patch.to_body(np.stack([xx, yy, heights], -1).reshape(-1, 3)).reshape(n, n, 3)
-    tris = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            tris.append([nodes[i, j], nodes[i + 1, j], nodes[i + 1, j + 1]])
-            tris.append([nodes[i, j], nodes[i, j + 1], nodes[i + 1, j + 1]])
-    ss, ll = _pixels(cam)
-    d = cam.pixel_to_direction(ss.ravel(), ll.ravel())
-    t, k = _triangle_hits(cam.position, d, np.array(tris))
-    hit = k >= 0
-    loc = patch.to_local(np.where(hit[:, None], cam.position + t[:, None] * d, v))
+    hit, loc = sc["hit"], sc["loc"]
     # cells whose four corners are interior nodes (central differences there)
     inner = hit & (np.abs(loc[:, 0]) < q - 1.01) & (np.abs(loc[:, 1]) < q - 1.01)
     assert inner.sum() > 1000
