@@ -549,11 +549,12 @@ def weights_option(extra: str = ""):
 
 template_shading_option = click.option(
     "--template-shading",
-    type=click.Choice(["smooth", "facet"]),
+    type=click.Choice(["smooth", "facet", "gouraud"]),
     default="smooth",
     show_default=True,
     help="Image space: template normals from interpolated node slopes (smooth) or flat triangles, "
-    "two per maplet cell (facet).",
+    "two per maplet cell (facet), or the radiance shaded at the maplet's nodes and interpolated "
+    "(gouraud, as maplet space predicts it; the Monte Carlo's image plan).",
 )
 
 photo_shadows_option = click.option(
