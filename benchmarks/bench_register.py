@@ -394,24 +394,15 @@ def bench_maplet_two_workers_cpu():
     return s["speedup_cpu"], f"x (load {s['load']:.1f})", s["speedup_cpu"] >= 1.7
 
 
-def bench_maplet_two_workers_extra():
-    s = _maplet_split("register")
-    return s["extra_cpu"], f"x (load {s['load']:.1f})", True
+def _informative(measure, key, unit):
+    """An informative line (always ok): ``measure()[key]``, its unit followed by the load average the
+    measurement saw (``unit`` None: "pages", a count the load does not change)."""
 
+    def line():
+        s = measure()
+        return s[key], ("pages" if unit is None else f"{unit} (load {s['load']:.1f})"), True
 
-def bench_maplet_two_workers_wall():
-    s = _maplet_split("register")
-    return s["speedup_wall"], f"x (load {s['load']:.1f})", True
-
-
-def bench_navigate_maplet_two_workers_cpu():
-    s = _maplet_split("navigate")
-    return s["speedup_cpu"], f"x (load {s['load']:.1f})", True
-
-
-def bench_navigate_maplet_two_workers_wall():
-    s = _maplet_split("navigate")
-    return s["speedup_wall"], f"x (load {s['load']:.1f})", True
+    return line
 
 
 _THREADS: dict = {}
@@ -466,16 +457,6 @@ def _maplet_threads():
         speedup_wall=float(np.median(ratio)), cpu=float(np.median(cpu)), load=float(np.mean(loads))
     )
     return _THREADS
-
-
-def bench_maplet_two_threads_wall():
-    s = _maplet_threads()
-    return s["speedup_wall"], f"x (load {s['load']:.1f})", True
-
-
-def bench_maplet_two_threads_cpu():
-    s = _maplet_threads()
-    return s["cpu"], f"x (load {s['load']:.1f})", True
 
 
 _WHERE: dict = {}
@@ -543,21 +524,6 @@ def _maplet_where():
     _WHERE.update(inflation=float(med[0]), pages=float(med[1]), overhead_ms=float(med[2]))
     _WHERE["load"] = float(np.mean(loads))
     return _WHERE
-
-
-def bench_maplet_where_inflation():
-    s = _maplet_where()
-    return s["inflation"], f"x (load {s['load']:.1f})", True
-
-
-def bench_maplet_where_pages():
-    s = _maplet_where()
-    return s["pages"], "pages", True
-
-
-def bench_maplet_where_overhead():
-    s = _maplet_where()
-    return s["overhead_ms"], f"ms (load {s['load']:.1f})", True
 
 
 _COLD: dict = {}
@@ -707,47 +673,47 @@ BENCHMARKS = [
     (
         "register maplet S16 pass 16 landmarks, 2 workers' CPU together / 1 thread's",
         "(informative: the second process's cost)",
-        bench_maplet_two_workers_extra,
+        _informative(lambda: _maplet_split("register"), "extra_cpu", "x"),
     ),
     (
         "register maplet S16 pass 16 landmarks, 2 workers vs 1, speed-up (wall)",
         "(informative: the machine's load)",
-        bench_maplet_two_workers_wall,
+        _informative(lambda: _maplet_split("register"), "speedup_wall", "x"),
     ),
     (
         "register maplet S16 pass 16 landmarks, 2 threads vs 1 (no fork), speed-up (wall)",
         "(informative: threads are not the default below 1.7x; the machine's load)",
-        bench_maplet_two_threads_wall,
+        _informative(_maplet_threads, "speedup_wall", "x"),
     ),
     (
         "register maplet S16 pass 16 landmarks, 2 threads' CPU / 1 thread's (no fork)",
         "(informative)",
-        bench_maplet_two_threads_cpu,
+        _informative(_maplet_threads, "cpu", "x"),
     ),
     (
         "register maplet S16 pass 16 landmarks, 2 workers: landmarks' CPU in two processes / in one",
         "(informative: page faults after the fork, shared caches)",
-        bench_maplet_where_inflation,
+        _informative(_maplet_where, "inflation", "x"),
     ),
     (
         "register maplet S16 pass 16 landmarks, 2 workers: pages the child writes",
         "(informative: each a new page)",
-        bench_maplet_where_pages,
+        _informative(_maplet_where, "pages", None),
     ),
     (
         "register maplet S16 pass 16 landmarks, 2 workers: critical process's CPU beyond its landmarks",
         "(informative: set-up, fork, claims, results)",
-        bench_maplet_where_overhead,
+        _informative(_maplet_where, "overhead_ms", "ms"),
     ),
     (
         "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (CPU critical path)",
         "(informative)",
-        bench_navigate_maplet_two_workers_cpu,
+        _informative(lambda: _maplet_split("navigate"), "speedup_cpu", "x"),
     ),
     (
         "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (wall)",
         "(informative: the machine's load)",
-        bench_navigate_maplet_two_workers_wall,
+        _informative(lambda: _maplet_split("navigate"), "speedup_wall", "x"),
     ),
     ("cold register 16 landmarks 1024^2, image, wall", "<= 1.5 s (GIANT 7.2 s)", bench_cold_image),
     ("cold register 16 landmarks 1024^2, image, CPU", "<= 1.5 s", bench_cold_image_cpu),
