@@ -459,6 +459,71 @@ def _maplet_threads():
     return _THREADS
 
 
+_TWO_CORES: dict = {}
+
+
+def _two_cores():
+    """What this machine's second core costs the first, with no parallel machinery at all: two
+    processes each running the one-thread 16-landmark pass side by side.  A child is forked once and
+    runs its own warm passes (its pages its own before any timing); then 21 rounds, each timing this
+    process's one-thread pass alone (the child waiting on a pipe) and then beside the child's pass
+    (both started together): ``{"penalty"}`` — median of each round's CPU beside / alone (shared
+    caches, memory and the host's scheduling of the two virtual cores; CPU time, so a core taken away
+    by the host is not counted) — ``"bound"`` = 2 / penalty, the most any two-worker run of this pass
+    can gain here however little its own machinery costs, and ``"load"``."""
+    if _TWO_CORES:
+        return _TWO_CORES
+    w = _load16()
+    ropts = RegisterOptions(space="maplet", threads=1)
+
+    def one():
+        register(w["photo"], w["camera"], w["sun"], w["maplets"], w["thresholds"], ropts, names=w["names"])
+
+    one(), one()
+    go_r, go_w = os.pipe()
+    back_r, back_w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: a pass for every byte it reads, its CPU written back; EOF ends it
+        code = 1
+        try:
+            os.close(go_w)
+            os.close(back_r)
+            one(), one()
+            os.write(back_w, b"ready\n")
+            while os.read(go_r, 1):
+                c = time.process_time()
+                one()
+                os.write(back_w, f"{time.process_time() - c!r}\n".encode())
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(go_r)
+    os.close(back_w)
+    reader = os.fdopen(back_r, "r")
+    try:
+        reader.readline()
+        ratios = []
+        loads = [os.getloadavg()[0]]
+        for _ in range(21):
+            c = time.process_time()
+            one()
+            alone = time.process_time() - c
+            os.write(go_w, b"g")
+            c = time.process_time()
+            one()
+            beside = time.process_time() - c
+            reader.readline()  # the child's pass ended too: the next round starts with it idle
+            ratios.append(beside / alone)
+        loads.append(os.getloadavg()[0])
+    finally:
+        os.close(go_w)
+        reader.close()
+        os.waitpid(pid, 0)
+    penalty = float(np.median(ratios))
+    _TWO_CORES.update(penalty=penalty, bound=2.0 / penalty, load=float(np.mean(loads)))
+    return _TWO_CORES
+
+
 _WHERE: dict = {}
 
 
@@ -704,6 +769,16 @@ BENCHMARKS = [
         "register maplet S16 pass 16 landmarks, 2 workers: critical process's CPU beyond its landmarks",
         "(informative: set-up, fork, claims, results)",
         _informative(_maplet_where, "overhead_ms", "ms"),
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, this machine: a one-thread pass's CPU beside another / alone",
+        "(informative: the second core's cost with no parallel machinery)",
+        _informative(_two_cores, "penalty", "x"),
+    ),
+    (
+        "register maplet S16 pass 16 landmarks, this machine: two-core bound 2 / that",
+        "(informative: the most any two-worker pass gains here)",
+        _informative(_two_cores, "bound", "x"),
     ),
     (
         "register maplet two-pass navigation 16 landmarks, 2 workers vs 1 (CPU critical path)",
