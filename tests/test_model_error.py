@@ -61,6 +61,14 @@ def test_the_alternative_models():
     assert img[2][1].template_shading == "facet" and img[0][1].predict.photometry == "lambert"
     lam = RegisterOptions(predict=dataclasses.replace(RegisterOptions().predict, photometry="lambert"))
     assert alternative_models(lam)[0][1].predict.photometry == "spc"
+    # every template shading is compared with another one (gouraud, like smooth, with facet)
+    from spctool.stages.render_modes import SHADINGS
+
+    for shading in SHADINGS:
+        alt = alternative_models(RegisterOptions(space="image", template_shading=shading))[2][1]
+        assert alt.template_shading in SHADINGS and alt.template_shading != shading
+    gouraud = alternative_models(RegisterOptions(space="image", template_shading="gouraud"))
+    assert gouraud[2][0] == "template-shading facet"
 
 
 def test_smoothed_heights_by_hand():

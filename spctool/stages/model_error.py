@@ -52,8 +52,10 @@ __all__ = [
 
 #: the photometric law each law is compared with (:data:`spctool.photometry` laws; Lambert ↔ SPC's)
 ALTERNATIVE_LAW = {"spc": "lambert", "mcewen": "lambert", "fixed": "lambert", "lambert": "spc"}
-#: image space: the template shading compared with
-ALTERNATIVE_SHADING = {"smooth": "facet", "facet": "smooth"}
+#: image space: the template shading compared with (gouraud with facet, as smooth is: the model-error
+#: term was calibrated on the smooth ↔ facet difference; gouraud and smooth differ far less, by the
+#: concavity of the law between nodes)
+ALTERNATIVE_SHADING = {"smooth": "facet", "facet": "smooth", "gouraud": "facet"}
 #: the pattern of the maplets' heights smoothed once more (:func:`smoothed_heights`)
 SMOOTHED = "heights smoothed"
 
@@ -101,7 +103,7 @@ def alternative_models(options) -> list[tuple[str, object]]:
     predict = dataclasses.replace(options.predict, photometry=alt)
     out = [(f"photometry {alt}", dataclasses.replace(options, predict=predict)), (SMOOTHED, options)]
     if options.space == "image":
-        shading = ALTERNATIVE_SHADING.get(options.template_shading, "facet")
+        shading = ALTERNATIVE_SHADING[options.template_shading]
         out.append((f"template-shading {shading}", dataclasses.replace(options, template_shading=shading)))
         if options.image_shadows:  # the template's cast shadows (the maplet's heights, not the body's)
             out.append(("no cast shadows", dataclasses.replace(options, image_shadows=False)))
