@@ -752,7 +752,7 @@ def test_image_space_template_reuse_equals_exact_rendering(scene, monkeypatch):
 @pytest.mark.parametrize("pointing", [(4.6, -2.3), (-6.1, 3.4), (1.2, 0.8)])
 def test_converged_stage_drafts_then_ends_on_full_templates(scene, monkeypatch, pointing):
     """Image space (``converge_draft``): the converged stage's first steps render at
-    ``supersample_coarse`` (a quarter of the rays) until a move is below ``_DRAFT_TOL``, then at
+    ``supersample_coarse`` (a quarter of the rays) until a move is below ``converge_draft_tol``, then at
     ``supersample``; it only ends on a full template, so the result is that template's zero: within
     the stage's tolerance of the stage run with full templates throughout, for fewer rays."""
     import spctool.stages.render as rmod
