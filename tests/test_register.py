@@ -1330,7 +1330,7 @@ def _broyden_reference(jac, f, dc, df):
 
 @pytest.mark.slow
 def test_broyden_step_matches_lapack_on_random_systems():
-    from spctool.stages.register import _broyden_step
+    from spctool.stages.register_converge import _broyden_step
 
     rng = np.random.default_rng(17)
     fallbacks = taken = 0
@@ -1356,7 +1356,7 @@ def test_broyden_step_matches_lapack_on_random_systems():
 
 
 def test_broyden_step_falls_back_on_a_turn_a_flat_gain_and_non_finite_input():
-    from spctool.stages.register import _broyden_step
+    from spctool.stages.register_converge import _broyden_step
 
     f = np.array([0.03, -0.01])
     turn = np.array([[0.0, 1.0], [-1.0, 0.0]]) * -1.0  # G a 90° rotation: eigenvalues ±i

@@ -37,22 +37,23 @@ hold the GIL (issue 39: in one thread ~70 % of its time is in kernels that relea
 extraction and the correlation's front end are one kernel each —, so two threads could gain at most
 1/(0.3 + 0.7/2) ≈ 1.5×; docs/benchmarks.md).
 
-Both drivers end with a **converged full-resolution stage** when their last align step is at
-spacing 1: that step is repeated (re-extracting or re-placing at the current estimate) until the
-estimate moves by less than ``converge_tol`` (0.005 px), at most ``converge_max`` extra steps (10;
-0 = the schedule exactly).  The coarse steps leave 0.3–1 px on tilted peaks and a single L = 1 step
-only removes part of that.  The stage reads each step with ``converge_peak`` — by default the
-least-squares alignment of prediction and photo at the grid peak
-(:func:`spctool.stages.alignment.gradient_offset`), which is exactly zero where they agree, whereas a
-vertex of the correlation surface (quadric or parabola) stays up to 0.05 px off on an asymmetric peak
-however often the step is repeated (independent world, image space: 0.038 → 0.019 px rms) — and
-moves by secant (Broyden) steps, so an estimator that over- or under-reads the shift converges in a
-few steps to the same zero.  A small cycle (the estimate going round places
-< 20·``converge_tol`` apart, e.g. an image-space template re-rendered at each sub-pixel placement)
-converges to the mean of those places.  A landmark that does not settle within the cap gets the
-status ``not-converged`` (its last estimate is kept in :attr:`RegisterResult.measured`, but it is not
-``ok``).  AUTOREGISTER converges every landmark from its last measurement with the final pose, then
-solves the pose once more from the converged pixels (``pose_update``).
+Both drivers end with a **converged full-resolution stage**
+(:mod:`spctool.stages.register_converge`) when their last align step is at spacing 1: that step is
+repeated (re-extracting or re-placing at the current estimate) until the estimate moves by less than
+``converge_tol`` (0.005 px), at most ``converge_max`` extra steps (10; 0 = the schedule
+exactly).  The coarse steps leave 0.3–1 px on tilted peaks and a single L = 1 step only removes part
+of that.  The stage reads each step with ``converge_peak`` — by default the least-squares alignment
+of prediction and photo at the grid peak (:func:`spctool.stages.alignment.gradient_offset`), which
+is exactly zero where they agree, whereas a vertex of the correlation surface (quadric or parabola)
+stays up to 0.05 px off on an asymmetric peak however often the step is repeated (independent world,
+image space: 0.038 → 0.019 px rms) — and moves by secant (Broyden) steps, so an estimator that over-
+or under-reads the shift converges in a few steps to the same zero.  A small cycle (the estimate
+going round places < 20·``converge_tol`` apart, e.g. an image-space template re-rendered at each
+sub-pixel placement) converges to the mean of those places.  A landmark that does not settle within
+the cap gets the status ``not-converged`` (its last estimate is kept in
+:attr:`RegisterResult.measured`, but it is not ``ok``).  AUTOREGISTER converges every landmark from
+its last measurement with the final pose, then solves the pose once more from the converged pixels
+(``pose_update``).
 
 Every measured landmark also carries a **measurement covariance** (:attr:`RegisterResult.covariance`,
 pixels², (sample, line)): the correlation peak's covariance (:mod:`spctool.stages.correlate` item 7)
@@ -90,7 +91,7 @@ import numpy as np
 from spctool.stages.image_shadows import dark_floor_note
 from spctool.stages.pose import PoseError, solve_pose
 from spctool.stages.predict import cast_shadow_note
-from spctool.stages.register_converge import _broyden_step, _converge, _converges, _drafts, _record  # noqa: F401
+from spctool.stages.register_converge import _converge, _converges, _drafts, _record
 from spctool.stages.register_options import SCHEDULES, SPACES, RegisterOptions, schedule_steps
 from spctool.stages.registrar import LandmarkStep, Registrar, correlate_landmark
 
