@@ -29,7 +29,8 @@ from numba.core.registry import CPUDispatcher  # noqa: E402
 from spctool.stages.register import RegisterOptions, register  # noqa: E402
 
 _MODULES = (
-    "spctool.stages.register", "spctool.stages.registrar", "spctool.stages.extract", "spctool.stages.predict",
+    "spctool.stages.register", "spctool.stages.register_converge", "spctool.stages.registrar",
+    "spctool.stages.extract", "spctool.stages.predict",
     "spctool.stages.correlate", "spctool.stages.alignment", "spctool.geometry.heightfield",
     "spctool.geometry._heightkernels", "spctool.geometry.camera", "spctool.geometry._camerakernels",
     "spctool.geometry.frames",
