@@ -22,6 +22,33 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @numba.njit(forceinline=True, **_JIT)
+def _cubic(q, o, x, y, x2, xy, y2):
+    """One axis of the CUBIC model (§6.4): Σ q[o … o+9] · (1, x, y, x², xy, y², x³, x²y, xy², y³)."""
+    return (
+        q[o]
+        + q[o + 1] * x
+        + q[o + 2] * y
+        + q[o + 3] * x2
+        + q[o + 4] * xy
+        + q[o + 5] * y2
+        + q[o + 6] * x2 * x
+        + q[o + 7] * x2 * y
+        + q[o + 8] * x * y2
+        + q[o + 9] * y2 * y
+    )
+
+
+@numba.njit(forceinline=True, **_JIT)
+def _cubic_gradient(q, o, x, y, x2, xy, y2):
+    """(∂/∂x, ∂/∂y) of :func:`_cubic`, term by term."""
+    dx = q[o + 1] + 2.0 * q[o + 3] * x + q[o + 4] * y + 3.0 * q[o + 6] * x2 + 2.0 * q[o + 7] * xy
+    dx = dx + q[o + 8] * y2
+    dy = q[o + 2] + q[o + 4] * x + 2.0 * q[o + 5] * y + q[o + 7] * x2 + 2.0 * q[o + 8] * xy
+    dy = dy + 3.0 * q[o + 9] * y2
+    return dx, dy
+
+
+@numba.njit(forceinline=True, **_JIT)
 def _focal_value(model, q, xn, yn):
     """(x̄, ȳ) → distorted focal plane (x, y) in mm (value only; see :func:`_focal_jac`)."""
     mmfl = q[0]
@@ -47,32 +74,7 @@ def _focal_value(model, q, xn, yn):
         x2 = x * x
         y2 = y * y
         xy = x * y
-        return (
-            (
-                q[14]
-                + q[15] * x
-                + q[16] * y
-                + q[17] * x2
-                + q[18] * xy
-                + q[19] * y2
-                + q[20] * x2 * x
-                + q[21] * x2 * y
-                + q[22] * x * y2
-                + q[23] * y2 * y
-            ),
-            (
-                q[24]
-                + q[25] * x
-                + q[26] * y
-                + q[27] * x2
-                + q[28] * xy
-                + q[29] * y2
-                + q[30] * x2 * x
-                + q[31] * x2 * y
-                + q[32] * x * y2
-                + q[33] * y2 * y
-            ),
-        )
+        return _cubic(q, 14, x, y, x2, xy, y2), _cubic(q, 24, x, y, x2, xy, y2)
     if model == 4:  # APOLLO
         rho = x * x + y * y
         g = 1.0 + q[14] * rho + q[15] * rho * rho + q[16] * rho * rho * rho
@@ -125,34 +127,10 @@ def _focal_jac(model, q, xn, yn):
         x2 = x * x
         y2 = y * y
         xy = x * y
-        xd = (
-            q[14]
-            + q[15] * x
-            + q[16] * y
-            + q[17] * x2
-            + q[18] * xy
-            + q[19] * y2
-            + q[20] * x2 * x
-            + q[21] * x2 * y
-            + q[22] * x * y2
-            + q[23] * y2 * y
-        )
-        yd = (
-            q[24]
-            + q[25] * x
-            + q[26] * y
-            + q[27] * x2
-            + q[28] * xy
-            + q[29] * y2
-            + q[30] * x2 * x
-            + q[31] * x2 * y
-            + q[32] * x * y2
-            + q[33] * y2 * y
-        )
-        j11 = q[15] + 2.0 * q[17] * x + q[18] * y + 3.0 * q[20] * x2 + 2.0 * q[21] * xy + q[22] * y2
-        j12 = q[16] + q[18] * x + 2.0 * q[19] * y + q[21] * x2 + 2.0 * q[22] * xy + 3.0 * q[23] * y2
-        j21 = q[25] + 2.0 * q[27] * x + q[28] * y + 3.0 * q[30] * x2 + 2.0 * q[31] * xy + q[32] * y2
-        j22 = q[26] + q[28] * x + 2.0 * q[29] * y + q[31] * x2 + 2.0 * q[32] * xy + 3.0 * q[33] * y2
+        xd = _cubic(q, 14, x, y, x2, xy, y2)
+        yd = _cubic(q, 24, x, y, x2, xy, y2)
+        j11, j12 = _cubic_gradient(q, 14, x, y, x2, xy, y2)
+        j21, j22 = _cubic_gradient(q, 24, x, y, x2, xy, y2)
         return xd, yd, c * j11, c * j12, c * j21, c * j22
     if model == 4:  # APOLLO
         rho = x * x + y * y
