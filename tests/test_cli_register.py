@@ -145,6 +145,27 @@ def test_register_from_a_lithos_select_table(world):
     assert pose.exit_code == 1 and "1 usable" in pose.stderr
 
 
+def test_register_by_selection_parses_each_lmk_once(world, monkeypatch):
+    """Without named landmarks, register runs lithos-select, which reads each candidate's LMK; the
+    registration then takes the VLM from the selection instead of parsing the file a second time."""
+    import spctool.formats.landmark as landmark_format
+
+    root, sc, apriori = world
+    parsed = []
+    read_lmk = landmark_format.read_lmk
+    monkeypatch.setattr(landmark_format, "read_lmk", lambda path: parsed.append(path) or read_lmk(path))
+    res = invoke(root, "register", PIC, "--json")
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert doc["landmark_source"] == "selection" and [r["name"] for r in doc["landmarks"]] == [LMK]
+    assert doc["landmarks"][0]["status"] == "ok"
+    assert len(parsed) == 1 and parsed[0].name == f"{LMK}.LMK"
+    # the same registration as with the landmark named (whose LMK register reads itself)
+    named = json.loads(invoke(root, "register", PIC, LMK, "--json").stdout)["landmarks"][0]
+    assert doc["landmarks"][0]["sample"] == pytest.approx(named["sample"], abs=1e-9)
+    assert doc["landmarks"][0]["line"] == pytest.approx(named["line"], abs=1e-9)
+
+
 def test_register_image_space_and_autoregister(world):
     root, sc, _ = world
     res = invoke(root, "register", PIC, LMK, "--space", "image", "--schedule", "autoregister", "--json")

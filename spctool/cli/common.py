@@ -354,7 +354,7 @@ def table_pixels(
 
 
 def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture, any_picture: bool = True):
-    """The landmarks a per-picture stage works on, as ([(name, pixel or None)], source).
+    """The landmarks a per-picture stage works on, as ([(name, pixel or None)], source, centres).
 
     Given landmarks (source ``"given"``): the rows of ``--landmarks TABLE`` with their table pixels
     (:func:`table_pixels`), then the named ``names`` (no pixel; a name with neither MAP nor LMK file
@@ -362,7 +362,9 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture, a
     With neither, lithos-select (:func:`spctool.stages.select.select_maplets`, INIT_LITHOS options,
     occlusion by the shape as ``lithos-select`` checks it) on the
     LMRKLIST.TXT / LMKFILES/ candidates gives the selected maplets with their predicted pixels
-    (source ``"selection"``).  A table made for another picture is refused unless ``any_picture``.
+    (source ``"selection"``) and each selected one's centre as the selection read it (``centres``,
+    name → V: the LMK's VLM, else the MAP's V; empty for given landmarks), so that a command need not
+    read those files again.  A table made for another picture is refused unless ``any_picture``.
     """
     rows = table_pixels(table_path, picture.pic.name, any_picture) if table_path else []
     for n in names:  # a landmark named on the command line must exist (exit 2, as in every command)
@@ -372,13 +374,13 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture, a
             )
     rows += [(n, None) for n in names]
     if rows:
-        return rows, "given"
+        return rows, "given", {}
     from spctool.cli.candidates import load_candidates
     from spctool.stages.select import SelectOptions
 
     cand = load_candidates(ctx, (), None)
     if not len(cand):
-        return [], "selection"
+        return [], "selection", {}
     shape = load_shape(ctx)  # occlusion checked as lithos-select checks it (when there is a shape)
     if shape is None:
         ctx.note_once("no shape model (SHAPEFILES/SHAPE.TXT): occlusion check skipped")
@@ -388,8 +390,10 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture, a
         f"lithos-select: {res.n_selected} of {len(res)} candidate maplets "
         f"(occlusion {'checked' if res.occlusion_checked else 'skipped'})"
     )
-    selected = zip(res.names, res.sample, res.line, res.selected)
-    return [(n, (float(s), float(ln))) for n, s, ln, sel in selected if sel], "selection"
+    chosen = [k for k, sel in enumerate(res.selected) if sel]
+    rows = [(res.names[k], (float(res.sample[k]), float(res.line[k]))) for k in chosen]
+    centre_of = dict(zip(cand.names, cand.centres))
+    return rows, "selection", {res.names[k]: centre_of[res.names[k]] for k in chosen}
 
 
 class StageInputs(NamedTuple):
@@ -400,6 +404,7 @@ class StageInputs(NamedTuple):
     photo: Any  # formats.photo.Photo, or None when not required and there is none
     landmarks: list  # [(name, pixel or None)] of picture_landmarks
     source: str  # "given" or "selection"
+    centres: dict  # name → V of the selected landmarks as the selection read them (picture_landmarks)
 
 
 def load_stage_inputs(ctx: Context, kw: dict, *, photo_required: bool = True) -> StageInputs:
@@ -414,5 +419,7 @@ def load_stage_inputs(ctx: Context, kw: dict, *, photo_required: bool = True) ->
     check_sum_picture(kw["picture"], kw["sum_path"], picture, any_picture)
     thresholds = picture_thresholds(kw["thresholds"], picture.pic)
     photo = load_photo(ctx, picture.pic, kw["photo_path"], flip_rows=kw["flip_rows"], required=photo_required)
-    landmarks, source = picture_landmarks(ctx, kw["names"], kw["landmarks_table"], picture, any_picture)
-    return StageInputs(picture, thresholds, photo, landmarks, source)
+    landmarks, source, centres = picture_landmarks(
+        ctx, kw["names"], kw["landmarks_table"], picture, any_picture
+    )
+    return StageInputs(picture, thresholds, photo, landmarks, source, centres)

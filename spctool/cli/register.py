@@ -193,10 +193,13 @@ class _Inputs:
                 ctx.note_once(f"{name}: no maplet ({exc})")
                 self.missing.append(name)
                 continue
-            pos = np.asarray(maplet.v, dtype=np.float64)
             has_lmk = wd.lmk_path(name).exists()
-            if has_lmk:
+            if name in inputs.centres:  # the selection read the LMK's VLM (else the MAP's V) already
+                pos = np.asarray(inputs.centres[name], dtype=np.float64)
+            elif has_lmk:
                 pos = np.asarray(wd.read_landmark(name).vlm, dtype=np.float64)
+            else:
+                pos = np.asarray(maplet.v, dtype=np.float64)
             self.names.append(name)
             self.maplets.append(maplet)
             self.positions.append(pos)
