@@ -30,7 +30,8 @@ half-cell facets, flat-shaded) and a smooth one (third-of-a-cell facets, interpo
   error (χ²₆: 6) over the six pictures of navigate's pose (the uniform fit, its covariance under that
   calibrated measurement covariance), of the same fit with its formal covariance (``--weights
   uniform``, 0.1 px) and of ``--weights surface`` (weighted by the registration covariances and the
-  shading model's error patterns, :mod:`spctool.stages.model_error`).
+  shading model's error patterns, :mod:`spctool.stages.model_error`); the last two are informative
+  (not the default: they show what the calibrated default replaced).
 * ``accuracy two-pass ms/landmark`` — CPU time of :func:`spctool.stages.navigate.navigate` per
   landmark in maplet space on one core (numba and the process limited to one thread, so CPU time is
   one core's work; wall clock counts the other jobs of a shared machine too), steady state (best of 3
@@ -185,6 +186,11 @@ def _calibration(pic, cam, photo, maplets, names, res, tp, truth_doc, space, sha
     return d2, _nees(truth_doc, pose), _nees(truth_doc, uni), _nees(truth_doc, sur)
 
 
+#: the target text of the weightings the default replaced (issue 39 asks the default to be calibrated;
+#: these lines show what it replaced, and how far from χ²₆ each one reads)
+_OLD_WEIGHTS = "(informative: not the default; chi2_6 is 6)"
+
+
 def _calib_line(truth, space, what, sun="high"):
     def fn():
         f = _figures(truth, space, sun)
@@ -192,8 +198,8 @@ def _calib_line(truth, space, what, sun="high"):
             return f["d2"], "mean d2", abs(f["d2"] - 2.0) <= 0.5
         if what == "cover":
             return f["cover"], "fraction", 0.90 <= f["cover"] <= 0.98
-        if what in ("nees_uniform", "nees_surface"):
-            return f[what], "mean NEES", 3.0 <= f[what] <= 9.0
+        if what in ("nees_uniform", "nees_surface"):  # the weightings the default replaced: informative
+            return f[what], "mean NEES", True
         return f["nees"], "mean NEES", 3.0 <= f["nees"] <= 9.0
 
     return fn
@@ -364,8 +370,8 @@ BENCHMARKS = [
             ("landmark d2 (calibrated covariance)", "2 +- 0.5", "d2"),
             ("landmark coverage of the 95 % ellipse", "0.90-0.98", "cover"),
             ("pose NEES (--weights calibrated, the default)", "6 (chi2_6)", "nees"),
-            ("pose NEES (--weights uniform: formal sigma_px)", "6 (chi2_6)", "nees_uniform"),
-            ("pose NEES (--weights surface)", "6 (chi2_6)", "nees_surface"),
+            ("pose NEES (--weights uniform: formal sigma_px)", _OLD_WEIGHTS, "nees_uniform"),
+            ("pose NEES (--weights surface)", _OLD_WEIGHTS, "nees_surface"),
         )
     ],
     ("accuracy two-pass ms/landmark (maplet, 1 core)", "<= 40 ms (GIANT 363)", bench_ms_per_landmark),
