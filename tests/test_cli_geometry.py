@@ -162,6 +162,36 @@ def test_batch_rounds_two_measures_better_than_one(pristine20, run_cli, tmp_path
     assert round_stats(2) == (f2, ok2, e2)
 
 
+def test_batch_rounds_rebuild_a_refined_map_whose_inputs_changed(pristine, run_cli, tmp_path):
+    """A refined map is reused on resume only while what it was built from is unchanged: a landmark
+    moved in the working directory after the run, ``--lithos`` added, or ``--force``, build it again
+    (a stale map once stayed, and round 2 measured on it); an output folder inside the working
+    directory is not linked into the map."""
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    cycle = wd / "cycle"  # inside the working directory
+
+    def rounds(*extra):
+        res = run_cli("-q", "-C", wd, "batch", "--rounds", "2", "--out-dir", cycle, *extra)
+        assert res.exit_code == 0, res.output
+        return json.loads((cycle / "MAP2" / "GEOMETRY.json").read_text())
+
+    first = rounds()
+    assert len(first["inputs"]) == 64 and not (cycle / "MAP2" / "cycle").exists()
+    summary = cycle / "MAP2" / "GEOMETRY.json"
+    lmk = cycle / "MAP2" / "LMKFILES" / "BW0001.LMK"
+    refined, built = read_lmk(lmk).vlm, summary.stat().st_mtime_ns
+    assert rounds()["inputs"] == first["inputs"] and summary.stat().st_mtime_ns == built  # unchanged: kept
+    # the working directory's landmark moved by 4 cm: the map is built again from it
+    src = read_lmk(wd / "LMKFILES" / "BW0001.LMK")
+    write_lmk(wd / "LMKFILES" / "BW0001.LMK", dataclasses.replace(src, vlm=src.vlm + [4e-5, 0.0, 0.0]))
+    second = rounds()
+    assert second["inputs"] != first["inputs"] and summary.stat().st_mtime_ns != built
+    assert np.linalg.norm(read_lmk(lmk).vlm - refined) > 1e-7  # refined again, from the moved landmark
+    built = summary.stat().st_mtime_ns
+    assert rounds("--force")["inputs"] == second["inputs"] and summary.stat().st_mtime_ns != built
+
+
 def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
     from spctool.formats.sumfile import read_sum, write_sum
 

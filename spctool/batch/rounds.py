@@ -21,11 +21,16 @@ maplets) before the next round measures; each maplet's outcome is in ``GEOMETRY.
 The LMK and MAP files of a round are written once, by the reduction.  A killed run resumes: each
 round's batch skips the pictures its done-markers cover, and a refined map is built in a temporary
 folder renamed into place when complete (a half-built one is removed and built again), so nothing is
-lost or done twice.  The last round's outputs are the batch's result.
+lost or done twice.  A refined map records what it was built from (``GEOMETRY.json``'s ``inputs``: a
+digest of the working directory's SUM, LMK and MAP files, of the round's SUMs and tables, and of the
+refinement's options) and is reused only while those are unchanged (``force``: never); a map built
+from other inputs — a landmark moved, a round measured again, ``--lithos`` added — is built again.
+The last round's outputs are the batch's result.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -35,7 +40,7 @@ from pathlib import Path
 from spctool.errors import SpcUsageError
 from spctool.formats import atomic
 
-__all__ = ["RoundsResult", "run_rounds", "refined_workdir"]
+__all__ = ["RoundsResult", "inputs_digest", "run_rounds", "refined_workdir"]
 
 #: entries of a working directory that a refined map holds as real files (refined or rewritten)
 _OWN = ("SUMFILES", "LMKFILES", "MAPFILES", "EXTFILES")
@@ -61,17 +66,45 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def refined_workdir(workdir: Path, round_dir: Path, target: Path, settings, refine_kw: dict) -> dict:
+def inputs_digest(workdir: Path, round_dir: Path, refine_kw: dict) -> str:
+    """SHA-256 over what a refined map is built from: the working directory's SUM, LMK and MAP files
+    (EXTFILES too) and its INIT_LITHOS.TXT, the round's SUMs and register tables (names and contents,
+    in name order) and the refinement's options (``refine_kw``)."""
+    h = hashlib.sha256(json.dumps(refine_kw, sort_keys=True, default=str).encode("utf-8"))
+    src, rdir = Path(workdir).resolve(), Path(round_dir)
+    groups = [(src / d, "*") for d in ("SUMFILES", "LMKFILES", "MAPFILES", "EXTFILES")]
+    groups += [(src, "INIT_LITHOS.TXT"), (rdir / "SUMFILES", "*.SUM"), (rdir / "TABLES", "*.register.txt")]
+    for folder, pattern in groups:
+        if not folder.is_dir():
+            continue
+        for f in sorted(folder.glob(pattern)):
+            if f.is_file() and not f.name.endswith(".bak"):
+                h.update(f"{folder.name}/{f.name}\0".encode())
+                with open(f, "rb") as fh:
+                    h.update(hashlib.file_digest(fh, "sha256").digest())
+    return h.hexdigest()
+
+
+def refined_workdir(
+    workdir: Path, round_dir: Path, target: Path, settings, refine_kw: dict, *, force: bool = False
+) -> dict:
     """Build ``target`` (module docstring) from ``workdir`` and the batch output ``round_dir``; returns
-    the refinement's summary (also written as ``target/GEOMETRY.json``)."""
+    the refinement's summary (also written as ``target/GEOMETRY.json``).  A ``target`` built before from
+    the same inputs (:func:`inputs_digest`) is kept, unless ``force``."""
     from spctool.batch import refine
     from spctool.formats.workdir import WorkDir
     from spctool.jsonsafe import json_safe
     from spctool.stages.bundle import BundleOptions, solve_bundle
 
     target = Path(target)
-    if (target / "GEOMETRY.json").exists():
-        return json.loads((target / "GEOMETRY.json").read_text())
+    digest = inputs_digest(workdir, round_dir, refine_kw)
+    if not force and (target / "GEOMETRY.json").exists():
+        try:
+            done = json.loads((target / "GEOMETRY.json").read_text())
+        except (OSError, ValueError):
+            done = None
+        if isinstance(done, dict) and done.get("inputs") == digest:
+            return done
     tmp = target.with_name(target.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)  # a build killed half-way: start again
@@ -79,9 +112,12 @@ def refined_workdir(workdir: Path, round_dir: Path, target: Path, settings, refi
         shutil.rmtree(target)
     tmp.mkdir(parents=True)
     src = Path(workdir).resolve()
+    out = target.parent.resolve()
     for entry in src.iterdir():  # the working directory's entries: links, or copies of the refined ones
         if entry.name in _OWN or entry.name.startswith("."):
             continue
+        if entry.resolve() == out or entry.resolve() in out.parents:
+            continue  # the output folder inside the working directory: no link back into itself
         os.symlink(entry, tmp / entry.name)
     for name in ("LMKFILES", "MAPFILES", "EXTFILES"):
         folder = src / name
@@ -107,6 +143,7 @@ def refined_workdir(workdir: Path, round_dir: Path, target: Path, settings, refi
         refined = [n for n, st in zip(result.landmark_names, result.landmark_status) if st == "ok"]
         heights = refine_heights(tmp, refined, jobs=int(refine_kw.get("jobs", 1)))
     summary = {
+        "inputs": digest,
         "round_dir": str(round_dir),
         "pictures": len(inputs.problem.picture_names),
         "landmarks": len(inputs.problem.landmark_names),
@@ -144,6 +181,7 @@ def run_rounds(
         if r == rounds:
             break
         nxt = out / f"MAP{r + 1}"
-        res.refinements.append(refined_workdir(work, rdir, nxt, settings, refine_kw or {}))
+        force = bool(batch_kw.get("force"))
+        res.refinements.append(refined_workdir(work, rdir, nxt, settings, refine_kw or {}, force=force))
         work = nxt
     return res
