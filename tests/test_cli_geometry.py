@@ -192,6 +192,31 @@ def test_batch_rounds_rebuild_a_refined_map_whose_inputs_changed(pristine, run_c
     assert rounds("--force")["inputs"] == second["inputs"] and summary.stat().st_mtime_ns != built
 
 
+def test_geometry_checks_its_output_before_writing_and_writes_strict_json(pristine, run_cli, tmp_path):
+    """An -o that is a directory is refused before any LMK, MAP or SUM is rewritten (they once were,
+    and then the table was lost); --json with no landmark refined is strict JSON (null, not NaN)."""
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    out = tmp_path / "out"
+    run_cli("-q", "-C", wd, "batch", "--out-dir", out)
+    def files():
+        return {p: p.read_bytes() for d in ("LMKFILES", "MAPFILES", "SUMFILES") for p in (wd / d).iterdir()}
+
+    before = files()
+    (tmp_path / "table").mkdir()
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "-o", tmp_path / "table")
+    assert res.exit_code == 2 and "is a directory" in res.stderr
+    assert files() == before
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--min-pictures", "99", "--json", "--dry-run")
+    assert res.exit_code == 0, res.output
+
+    def no_nan(name):
+        raise AssertionError(f"{name} in the JSON")
+
+    doc = json.loads(res.stdout, parse_constant=no_nan)
+    assert doc["n_landmarks_refined"] == 0 and doc["vlm_correction_rms_m"] is None
+
+
 def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
     from spctool.formats.sumfile import read_sum, write_sum
 

@@ -78,3 +78,20 @@ def test_lithos_missing_landmark_exit_2(tmp_path, run_cli):
     res = run_cli("-C", tmp_path, "lithos", "NOPE01")
     assert res.exit_code == 2
     assert "NOPE01" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("bad", ["name", "output"])
+def test_lithos_bad_input_found_before_any_maplet_is_written(tmp_path, scene, run_cli, bad):
+    """A landmark without an LMK named after a good one, or an -o that cannot take the table: exit 2
+    with one line, and the good maplet unchanged (it was once solved and written first)."""
+    start, _, views = scene
+    write_workdir(tmp_path, start, views)
+    before = (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes()
+    (tmp_path / "out").mkdir()
+    args = ["HW0001", "NOPE01"] if bad == "name" else ["HW0001", "-o", tmp_path / "out"]
+    res = run_cli("-C", tmp_path, "lithos", *args, "--iterations", "1")
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.stderr.splitlines() if "note:" not in ln]
+    assert len(lines) == 1 and ("NOPE01" in lines[0] if bad == "name" else "is a directory" in lines[0])
+    assert (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes() == before
+    assert not (tmp_path / "MAPFILES" / "HW0001.MAP.bak").exists()

@@ -82,6 +82,23 @@ def emit(text: str, output: str | None = None, *, overwrite: bool = True) -> Non
         atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite, backup=True)
 
 
+def check_output(output: str | None) -> None:
+    """Refuse an ``-o`` path that cannot take the output before a command writes any other file (a
+    command that rewrites working-directory files and then prints its table must not fail at the
+    table): a directory, a path under a file, or a file this command read (:func:`emit`'s checks)."""
+    if output is None or output == "-":
+        return
+    path = Path(output)
+    if path.is_dir():
+        raise SpcUsageError(f"{path}: is a directory, cannot write a file there")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise SpcUsageError(f"{path}: {parent} is not a directory, cannot write a file there")
+            break
+    guard.refuse_read_input(output)
+
+
 def emit_table(table, *, as_json: bool, output: str | None = None) -> None:
     emit(table.to_json() if as_json else table.to_text(), output)
 

@@ -15,7 +15,7 @@ import click
 import numpy as np
 
 from spctool.cli import options
-from spctool.cli.common import Context, emit, pass_context, warn_row_columns
+from spctool.cli.common import Context, check_output, emit, pass_context, warn_row_columns
 from spctool.errors import SpcResultError
 
 
@@ -221,6 +221,7 @@ def geometry_cmd(
         ctx.note_once(note)
     for src, pic in inputs.row_sources:  # SUM LANDMARKS rows off SPC's columns are said (issue #40)
         warn_row_columns(ctx, src, pic, "(landmark sample, line)")
+    check_output(output)  # before any file is rewritten: a bad -o must not end a run whose files are written
     prob = inputs.problem
     ctx.info(
         f"{len(prob.picture_names)} pictures, {len(prob.landmark_names)} landmarks, "
@@ -251,7 +252,12 @@ def geometry_cmd(
             minlength=len(prob.picture_names),
         )
         refinement_plot(result, rb, ra, nout).save(plot)
-    emit(json.dumps(_json_doc(table, summary), indent=1) + "\n" if as_json else table.to_text(), output)
+    if as_json:  # JSON has no NaN: an undefined figure (no landmark refined) is null
+        from spctool.jsonsafe import json_safe
+
+        emit(json.dumps(json_safe(_json_doc(table, summary)), indent=1) + "\n", output)
+    else:
+        emit(table.to_text(), output)
     if not result.converged and mode == "joint":  # the alternation's stop is SPC's, and said above
         raise SpcResultError(f"the refinement did not converge in {opts.max_iter} iterations")
 

@@ -23,7 +23,7 @@ import click
 import numpy as np
 
 from spctool.cli import options
-from spctool.cli.common import Context, emit_table, pass_context
+from spctool.cli.common import Context, check_output, emit_table, pass_context
 from spctool.errors import SpcResultError, SpcUsageError
 
 
@@ -166,9 +166,15 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     names = list(landmarks) or ctx.wd.landmark_names()
     if not names:
         raise SpcResultError("no landmark to solve (none named, no LMRKLIST.TXT, no LMKFILES/)")
+    # every named landmark's LMK and MAP read before any maplet is solved or written (a MAP again when
+    # its turn comes, not kept: a map of many maplets): a missing or bad file is exit 2 with nothing
+    # written; so is an -o that cannot take the table
+    lmks = [ctx.wd.read_landmark(n) for n in names]
+    for lmk in lmks:
+        ctx.wd.read_maplet(lmk.name)
+    check_output(kw["output"])
     rows, docs, failed = [], [], []
-    for name in names:
-        lmk = ctx.wd.read_landmark(name)
+    for lmk in lmks:
         maplet = ctx.wd.read_maplet(lmk.name)
         views, skipped = landmark_views(ctx.wd, ctx.settings(), lmk, note=ctx.note_once,
                                         thresholds=lambda pic: picture_thresholds(kw["thresholds"], pic))
