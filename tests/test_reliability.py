@@ -285,6 +285,31 @@ def test_stages_and_batch_refuse_a_nan_pose_and_never_write_one(demo, tmp_path):
     assert not (out / "SUMFILES" / f"{PIC}.SUM").exists()
 
 
+@pytest.mark.parametrize("cx, found", [("0.9000000000D+00", "max |R R^T - I| = 0.69"), (None, "left-handed")])
+def test_stages_and_geometry_refuse_a_skewed_camera_frame(demo, tmp_path, cx, found):
+    """CX, CY, CZ not a rotation (a row edited; a row's sign flipped): every stage, the batch and
+    geometry refuse the SUM naming its CX line (geometry once solved on it: chi2/dof 222, exit 0), while
+    rounding far beyond SPC's D20.10 rows (1e-6) is accepted."""
+    from spctool.batch import run_batch
+    from spctool.formats import guard
+    from spctool.formats.sumfile import read_sum
+
+    path = demo / "SUMFILES" / f"{PIC}.SUM"
+    text = path.read_text()
+    row = "    0.3426042828D+00   -0.9394798049D+00    0.3974291037D-04   CX"
+    assert row in text
+    flipped = "   -0.3426042828D+00    0.9394798049D+00   -0.3974291037D-04   CX"  # -CX: det -1
+    bad = row.replace("0.3426042828D+00", cx) if cx else flipped
+    path.write_text(text.replace(row, bad))
+    for command in ("lithos-select", "register", "geometry"):
+        line = one_line(invoke("-C", demo, command, PIC), 2)
+        assert f"{PIC}.SUM:6: expected CX, CY, CZ the rows of a rotation" in line and found in line, line
+    result = run_batch(demo, [PIC], out_dir=tmp_path / "out", write_summary=False)
+    assert result.pictures[0].failed and ":6: expected CX, CY, CZ" in result.pictures[0].status
+    path.write_text(text.replace(row, row.replace("0.3426042828D+00", "0.3426052828D+00")))
+    guard.check_sum_header(read_sum(path), path)  # 1e-6 off: accepted
+
+
 def test_stages_refuse_a_nan_landmark_naming_its_line(demo):
     path = demo / "LMKFILES" / "B01536.LMK"
     path.write_text(path.read_text().replace("    0.2777748334D+00", "    NaN", 1))
@@ -304,6 +329,26 @@ def test_writers_refuse_a_non_finite_pose():
     nom.scobj = np.array([np.nan, 0.0, 1.0])
     with pytest.raises(SpcUsageError, match=r"non-finite pose \(SCOBJ"):
         format_nom(nom)
+
+
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        (["geometry", PIC, "--sigma-floor-px", "nan", "--dry-run"], "--sigma-floor-px"),
+        (["geometry", PIC, "--estimate-camera", "focal", "--camera-sigma", "nan"], "--camera-sigma"),
+        (["geometry", PIC, "--min-parallax", "inf", "--dry-run"], "--min-parallax"),
+        (["register", PIC, "--corr-min", "nan"], "--corr-min"),
+        (["lithos", "B01536", "--seed", "-5", "--dry-run"], "--seed"),
+        (["lithos", "B01536", "--thresholds", "200,10", "--dry-run"], "--thresholds"),
+        (["lithos", "B01536", "--thresholds", "nan,nan", "--dry-run"], "--thresholds"),
+    ],
+)
+def test_non_finite_or_out_of_range_option_values_are_bad_input(demo, args, named):
+    """NaN passes every comparison of a range check: such values once reached the solvers (an internal
+    error, exit 1) or ran silently; now exit 2 with one line naming the option."""
+    res = invoke("-C", demo, *args)
+    assert res.exit_code == 2, res.output
+    assert named in one_line(res, 2)
 
 
 # ------------------------------------------------------------------------------------------------

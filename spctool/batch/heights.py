@@ -60,7 +60,7 @@ def landmark_views(wd, settings, lmk, *, thresholds=None, note=None):
     for name, pixel in rows:  # file reads per picture
         try:
             pic = wd.read_picture(name)
-            guard.check_finite_header(pic, wd.sum_path(name), "sum")
+            guard.check_sum_header(pic, wd.sum_path(name))
             camera = Camera.from_picture(pic, settings, picture_name=name)
             if not explicit and not _sees(camera, pic, lmk):
                 continue

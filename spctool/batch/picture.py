@@ -205,7 +205,7 @@ def _read_inputs(shared: SharedData, picture: str, out: PictureOutcome, timings)
     out.input_sha256 = hashlib.sha256(raw).hexdigest()
     out.inputs_sha256 = shared.inputs_sha256
     pic = parse_sum(raw.decode("latin-1").replace("\r", ""), sum_path)
-    guard.check_finite_header(pic, sum_path, "sum")  # a NaN pose in, never a NaN pose out
+    guard.check_sum_header(pic, sum_path)  # a NaN pose or a skewed frame in, never a wrong pose out
     out.photo_name = pic.name
     camera = Camera.from_picture(pic, shared.settings, picture_name=picture)  # getmm(PICNM)
     photo = wd.read_photo(pic.name, npx=pic.npx, nln=pic.nln)

@@ -32,7 +32,7 @@ import numpy as np
 
 from spctool.batch.layout import TABLES_DIR
 from spctool.errors import SpcFormatError, SpcUsageError
-from spctool.formats import atomic
+from spctool.formats import atomic, guard
 from spctool.formats.workdir import WorkDir
 from spctool.stages.bundle import BundleProblem, BundleResult
 
@@ -172,6 +172,7 @@ def gather(
         if not src.exists():
             raise SpcFormatError(src, None, f"the SUM file of picture {name} (file not found)")
         pic = read_sum(src)
+        guard.check_sum_header(pic, src)  # a NaN pose or a skewed CX/CY/CZ: exit 2, naming the file
         pics[name], sum_paths[name] = pic, path
         cams.append(Camera.from_picture(pic, settings))
         tpath = tables_dir / TABLE_PATTERN.format(picture=name) if tables_dir is not None else None

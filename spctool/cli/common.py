@@ -232,7 +232,7 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
         raise SpcFormatError(path, None, f"expected the SUM file of picture {picture} (file not found)")
     adopt_sum_workdir(ctx, path)
     pic = read_sum(path)
-    guard.check_finite_header(pic, path, "sum")  # SPC reads NaN; no stage can use a NaN pose or camera
+    guard.check_sum_header(pic, path)  # SPC reads NaN or a skewed CX/CY/CZ; no stage can use them
     settings = ctx.settings()
     if allow_linescan and getattr(pic, "is_linescan", False):
         return LoadedPicture(path, pic, settings, None)

@@ -44,7 +44,7 @@ from spctool.errors import SpcResultError
 )
 @click.option(
     "--sigma-floor-px",
-    type=click.FloatRange(min=0.0),
+    type=options.FiniteFloatRange(min=0.0),
     default=0.05,
     show_default=True,
     metavar="PX",
@@ -60,7 +60,7 @@ from spctool.errors import SpcResultError
 )
 @click.option(
     "--reject-sigma",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=options.FiniteFloatRange(min=0.0, min_open=True),
     default=5.0,
     show_default=True,
     metavar="K",
@@ -79,7 +79,7 @@ from spctool.errors import SpcResultError
 @click.option(
     "--min-parallax",
     "min_parallax",
-    type=click.FloatRange(min=0.0),
+    type=options.FiniteFloatRange(min=0.0),
     default=1.0,
     show_default=True,
     metavar="DEG",
@@ -103,7 +103,7 @@ from spctool.errors import SpcResultError
 )
 @click.option(
     "--camera-sigma",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=options.FiniteFloatRange(min=0.0, min_open=True),
     default=None,
     metavar="F",
     help="A-priori 1-sigma of the camera terms (relative for focal/ky/kyx, px for ctr).  Default: none.",

@@ -56,14 +56,17 @@ def _row(name, result, n_pictures, wrote):
 @click.argument("landmarks", nargs=-1, metavar="[LANDMARK]...")
 @click.option("--iterations", type=click.IntRange(min=1), default=10, show_default=True, metavar="N",
               help="Outer iterations at most (heights -> slopes -> predict -> re-register -> solve).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0), default=0.005, show_default=True,
+@click.option("--tolerance", type=options.FiniteFloatRange(min=0.0), default=0.005, show_default=True,
               metavar="CELLS",
               help="Stop when the rms height change of an iteration is below this (maplet cells).")
-@click.option("--weight", type=click.FloatRange(min=0.0, min_open=True), default=0.025, show_default=True,
-              metavar="W", help="Weight of the conditioning heights (SPC: 'always use .025').")
-@click.option("--condition-fraction", type=click.FloatRange(0.0, 1.0), default=0.02, show_default=True,
-              metavar="F", help="Fraction of the cells pulled toward the starting heights.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the conditioning cells' draw.")
+@click.option("--weight", type=options.FiniteFloatRange(min=0.0, min_open=True), default=0.025,
+              show_default=True, metavar="W",
+              help="Weight of the conditioning heights (SPC: 'always use .025').")
+@click.option("--condition-fraction", type=options.FiniteFloatRange(0.0, 1.0), default=0.02,
+              show_default=True, metavar="F",
+              help="Fraction of the cells pulled toward the starting heights.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
+              help="Seed of the conditioning cells' draw.")
 @click.option("--free-plane", is_flag=True,
               help="Let the best-fit plane move (default: keep the starting map's offset and tilt).")
 @click.option("--fixed-lambda", is_flag=True,
@@ -81,9 +84,10 @@ def _row(name, result, n_pictures, wrote):
                    "(from the projection of V with the SUM pose); 1 suits navigated pictures.")
 @click.option("--min-azimuths", type=click.IntRange(min=1), default=3, show_default=True, metavar="N",
               help="A cell needs pictures with at least N distinct Sun azimuths.")
-@click.option("--azimuth-separation", type=click.FloatRange(min=0.0), default=20.0, show_default=True,
+@click.option("--azimuth-separation", type=options.FiniteFloatRange(min=0.0), default=20.0, show_default=True,
               metavar="DEG", help="Sun azimuths closer than this count as one.")
-@click.option("--damping", type=click.FloatRange(min=0.0), default=5e-3, show_default=True, metavar="D",
+@click.option("--damping", type=options.FiniteFloatRange(min=0.0), default=5e-3, show_default=True,
+              metavar="D",
               help="Levenberg-Marquardt damping of the per-cell solve toward the current values.")
 @options.photometry_option
 @options.thresholds_option
@@ -163,6 +167,8 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
         solve=SolveOptions(photometry=kw["photometry"], damping=kw["damping"],
                            min_azimuths=kw["min_azimuths"], azimuth_separation_deg=kw["azimuth_separation"]),
     )
+    if kw["thresholds"] is not None:  # a bad --thresholds is bad input (exit 2), not every picture left out
+        picture_thresholds(kw["thresholds"], None)
     names = list(landmarks) or ctx.wd.landmark_names()
     if not names:
         raise SpcResultError("no landmark to solve (none named, no LMRKLIST.TXT, no LMKFILES/)")

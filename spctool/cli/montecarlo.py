@@ -155,7 +155,7 @@ def _names(text: str | None) -> list[str]:
 @click.option("--without", "without", metavar="PARAMS", help="Do not perturb these (comma-separated).")
 @click.option(
     "--sigma-scale",
-    type=click.FloatRange(min=0.0),
+    type=options.FiniteFloatRange(min=0.0),
     default=1.0,
     show_default=True,
     metavar="F",
@@ -224,7 +224,7 @@ def _names(text: str | None) -> list[str]:
 )
 @click.option(
     "--converge-tol",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=options.FiniteFloatRange(min=0.0, min_open=True),
     default=None,
     metavar="PX",
     help="The converged stage stops when a step moves the estimate by less than PX (default: "

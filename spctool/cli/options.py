@@ -24,11 +24,38 @@ using an option here receives it under the same name everywhere (``sum_path``, `
 
 from __future__ import annotations
 
+import math
+
 import click
 
 from spctool.errors import SpcUsageError
 
 IMAGE_FORMATS = ("pgm", "png", "fits")
+
+
+class FiniteFloatRange(click.FloatRange):
+    """click's FloatRange that also refuses NaN and ±inf (exit 2, naming the option): a NaN passes every
+    comparison of a range check and ended a solve in an internal error, or in a silent wrong answer."""
+
+    def convert(self, value, param, ctx):
+        v = super().convert(value, param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return v
+
+
+class FiniteFloat(click.types.FloatParamType):
+    """click's float that refuses NaN and ±inf (exit 2, naming the option)."""
+
+    def convert(self, value, param, ctx):
+        v = super().convert(value, param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return v
+
+
+#: a float option that must be finite (``type=FINITE_FLOAT`` where ``type=float`` would take NaN)
+FINITE_FLOAT = FiniteFloat()
 PHOTOMETRY_LAWS = ("spc", "mcewen", "fixed", "lambert")
 
 
@@ -110,7 +137,7 @@ def first_phases_option(help: str, default: int | None):
 def reach_option(help: str, default: float | None):
     """``--reach PX`` (NavigateOptions.reach_px): how far two-pass navigation's acquisition reaches."""
     return click.option(
-        "--reach", "reach_px", type=click.FloatRange(min=1.0), default=default,
+        "--reach", "reach_px", type=FiniteFloatRange(min=1.0), default=default,
         show_default=default is not None, metavar="PX", help=help,
     )  # fmt: skip
 
@@ -267,7 +294,7 @@ predict_options = option_group(
     photometry_option,
     click.option(
         "--beta",
-        type=float,
+        type=FINITE_FLOAT,
         default=0.65,
         show_default=True,
         metavar="B",
@@ -275,7 +302,7 @@ predict_options = option_group(
     ),
     click.option(
         "--alpha0",
-        type=float,
+        type=FINITE_FLOAT,
         default=60.0,
         show_default=True,
         metavar="DEG",
@@ -284,7 +311,7 @@ predict_options = option_group(
     shadows_option,
     click.option(
         "--bg-corr-min",
-        type=float,
+        type=FINITE_FLOAT,
         default=1.0,
         show_default=True,
         metavar="RHO",
@@ -328,7 +355,7 @@ extract_options = option_group(
     ),
     click.option(
         "--cos-e-min",
-        type=float,
+        type=FINITE_FLOAT,
         default=0.05,
         show_default=True,
         metavar="C",
@@ -336,7 +363,7 @@ extract_options = option_group(
     ),
     click.option(
         "--vis-tol",
-        type=float,
+        type=FINITE_FLOAT,
         default=0.05,
         show_default=True,
         metavar="CELLS",
@@ -410,8 +437,8 @@ def picture_thresholds(text: str | None, pic) -> tuple[float, float]:
         values = tuple(float(p) for p in parts)
     except ValueError:
         values = ()
-    if len(values) != 2:
-        raise SpcUsageError(f"--thresholds expects two numbers T1,T2, got {text!r}")
+    if len(values) != 2 or not all(math.isfinite(v) for v in values) or not values[0] < values[1]:
+        raise SpcUsageError(f"--thresholds expects two finite numbers T1,T2 with T1 < T2, got {text!r}")
     return values
 
 
@@ -430,7 +457,7 @@ space_option = click.option(
 
 corr_min_option = click.option(
     "--corr-min",
-    type=float,
+    type=FINITE_FLOAT,
     default=0.3,
     show_default=True,
     metavar="RHO",
@@ -461,7 +488,7 @@ def sigma_px_option(default: float = 0.1, help: str | None = None):
     """``--sigma-px PX``: the pose solve's 1-sigma pixel noise."""
     return click.option(
         "--sigma-px",
-        type=float,
+        type=FINITE_FLOAT,
         default=default,
         show_default=True,
         metavar="PX",

@@ -175,7 +175,7 @@ def load_landmarks(ctx: Context, names, lmk_dir):
 )
 @click.option(
     "--tol",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=1e-8,
     show_default=True,
     metavar="F",
@@ -183,7 +183,7 @@ def load_landmarks(ctx: Context, names, lmk_dir):
 )
 @click.option(
     "--reject-sigma",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=5.0,
     show_default=True,
     metavar="K",
@@ -192,7 +192,7 @@ def load_landmarks(ctx: Context, names, lmk_dir):
 )
 @click.option(
     "--reject-px",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="PX",
     help="Reject on an absolute pixel residual above PX instead of --reject-sigma.",

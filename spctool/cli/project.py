@@ -69,7 +69,7 @@ def linescan_table(pic, settings, landmarks) -> LandmarkTable:
 @click.option(
     "--inverse",
     nargs=2,
-    type=float,
+    type=options.FINITE_FLOAT,
     metavar="SAMPLE LINE",
     help="Instead: the line of sight of pixel (SAMPLE, LINE) and, with a shape, the surface point hit.",
 )

@@ -465,14 +465,14 @@ def _say_adapted(ctx, adapted) -> None:
 )
 @click.option(
     "--drop-corr",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="RHO",
     help="AUTOREGISTER's removal cut between the passes.  [default: 0.5]",
 )
 @click.option(
     "--converge-tol",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=options.FiniteFloatRange(min=0.0, min_open=True),
     default=0.005,
     show_default=True,
     metavar="PX",
@@ -580,7 +580,7 @@ def _say_adapted(ctx, adapted) -> None:
 )
 @click.option(
     "--magnify",
-    type=click.FloatRange(min=0, min_open=True),
+    type=options.FiniteFloatRange(min=0, min_open=True),
     default=None,
     metavar="F",
     help="--overlay: draw shift vectors F times their length.  [default: the median shift drawn ~40 px]",

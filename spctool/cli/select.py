@@ -43,7 +43,7 @@ from spctool.formats import atomic
 )
 @click.option(
     "--occlusion-tol",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="F",
     help="Occlusion tolerance as a fraction of the body's largest diameter.  [default: 0.01]",
@@ -57,7 +57,7 @@ from spctool.formats import atomic
 )
 @click.option(
     "--reslm",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="F",
     help="Keep maplets whose pixel footprint < F x maplet scale.  [default: INIT_LITHOS RESLM, else 4]",
@@ -71,28 +71,28 @@ from spctool.formats import atomic
 )
 @click.option(
     "--size-factor",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="F",
     help="Maplet side must be < F x photo side at the landmark.  [default: INIT_LITHOS SIZLM, else 1]",
 )
 @click.option(
     "--facing-cos-min",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="F",
     help="Minimum cosine between the maplet normal and the direction to the camera.  [default: 0.05]",
 )
 @click.option(
     "--max-emission",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="DEG",
     help="Reject maplets seen at emission >= DEG (LITHOS uses 75 for PICTLIST candidates).",
 )
 @click.option(
     "--fractional-width",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="W",
     help="Offset of the 3x3 in-photo test points (LITHOS 'fractional width').  [default: 0.5]",

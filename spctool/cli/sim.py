@@ -207,7 +207,7 @@ def example_spec() -> str:
 @click.option(
     "--tile",
     "tile",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="SPACING_KM",
     help="Tile the whole body with new landmarks about SPACING_KM apart.",
@@ -215,7 +215,7 @@ def example_spec() -> str:
 @click.option("--prefix", default="TL", show_default=True, help="Name prefix of tiled landmarks.")
 @click.option(
     "--scale",
-    type=float,
+    type=options.FINITE_FLOAT,
     default=None,
     metavar="KM",
     help="Maplet SCALE (km per cell). Default: each LMK's own (required for --at/--tile).",

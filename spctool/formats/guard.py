@@ -47,6 +47,7 @@ __all__ = [
     "check_allocation",
     "check_finite",
     "check_finite_header",
+    "check_sum_header",
     "first_nonfinite",
     "check_name",
     "check_regular",
@@ -273,6 +274,33 @@ def check_finite_header(obj, path, kind: str) -> None:
     if found is not None:
         line, label = found
         raise SpcFormatError(path, line, f"finite numbers ({label}), found NaN or Infinity")
+
+
+#: how far a SUM's CX, CY, CZ may be from orthonormal before a stage refuses it (max |R Rᵀ − I|; SPC's
+#: D20.10 rows are orthonormal to ~1e-10, the real files here to 1.3e-10; ``validate`` warns from 1e-5)
+ROTATION_TOL = 1e-3
+
+
+def check_sum_header(pic, path) -> None:
+    """What every stage needs of a parsed SUM: :func:`check_finite_header`, and CX, CY, CZ the rows of
+    a proper rotation (orthonormal to :data:`ROTATION_TOL`, right-handed) — SpcFormatError naming
+    ``path`` and CX's line otherwise: a camera of a skewed frame would project every landmark wrong
+    and a solve would report its misfit as the pose's."""
+    import numpy as np
+
+    check_finite_header(pic, path, "sum")
+    m = np.asarray(pic.rotation, dtype=np.float64)
+    err = float(np.abs(m @ m.T - np.eye(3)).max())
+    if err > ROTATION_TOL or np.linalg.det(m) < 0.0:
+        line, n = None, 1
+        for slot in getattr(getattr(pic, "_source", None), "header", None) or []:
+            if slot.key == "cx":
+                line = n
+                break
+            n += 0 if slot.text is None else slot.text.count("\n") + 1
+        found = f"max |R R^T - I| = {err:.2g}" if err > ROTATION_TOL else "a left-handed frame"
+        raise SpcFormatError(path, line, f"CX, CY, CZ the rows of a rotation (orthonormal, right-handed), "
+                             f"found {found}")
 
 
 def _identity(path) -> tuple[int, int] | None:
