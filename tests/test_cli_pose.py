@@ -238,3 +238,49 @@ def test_outlier_rejected_and_named(workdir):
 def test_help_has_example():
     res = CliRunner().invoke(cli, ["solve-pose", "--help"])
     assert res.exit_code == 0 and "Example" in res.output and "--measurements" in res.output
+
+
+def test_tables_are_read_for_their_measurements(workdir):
+    """A lithos-select (or predict, extract, project) table holds the SUM camera's own predictions:
+    solving on it gave rms 0 and verdict ok; it is refused.  A correlate table's sample, line are its
+    a-priori pixels: its measured_sample, measured_line are read, and give the SUM rows' pose."""
+    rows = [("FA0115", 533.53, 475.22), ("FC0098", 513.55, 501.38), ("GD0036", 493.55, 498.21)]
+    sel = "# command: lithos-select\nname sample line\n" + "".join(f"{n} {s} {ln}\n" for n, s, ln in rows)
+    res = invoke(workdir, PIC, "--measurements", "-", stdin=sel)
+    assert res.exit_code == 2 and "found a lithos-select table" in res.stderr
+    corr = "# command: correlate\nname sample line measured_sample measured_line status\n" + "".join(
+        f"{n} {s + 4.0} {ln - 3.0} {s} {ln} ok\n" for n, s, ln in rows
+    )
+    got = json.loads(invoke(workdir, PIC, "--measurements", "-", "--json", stdin=corr).stdout)
+    want = json.loads(invoke(workdir, PIC, "--json").stdout)
+    assert got["pose"]["position"] == pytest.approx(want["pose"]["position"], abs=1e-12)
+
+
+def test_sum_rows_of_one_landmark_twice_and_a_nan_vlm_are_bad_input(workdir):
+    """A landmark on two LANDMARKS rows was counted twice; an LMK with a NaN VLM left its landmark out
+    with a note and exit 0 while every other command refuses it: both exit 2 naming the file."""
+    path = workdir / "SUMFILES" / f"{PIC}.SUM"
+    text = path.read_text()
+    path.write_text(text.replace("GD0036    493.55    498.21", "FA0115    533.53    475.22"))
+    res = invoke(workdir, PIC)
+    assert res.exit_code == 2 and f"{PIC}.SUM" in res.stderr and "FA0115 on more than one" in res.stderr
+    path.write_text(text)
+    lmk = workdir / "LMKFILES" / "GD0036.LMK"
+    lines = lmk.read_text().split("\n")
+    k = next(i for i, ln in enumerate(lines) if ln.rstrip().endswith("VLM"))
+    lines[k] = "    NaN" + lines[k][lines[k].index("D") + 4 :]
+    lmk.write_text("\n".join(lines))
+    res = invoke(workdir, PIC)
+    assert res.exit_code == 2 and "GD0036.LMK" in res.stderr and "VLM" in res.stderr
+
+
+def test_an_exactly_determined_pose_is_unchecked(workdir):
+    """Three landmarks without the prior: six equations for six unknowns, residuals zero whatever the
+    errors: the verdict is 'unchecked' with a warning, never 'ok'; with the prior the fit has dof 6."""
+    res = invoke(workdir, PIC, "--no-prior", "--json")
+    assert res.exit_code == 0
+    doc = json.loads(res.stdout)
+    assert doc["pose"]["dof"] == 0 and doc["pose"]["verdict"] == "unchecked"
+    assert "unchecked: no redundancy" in res.stderr
+    doc = json.loads(invoke(workdir, PIC, "--json").stdout)
+    assert doc["pose"]["dof"] == 6 and doc["pose"]["verdict"] != "unchecked"

@@ -200,7 +200,7 @@ def navigate_cmd(ctx: Context, **kw):
     if ctx.verbosity >= (1 if kw["as_json"] else 0) and pose is not None:
         for line in pose.summary_lines():
             click.echo(f"spctool: {line}", err=True)
-    elif pose is not None and pose.verdict in ("inconsistent", "prior-contradicted"):
+    elif pose is not None and pose.verdict in ("inconsistent", "prior-contradicted", "unchecked"):
         ctx.warn(f"{inp.pic.name}: {pose.verdict}: {pose.verdict_reason}")
     if result.status != "ok":
         raise SpcResultError(f"{inp.pic.name}: {result.status}")

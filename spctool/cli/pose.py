@@ -51,18 +51,24 @@ def measurements_from_table(path, picture: str | None = None, any_picture: bool 
     table = read_table(path)
     if picture:
         refuse_other_picture("table", path, table.picture, picture, any_picture)
-    missing = [c for c in ("name", "sample", "line") if c not in table]
+    shown = "<stdin>" if str(path) == "-" else path
+    made_by = (table.command or "").split(" ")[0]
+    if made_by in _PREDICTING_COMMANDS:  # their pixels are the a-priori camera's: no measurement
+        raise SpcFormatError(
+            shown, None, f"measured pixels (a register, navigate or correlate table), found a {made_by} "
+            "table, whose sample and line the SUM's own camera predicts"
+        )
+    # a correlate table's sample, line are the a-priori pixels; its measurement is measured_sample, _line
+    columns = ("measured_sample", "measured_line") if "measured_sample" in table else ("sample", "line")
+    missing = [c for c in ("name", *columns) if c not in table]
     if missing:
         raise SpcFormatError(
-            "<stdin>" if str(path) == "-" else path,
-            None,
-            f"expected a landmark table with columns name, sample, line (missing: {', '.join(missing)})",
+            shown, None, f"a landmark table with columns name, sample, line (missing: {', '.join(missing)})"
         )
     try:
-        smp = np.asarray(table["sample"], dtype=np.float64)
-        lin = np.asarray(table["line"], dtype=np.float64)
+        smp, lin = (np.asarray(table[c], dtype=np.float64) for c in columns)
     except (TypeError, ValueError):
-        raise SpcFormatError(path, None, "expected numbers in the sample and line columns") from None
+        raise SpcFormatError(shown, None, f"numbers in the {' and '.join(columns)} columns") from None
     if "status" in table:
         status = ["ok" if str(s) == "ok" else str(s) for s in table["status"]]
     else:
@@ -81,12 +87,23 @@ def measurements_from_table(path, picture: str | None = None, any_picture: bool 
     return Measurements(table.names, smp, lin, status, cov)
 
 
+#: commands whose tables hold predicted pixels, never measured ones (solve-pose refuses them)
+_PREDICTING_COMMANDS = ("lithos-select", "predict", "extract", "project")
+
 #: the measurement covariance columns of register/correlate tables
 _COVARIANCE_COLUMNS = ("sigma_sample", "sigma_line", "rho_sl")
 
 
-def measurements_from_sum(pic) -> Measurements:
+def measurements_from_sum(pic, path=None) -> Measurements:
+    """The SUM's LANDMARKS rows (a row flagged ``*`` is passed through, not used); a landmark on two
+    rows is refused (SpcFormatError naming ``path``), as a table's is: it would be counted twice."""
+    from collections import Counter
+
     rows = pic.landmarks
+    twice = sorted(n for n, c in Counter(lm.name.strip() for lm in rows).items() if c > 1)
+    if twice:
+        shown = ", ".join(twice[:5]) + (f", ... ({len(twice)} landmarks)" if len(twice) > 5 else "")
+        raise SpcFormatError(path, None, f"one LANDMARKS row per landmark, found {shown} on more than one")
     status = ["flagged" if lm.flag.strip() == "*" else "ok" for lm in rows]
     return Measurements(
         [lm.name for lm in rows],
@@ -98,6 +115,7 @@ def measurements_from_sum(pic) -> Measurements:
 
 def load_landmarks(ctx: Context, names, lmk_dir):
     """(positions (N, 3), sigmas (N, 3), found (N,)) from LMK files; missing files give NaN rows."""
+    from spctool.formats.guard import check_landmark_geometry
     from spctool.formats.landmark import read_lmk
 
     n = len(names)
@@ -109,8 +127,8 @@ def load_landmarks(ctx: Context, names, lmk_dir):
         key = name.strip()
         if key not in cache:
             path = Path(lmk_dir) / f"{key}.LMK" if lmk_dir else ctx.wd.lmk_path(key)
-            if path.exists():
-                lmk = read_lmk(path)
+            if path.exists():  # a NaN VLM or a broken frame is bad input, as in every stage (exit 2)
+                lmk = check_landmark_geometry(read_lmk(path), path)
                 cache[key] = (lmk.vlm, lmk.sigma_lmk)
             else:
                 cache[key] = None
@@ -332,7 +350,7 @@ def solve_pose_cmd(
         meas = measurements_from_table(measurements, pic.name, any_picture)
     else:  # the SUM's LANDMARKS rows are the measurements: rows off SPC's columns are said (issue #40)
         warn_row_columns(ctx, src_path, pic, "(landmark sample, line)")
-        meas = measurements_from_sum(pic)
+        meas = measurements_from_sum(pic, src_path)
     if weights == "surface" and meas.covariance is None:
         raise SpcUsageError(
             "--weights surface needs a landmark table with sigma_sample, sigma_line and rho_sl columns "
@@ -392,7 +410,7 @@ def solve_pose_cmd(
     if ctx.verbosity >= (1 if as_json else 0):
         for line in result.summary_lines():
             click.echo(f"spctool: {line}", err=True)
-    elif result.verdict in ("inconsistent", "prior-contradicted"):  # the summary would have said it
+    elif result.verdict in ("inconsistent", "prior-contradicted", "unchecked"):  # the summary says it too
         ctx.warn(f"{pic.name}: {result.verdict}: {result.verdict_reason}")
     if not result.converged:
         raise SpcResultError(

@@ -112,7 +112,7 @@ __all__ = [
 
 LANDMARK_MODES = ("fixed", "estimate", "consider")
 #: :attr:`PoseResult.verdict` words, most serious first
-POSE_VERDICTS = ("implausible", "prior-contradicted", "inconsistent", "ok")
+POSE_VERDICTS = ("implausible", "prior-contradicted", "inconsistent", "unchecked", "ok")
 #: landmark sigmas ≤ 0 are held (effectively) fixed at this 1σ (km) in "estimate" mode
 _TINY_SIGMA_KM = 1e-9
 
@@ -317,14 +317,28 @@ class PoseResult:
         return "" if self.prior_check is None else self.prior_check.reason()
 
     @property
+    def unchecked(self) -> str:
+        """Why the fit cannot be checked (one line): no redundancy (dof ≤ 0: as many equations as
+        unknowns, the residuals zero whatever the measurements' errors), "" when it can."""
+        if self.dof > 0:
+            return ""
+        eq = int(np.count_nonzero(self.used)) * 2
+        prior = "" if self.prior_used else ", no prior"
+        return (f"no redundancy ({eq} measurement equations for 6 unknowns{prior}, dof {self.dof}): the fit "
+                "cannot be checked and its covariance is formal only; add landmarks or the SUM's prior")
+
+    @property
     def verdict(self) -> str:
-        """``implausible``, ``prior-contradicted``, ``inconsistent`` or ``ok`` (the first that holds)."""
+        """``implausible``, ``prior-contradicted``, ``inconsistent``, ``unchecked`` or ``ok`` (the first
+        that holds)."""
         if self.implausible:
             return "implausible"
         if self.prior_contradicted:
             return "prior-contradicted"
         if self.inconsistent:
             return "inconsistent"
+        if self.unchecked:
+            return "unchecked"
         return "ok"
 
     @property
@@ -335,6 +349,7 @@ class PoseResult:
             "implausible": self.implausible,
             "prior-contradicted": self.prior_contradicted,
             "inconsistent": self.inconsistent,
+            "unchecked": self.unchecked,
         }.get(v, "")
 
     @property
@@ -457,6 +472,8 @@ class PoseResult:
             lines.append(f"warning: prior contradicted: {self.prior_contradicted}")
         if self.inconsistent:
             lines.append(f"warning: inconsistent fit: {self.inconsistent}")
+        if self.unchecked:
+            lines.append(f"warning: unchecked fit: {self.unchecked}")
         if self.prior_check is not None and self.prior_check.dof > 0:
             pc = self.prior_check
             lines.append(
