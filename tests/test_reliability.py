@@ -8,6 +8,7 @@ that must not start is refused before its first picture).
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -349,6 +350,45 @@ def test_non_finite_or_out_of_range_option_values_are_bad_input(demo, args, name
     res = invoke("-C", demo, *args)
     assert res.exit_code == 2, res.output
     assert named in one_line(res, 2)
+
+
+def test_a_landmark_table_is_read_as_given(demo):
+    """A table given with no row registers nothing (it once fell back to a lithos-select of every
+    landmark), with a warning; a word in its sample or line column is exit 2 naming the line (it was
+    replaced by the projection silently); a nan there is the projection, with a note."""
+    sel = invoke("-C", demo, "lithos-select", PIC)
+    assert sel.exit_code == 0
+    lines = sel.stdout.splitlines()
+    head = [ln for ln in lines if ln.startswith("#")] + [next(ln for ln in lines if ln.startswith("name"))]
+    rows = [ln for ln in lines if not ln.startswith(("#", "name"))]
+    (demo / "empty.txt").write_text("\n".join(head) + "\n")
+    res = invoke("-C", demo, "register", PIC, "--landmarks", demo / "empty.txt", "--json")
+    assert res.exit_code == 0 and json.loads(res.stdout)["landmarks"] == []
+    assert "registered 0 of 0 landmarks: the table given has no landmark row" in res.stderr
+    first = rows[0].split()
+    worded = " ".join([first[0], "4x5.5", *first[2:]])
+    (demo / "word.txt").write_text("\n".join([*head, worded, *rows[1:]]) + "\n")
+    line = one_line(invoke("-C", demo, "register", PIC, "--landmarks", demo / "word.txt"), 2)
+    assert f"word.txt:{len(head) + 1}: expected a number (or nan) in column 'sample', found '4x5.5'" in line
+    nan_row = " ".join([first[0], "nan", *first[2:]])
+    (demo / "nan.txt").write_text("\n".join([*head, nan_row, *rows[1:]]) + "\n")
+    res = invoke("-C", demo, "register", PIC, "--landmarks", demo / "nan.txt", "--steps", "4,2,1")
+    assert res.exit_code == 0 and f"no pixel (nan) for {first[0]}" in res.stderr
+
+
+def test_predict_and_extract_refuse_another_pictures_table_and_navigate_keeps_a_bak(demo, tmp_path):
+    other = invoke("-C", demo, "lithos-select", "P000000002A1")
+    (demo / "other.txt").write_text(other.stdout)
+    for command in ("predict", "extract"):
+        line = one_line(invoke("-C", demo, command, PIC, "--landmarks", demo / "other.txt"), 2)
+        assert "P000000002A1" in line and "--any-picture" in line
+        res = invoke("-C", demo, command, PIC, "--landmarks", demo / "other.txt", "--any-picture")
+        assert res.exit_code == 0, res.output
+    target = demo / "SUMFILES" / f"{PIC}.SUM"
+    before = target.read_bytes()
+    res = invoke("-C", demo, "navigate", PIC, "--output", target)
+    assert res.exit_code == 0, res.output
+    assert (demo / "SUMFILES" / f"{PIC}.SUM.bak").read_bytes() == before and target.read_bytes() != before
 
 
 # ------------------------------------------------------------------------------------------------

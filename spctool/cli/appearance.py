@@ -41,6 +41,7 @@ _common_options = options.option_group(
         "LANDMARKs, else run lithos-select on LMRKLIST.TXT / LMKFILES/."
     ),
     options.sum_option,
+    options.any_picture_option,
     options.photo_option(),
     options.flip_rows_option,
     click.option(

@@ -8,6 +8,7 @@ The options themselves are declared in :mod:`spctool.cli.options`.
 
 from __future__ import annotations
 
+import math
 import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -384,13 +385,17 @@ def picture_landmarks(ctx: Context, names, table_path, picture: LoadedPicture, a
     read those files again.  A table made for another picture is refused unless ``any_picture``.
     """
     rows = table_pixels(table_path, picture.pic.name, any_picture) if table_path else []
+    unplaced = [n for n, pix in rows if pix is not None and not all(math.isfinite(x) for x in pix)]
+    if unplaced:
+        shown = ", ".join(unplaced[:8]) + (f", ... ({len(unplaced)})" if len(unplaced) > 8 else "")
+        ctx.note_once(f"{table_path}: no pixel (nan) for {shown}: a-priori pixel from the SUM camera")
     for n in names:  # a landmark named on the command line must exist (exit 2, as in every command)
         if not (Path(n).is_file() or ctx.wd.map_path(n).exists() or ctx.wd.lmk_path(n).exists()):
             raise SpcFormatError(
                 ctx.wd.map_path(n), None, f"expected the MAP (or LMK) file of landmark {n} (file not found)"
             )
     rows += [(n, None) for n in names]
-    if rows:
+    if rows or table_path:  # a table given is the landmarks, even with no row (never a selection)
         return rows, "given", {}
     from spctool.cli.candidates import load_candidates
     from spctool.stages.select import SelectOptions

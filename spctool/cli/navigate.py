@@ -165,7 +165,7 @@ def navigate_cmd(ctx: Context, **kw):
         reg = result.final.register
         pic = with_measured_landmarks(read_sum(inp.sum_path), reg.names, reg.measured, reg.ok)
         pic = with_pose(pic, pose.scobj, pose.rotation, pose.sigma_position, pose.sigma_attitude)
-        write_sum(Path(kw["sum_output"]), pic, overwrite=True)
+        write_sum(Path(kw["sum_output"]), pic, overwrite=True, backup=True)  # a replaced file kept as .bak
         wrote = str(kw["sum_output"])
         ctx.info(f"wrote {wrote}")
     meta = {

@@ -724,6 +724,10 @@ def register_cmd(ctx: Context, **kw):
     n_all = len(result) + len(inp.missing)
     if n_all and not int(result.ok.sum()):
         ctx.warn(f"{inp.pic.name}: registered 0 of {n_all} landmarks: {_why(result, inp)}")
+    elif not n_all:  # nothing to register: a camera pointed away, a table without rows
+        where = "the table given has no landmark row" if inp.source == "given" else (
+            "lithos-select finds no maplet this picture sees (its pose and Sun, the maplets' sizes)")
+        ctx.warn(f"{inp.pic.name}: registered 0 of 0 landmarks: {where}")
 
     if kw["write_sum_flag"]:
         path = _write_sum(kw, inp, result)

@@ -256,6 +256,12 @@ class LandmarkTable:
         cols = {}
         for j, key in enumerate(header):
             values = [_parse_value(r[j]) for r in rows]
+            if key in _PIXEL_COLUMNS:  # stages read these as numbers: a word is bad input (nan is not)
+                for v, (lineno, _) in zip(values, linenos):
+                    if isinstance(v, str):
+                        raise SpcFormatError(
+                            path, lineno, f"a number (or nan) in column '{key}', found {v!r}"
+                        )
             if key == "name":
                 values = [str(r[j]) for r in rows]
                 # one row per landmark — per landmark and picture in a table with a picture column
@@ -314,6 +320,9 @@ class LandmarkTable:
 
 #: column names read case-insensitively (a spreadsheet's "Name, Sample, Line")
 _KNOWN_LOWER = {"name", "sample", "line", "status"}
+
+#: pixel columns a stage reads as numbers (a table's a-priori or measured pixels)
+_PIXEL_COLUMNS = ("sample", "line", "measured_sample", "measured_line")
 
 
 def _refuse_duplicates(names, places, path, unit: str) -> None:
