@@ -391,6 +391,38 @@ def test_predict_and_extract_refuse_another_pictures_table_and_navigate_keeps_a_
     assert (demo / "SUMFILES" / f"{PIC}.SUM.bak").read_bytes() == before and target.read_bytes() != before
 
 
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        (["navigate", PIC, "--reach", "1e6"], "--reach"),
+        (["register", PIC, "--acquire-reach", "100000"], "--acquire-reach"),
+        (["correlate", PIC, "B01980", "--grid-half", "100000"], "--grid-half"),
+        (["register", PIC, "--space", "image", "--grid-half", "5000"], "--grid-half"),
+    ],
+)
+def test_a_search_larger_than_the_photo_is_refused_before_any_array(demo, args, named):
+    """Searches no photo can hold ended in MemoryError (34.7 TiB for --reach 1e6) or ran the machine
+    out of memory: exit 2 with one line naming the option and the most it can be."""
+    line = one_line(invoke("-C", demo, *args), 2)
+    assert named in line and "at most" in line
+
+
+@pytest.mark.parametrize("command", ["register", "predict", "navigate"])
+def test_a_truncated_maplet_is_a_warning_a_missing_one_a_note(demo, command):
+    """A MAP file there but unreadable fails only its landmark (tests/test_faults.py), but it was said
+    as a note, which -q silences and a reader takes for a landmark without a maplet: it is a warning
+    naming the file and byte.  A landmark with no MAP file at all stays a note."""
+    path = demo / "MAPFILES" / "B01980.MAP"
+    path.write_bytes(path.read_bytes()[:1000])
+    res = invoke("-C", demo, command, PIC)
+    assert res.exit_code in (0, 1), res.output
+    assert "warning: B01980: no maplet: its MAP file is unreadable" in res.stderr
+    assert "B01980.MAP:byte 1000" in res.stderr
+    path.unlink()
+    res = invoke("-C", demo, command, PIC)
+    assert res.exit_code in (0, 1) and "note: B01980: no maplet" in res.stderr, res.output
+
+
 # ------------------------------------------------------------------------------------------------
 # 4. --scheduler checked before any work
 

@@ -278,7 +278,11 @@ def _run(ctx: Context, stage: str, kw: dict):
             try:
                 maplet = wd.read_maplet(name)
             except SpcFormatError as exc:
-                ctx.note_once(f"{name}: no maplet ({exc})")
+                # a MAP there but unreadable fails only its landmark, said as a warning, not a note
+                if wd.map_path(name).exists():
+                    ctx.warn(f"{name}: no maplet: its MAP file is unreadable ({exc})")
+                else:
+                    ctx.note_once(f"{name}: no maplet ({exc})")
                 row.update(
                     {
                         "sample": math.nan,

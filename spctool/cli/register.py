@@ -190,7 +190,11 @@ class _Inputs:
             try:
                 maplet = wd.read_maplet(name)
             except SpcFormatError as exc:
-                ctx.note_once(f"{name}: no maplet ({exc})")
+                # a MAP there but unreadable fails only its landmark, said as a warning, not a note
+                if wd.map_path(name).exists():
+                    ctx.warn(f"{name}: no maplet: its MAP file is unreadable ({exc})")
+                else:
+                    ctx.note_once(f"{name}: no maplet ({exc})")
                 self.missing.append(name)
                 continue
             has_lmk = wd.lmk_path(name).exists()

@@ -363,6 +363,12 @@ def navigate(
     tick = progress or (lambda k=1: None)
     # the photo as every pass's Registrar reads it (float64), converted once here, not once per pass
     photo = np.ascontiguousarray(getattr(photo, "data", photo), dtype=np.float64)
+    side = max(photo.shape) if photo.ndim == 2 else 0
+    if side and float(opts.reach_px) > side:  # a search wider than the photo: nothing there, and memory
+        raise SpcUsageError(
+            f"a reach of {opts.reach_px:g} px (--reach) is larger than the photo "
+            f"({photo.shape[1]} x {photo.shape[0]} px): at most {side}"
+        )
     # maplet space: the landmarks of every pass are shared with worker processes forked once, at the
     # first pass, over the photo and maplets as they are here (register's ``pool``)
     pool = _landmark_pool(photo, maplets, opts.register)

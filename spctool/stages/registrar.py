@@ -121,6 +121,29 @@ class LandmarkStep:
         return c[::-1, ::-1].copy()
 
 
+def _check_search(options, shape, landmarks) -> None:
+    """SpcUsageError for a search no photo can hold, before any array is made for it: a grid of more
+    than ±(the photo's larger side) bins (``grid_half``: the correlation surface alone would be
+    (2K + 1)² values), or a maplet extended beyond its edge (``acquire_reach``) past the largest
+    half-size any stage accepts (:data:`spctool.formats.guard.MAX_QSZ`)."""
+    from spctool.formats.guard import MAX_QSZ
+
+    side = max(int(s) for s in shape)
+    if int(options.grid_half) > side:
+        raise SpcUsageError(
+            f"a correlation grid of +-{options.grid_half} bins (--grid-half) is larger than the photo "
+            f"({shape[1]} x {shape[0]} px): at most {side}"
+        )
+    reach = int(getattr(options, "acquire_reach", 0) or 0)
+    q = max((int(lm.maplet.heights.shape[0] - 1) // 2 for lm in landmarks), default=0)
+    if reach and q + reach > MAX_QSZ:
+        raise SpcUsageError(
+            f"an acquisition {reach} cells beyond the maplet's edge (--acquire-reach) would extend a maplet "
+            f"of half-size {q} past {MAX_QSZ} cells, the largest any stage accepts: at most "
+            f"{max(0, MAX_QSZ - q)}"
+        )
+
+
 @dataclass(frozen=True)
 class _PaddedMaplet:
     """A maplet's frame with its grid extended beyond its edge (``acquire_reach``): heights continued
@@ -296,6 +319,7 @@ class Registrar:
             [getattr(m, "name", "") or f"#{i + 1}" for i, m in enumerate(maplets)] if names is None else names
         )
         self.landmarks = [_Landmark(m, str(n)) for m, n in zip(maplets, names)]
+        _check_search(self.options, self.photo.shape, self.landmarks)
         # the settings derived from the options, made once per options object: per Registrar, or, with a
         # patch_cache, once for every call with the same options (the Monte Carlo's phases and samples)
         key = ("options", id(self.options))
