@@ -311,6 +311,26 @@ def test_stages_and_geometry_refuse_a_skewed_camera_frame(demo, tmp_path, cx, fo
     guard.check_sum_header(read_sum(path), path)  # 1e-6 off: accepted
 
 
+@pytest.mark.parametrize(
+    "old, new, line, words",
+    [
+        ("    0.7680000000D+01", "    0.0000000000D+00", 4, "a positive MMFL, found 0"),
+        (" 454.54000   0.00000   0.00000   0.00000 -454.54000", "   0.00000   0.00000   0.00000   0.00000 "
+         "   0.00000", 10, "a K-MATRIX whose 2 x 2 block is invertible"),
+    ],
+)
+def test_a_sum_whose_camera_cannot_be_made_names_its_line(demo, old, new, line, words):
+    """MMFL 0 or a zero K-MATRIX ended in a camera error naming no file ('the camera model cannot
+    invert the photo's centre pixel'): the SUM's line is named, as for every other bad value."""
+    path = demo / "SUMFILES" / f"{PIC}.SUM"
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    for command in ("lithos-select", "register"):
+        got = one_line(invoke("-C", demo, command, PIC), 2)
+        assert f"{PIC}.SUM:{line}: expected {words}" in got, got
+
+
 def test_stages_refuse_a_nan_landmark_naming_its_line(demo):
     path = demo / "LMKFILES" / "B01536.LMK"
     path.write_text(path.read_text().replace("    0.2777748334D+00", "    NaN", 1))

@@ -365,7 +365,7 @@ def _run(ctx: Context, stage: str, kw: dict):
             columns={c: [] for c in columns}, picture=pic.name, command=table.command, meta=table.meta
         )
     if out_dir is not None:
-        table.comments.append(f"{written} {stage} images written to {out_dir}")
+        table.comments.append(f"{written} {stage} image{'' if written == 1 else 's'} written to {out_dir}")
     if kw["sheet"]:
         from spctool import figures
 

@@ -253,7 +253,10 @@ def load_picture(ctx: Context, picture: str, sum_path=None, *, allow_linescan: b
             f"{path}:1: line 1 names picture {pic.name.strip()!r} but it is the SUM of {asked.strip()!r}: "
             f"the DISTORT= model is chosen for {asked.strip()!r}, as SPC's getmm does"
         )
-    camera = Camera.from_picture(pic, settings, picture_name=asked)
+    try:
+        camera = Camera.from_picture(pic, settings, picture_name=asked)
+    except SpcUsageError as exc:  # a camera the SUM (MMFL, K-MATRIX) or INIT_LITHOS cannot make: name it
+        raise SpcUsageError(f"{path}: {exc}") from None
     if camera.model.upper() == "NONE":
         where = (
             f"no INIT_LITHOS.TXT in {ctx.wd.root}"
@@ -297,8 +300,9 @@ def load_photo(ctx: Context, pic, photo_path=None, *, flip_rows: bool = False, r
     else:
         return None
     if photo.data.shape != (pic.nln, pic.npx):
+        where = photo_path or ctx.wd.photo_path(pic.name)
         raise SpcUsageError(
-            f"the photo is {photo.npx} x {photo.nln} px but the SUM says {pic.npx} x {pic.nln}"
+            f"{where}: the photo is {photo.npx} x {photo.nln} px but the SUM says {pic.npx} x {pic.nln}"
         )
     return photo
 

@@ -282,25 +282,34 @@ ROTATION_TOL = 1e-3
 
 
 def check_sum_header(pic, path) -> None:
-    """What every stage needs of a parsed SUM: :func:`check_finite_header`, and CX, CY, CZ the rows of
-    a proper rotation (orthonormal to :data:`ROTATION_TOL`, right-handed) — SpcFormatError naming
-    ``path`` and CX's line otherwise: a camera of a skewed frame would project every landmark wrong
-    and a solve would report its misfit as the pose's."""
+    """What every stage needs of a parsed SUM: :func:`check_finite_header`, CX, CY, CZ the rows of a
+    proper rotation (orthonormal to :data:`ROTATION_TOL`, right-handed), MMFL positive and the
+    K-MATRIX's 2 × 2 block invertible — SpcFormatError naming ``path`` and the line otherwise: a camera
+    of a skewed frame would project every landmark wrong and a solve would report its misfit as the
+    pose's; a zero focal length or K-matrix ended in a camera error that named no file."""
     import numpy as np
 
     check_finite_header(pic, path, "sum")
+
+    def line_of(key):
+        n = 1
+        for slot in getattr(getattr(pic, "_source", None), "header", None) or []:
+            if slot.key == key:
+                return n
+            n += 0 if slot.text is None else slot.text.count("\n") + 1
+        return None
+
     m = np.asarray(pic.rotation, dtype=np.float64)
     err = float(np.abs(m @ m.T - np.eye(3)).max())
     if err > ROTATION_TOL or np.linalg.det(m) < 0.0:
-        line, n = None, 1
-        for slot in getattr(getattr(pic, "_source", None), "header", None) or []:
-            if slot.key == "cx":
-                line = n
-                break
-            n += 0 if slot.text is None else slot.text.count("\n") + 1
         found = f"max |R R^T - I| = {err:.2g}" if err > ROTATION_TOL else "a left-handed frame"
-        raise SpcFormatError(path, line, f"CX, CY, CZ the rows of a rotation (orthonormal, right-handed), "
-                             f"found {found}")
+        raise SpcFormatError(path, line_of("cx"), f"CX, CY, CZ the rows of a rotation (orthonormal, "
+                             f"right-handed), found {found}")
+    if not float(pic.mmfl) > 0.0:
+        raise SpcFormatError(path, line_of("mmfl"), f"a positive MMFL, found {float(pic.mmfl):g}")
+    k = np.asarray(pic.kmatrix, dtype=np.float64)
+    if abs(np.linalg.det(k[:, :2])) < 1e-12:
+        raise SpcFormatError(path, line_of("kmatrix"), "a K-MATRIX whose 2 x 2 block is invertible (px/mm)")
 
 
 def _identity(path) -> tuple[int, int] | None:
