@@ -43,6 +43,7 @@ def test_lithos_writes_refined_map_and_lmk(tmp_path, scene, run_cli):
     assert np.corrcoef(new.albedo[v], truth.albedo[v])[0, 1] >= 0.9
     lmk = read_lmk(tmp_path / "LMKFILES" / "HW0001.LMK")
     assert [p.flag for p in lmk.pictures] == [""] * 4
+    assert np.array_equal(lmk.vlm, read_lmk(tmp_path / "LMKFILES" / "HW0001.LMK.bak").vlm)
     moved = [abs(p.sample - w.pixel[0]) + abs(p.line - w.pixel[1]) for p, w in zip(lmk.pictures, views)]
     assert max(moved) > 0.0 and max(moved) < 2.0  # re-registered, and close to the true centre
     assert (figs / "HW0001_heights.png").stat().st_size > 1000
@@ -95,3 +96,19 @@ def test_lithos_bad_input_found_before_any_maplet_is_written(tmp_path, scene, ru
     assert len(lines) == 1 and ("NOPE01" in lines[0] if bad == "name" else "is a directory" in lines[0])
     assert (tmp_path / "MAPFILES" / "HW0001.MAP").read_bytes() == before
     assert not (tmp_path / "MAPFILES" / "HW0001.MAP.bak").exists()
+
+
+def test_lithos_keeps_the_lmk_vlm_to_its_own_precision(tmp_path, run_cli):
+    """Without --recentre the VLM is not moved: it was replaced by the MAP's V, which the MAP holds as
+    real*4 (7 µm off on the demo's B01536); with --recentre it moves by V's move, from its own value."""
+    import shutil
+    from pathlib import Path
+
+    demo = Path(__file__).resolve().parents[1] / "fixtures" / "demo"
+    shutil.copytree(demo, tmp_path / "wd")
+    wd = tmp_path / "wd"
+    before = read_lmk(wd / "LMKFILES" / "B01536.LMK").vlm
+    assert not np.array_equal(before, read_map(wd / "MAPFILES" / "B01536.MAP").v)  # real*4 there
+    res = run_cli("-q", "-C", wd, "lithos", "B01536", "--force", "--iterations", "1")
+    assert res.exit_code == 0, res.output
+    assert np.array_equal(read_lmk(wd / "LMKFILES" / "B01536.LMK").vlm, before)

@@ -279,6 +279,7 @@ class FindHeightsResult:
     start_albedo: np.ndarray
     images: dict = field(default_factory=dict)
     options: FindHeightsOptions | None = None
+    start_v: np.ndarray | None = None  #: the maplet's V at the start (``v`` moves from it only by recentre)
 
     @property
     def ok(self) -> bool:
@@ -538,7 +539,8 @@ def find_heights(maplet, views, options: FindHeightsOptions | None = None) -> Fi
                images=None, v=None):
         return FindHeightsResult(name, status, reason, heights, albedo, valid.copy(),
                                  start.v.copy() if v is None else v, flagged, solved, azimuths, history,
-                                 converged, outcomes, h0.copy(), start.albedo.copy(), images or {}, opts)
+                                 converged, outcomes, h0.copy(), start.albedo.copy(), images or {}, opts,
+                                 np.array(start.v, dtype=np.float64))
 
     def outcomes_of(ob: _Observed):
         out = []
@@ -699,6 +701,10 @@ def landmark_with(lmk, result: FindHeightsResult):
     rows += [LandmarkPicture(p.name, p.pixel[0], p.pixel[1], "" if p.used else "*")
              for p in result.pictures if p.name not in listed]
     out.pictures = rows
-    if not np.array_equal(np.asarray(result.v, float), np.asarray(lmk.vlm, float)):
+    if result.start_v is not None:  # the VLM moves as V moved (recentre), keeping its own precision: the
+        shift = np.asarray(result.v, float) - np.asarray(result.start_v, float)  # MAP's V is real*4
+        if np.any(shift != 0.0):
+            out.vlm = np.asarray(lmk.vlm, dtype=np.float64) + shift
+    elif not np.array_equal(np.asarray(result.v, float), np.asarray(lmk.vlm, float)):
         out.vlm = np.asarray(result.v, dtype=np.float64)
     return out
