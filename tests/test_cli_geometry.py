@@ -192,6 +192,30 @@ def test_batch_rounds_rebuild_a_refined_map_whose_inputs_changed(pristine, run_c
     assert rounds("--force")["inputs"] == second["inputs"] and summary.stat().st_mtime_ns != built
 
 
+def test_geometry_reports_the_residuals_of_what_it_writes_when_no_landmark_is_refined(
+    pristine, run_cli, tmp_path
+):
+    """Every landmark undetermined (--min-parallax 90): the VLMs keep their prior and the poses are fitted
+    to them, so the rms reported after the solve is the rms of the files written, as a dry run on them
+    measures it (the poses were once fitted to VLMs moved in the solve, then put back: 0.0529 -> 0.0391
+    px reported on the demo, 0.0561 px in the files)."""
+    root, _ = pristine
+    wd = tmp_path / "wd"
+    shutil.copytree(root, wd)
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--min-parallax", "90", "--json")
+    assert res.exit_code == 0, res.stderr
+    solved = json.loads(res.stdout)
+    assert solved["n_landmarks_refined"] == 0 and solved["written"]
+    res = run_cli("-C", wd, "geometry", "--tables", out, "--dry-run", "--json")
+    assert res.exit_code == 0, res.stderr
+    again = json.loads(res.stdout)
+    assert again["n_pictures"] == solved["n_pictures"] and again["measurements"] == {"ok": 72}
+    assert again["rms_before_px"] == pytest.approx(solved["rms_after_px"], rel=1e-6)
+    assert solved["rms_after_px"] <= solved["rms_before_px"]
+
+
 def test_geometry_checks_its_output_before_writing_and_writes_strict_json(pristine, run_cli, tmp_path):
     """An -o that is a directory is refused before any LMK, MAP or SUM is rewritten (they once were,
     and then the table was lost); --json with no landmark refined is strict JSON (null, not NaN)."""

@@ -38,7 +38,12 @@ the priors is reported.
 Per landmark.  At least ``min_pictures`` usable measurements from pictures that constrain V, and a
 parallax (angular spread of the lines of sight, 2·asin √(1 − λ₁) of their scatter matrix, the angle
 between them for two pictures) of at least ``min_parallax_deg``; otherwise V keeps its prior, is held
-fixed in the solve (its measurements still constrain the poses) and is reported ``undetermined``.
+fixed in the solve at that prior (its measurements still constrain the poses, which are therefore
+fitted to the VLM that is written) and is reported ``undetermined``.  A held V with a prior on every
+axis adds its uncertainty to its measurements' covariance, W⁻¹ + J_V Σ_V J_Vᵀ (J_V = ∂h/∂V), so
+that a VLM known to 1 m does not pin a pose as if it were exact (to first order the poses of the solve
+with V free under its prior); χ² and ρ use these weights, and the residuals reported are those of the
+poses and VLMs returned.
 Pictures marked "ignore in Vlm" do not constrain any V: they are left out of the joint solve and their
 poses solved afterwards against the refined landmarks, held fixed.
 
@@ -226,7 +231,8 @@ class BundleResult:
     ``ignored-in-vlm`` (its picture does not constrain V; used for that picture's pose),
     ``undetermined`` (its landmark kept its prior).  ``landmark_status``: ``ok``, ``undetermined``
     (fewer than ``min_pictures`` usable pictures or too little parallax: V kept), ``unobserved``.
-    Residuals are measured − predicted (px); ``rho`` the normalised residual ‖W^(1/2) r‖.
+    Residuals are measured − predicted (px) at the returned poses and VLMs (an undetermined landmark at
+    its prior); ``rho`` the normalised residual ‖W^(1/2) r‖ (W with a held VLM's uncertainty added).
     """
 
     picture_names: list[str]
@@ -333,10 +339,11 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             f"{und} landmark(s) undetermined (fewer than {opts.min_pictures} usable pictures or parallax "
             f"below {opts.min_parallax_deg:g}°): their VLM keeps its prior"
         )
-    # a kept landmark stays in the solve with its prior (its measurements inform the poses, its
-    # uncertainty with them); one without a prior on every axis is held fixed
-    has_prior = np.all(bundle.info_lmk > 0, axis=1)
-    hold = keep & ~has_prior
+    # a kept landmark is held fixed at its prior VLM, which is what is written for it: its measurements
+    # inform the poses, fitted to that VLM (were it free in the solve, the poses would be fitted to a
+    # moved VLM that is then put back, and the residuals reported would not be those of the files)
+    hold = keep.copy()
+    bundle.hold_landmarks(s, hold)
     gauge = _gauge_check(bundle, s, hold)
     stats: dict = {}
     fit = _fit_joint if opts.mode == "joint" else _fit_alternate
@@ -351,7 +358,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
         rho0, c0 = _normalised(bundle, s, k0)
         bad0 = k0[rho0 > opts.reject_sigma * (c0 if opts.robust_scale else 1.0)]
         status[bad0] = "outlier"
-        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
+        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, lstatus, opts)
         # the pre-pass's first fit, with the measurements' own weights and nothing flagged, is already
         # the plain fit: not done twice
         skip_first = plain is not None and bad0.size == 0
@@ -371,7 +378,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             break
         status[new] = "outlier"
         rounds += 1
-        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
+        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, lstatus, opts)
     used_idx = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
     if opts.mode == "alternate":  # how far the alternation stopped from the minimum of the same cost
         gap = _alternation_gap(bundle, s, used_idx, hold, opts, stats)
@@ -389,18 +396,18 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             f"{bundle.n_red} reduced unknowns: landmark covariances are conditional on the solved poses "
             "(covariance='full' for the joint ones)"
         )
+    s["v"][keep] = bundle.v0[keep]  # held there (exactly: the hold is a large weight, not a constraint)
     pose_cov, lcov, cam_cov = _covariance(bundle, s, used_idx, hold, kind)
     # pictures ignored in Vlm, and pictures with no landmark in the joint solve: poses against fixed V
     s = _solve_ignored(bundle, s, status, joint_pics, hold, pose_cov, warnings)
-    # residuals at the solution the poses were fitted with (a kept landmark at its solved V)
+    # residuals of the solution as returned (and written): the poses, and every VLM, kept ones at their prior
     res_before = prob.obs_pixel - bundle.project(bundle.start(), np.arange(k_all), False)[0]
     res_after = prob.obs_pixel - bundle.project(s, np.arange(k_all), False)[0]
-    if keep.any():  # kept landmarks: V and σ as they were (nothing written for them is learnt)
-        s["v"][keep] = bundle.v0[keep]
+    if keep.any():  # kept landmarks: σ as it was (nothing written for them is learnt)
         info_k = bundle.info_lmk[keep]
         var = np.where(info_k > 0, 1.0 / np.where(info_k > 0, info_k, 1.0), np.nan)
         lcov[keep] = var[:, :, None] * np.eye(3)
-    rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res_after, prob.obs_weight, res_after), 0.0))
+    rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res_after, bundle.eff_weight, res_after), 0.0))
     chi2_idx = used_idx
     chi2 = float(np.sum(rho[chi2_idx] ** 2))
     dof = _degrees_of_freedom(bundle, chi2_idx.size, joint_pics, hold)
@@ -482,21 +489,23 @@ def _camera_terms(bundle: _Bundle, s, cam_cov) -> dict:
     return out
 
 
-def _recheck_determinacy(bundle: _Bundle, s, status, in_vlm, keep, has_prior, lstatus, opts):
-    """(keep, hold) after flags: a landmark that lost too many measurements keeps its prior (one without a
-    prior is held at it)."""
+def _recheck_determinacy(bundle: _Bundle, s, status, in_vlm, keep, lstatus, opts):
+    """(keep, hold) after flags: a landmark that lost too many measurements keeps its prior VLM and is
+    held at it from now on."""
     cnt, par = _parallax(bundle, s, np.flatnonzero((status == "ok") & in_vlm))
     newly = ~keep & ((cnt < opts.min_pictures) | (par < opts.min_parallax_deg))
     keep = keep | newly
     lstatus[newly] = "undetermined"
-    s["v"][newly & ~has_prior] = bundle.v0[newly & ~has_prior]
-    return keep, keep & ~has_prior
+    s["v"][newly] = bundle.v0[newly]
+    if newly.any():
+        bundle.hold_landmarks(s, keep)
+    return keep, keep.copy()
 
 
 def _normalised(bundle: _Bundle, s, k_idx) -> tuple[np.ndarray, float]:
     """ρ_k = ‖W^(1/2) r_k‖ of measurements ``k_idx`` and the robust scale c = max(1, median ρ/√(2 ln 2))."""
     r = bundle.residuals(s, k_idx)
-    w = bundle.prob.obs_weight[k_idx]
+    w = bundle.eff_weight[k_idx]
     rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", r, w, r), 0.0))
     c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if rho.size else 1.0
     return rho, c
@@ -567,7 +576,7 @@ def _solve_ignored(bundle: _Bundle, s, status, joint_pics, hold, pose_cov, warni
                 PoseOptions(reject_outliers=False),
                 prior_sigma_position=prob.sigma_position[j],
                 prior_sigma_attitude=prob.sigma_attitude[j],
-                pixel_covariances=np.linalg.inv(prob.obs_weight[k]),
+                pixel_covariances=np.linalg.inv(bundle.eff_weight[k]),
                 names=[prob.landmark_names[i] for i in prob.obs_landmark[k]],
             )
         except PoseError as exc:
