@@ -216,6 +216,34 @@ def test_geometry_reports_the_residuals_of_what_it_writes_when_no_landmark_is_re
     assert solved["rms_after_px"] <= solved["rms_before_px"]
 
 
+def test_geometry_reports_the_sigmas_it_writes_when_chi2_per_dof_exceeds_one(pristine, run_cli, tmp_path):
+    """chi2/dof above 1 (SUM rows weighed at 0.002 px): SIGMA_LMK is written scaled by sqrt(chi2/dof), and
+    the table's sigmas and the formal best-80 % figure are those written (they were the unscaled ones:
+    0.144 m reported for B01536 on the demo with --sigma-floor-px 0, sqrt(1.755) times that written)."""
+    root, truth = pristine
+    wd = tmp_path / "wd"
+    shutil.copytree(root, wd)
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
+    (wd / "no-tables").mkdir()
+    args = ["--from-batch", out, "--tables", "no-tables", "--sigma-px", "0.002", "--json"]
+    res = run_cli("-q", "-C", wd, "geometry", *args)
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["reduced_chi2"] > 1.5
+    rows = [r for r in doc["landmarks"] if r["status"] == "ok"]
+    assert len(rows) == len(truth)
+    written = np.array([read_lmk(wd / "LMKFILES" / f"{r['name']}.LMK").sigma_lmk for r in rows])
+    reported = np.array([[r["sigma_x_m"], r["sigma_y_m"], r["sigma_z_m"]] for r in rows]) / 1000.0
+    assert np.allclose(reported, written, rtol=1e-8, atol=0)
+    each = np.sort(np.sqrt(np.sum(written**2, axis=1))) * 1000.0
+    best = each[: int(np.ceil(0.8 * each.size))]
+    f = doc["formal_uncertainty"]
+    assert f["best80_rms_m"] == pytest.approx(float(np.sqrt(np.mean(best**2))), rel=1e-8)
+    assert f["best80_max_m"] == pytest.approx(float(best.max()), rel=1e-8)
+    assert doc["covariance_scale"] == doc["reduced_chi2"]
+
+
 def test_geometry_checks_its_output_before_writing_and_writes_strict_json(pristine, run_cli, tmp_path):
     """An -o that is a directory is refused before any LMK, MAP or SUM is rewritten (they once were,
     and then the table was lost); --json with no landmark refined is strict JSON (null, not NaN)."""

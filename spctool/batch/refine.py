@@ -13,8 +13,9 @@ solve_bundle`.  This module is the I/O around it, shared by ``spctool geometry``
   measurements; ``LMKWTS= WB, WO, WL, WR`` — WB scales the landmark-position prior (WO, WL: overlaps
   and limbs, which spctool does not use yet).
 * :func:`write_back` — atomically, each replaced file keeping a ``.bak``: LMK VLM, SIGMA_LMK (posterior
-  1σ, km), RMSLMK (rms post-fit residual of the landmark's used measurements, **pixels** — spctool's
-  documented choice; SPC's unit is not public) and the PICTURES section (one row per picture that
+  1σ, km, scaled by chi2/dof when above 1 as every sigma written and reported), RMSLMK (rms post-fit
+  residual of the landmark's used measurements, **pixels** — spctool's documented choice; SPC's unit is
+  not public) and the PICTURES section (one row per picture that
   measured it: the measured sample/line, ``*`` when not used); the MAP header's V set to the new VLM
   (real*4; every other byte kept); the SUM's SCOBJ, CX/CY/CZ, SIGMA_VSO/SIGMA_PTG and its LANDMARKS
   rows' flags (``*`` on an outlier).
@@ -289,7 +290,7 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
     status = result.obs_status
     rms = result.landmark_rms_px()
     sig = result.landmark_sigmas
-    scale = max(1.0, result.reduced_chi2) if math.isfinite(result.reduced_chi2) else 1.0
+    scale = result.covariance_scale  # chi2/dof when above 1, as the reports say
     # landmarks
     # each landmark's measurements, in measurement order (one stable sort, no loop over measurements)
     order = np.argsort(prob.obs_landmark, kind="stable")
@@ -394,14 +395,18 @@ def residuals_table(result: BundleResult, problem: BundleProblem):
 
 
 def summary_table(result: BundleResult, problem: BundleProblem):
-    """One row per landmark: VLM before/after, correction (m), 1σ (m), pictures used, rms (px), status."""
+    """One row per landmark: VLM before/after, correction (m), 1σ (m), pictures used, rms (px), status.
+    The 1σ of a refined landmark is its SIGMA_LMK as written (scaled by chi2/dof when above 1,
+    :attr:`BundleResult.covariance_scale`); an undetermined one's is its prior's."""
     from spctool.formats.table import LandmarkTable
 
     n = len(result.landmark_names)
     used = np.array([s in ("ok", "undetermined") for s in result.obs_status])
     npic = np.bincount(problem.obs_landmark[used], minlength=n)
     d = (result.landmark_positions - result.landmark_positions0) * 1000.0
+    ok = np.array([s == "ok" for s in result.landmark_status], dtype=bool)
     sig = result.landmark_sigmas * 1000.0
+    sig[ok] *= math.sqrt(result.covariance_scale)
     cols = {
         "name": list(result.landmark_names),
         "vlm_x": result.landmark_positions[:, 0],
@@ -433,10 +438,12 @@ def lmkvecs_text(result: BundleResult, landmarks: dict) -> str:
 
 def formal_summary(result: BundleResult) -> dict:
     """Formal uncertainty in the spirit of get80: the 1σ position error (m, root of the covariance's trace)
-    of the best 80 % of the determined landmarks, with its median and maximum."""
+    of the best 80 % of the determined landmarks, with its median and maximum; the covariance scaled as
+    SIGMA_LMK is written (``covariance_scale``: chi2/dof when above 1)."""
     ok = np.array([s == "ok" for s in result.landmark_status])
+    scale = result.covariance_scale
     tr = (
-        np.sqrt(np.trace(result.landmark_covariance[ok], axis1=1, axis2=2)) * 1000.0
+        np.sqrt(np.trace(result.landmark_covariance[ok], axis1=1, axis2=2) * scale) * 1000.0
         if ok.any()
         else np.zeros(0)
     )
@@ -444,6 +451,7 @@ def formal_summary(result: BundleResult) -> dict:
     k = int(math.ceil(0.8 * tr.size))
     best = tr[:k]
     return {
+        "covariance_scale": scale,
         "landmarks": int(ok.sum()),
         "best80_count": int(best.size),
         "best80_rms_m": float(np.sqrt(np.mean(best**2))) if best.size else math.nan,

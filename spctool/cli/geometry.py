@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -176,7 +177,8 @@ def geometry_cmd(
 
     Output: one row per landmark (vlm_x/y/z km, dx/dy/dz_m correction, sigma_x/y/z_m, pictures used,
     parallax_deg, rms_px, status) and a summary in the header; --json adds pictures, formal
-    uncertainty (best 80 % of landmarks, as SPC's get80), gauge and counts.
+    uncertainty (best 80 % of landmarks, as SPC's get80), gauge and counts.  Every sigma reported is
+    the one written: the formal one scaled by chi2/dof when above 1 (covariance_scale).
 
     --mode alternate runs SPC's alternation for up to 30 rounds and reports where it stopped beside the
     joint minimum of the same cost (a warning with both costs); it is not an error for it to stop short.
@@ -251,7 +253,9 @@ def geometry_cmd(
             prob.obs_picture[np.array([s == "outlier" for s in result.obs_status], dtype=bool)],
             minlength=len(prob.picture_names),
         )
-        refinement_plot(result, rb, ra, nout).save(plot)
+        # the ellipses at the sigmas written (scaled as SIGMA_LMK)
+        shown = replace(result, landmark_covariance=result.landmark_covariance * result.covariance_scale)
+        refinement_plot(shown, rb, ra, nout).save(plot)
     if as_json:  # JSON has no NaN: an undefined figure (no landmark refined) is null
         from spctool.jsonsafe import json_safe
 
@@ -287,10 +291,14 @@ def _summary(result, prob, inputs, opts) -> dict:
         "rms_after_px": rms_a,
         "vlm_correction_rms_m": float(np.sqrt(np.mean(d[ok_l] ** 2))) if ok_l.any() else math.nan,
         "position_change_rms_m": float(np.sqrt(np.mean(dp**2))) if dp.size else math.nan,
+        "covariance_scale": result.covariance_scale,
         "formal_uncertainty": formal_summary(result),
         "gauge_sigma": result.gauge_sigma,
         "covariance": result.covariance_kind,
-        "camera_terms": {k: {t: list(v) for t, v in d2.items()} for k, d2 in result.camera_terms.items()},
+        "camera_terms": {
+            k: {t: [v[0], v[1], v[2] * math.sqrt(result.covariance_scale)] for t, v in d2.items()}
+            for k, d2 in result.camera_terms.items()
+        },
         "weights": inputs.weights,
         "outlier_rounds": result.outlier_rounds,
         "warnings": list(result.warnings),
@@ -313,6 +321,12 @@ def _summary_lines(s: dict) -> list[str]:
         f"{s['position_change_rms_m']:.4g} m",
         f"formal 1-sigma of the best 80% of landmarks: rms {f['best80_rms_m']:.4g} m, max "
         f"{f['best80_max_m']:.4g} m ({s['covariance']} covariance)",
+        "every sigma here and in the files written is the formal one"
+        + (
+            f" x sqrt(chi2/dof) = x {math.sqrt(s['covariance_scale']):.4g}"
+            if s["covariance_scale"] > 1.0
+            else " (chi2/dof <= 1: not scaled)"
+        ),
     ]
 
 

@@ -278,6 +278,14 @@ class BundleResult:
     def reduced_chi2(self) -> float:
         return self.chi2 / self.dof if self.dof > 0 else math.nan
 
+    @property
+    def covariance_scale(self) -> float:
+        """The factor on every covariance written and reported (SIGMA_LMK, SIGMA_VSO/SIGMA_PTG, the
+        tables' sigmas, the formal uncertainty): chi2/dof when it exceeds 1 (the residuals say the
+        measurements are noisier than their weights), else 1; the ``*_covariance`` arrays stay formal."""
+        red = self.reduced_chi2
+        return max(1.0, red) if math.isfinite(red) else 1.0
+
     def landmark_rms_px(self) -> np.ndarray:
         """Post-fit rms residual (px, per axis) over each landmark's used measurements (NaN if none)."""
         used = np.array([s == "ok" for s in self.obs_status])
