@@ -409,3 +409,25 @@ def test_undetermined_landmarks_are_held_and_the_residuals_are_those_of_the_resu
     for j in range(len(p.cameras)):
         plain = _pose_alone(p, j, cov).position
         assert np.all(np.abs(r0.positions[j] - plain) < 1e-4 * r0.pose_sigmas[j, :3])
+
+
+def test_a_fit_whose_chi2_exceeds_its_quantile_is_inconsistent_and_far_above_implausible():
+    """solve-pose's χ² gate on the whole solve: honest weights pass (ok, no warning); weights claiming
+    half the true noise (cost/dof ≈ 2.4, the priors unchanged) are inconsistent, said once with the
+    figures and the remedy; a hundredth implausible (cost/dof above 100)."""
+    w = bundle_world(10, 60, seed=4)
+    p = w.problem
+    ok = solve_bundle(p)
+    assert ok.verdict == "ok" and ok.verdict_reason == "" and ok.reduced_chi2 < 1.5
+    assert ok.cost == pytest.approx(ok.chi2 + ok.prior_cost) and ok.prior_cost > 0
+    assert ok.cost < ok.consistency_limit
+    assert not [x for x in ok.warnings if "fit" in x]
+    bad = solve_bundle(dataclasses.replace(p, obs_weight=p.obs_weight * 4.0))
+    assert bad.verdict == "inconsistent" and 2.0 < bad.cost / bad.dof < 100
+    assert bad.cost > bad.consistency_limit
+    said = [x for x in bad.warnings if x.startswith("inconsistent fit")]
+    assert len(said) == 1 and f"{bad.consistency_limit:.4g}" in said[0] and "--sigma-px" in said[0]
+    assert bad.covariance_scale == pytest.approx(bad.reduced_chi2)
+    worse = solve_bundle(dataclasses.replace(p, obs_weight=p.obs_weight * 1e4))
+    assert worse.verdict == "implausible" and worse.reduced_chi2 > 100
+    assert any(x.startswith("implausible fit") for x in worse.warnings)

@@ -244,6 +244,49 @@ def test_geometry_reports_the_sigmas_it_writes_when_chi2_per_dof_exceeds_one(pri
     assert doc["covariance_scale"] == doc["reduced_chi2"]
 
 
+def test_geometry_says_an_inconsistent_fit_and_refuses_an_implausible_one(pristine, run_cli, tmp_path):
+    """solve-pose's chi-square gate: a normal run says nothing; SUM rows weighed at 0.002 px (chi2/dof
+    ~4.5) are an inconsistent fit: one warning with the figures and the remedy, the JSON says so, the
+    files are written; at 0.0002 px (cost/dof ~450) implausible: exit 1 with one line, nothing written,
+    unless --force (the demo at --sigma-px 0.001 once gave chi2/dof 1320 with no word and exit 0)."""
+    root, _ = pristine
+    wd = tmp_path / "wd"
+    shutil.copytree(root, wd)
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
+    (wd / "no-tables").mkdir()
+
+    def files():
+        return {p: p.read_bytes() for d in ("LMKFILES", "MAPFILES", "SUMFILES") for p in (wd / d).iterdir()}
+
+    def geometry(*extra):
+        res = run_cli("-C", wd, "geometry", "--from-batch", out, "--json", *extra)
+        warned = [ln for ln in res.stderr.splitlines() if "note:" not in ln]
+        return res, warned
+
+    res, warned = geometry("--dry-run")
+    assert res.exit_code == 0 and warned == []
+    before = files()
+    res, warned = geometry("--tables", "no-tables", "--sigma-px", "0.002")
+    assert res.exit_code == 0, res.stderr
+    assert len(warned) == 1 and "warning: inconsistent fit" in warned[0] and "--sigma-px" in warned[0]
+    doc = json.loads(res.stdout)
+    assert doc["verdict"] == "inconsistent" and not doc["consistency"]["consistent"]
+    assert doc["consistency"]["cost"] > doc["consistency"]["limit"]
+    assert files() != before  # written, sigmas scaled
+    before = files()
+    res, warned = geometry("--tables", "no-tables", "--sigma-px", "0.0002")
+    assert res.exit_code == 1
+    assert json.loads(res.stdout)["verdict"] == "implausible"
+    assert len(warned) == 1 and "error: implausible fit" in warned[0]
+    assert "no LMK, MAP or SUM written (--force writes them)" in warned[0]
+    assert files() == before
+    res, warned = geometry("--tables", "no-tables", "--sigma-px", "0.0002", "--force")
+    assert res.exit_code == 0, res.stderr
+    assert len(warned) == 1 and "implausible fit" in warned[0] and "because of --force" in warned[0]
+    assert files() != before
+
+
 def test_geometry_checks_its_output_before_writing_and_writes_strict_json(pristine, run_cli, tmp_path):
     """An -o that is a directory is refused before any LMK, MAP or SUM is rewritten (they once were,
     and then the table was lost); --json with no landmark refined is strict JSON (null, not NaN)."""
@@ -338,7 +381,11 @@ def test_geometry_on_the_real_rosetta_picture_keeps_single_picture_landmarks(rea
     assert res.exit_code == 0, res.stderr
     doc = json.loads(res.stdout)
     assert [r["status"] for r in doc["landmarks"]] == ["undetermined"] * 3
-    assert "undetermined" in res.stderr and res.stderr.count("\n") == 1
+    # said once; and the real residuals (0.54 px rms) against the default --sigma-px 0.25 are an
+    # inconsistent fit (chi2/dof 4.7 > its 99.9 % quantile), said too
+    lines = res.stderr.splitlines()
+    assert len(lines) == 2 and "undetermined" in lines[0] and "inconsistent fit" in lines[1]
+    assert doc["verdict"] == "inconsistent"
     for f in (tmp_path / "LMKFILES").glob("*.LMK"):
         assert np.array_equal(read_lmk(f).vlm, before[f.name])
     assert doc["rms_after_px"] < doc["rms_before_px"]

@@ -119,6 +119,12 @@ from spctool.errors import SpcResultError
 )
 @click.option("--dry-run", is_flag=True, help="Solve and report; write no SUM, LMK or MAP file.")
 @click.option(
+    "--force",
+    is_flag=True,
+    help="Write the files even when the fit is implausible (cost/dof above 100; otherwise exit 1, nothing "
+    "written).",
+)
+@click.option(
     "--report-dir",
     "report_dir",
     metavar="DIR",
@@ -152,6 +158,7 @@ def geometry_cmd(
     camera_sigma,
     covariance,
     dry_run,
+    force,
     report_dir,
     plot,
     output,
@@ -183,8 +190,14 @@ def geometry_cmd(
     --mode alternate runs SPC's alternation for up to 30 rounds and reports where it stopped beside the
     joint minimum of the same cost (a warning with both costs); it is not an error for it to stop short.
 
-    Exit codes: 0 solved; 1 not solvable as asked (free gauge, no measurements) or the joint solve did
-    not converge; 2 bad input.
+    Consistency (solve-pose's chi-square gate): the minimised cost (chi2 + priors) above the 99.9 %
+    quantile of chi-square with the solve's degrees of freedom is an inconsistent fit: a warning with
+    the figures, the landmarks with the largest shares and the remedy; the files are written, their
+    sigmas scaled.  Above 100 per degree of freedom it is implausible: exit 1 and nothing written
+    (--force writes it).  The JSON says which (verdict, consistency).
+
+    Exit codes: 0 solved; 1 not solvable as asked (free gauge, no measurements), the joint solve did
+    not converge, or an implausible fit; 2 bad input.
 
     Examples:
 
@@ -230,13 +243,16 @@ def geometry_cmd(
         f"{int(prob.obs_use.sum())} usable measurements ({inputs.source})"
     )
     result = solve_bundle(prob, opts)
+    refused = result.verdict == "implausible" and not force  # solve-pose's rule: nothing written
     for w in result.warnings:
-        ctx.warn(w)
+        if w == result.verdict_reason and refused:
+            continue  # the error line below says it
+        ctx.warn(w + (" (written because of --force)" if w == result.verdict_reason and force else ""))
     table = refine.summary_table(result, prob)
     summary = _summary(result, prob, inputs, opts)
     table.meta.update(summary)
     table.comments.extend(_summary_lines(summary))
-    files = {} if dry_run else refine.updated_files(inputs, result, wd)
+    files = {} if dry_run or refused else refine.updated_files(inputs, result, wd)
     written = refine.write_back(files) if files else []
     summary["written"] = [str(p) for p in written]
     if written:
@@ -264,6 +280,10 @@ def geometry_cmd(
         emit(table.to_text(), output)
     if not result.converged and mode == "joint":  # the alternation's stop is SPC's, and said above
         raise SpcResultError(f"the refinement did not converge in {opts.max_iter} iterations")
+    if refused:
+        raise SpcResultError(
+            result.verdict_reason + ("" if dry_run else "; no LMK, MAP or SUM written (--force writes them)")
+        )
 
 
 def _summary(result, prob, inputs, opts) -> dict:
@@ -287,6 +307,18 @@ def _summary(result, prob, inputs, opts) -> dict:
         "chi2": result.chi2,
         "dof": result.dof,
         "reduced_chi2": result.reduced_chi2,
+        "verdict": result.verdict,
+        "consistency": {
+            "consistent": result.verdict == "ok",
+            "cost": result.cost,
+            "chi2": result.chi2,
+            "prior_cost": result.prior_cost,
+            "dof": result.dof,
+            "quantile": result.consistency_quantile,
+            "limit": result.consistency_limit,
+            "max_reduced_chi2": result.max_reduced_chi2,
+            "reason": result.verdict_reason,
+        },
         "rms_before_px": rms_b,
         "rms_after_px": rms_a,
         "vlm_correction_rms_m": float(np.sqrt(np.mean(d[ok_l] ** 2))) if ok_l.any() else math.nan,
@@ -310,6 +342,7 @@ def _summary(result, prob, inputs, opts) -> dict:
 def _summary_lines(s: dict) -> list[str]:
     counts = s["measurements"]
     f = s["formal_uncertainty"]
+    c = s["consistency"]
     return [
         f"geometry ({s['mode']}): {s['n_pictures']} pictures, {s['n_landmarks']} landmarks "
         f"({s['n_landmarks_refined']} refined), measurements "
@@ -317,6 +350,8 @@ def _summary_lines(s: dict) -> list[str]:
         f"{s['iterations']} iterations, {'converged' if s['converged'] else 'NOT converged'}; "
         f"chi2/dof {s['reduced_chi2']:.3g}; rms residual {s['rms_before_px']:.4g} -> "
         f"{s['rms_after_px']:.4g} px",
+        f"consistency: {s['verdict'].upper() if s['verdict'] != 'ok' else 'ok'} (cost {c['cost']:.4g} = "
+        f"chi2 + priors, {c['dof']} dof, {100 * c['quantile']:g} % limit {c['limit']:.4g})",
         f"VLM corrections rms {s['vlm_correction_rms_m']:.4g} m; pose position changes rms "
         f"{s['position_change_rms_m']:.4g} m",
         f"formal 1-sigma of the best 80% of landmarks: rms {f['best80_rms_m']:.4g} m, max "

@@ -53,6 +53,13 @@ is flagged — at most one per landmark per round (the worst), so that one bad m
 its landmark's good ones with it — and the problem is refitted, until no measurement is above the
 threshold.  Every flag is reported.
 
+Consistency.  The minimised cost (χ² of the used measurements + the priors' part) is χ²-distributed
+with ``dof`` degrees of freedom when the weights are honest: above its ``consistency_quantile``
+(99.9 %) the fit is ``inconsistent``, above ``max_reduced_chi2`` per dof ``implausible``
+(:attr:`BundleResult.verdict`, the χ² gate of ``solve-pose``), with a warning naming the figures,
+the landmarks with the largest shares of χ² and the remedy.  The covariances written are scaled by
+χ²/dof when above 1 (:attr:`BundleResult.covariance_scale`).
+
 Covariance.  The inverse of the (undamped) normal matrix at the solution: pose blocks of S⁻¹, landmark
 blocks D_l⁻¹ + D_l⁻¹ B_lᵀ S⁻¹ B_l D_l⁻¹ (``covariance="full"``).  For very large problems
 (``covariance="auto"`` above ``max_dense_reduced`` reduced unknowns) the landmark blocks are the
@@ -114,6 +121,10 @@ class BundleOptions:
       ``ky``, ``kyx``; pixels for ``ctr``; absolute for ``owen``); None = no prior.
     * ``covariance`` — ``"full"``, ``"conditional"`` or ``"auto"`` (full up to ``max_dense_reduced``
       reduced unknowns).
+    * ``consistency_quantile`` — the minimised cost (χ² + priors) above this quantile of χ² with the
+      solve's degrees of freedom makes the fit ``inconsistent`` (0.999, as ``solve-pose``);
+      ``max_reduced_chi2`` — cost/dof above which it is ``implausible`` (100, as ``solve-pose``):
+      :attr:`BundleResult.verdict`.
     """
 
     mode: str = "joint"
@@ -129,6 +140,8 @@ class BundleOptions:
     camera_sigma: float | None = None
     covariance: str = "auto"
     max_dense_reduced: int = 4000
+    consistency_quantile: float = 0.999
+    max_reduced_chi2: float = 100.0
 
     def __post_init__(self):
         if self.mode not in BUNDLE_MODES:
@@ -146,6 +159,10 @@ class BundleOptions:
             raise SpcUsageError(f"covariance must be full, conditional or auto, got {self.covariance!r}")
         if not self.reject_sigma > 0:
             raise SpcUsageError(f"reject_sigma must be positive, got {self.reject_sigma}")
+        if not 0.0 < self.consistency_quantile < 1.0:
+            raise SpcUsageError(f"consistency_quantile must be in (0, 1), got {self.consistency_quantile}")
+        if not self.max_reduced_chi2 > 0:
+            raise SpcUsageError(f"max_reduced_chi2 must be positive, got {self.max_reduced_chi2}")
 
     def as_dict(self) -> dict:
         from dataclasses import asdict
@@ -265,6 +282,74 @@ class BundleResult:
     warnings: list[str] = field(default_factory=list)
     mode: str = "joint"
     timing: dict = field(default_factory=dict)
+    prior_cost: float = 0.0  # the priors' part of the minimised cost (pictures and landmarks solved)
+    consistency_quantile: float = 0.999
+    max_reduced_chi2: float = 100.0
+    worst_landmarks: list = field(default_factory=list)  # [(name, share of χ²)], largest first
+
+    @property
+    def cost(self) -> float:
+        """The minimised cost: χ² of the used measurements + the priors' part."""
+        return self.chi2 + self.prior_cost
+
+    @property
+    def consistency_limit(self) -> float:
+        """The ``consistency_quantile`` of χ² with ``dof`` degrees of freedom (NaN for dof <= 0)."""
+        from spctool.stages.pose_consistency import chi2_quantile
+
+        return chi2_quantile(self.dof, self.consistency_quantile)
+
+    @property
+    def verdict(self) -> str:
+        """``implausible`` (cost/dof above ``max_reduced_chi2``), ``inconsistent`` (cost above its
+        ``consistency_quantile``) or ``ok`` — the χ² gate of ``solve-pose``
+        (:mod:`spctool.stages.pose_consistency`) applied to the whole solve."""
+        if not self.dof > 0 or not math.isfinite(self.cost):
+            return "ok"
+        if self.cost / self.dof > self.max_reduced_chi2:
+            return "implausible"
+        if self.cost > self.consistency_limit:
+            return "inconsistent"
+        return "ok"
+
+    @property
+    def verdict_reason(self) -> str:
+        """One line: the figures behind :attr:`verdict`, the likely cause and the remedy ("" for ok)."""
+        v = self.verdict
+        if v == "ok":
+            return ""
+        red = self.cost / self.dof
+        if v == "implausible":
+            head = (
+                f"implausible fit: cost/dof {red:.3g} > {self.max_reduced_chi2:g} (chi2 {self.chi2:.4g} + "
+                f"priors {self.prior_cost:.4g}, {self.dof} dof)"
+            )
+        else:
+            head = (
+                f"inconsistent fit: cost {self.cost:.4g} (chi2 {self.chi2:.4g} + priors "
+                f"{self.prior_cost:.4g}) > {self.consistency_limit:.4g}, the "
+                f"{100 * self.consistency_quantile:g} % quantile of chi2 with {self.dof} dof "
+                f"(cost/dof {red:.3g})"
+            )
+        if self.prior_cost > self.chi2:
+            cause = (
+                "most of it is the priors': the solution moved further than SIGMA_VSO, SIGMA_PTG or "
+                "SIGMA_LMK allow (give larger a-priori sigmas, or check the SUM poses and LMK VLMs)"
+            )
+        else:
+            worst = ", ".join(f"{n} ({100 * s:.0f} %)" for n, s in self.worst_landmarks)
+            cause = (
+                f"the residuals are ~{math.sqrt(max(self.reduced_chi2, 0.0)):.2g}x their sigmas: the "
+                "measurement sigmas are too small (--sigma-px, --sigma-floor-px, the register tables' "
+                f"sigma_sample/sigma_line) or measurements are wrong (largest shares of chi2: {worst})"
+            )
+        scale = self.covariance_scale
+        said = (
+            f"; the covariances are scaled by chi2/dof = {scale:.3g} (sigmas x {math.sqrt(scale):.3g})"
+            if scale > 1.0
+            else ""
+        )
+        return f"{head}: {cause}{said}"
 
     @property
     def landmark_sigmas(self) -> np.ndarray:
@@ -419,6 +504,10 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     chi2_idx = used_idx
     chi2 = float(np.sum(rho[chi2_idx] ** 2))
     dof = _degrees_of_freedom(bundle, chi2_idx.size, joint_pics, hold)
+    prior_cost = _prior_cost(bundle, s, joint_pics, hold)
+    share = np.bincount(prob.obs_landmark[chi2_idx], weights=rho[chi2_idx] ** 2, minlength=bundle.n_lmk)
+    order = np.argsort(-share, kind="stable")[:3]
+    worst = [(prob.landmark_names[i], float(share[i] / chi2)) for i in order if chi2 > 0 and share[i] > 0]
     cam_terms = _camera_terms(bundle, s, cam_cov)
     cams = bundle.group_cameras(s)
     out_cams = [
@@ -427,7 +516,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     ]
     if not converged and opts.mode == "joint":
         warnings.append(f"did not converge in {opts.max_iter} iterations")
-    return BundleResult(
+    result = BundleResult(
         picture_names=prob.picture_names,
         landmark_names=prob.landmark_names,
         cameras=out_cams,
@@ -460,7 +549,14 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
         timing={"total_s": time.perf_counter() - t_start},
         _obs_picture=prob.obs_picture,
         _obs_landmark=prob.obs_landmark,
+        prior_cost=prior_cost,
+        consistency_quantile=opts.consistency_quantile,
+        max_reduced_chi2=opts.max_reduced_chi2,
+        worst_landmarks=worst,
     )
+    if result.verdict != "ok":  # said as solve-pose says it (the caller decides what is written)
+        warnings.append(result.verdict_reason)
+    return result
 
 
 def _alternation_gap(bundle: _Bundle, s, k_idx, hold, opts, stats) -> tuple[float, float, float]:
@@ -481,7 +577,22 @@ def _degrees_of_freedom(bundle: _Bundle, n_used: int, joint_pics, hold) -> int:
     dof += int(np.count_nonzero(bundle.info_pos[joint_pics])) + int(
         np.count_nonzero(bundle.info_att[joint_pics])
     )
-    return dof + int(np.count_nonzero(bundle.info_lmk[~hold]))
+    return dof + int(np.count_nonzero(bundle.info_lmk[~hold])) + int(np.count_nonzero(bundle.info_cam))
+
+
+def _prior_cost(bundle: _Bundle, s, joint_pics, hold) -> float:
+    """The priors' part of the minimised cost over what the joint solve estimated (the pictures in it, the
+    landmarks not held, the camera terms): the prior equations :func:`_degrees_of_freedom` counts."""
+    dp = (s["pos"] - bundle.p0)[joint_pics]
+    th = bundle.theta(s)[joint_pics]
+    dv = (s["v"] - bundle.v0)[~hold]
+    c = float(np.sum(bundle.info_pos[joint_pics] * dp * dp) + np.sum(bundle.info_att[joint_pics] * th * th))
+    c += float(np.sum(bundle.info_lmk[~hold] * dv * dv))
+    if bundle.nc:
+        slots = bundle.slots
+        dq = np.array([[s["q"][g, i] - bundle.q0[g][i] for _, i in slots[g]] for g in range(len(slots))])
+        c += float(np.sum(bundle.info_cam * dq * dq))
+    return c
 
 
 def _camera_terms(bundle: _Bundle, s, cam_cov) -> dict:
