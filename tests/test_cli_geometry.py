@@ -287,6 +287,36 @@ def test_geometry_says_an_inconsistent_fit_and_refuses_an_implausible_one(pristi
     assert files() != before
 
 
+def test_geometry_refuses_a_picture_named_twice_and_uses_a_pictlist_duplicate_once(
+    pristine, run_cli, tmp_path
+):
+    """A picture given twice on the command line was counted twice (its measurements doubled, its SUM
+    written twice): exit 2, one line, nothing written.  One listed twice in PICTLIST is used once, said."""
+    root, _ = pristine
+    wd = tmp_path / "wd"
+    shutil.copytree(root, wd)
+    names = sorted(p.stem for p in (wd / "SUMFILES").glob("*.SUM"))
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
+    before = {p: p.read_bytes() for d in ("LMKFILES", "SUMFILES") for p in (wd / d).iterdir()}
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, names[0], names[1], names[0])
+    assert res.exit_code == 2
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and "more than once" in lines[0] and names[0] in lines[0]
+    assert {p: p.read_bytes() for d in ("LMKFILES", "SUMFILES") for p in (wd / d).iterdir()} == before
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--dry-run", "--json")
+    once = json.loads(res.stdout)
+    pictlist = wd / "PICTLIST.TXT"
+    text = pictlist.read_text().splitlines()
+    pictlist.write_text("\n".join([text[0], *text]) + "\n")
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--dry-run", "--json")
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["n_pictures"] == once["n_pictures"] == len(names)
+    assert doc["measurements"] == once["measurements"]
+    assert "more than once" in res.stderr and text[0].strip() in res.stderr
+
+
 def test_geometry_checks_its_output_before_writing_and_writes_strict_json(pristine, run_cli, tmp_path):
     """An -o that is a directory is refused before any LMK, MAP or SUM is rewritten (they once were,
     and then the table was lost); --json with no landmark refined is strict JSON (null, not NaN)."""

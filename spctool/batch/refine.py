@@ -26,6 +26,7 @@ solve_bundle`.  This module is the I/O around it, shared by ``spctool geometry``
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -134,7 +135,9 @@ def gather(
 
     ``tables`` — a folder of register tables (``<PIC>.register.txt``, or a batch output whose
     ``TABLES/`` holds them); measurements then carry their covariance (+ ``sigma_floor_px``² I), the
-    others σ = ``sigma_px``.  ``ignore_in_vlm`` — pictures whose measurements do not constrain V.
+    others σ = ``sigma_px``.  ``ignore_in_vlm`` — pictures whose measurements do not constrain V.  A
+    picture named twice in ``pictures`` is a :class:`SpcUsageError` (its measurements would count twice
+    and its SUM be written twice); one listed twice in PICTLIST is used once, with a note.
     ``from_batch`` — a ``batch --out-dir``: its pictures (those it wrote a SUM for, in PICTLIST order),
     their SUMs (the batch's solved poses and measured LANDMARKS rows) and its register tables.  The
     files written back are still the working directory's (SPC's GEOMETRY updates SUMFILES and LMKFILES).
@@ -146,7 +149,15 @@ def gather(
     if not (sigma_px > 0 and math.isfinite(sigma_px)):
         raise SpcUsageError(f"--sigma-px must be a positive number, got {sigma_px}")
     weights = _weights(settings)
+    notes: list[str] = []
     names = [p.strip() for p in pictures] if pictures else wd.picture_names()
+    twice = sorted(n for n, c in Counter(names).items() if c > 1)
+    if twice and pictures:  # one picture counted twice: its measurements doubled, its SUM written twice
+        raise SpcUsageError(f"picture(s) named more than once: {', '.join(twice)}")
+    if twice:
+        listed = wd.pictlist_path.name
+        notes.append(f"{listed} lists picture(s) more than once, each used once: {', '.join(twice)}")
+        names = list(dict.fromkeys(names))
     batch_sums = None
     if from_batch is not None:
         batch_sums = Path(from_batch) / "SUMFILES"
@@ -164,7 +175,6 @@ def gather(
             tables_dir = tables_dir / TABLES_DIR
         if not tables_dir.is_dir():
             raise SpcUsageError(f"{tables}: not a folder of register tables")
-    notes: list[str] = []
     pics, sum_paths, cams, row_sources = {}, {}, [], []
     obs_pic, obs_name, obs_pix, obs_use, obs_cov = [], [], [], [], []
     for j, name in enumerate(names):  # file reads per picture; the numerics are vectorised later
