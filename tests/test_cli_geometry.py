@@ -266,6 +266,11 @@ def test_geometry_says_an_inconsistent_fit_and_refuses_an_implausible_one(pristi
 
     res, warned = geometry("--dry-run")
     assert res.exit_code == 0 and warned == []
+    # the register tables weigh every measurement here: --sigma-px weighs nothing, and says so
+    res, _ = geometry("--dry-run", "--sigma-px", "0.0002")
+    assert res.exit_code == 0 and "note: --sigma-px weighs SUM LANDMARKS rows only" in res.stderr
+    res, _ = geometry("--dry-run", "--tables", "no-tables", "--sigma-floor-px", "0.1")
+    assert res.exit_code == 0 and "note: --sigma-floor-px applies to register tables only" in res.stderr
     before = files()
     res, warned = geometry("--tables", "no-tables", "--sigma-px", "0.002")
     assert res.exit_code == 0, res.stderr

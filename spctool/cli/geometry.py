@@ -234,6 +234,7 @@ def geometry_cmd(
     )
     for note in inputs.notes:
         ctx.note_once(note)
+    _say_unused_sigma(ctx, inputs)
     for src, pic in inputs.row_sources:  # SUM LANDMARKS rows off SPC's columns are said (issue #40)
         warn_row_columns(ctx, src, pic, "(landmark sample, line)")
     check_output(output)  # before any file is rewritten: a bad -o must not end a run whose files are written
@@ -284,6 +285,24 @@ def geometry_cmd(
         raise SpcResultError(
             result.verdict_reason + ("" if dry_run else "; no LMK, MAP or SUM written (--force writes them)")
         )
+
+
+def _say_unused_sigma(ctx, inputs) -> None:
+    """A note when --sigma-px or --sigma-floor-px was given but weighs nothing: --sigma-px weighs only SUM
+    LANDMARKS rows (every picture had a register table here), --sigma-floor-px only register tables."""
+    given = click.get_current_context()
+
+    def on_line(name):
+        return given.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE
+
+    from_rows = len(inputs.row_sources)
+    if on_line("sigma_px") and from_rows == 0:
+        ctx.note_once(
+            "--sigma-px weighs SUM LANDMARKS rows only: every picture has a register table, whose "
+            "covariances (+ --sigma-floor-px) weigh its measurements"
+        )
+    if on_line("sigma_floor_px") and from_rows == len(inputs.problem.picture_names):
+        ctx.note_once("--sigma-floor-px applies to register tables only: no picture has one (--sigma-px)")
 
 
 def _summary(result, prob, inputs, opts) -> dict:
