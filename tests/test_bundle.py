@@ -48,10 +48,14 @@ def test_exact_measurements_leave_everything_unchanged():
 
 def test_solution_and_covariance_equal_a_brute_force_least_squares():
     """scipy's least_squares on the same cost, written independently (per-measurement projection through
-    Camera.project, finite-difference Jacobian), gives the same minimum; its (JᵀJ)⁻¹ the same covariance."""
+    Camera.project, finite-difference Jacobian), gives the same minimum; its (JᵀJ)⁻¹ the same covariance.
+    Every landmark is solved (one picture is enough: --min-pictures 1); with the default 2, the landmarks
+    seen once keep their prior VLM, held, their prior's uncertainty added to their measurements' (to first
+    order the same poses: within 0.1 sigma)."""
     w = bundle_world(6, 30, seed=3)
     p = w.problem
-    r = solve_bundle(p, BundleOptions(reject_outliers=False, min_parallax_deg=0.0))
+    r = solve_bundle(p, BundleOptions(reject_outliers=False, min_parallax_deg=0.0, min_pictures=1))
+    held = solve_bundle(p, BundleOptions(reject_outliers=False, min_parallax_deg=0.0))
     n_p, n_l = len(p.cameras), len(p.landmark_names)
     p0 = np.array([c.position for c in p.cameras])
     t0 = np.array([c.rotation for c in p.cameras])
@@ -98,6 +102,12 @@ def test_solution_and_covariance_equal_a_brute_force_least_squares():
     )
     assert np.max(np.abs(pose - r.pose_covariance)) < 1e-4 * np.max(np.abs(pose))
     assert np.max(np.abs(lm[ok] - r.landmark_covariance[ok])) < 1e-6 * np.max(np.abs(lm[ok]))
+    kept = np.array([s == "undetermined" for s in held.landmark_status])
+    assert kept.any() and np.array_equal(held.landmark_positions[kept], p.landmark_positions[kept])
+    solved = ~kept
+    assert np.all(np.abs(held.landmark_positions[solved] - v[solved]) < 0.1 * held.landmark_sigmas[solved])
+    assert np.all(np.abs(held.positions - (p0 + dp)) < 0.1 * held.pose_sigmas[:, :3])
+    assert np.all(np.abs(held.delta_attitude - th) < 0.1 * held.pose_sigmas[:, 3:])
 
 
 def test_vlm_error_falls_as_one_over_root_n_pictures():
@@ -343,3 +353,81 @@ def test_pose_of_a_rotated_attitude_prior_uses_the_exact_right_jacobian():
     batch = so3_right_jacobian_inv_batch(th)
     for t, b in zip(th, batch):
         assert np.allclose(b, so3_right_jacobian_inv(t), atol=1e-14)
+
+
+def _pose_alone(p, j, covariances):
+    """Picture j solved alone by solve-pose against the a-priori VLMs (no model error, no floor)."""
+    k = np.flatnonzero(p.obs_picture == j)
+    return solve_pose(
+        p.cameras[j],
+        p.landmark_positions[p.obs_landmark[k]],
+        p.obs_pixel[k],
+        PoseOptions(reject_outliers=False, model_error=False, sigma_floor_px=0.0, min_landmarks=1),
+        prior_sigma_position=p.sigma_position[j],
+        prior_sigma_attitude=p.sigma_attitude[j],
+        pixel_covariances=covariances[k],
+    )
+
+
+def test_undetermined_landmarks_are_held_and_the_residuals_are_those_of_the_result():
+    """A landmark that is not refined keeps its prior VLM, and the poses are fitted to that VLM, held (they
+    were once fitted to a VLM moved in the solve and then put back: the residuals, χ² and rms reported
+    were not those of the VLMs and poses written).  Every landmark undetermined (parallax 90°): the
+    residuals are those of the returned poses and VLMs, and each pose is the picture's solve-pose
+    against the a-priori VLMs, the measurements' covariance C + J_V Σ_V J_Vᵀ (the VLM's own uncertainty
+    projected; J_V by finite differences here); without landmark priors, exactly the plain solve-pose."""
+    w = bundle_world(8, 40, seed=9)
+    p = w.problem
+    opts = BundleOptions(reject_outliers=False, min_parallax_deg=90.0)
+    r = solve_bundle(p, opts)
+    assert set(r.landmark_status) <= {"undetermined", "unobserved"}
+    assert np.array_equal(r.landmark_positions, p.landmark_positions)
+    cov = np.linalg.inv(p.obs_weight)
+    for j in range(len(p.cameras)):
+        k = np.flatnonzero(p.obs_picture == j)
+        s, li = r.cameras[j].project(r.landmark_positions[p.obs_landmark[k]])
+        assert np.max(np.abs(r.residual_after[k] - (p.obs_pixel[k] - np.stack([s, li], axis=1)))) < 1e-9
+        jv = np.empty((k.size, 2, 3))
+        for a in range(3):  # ∂(sample, line)/∂V by central differences (1 cm)
+            dv = np.zeros(3)
+            dv[a] = 1e-5
+            sp_, lp = p.cameras[j].project(p.landmark_positions[p.obs_landmark[k]] + dv)
+            sm, lm = p.cameras[j].project(p.landmark_positions[p.obs_landmark[k]] - dv)
+            jv[:, :, a] = np.stack([sp_ - sm, lp - lm], axis=1) / 2e-5
+        inflated = cov.copy()
+        inflated[k] += np.einsum("kai,ki,kbi->kab", jv, p.landmark_sigmas[p.obs_landmark[k]] ** 2, jv)
+        alone = _pose_alone(p, j, inflated)
+        assert np.all(np.abs(r.positions[j] - alone.position) < 0.01 * r.pose_sigmas[j, :3])
+    used = np.array([s == "undetermined" for s in r.obs_status])
+    assert used.all()
+    assert r.chi2 == pytest.approx(float(np.sum(r.rho_after[used] ** 2)), rel=1e-12)
+    # no landmark unknown: the degrees of freedom are those of the poses alone
+    n_prior = int(np.count_nonzero(p.sigma_position > 0) + np.count_nonzero(p.sigma_attitude > 0))
+    assert r.dof == 2 * p.obs_picture.size - 6 * len(p.cameras) + n_prior
+    exact = dataclasses.replace(p, landmark_sigmas=np.zeros_like(p.landmark_sigmas))
+    r0 = solve_bundle(exact, opts)
+    for j in range(len(p.cameras)):
+        plain = _pose_alone(p, j, cov).position
+        assert np.all(np.abs(r0.positions[j] - plain) < 1e-4 * r0.pose_sigmas[j, :3])
+
+
+def test_a_fit_whose_chi2_exceeds_its_quantile_is_inconsistent_and_far_above_implausible():
+    """solve-pose's χ² gate on the whole solve: honest weights pass (ok, no warning); weights claiming
+    half the true noise (cost/dof ≈ 2.4, the priors unchanged) are inconsistent, said once with the
+    figures and the remedy; a hundredth implausible (cost/dof above 100)."""
+    w = bundle_world(10, 60, seed=4)
+    p = w.problem
+    ok = solve_bundle(p)
+    assert ok.verdict == "ok" and ok.verdict_reason == "" and ok.reduced_chi2 < 1.5
+    assert ok.cost == pytest.approx(ok.chi2 + ok.prior_cost) and ok.prior_cost > 0
+    assert ok.cost < ok.consistency_limit
+    assert not [x for x in ok.warnings if "fit" in x]
+    bad = solve_bundle(dataclasses.replace(p, obs_weight=p.obs_weight * 4.0))
+    assert bad.verdict == "inconsistent" and 2.0 < bad.cost / bad.dof < 100
+    assert bad.cost > bad.consistency_limit
+    said = [x for x in bad.warnings if x.startswith("inconsistent fit")]
+    assert len(said) == 1 and f"{bad.consistency_limit:.4g}" in said[0] and "--sigma-px" in said[0]
+    assert bad.covariance_scale == pytest.approx(bad.reduced_chi2)
+    worse = solve_bundle(dataclasses.replace(p, obs_weight=p.obs_weight * 1e4))
+    assert worse.verdict == "implausible" and worse.reduced_chi2 > 100
+    assert any(x.startswith("implausible fit") for x in worse.warnings)

@@ -112,3 +112,30 @@ def test_lithos_keeps_the_lmk_vlm_to_its_own_precision(tmp_path, run_cli):
     res = run_cli("-q", "-C", wd, "lithos", "B01536", "--force", "--iterations", "1")
     assert res.exit_code == 0, res.output
     assert np.array_equal(read_lmk(wd / "LMKFILES" / "B01536.LMK").vlm, before)
+
+
+def test_lithos_warns_of_a_picture_whose_file_is_corrupt(tmp_path, run_cli):
+    """A picture left out because its photo is cut short or its SUM is garbage is a warning naming the
+    file (it was a note, and the maplet was rewritten from the others with exit 0, unnoticed); a picture
+    simply without a photo stays a note.  batch --lithos (refine_maplet) records the same lines."""
+    start, truth, views = make_scene(n_pictures=6)
+    write_workdir(tmp_path, start, views, truth)
+    dat = tmp_path / "IMAGEFILES" / "HP0000000002.DAT"
+    dat.write_bytes(dat.read_bytes()[: dat.stat().st_size // 2])
+    (tmp_path / "SUMFILES" / "HP0000000003.SUM").write_text("garbage\n")
+    (tmp_path / "IMAGEFILES" / "HP0000000004.DAT").unlink()
+    res = run_cli("-C", tmp_path, "lithos", "HW0001", "--dry-run", "--iterations", "1", "--json")
+    assert res.exit_code == 0, res.stderr
+    warned = [ln for ln in res.stderr.splitlines() if "warning:" in ln]
+    assert len(warned) == 2
+    assert "HP0000000002" in warned[0] and "HP0000000002.DAT" in warned[0] and "cut short" in warned[0]
+    assert "HP0000000003" in warned[1] and "HP0000000003.SUM" in warned[1]
+    noted = [ln for ln in res.stderr.splitlines() if "note:" in ln and "HP0000000004" in ln]
+    assert len(noted) == 1 and "no photo" in noted[0]
+    doc = json.loads(res.stdout)
+    m = doc["meta"]["maplets"][0] if "meta" in doc else doc["maplets"][0]
+    assert sorted(m["skipped_pictures"]) == ["HP0000000002", "HP0000000003", "HP0000000004"]
+    from spctool.batch.heights import refine_maplet
+
+    out = refine_maplet(tmp_path, "HW0001")
+    assert len(out["warnings"]) == 2 and "HP0000000002.DAT" in out["warnings"][0]

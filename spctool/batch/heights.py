@@ -33,15 +33,18 @@ def _sees(camera, pic, lmk) -> bool:
                 and np.asarray(pic.sz, float) @ uz > 0.0)
 
 
-def landmark_views(wd, settings, lmk, *, thresholds=None, note=None):
+def landmark_views(wd, settings, lmk, *, thresholds=None, note=None, warn=None):
     """(views, skipped names): a :class:`~spctool.stages.find_heights.PictureView` per PICTURES row of
     the LMK not flagged ``*`` (its pixel the a-priori centre), with the picture's SUM (finite pose
     checked), camera (the INIT_LITHOS ``settings``' DISTORT= model of that picture name) and photo
     (checked against the SUM's size).  An LMK without any PICTURES row tries every picture of
     PICTLIST.TXT (else SUMFILES/) whose camera sees V lit and facing it, pixel None (the projection).
 
-    ``thresholds(pic)``: the (T1, T2) of a picture (default its SUM THRSH); ``note(message)`` is told
-    each picture left out and why (a missing or bad SUM or photo: the picture is skipped, not an error).
+    ``thresholds(pic)``: the (T1, T2) of a picture (default its SUM THRSH).  A picture left out is
+    skipped, not an error: ``note(message)`` is told of one simply without a SUM or photo file,
+    ``warn(message)`` (default: ``note``) of one whose SUM or photo exists but cannot be used (corrupt,
+    truncated, unreadable, the wrong size), naming the file — the maplet is then solved without a
+    picture it was meant to have, which must not pass unnoticed.
     The one builder of a maplet's views for ``spctool lithos`` and ``batch --lithos``.
     """
     from spctool.formats import guard
@@ -49,6 +52,7 @@ def landmark_views(wd, settings, lmk, *, thresholds=None, note=None):
     from spctool.stages.find_heights import PictureView
 
     say = note if note is not None else (lambda message: None)
+    complain = warn if warn is not None else say
     explicit = bool(lmk.pictures)
     rows = [(r.name, (float(r.sample), float(r.line))) for r in lmk.pictures if r.flag != "*"]
     if not explicit:
@@ -58,6 +62,10 @@ def landmark_views(wd, settings, lmk, *, thresholds=None, note=None):
         rows = [(n, None) for n in names]
     views, skipped = [], []
     for name, pixel in rows:  # file reads per picture
+        if not wd.sum_path(name).exists():
+            say(f"{lmk.name}: picture {name} left out (no SUM file {wd.sum_path(name).name} in SUMFILES/)")
+            skipped.append(name)
+            continue
         try:
             pic = wd.read_picture(name)
             guard.check_sum_header(pic, wd.sum_path(name))
@@ -73,8 +81,8 @@ def landmark_views(wd, settings, lmk, *, thresholds=None, note=None):
                 raise SpcFormatError(wd.photo_path(pic.name), None, f"{pic.npx} x {pic.nln} px (the SUM's "
                                      f"size), found {photo.npx} x {photo.nln}")
             thr = tuple(float(x) for x in (pic.thrsh if thresholds is None else thresholds(pic)))
-        except (SpcError, OSError) as exc:
-            say(f"{lmk.name}: picture {name} left out ({exc})")
+        except (SpcError, OSError) as exc:  # the file is there but cannot be used: a warning
+            complain(f"{lmk.name}: picture {name} left out: its file cannot be used ({exc})")
             skipped.append(name)
             continue
         if pixel is not None and not all(math.isfinite(x) for x in pixel):
@@ -96,11 +104,13 @@ def refine_maplet(root, name: str) -> dict:
         settings = wd.read_settings()
         lmk = wd.read_landmark(name)
         maplet = wd.read_maplet(lmk.name)
-        views, skipped = landmark_views(wd, settings, lmk)
+        bad_files: list[str] = []
+        views, skipped = landmark_views(wd, settings, lmk, warn=bad_files.append)
         result = find_heights(maplet, views, FindHeightsOptions())
     except SpcError as exc:
         out["reason"] = str(exc)
         return out
+    out["warnings"] = bad_files  # pictures left out because their SUM or photo cannot be used
     before, after = result.mean_ncc() if result.ok else (math.nan, math.nan)
     out.update(status=result.status, reason=result.reason or "", ncc_before=before, ncc_after=after)
     out["skipped_pictures"] = skipped

@@ -13,8 +13,9 @@ solve_bundle`.  This module is the I/O around it, shared by ``spctool geometry``
   measurements; ``LMKWTS= WB, WO, WL, WR`` — WB scales the landmark-position prior (WO, WL: overlaps
   and limbs, which spctool does not use yet).
 * :func:`write_back` — atomically, each replaced file keeping a ``.bak``: LMK VLM, SIGMA_LMK (posterior
-  1σ, km), RMSLMK (rms post-fit residual of the landmark's used measurements, **pixels** — spctool's
-  documented choice; SPC's unit is not public) and the PICTURES section (one row per picture that
+  1σ, km, scaled by chi2/dof when above 1 as every sigma written and reported), RMSLMK (rms post-fit
+  residual of the landmark's used measurements, **pixels** — spctool's documented choice; SPC's unit is
+  not public) and the PICTURES section (one row per picture that
   measured it: the measured sample/line, ``*`` when not used); the MAP header's V set to the new VLM
   (real*4; every other byte kept); the SUM's SCOBJ, CX/CY/CZ, SIGMA_VSO/SIGMA_PTG and its LANDMARKS
   rows' flags (``*`` on an outlier).
@@ -25,6 +26,7 @@ solve_bundle`.  This module is the I/O around it, shared by ``spctool geometry``
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -133,7 +135,9 @@ def gather(
 
     ``tables`` — a folder of register tables (``<PIC>.register.txt``, or a batch output whose
     ``TABLES/`` holds them); measurements then carry their covariance (+ ``sigma_floor_px``² I), the
-    others σ = ``sigma_px``.  ``ignore_in_vlm`` — pictures whose measurements do not constrain V.
+    others σ = ``sigma_px``.  ``ignore_in_vlm`` — pictures whose measurements do not constrain V.  A
+    picture named twice in ``pictures`` is a :class:`SpcUsageError` (its measurements would count twice
+    and its SUM be written twice); one listed twice in PICTLIST is used once, with a note.
     ``from_batch`` — a ``batch --out-dir``: its pictures (those it wrote a SUM for, in PICTLIST order),
     their SUMs (the batch's solved poses and measured LANDMARKS rows) and its register tables.  The
     files written back are still the working directory's (SPC's GEOMETRY updates SUMFILES and LMKFILES).
@@ -145,7 +149,15 @@ def gather(
     if not (sigma_px > 0 and math.isfinite(sigma_px)):
         raise SpcUsageError(f"--sigma-px must be a positive number, got {sigma_px}")
     weights = _weights(settings)
+    notes: list[str] = []
     names = [p.strip() for p in pictures] if pictures else wd.picture_names()
+    twice = sorted(n for n, c in Counter(names).items() if c > 1)
+    if twice and pictures:  # one picture counted twice: its measurements doubled, its SUM written twice
+        raise SpcUsageError(f"picture(s) named more than once: {', '.join(twice)}")
+    if twice:
+        listed = wd.pictlist_path.name
+        notes.append(f"{listed} lists picture(s) more than once, each used once: {', '.join(twice)}")
+        names = list(dict.fromkeys(names))
     batch_sums = None
     if from_batch is not None:
         batch_sums = Path(from_batch) / "SUMFILES"
@@ -163,7 +175,6 @@ def gather(
             tables_dir = tables_dir / TABLES_DIR
         if not tables_dir.is_dir():
             raise SpcUsageError(f"{tables}: not a folder of register tables")
-    notes: list[str] = []
     pics, sum_paths, cams, row_sources = {}, {}, [], []
     obs_pic, obs_name, obs_pix, obs_use, obs_cov = [], [], [], [], []
     for j, name in enumerate(names):  # file reads per picture; the numerics are vectorised later
@@ -289,7 +300,7 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
     status = result.obs_status
     rms = result.landmark_rms_px()
     sig = result.landmark_sigmas
-    scale = max(1.0, result.reduced_chi2) if math.isfinite(result.reduced_chi2) else 1.0
+    scale = result.covariance_scale  # chi2/dof when above 1, as the reports say
     # landmarks
     # each landmark's measurements, in measurement order (one stable sort, no loop over measurements)
     order = np.argsort(prob.obs_landmark, kind="stable")
@@ -394,14 +405,18 @@ def residuals_table(result: BundleResult, problem: BundleProblem):
 
 
 def summary_table(result: BundleResult, problem: BundleProblem):
-    """One row per landmark: VLM before/after, correction (m), 1σ (m), pictures used, rms (px), status."""
+    """One row per landmark: VLM before/after, correction (m), 1σ (m), pictures used, rms (px), status.
+    The 1σ of a refined landmark is its SIGMA_LMK as written (scaled by chi2/dof when above 1,
+    :attr:`BundleResult.covariance_scale`); an undetermined one's is its prior's."""
     from spctool.formats.table import LandmarkTable
 
     n = len(result.landmark_names)
     used = np.array([s in ("ok", "undetermined") for s in result.obs_status])
     npic = np.bincount(problem.obs_landmark[used], minlength=n)
     d = (result.landmark_positions - result.landmark_positions0) * 1000.0
+    ok = np.array([s == "ok" for s in result.landmark_status], dtype=bool)
     sig = result.landmark_sigmas * 1000.0
+    sig[ok] *= math.sqrt(result.covariance_scale)
     cols = {
         "name": list(result.landmark_names),
         "vlm_x": result.landmark_positions[:, 0],
@@ -433,10 +448,12 @@ def lmkvecs_text(result: BundleResult, landmarks: dict) -> str:
 
 def formal_summary(result: BundleResult) -> dict:
     """Formal uncertainty in the spirit of get80: the 1σ position error (m, root of the covariance's trace)
-    of the best 80 % of the determined landmarks, with its median and maximum."""
+    of the best 80 % of the determined landmarks, with its median and maximum; the covariance scaled as
+    SIGMA_LMK is written (``covariance_scale``: chi2/dof when above 1)."""
     ok = np.array([s == "ok" for s in result.landmark_status])
+    scale = result.covariance_scale
     tr = (
-        np.sqrt(np.trace(result.landmark_covariance[ok], axis1=1, axis2=2)) * 1000.0
+        np.sqrt(np.trace(result.landmark_covariance[ok], axis1=1, axis2=2) * scale) * 1000.0
         if ok.any()
         else np.zeros(0)
     )
@@ -444,6 +461,7 @@ def formal_summary(result: BundleResult) -> dict:
     k = int(math.ceil(0.8 * tr.size))
     best = tr[:k]
     return {
+        "covariance_scale": scale,
         "landmarks": int(ok.sum()),
         "best80_count": int(best.size),
         "best80_rms_m": float(np.sqrt(np.mean(best**2))) if best.size else math.nan,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -118,6 +119,12 @@ from spctool.errors import SpcResultError
 )
 @click.option("--dry-run", is_flag=True, help="Solve and report; write no SUM, LMK or MAP file.")
 @click.option(
+    "--force",
+    is_flag=True,
+    help="Write the files even when the fit is implausible (cost/dof above 100; otherwise exit 1, nothing "
+    "written).",
+)
+@click.option(
     "--report-dir",
     "report_dir",
     metavar="DIR",
@@ -151,6 +158,7 @@ def geometry_cmd(
     camera_sigma,
     covariance,
     dry_run,
+    force,
     report_dir,
     plot,
     output,
@@ -176,13 +184,20 @@ def geometry_cmd(
 
     Output: one row per landmark (vlm_x/y/z km, dx/dy/dz_m correction, sigma_x/y/z_m, pictures used,
     parallax_deg, rms_px, status) and a summary in the header; --json adds pictures, formal
-    uncertainty (best 80 % of landmarks, as SPC's get80), gauge and counts.
+    uncertainty (best 80 % of landmarks, as SPC's get80), gauge and counts.  Every sigma reported is
+    the one written: the formal one scaled by chi2/dof when above 1 (covariance_scale).
 
     --mode alternate runs SPC's alternation for up to 30 rounds and reports where it stopped beside the
     joint minimum of the same cost (a warning with both costs); it is not an error for it to stop short.
 
-    Exit codes: 0 solved; 1 not solvable as asked (free gauge, no measurements) or the joint solve did
-    not converge; 2 bad input.
+    Consistency (solve-pose's chi-square gate): the minimised cost (chi2 + priors) above the 99.9 %
+    quantile of chi-square with the solve's degrees of freedom is an inconsistent fit: a warning with
+    the figures, the landmarks with the largest shares and the remedy; the files are written, their
+    sigmas scaled.  Above 100 per degree of freedom it is implausible: exit 1 and nothing written
+    (--force writes it).  The JSON says which (verdict, consistency).
+
+    Exit codes: 0 solved; 1 not solvable as asked (free gauge, no measurements), the joint solve did
+    not converge, or an implausible fit; 2 bad input.
 
     Examples:
 
@@ -219,6 +234,7 @@ def geometry_cmd(
     )
     for note in inputs.notes:
         ctx.note_once(note)
+    _say_unused_sigma(ctx, inputs)
     for src, pic in inputs.row_sources:  # SUM LANDMARKS rows off SPC's columns are said (issue #40)
         warn_row_columns(ctx, src, pic, "(landmark sample, line)")
     check_output(output)  # before any file is rewritten: a bad -o must not end a run whose files are written
@@ -228,13 +244,16 @@ def geometry_cmd(
         f"{int(prob.obs_use.sum())} usable measurements ({inputs.source})"
     )
     result = solve_bundle(prob, opts)
+    refused = result.verdict == "implausible" and not force  # solve-pose's rule: nothing written
     for w in result.warnings:
-        ctx.warn(w)
+        if w == result.verdict_reason and refused:
+            continue  # the error line below says it
+        ctx.warn(w + (" (written because of --force)" if w == result.verdict_reason and force else ""))
     table = refine.summary_table(result, prob)
     summary = _summary(result, prob, inputs, opts)
     table.meta.update(summary)
     table.comments.extend(_summary_lines(summary))
-    files = {} if dry_run else refine.updated_files(inputs, result, wd)
+    files = {} if dry_run or refused else refine.updated_files(inputs, result, wd)
     written = refine.write_back(files) if files else []
     summary["written"] = [str(p) for p in written]
     if written:
@@ -251,7 +270,9 @@ def geometry_cmd(
             prob.obs_picture[np.array([s == "outlier" for s in result.obs_status], dtype=bool)],
             minlength=len(prob.picture_names),
         )
-        refinement_plot(result, rb, ra, nout).save(plot)
+        # the ellipses at the sigmas written (scaled as SIGMA_LMK)
+        shown = replace(result, landmark_covariance=result.landmark_covariance * result.covariance_scale)
+        refinement_plot(shown, rb, ra, nout).save(plot)
     if as_json:  # JSON has no NaN: an undefined figure (no landmark refined) is null
         from spctool.jsonsafe import json_safe
 
@@ -260,6 +281,28 @@ def geometry_cmd(
         emit(table.to_text(), output)
     if not result.converged and mode == "joint":  # the alternation's stop is SPC's, and said above
         raise SpcResultError(f"the refinement did not converge in {opts.max_iter} iterations")
+    if refused:
+        raise SpcResultError(
+            result.verdict_reason + ("" if dry_run else "; no LMK, MAP or SUM written (--force writes them)")
+        )
+
+
+def _say_unused_sigma(ctx, inputs) -> None:
+    """A note when --sigma-px or --sigma-floor-px was given but weighs nothing: --sigma-px weighs only SUM
+    LANDMARKS rows (every picture had a register table here), --sigma-floor-px only register tables."""
+    given = click.get_current_context()
+
+    def on_line(name):
+        return given.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE
+
+    from_rows = len(inputs.row_sources)
+    if on_line("sigma_px") and from_rows == 0:
+        ctx.note_once(
+            "--sigma-px weighs SUM LANDMARKS rows only: every picture has a register table, whose "
+            "covariances (+ --sigma-floor-px) weigh its measurements"
+        )
+    if on_line("sigma_floor_px") and from_rows == len(inputs.problem.picture_names):
+        ctx.note_once("--sigma-floor-px applies to register tables only: no picture has one (--sigma-px)")
 
 
 def _summary(result, prob, inputs, opts) -> dict:
@@ -283,14 +326,30 @@ def _summary(result, prob, inputs, opts) -> dict:
         "chi2": result.chi2,
         "dof": result.dof,
         "reduced_chi2": result.reduced_chi2,
+        "verdict": result.verdict,
+        "consistency": {
+            "consistent": result.verdict == "ok",
+            "cost": result.cost,
+            "chi2": result.chi2,
+            "prior_cost": result.prior_cost,
+            "dof": result.dof,
+            "quantile": result.consistency_quantile,
+            "limit": result.consistency_limit,
+            "max_reduced_chi2": result.max_reduced_chi2,
+            "reason": result.verdict_reason,
+        },
         "rms_before_px": rms_b,
         "rms_after_px": rms_a,
         "vlm_correction_rms_m": float(np.sqrt(np.mean(d[ok_l] ** 2))) if ok_l.any() else math.nan,
         "position_change_rms_m": float(np.sqrt(np.mean(dp**2))) if dp.size else math.nan,
+        "covariance_scale": result.covariance_scale,
         "formal_uncertainty": formal_summary(result),
         "gauge_sigma": result.gauge_sigma,
         "covariance": result.covariance_kind,
-        "camera_terms": {k: {t: list(v) for t, v in d2.items()} for k, d2 in result.camera_terms.items()},
+        "camera_terms": {
+            k: {t: [v[0], v[1], v[2] * math.sqrt(result.covariance_scale)] for t, v in d2.items()}
+            for k, d2 in result.camera_terms.items()
+        },
         "weights": inputs.weights,
         "outlier_rounds": result.outlier_rounds,
         "warnings": list(result.warnings),
@@ -302,6 +361,7 @@ def _summary(result, prob, inputs, opts) -> dict:
 def _summary_lines(s: dict) -> list[str]:
     counts = s["measurements"]
     f = s["formal_uncertainty"]
+    c = s["consistency"]
     return [
         f"geometry ({s['mode']}): {s['n_pictures']} pictures, {s['n_landmarks']} landmarks "
         f"({s['n_landmarks_refined']} refined), measurements "
@@ -309,10 +369,18 @@ def _summary_lines(s: dict) -> list[str]:
         f"{s['iterations']} iterations, {'converged' if s['converged'] else 'NOT converged'}; "
         f"chi2/dof {s['reduced_chi2']:.3g}; rms residual {s['rms_before_px']:.4g} -> "
         f"{s['rms_after_px']:.4g} px",
+        f"consistency: {s['verdict'].upper() if s['verdict'] != 'ok' else 'ok'} (cost {c['cost']:.4g} = "
+        f"chi2 + priors, {c['dof']} dof, {100 * c['quantile']:g} % limit {c['limit']:.4g})",
         f"VLM corrections rms {s['vlm_correction_rms_m']:.4g} m; pose position changes rms "
         f"{s['position_change_rms_m']:.4g} m",
         f"formal 1-sigma of the best 80% of landmarks: rms {f['best80_rms_m']:.4g} m, max "
         f"{f['best80_max_m']:.4g} m ({s['covariance']} covariance)",
+        "every sigma here and in the files written is the formal one"
+        + (
+            f" x sqrt(chi2/dof) = x {math.sqrt(s['covariance_scale']):.4g}"
+            if s["covariance_scale"] > 1.0
+            else " (chi2/dof <= 1: not scaled)"
+        ),
     ]
 
 

@@ -5,7 +5,8 @@ A thin command over :func:`spctool.stages.find_heights.find_heights` (the outer 
 each LANDMARK it reads ``MAPFILES/<NAME>.MAP`` and ``LMKFILES/<NAME>.LMK``; the pictures are the LMK
 PICTURES rows not flagged ``*`` (their pixels are the a-priori centres), each with its SUM (pose,
 Sun, THRSH), INIT_LITHOS (distortion) and photo.  A picture whose SUM or photo is missing is left
-out with a note.
+out with a note; one whose SUM or photo is there but cannot be used (corrupt, truncated, unreadable)
+is left out with a warning naming the file.
 
 Writes (unless ``--dry-run``), atomically with a ``.bak`` of the file replaced: the MAP (heights
 re-quantised with HSCALE = max|h|/30000, SPC's 2021 WRITE_MAP rule, which keeps int16 precision;
@@ -182,7 +183,7 @@ def lithos_cmd(ctx: Context, landmarks, **kw):
     rows, docs, failed = [], [], []
     for lmk in lmks:
         maplet = ctx.wd.read_maplet(lmk.name)
-        views, skipped = landmark_views(ctx.wd, ctx.settings(), lmk, note=ctx.note_once,
+        views, skipped = landmark_views(ctx.wd, ctx.settings(), lmk, note=ctx.note_once, warn=ctx.warn,
                                         thresholds=lambda pic: picture_thresholds(kw["thresholds"], pic))
         result = find_heights(maplet, views, opts)
         wrote = False

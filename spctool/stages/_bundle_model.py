@@ -153,6 +153,30 @@ class _Bundle:
         self._pairs = None
         #: per-measurement weight factor (1, or the robust pre-pass's Cauchy factor)
         self.robust = np.ones(prob.obs_picture.size)
+        #: the measurements' weights in the solve: W, or for a held landmark's (:meth:`hold_landmarks`)
+        #: (W⁻¹ + J_V Σ_V J_Vᵀ)⁻¹
+        self.eff_weight = prob.obs_weight
+
+    def hold_landmarks(self, s, hold) -> None:
+        """Weights for landmarks ``hold`` held at their prior VLM: a measurement of one with a prior on
+        every axis gets the prior's uncertainty projected into the picture, (W⁻¹ + J_V Σ_V J_Vᵀ)⁻¹ with
+        J_V = ∂h/∂V at ``s`` (so a VLM known to 1 m does not pin a pose as if it were exact; to first
+        order the poses of the solve with V free under its prior, V eliminated); one without is exact.
+        Written as W − W J (Σ_V⁻¹ + Jᵀ W J)⁻¹ Jᵀ W (Woodbury), which needs no W⁻¹."""
+        prob = self.prob
+        w = prob.obs_weight.copy()
+        full = hold & np.all(self.info_lmk > 0, axis=1)
+        k = np.flatnonzero(full[prob.obs_landmark] & prob.obs_use)
+        if k.size:
+            _, _, jc, rot, _, _ = self.project(s, k, True)
+            jv = jc @ rot  # (K, 2, 3)
+            wk = prob.obs_weight[k]
+            wj = wk @ jv  # (K, 2, 3)
+            m = np.einsum("kai,kaj->kij", jv, wj)
+            m[:, np.arange(3), np.arange(3)] += self.info_lmk[prob.obs_landmark[k]]
+            w[k] = wk - wj @ np.linalg.solve(m, np.swapaxes(wj, 1, 2))
+            w[k] = 0.5 * (w[k] + np.swapaxes(w[k], 1, 2))
+        self.eff_weight = w
 
     # -- state -------------------------------------------------------------------------------------
     def start(self):
@@ -228,7 +252,7 @@ class _Bundle:
         return self.prob.obs_pixel[k_idx] - pred
 
     def weights(self, k_idx) -> np.ndarray:
-        return self.prob.obs_weight[k_idx] * self.robust[k_idx, None, None]
+        return self.eff_weight[k_idx] * self.robust[k_idx, None, None]
 
     def cost(self, s, k_idx, hold) -> float:
         r = self.residuals(s, k_idx)
@@ -567,6 +591,7 @@ def _fit_joint(bundle: _Bundle, s, k_idx, hold, opts, stats) -> tuple[dict, bool
         accepted = False
         for _try in range(12):
             dx, dv = bundle.step(s, k_idx, blocks, damping)
+            dv[hold] = 0.0  # a held landmark stays exactly where it is (its large weight leaves ~1e-12)
             trial = bundle.moved(s, dx, dv)
             c_new = bundle.cost(trial, k_idx, hold)
             if np.isfinite(c_new) and c_new <= cost * (1.0 + 1e-13) + 1e-300:

@@ -38,7 +38,12 @@ the priors is reported.
 Per landmark.  At least ``min_pictures`` usable measurements from pictures that constrain V, and a
 parallax (angular spread of the lines of sight, 2·asin √(1 − λ₁) of their scatter matrix, the angle
 between them for two pictures) of at least ``min_parallax_deg``; otherwise V keeps its prior, is held
-fixed in the solve (its measurements still constrain the poses) and is reported ``undetermined``.
+fixed in the solve at that prior (its measurements still constrain the poses, which are therefore
+fitted to the VLM that is written) and is reported ``undetermined``.  A held V with a prior on every
+axis adds its uncertainty to its measurements' covariance, W⁻¹ + J_V Σ_V J_Vᵀ (J_V = ∂h/∂V), so
+that a VLM known to 1 m does not pin a pose as if it were exact (to first order the poses of the solve
+with V free under its prior); χ² and ρ use these weights, and the residuals reported are those of the
+poses and VLMs returned.
 Pictures marked "ignore in Vlm" do not constrain any V: they are left out of the joint solve and their
 poses solved afterwards against the refined landmarks, held fixed.
 
@@ -47,6 +52,13 @@ Outliers.  After a fit, a measurement whose normalised residual ρ_k = ‖W_k^(1
 is flagged — at most one per landmark per round (the worst), so that one bad measurement cannot take
 its landmark's good ones with it — and the problem is refitted, until no measurement is above the
 threshold.  Every flag is reported.
+
+Consistency.  The minimised cost (χ² of the used measurements + the priors' part) is χ²-distributed
+with ``dof`` degrees of freedom when the weights are honest: above its ``consistency_quantile``
+(99.9 %) the fit is ``inconsistent``, above ``max_reduced_chi2`` per dof ``implausible``
+(:attr:`BundleResult.verdict`, the χ² gate of ``solve-pose``), with a warning naming the figures,
+the landmarks with the largest shares of χ² and the remedy.  The covariances written are scaled by
+χ²/dof when above 1 (:attr:`BundleResult.covariance_scale`).
 
 Covariance.  The inverse of the (undamped) normal matrix at the solution: pose blocks of S⁻¹, landmark
 blocks D_l⁻¹ + D_l⁻¹ B_lᵀ S⁻¹ B_l D_l⁻¹ (``covariance="full"``).  For very large problems
@@ -109,6 +121,10 @@ class BundleOptions:
       ``ky``, ``kyx``; pixels for ``ctr``; absolute for ``owen``); None = no prior.
     * ``covariance`` — ``"full"``, ``"conditional"`` or ``"auto"`` (full up to ``max_dense_reduced``
       reduced unknowns).
+    * ``consistency_quantile`` — the minimised cost (χ² + priors) above this quantile of χ² with the
+      solve's degrees of freedom makes the fit ``inconsistent`` (0.999, as ``solve-pose``);
+      ``max_reduced_chi2`` — cost/dof above which it is ``implausible`` (100, as ``solve-pose``):
+      :attr:`BundleResult.verdict`.
     """
 
     mode: str = "joint"
@@ -124,6 +140,8 @@ class BundleOptions:
     camera_sigma: float | None = None
     covariance: str = "auto"
     max_dense_reduced: int = 4000
+    consistency_quantile: float = 0.999
+    max_reduced_chi2: float = 100.0
 
     def __post_init__(self):
         if self.mode not in BUNDLE_MODES:
@@ -141,6 +159,10 @@ class BundleOptions:
             raise SpcUsageError(f"covariance must be full, conditional or auto, got {self.covariance!r}")
         if not self.reject_sigma > 0:
             raise SpcUsageError(f"reject_sigma must be positive, got {self.reject_sigma}")
+        if not 0.0 < self.consistency_quantile < 1.0:
+            raise SpcUsageError(f"consistency_quantile must be in (0, 1), got {self.consistency_quantile}")
+        if not self.max_reduced_chi2 > 0:
+            raise SpcUsageError(f"max_reduced_chi2 must be positive, got {self.max_reduced_chi2}")
 
     def as_dict(self) -> dict:
         from dataclasses import asdict
@@ -226,7 +248,8 @@ class BundleResult:
     ``ignored-in-vlm`` (its picture does not constrain V; used for that picture's pose),
     ``undetermined`` (its landmark kept its prior).  ``landmark_status``: ``ok``, ``undetermined``
     (fewer than ``min_pictures`` usable pictures or too little parallax: V kept), ``unobserved``.
-    Residuals are measured − predicted (px); ``rho`` the normalised residual ‖W^(1/2) r‖.
+    Residuals are measured − predicted (px) at the returned poses and VLMs (an undetermined landmark at
+    its prior); ``rho`` the normalised residual ‖W^(1/2) r‖ (W with a held VLM's uncertainty added).
     """
 
     picture_names: list[str]
@@ -259,6 +282,74 @@ class BundleResult:
     warnings: list[str] = field(default_factory=list)
     mode: str = "joint"
     timing: dict = field(default_factory=dict)
+    prior_cost: float = 0.0  # the priors' part of the minimised cost (pictures and landmarks solved)
+    consistency_quantile: float = 0.999
+    max_reduced_chi2: float = 100.0
+    worst_landmarks: list = field(default_factory=list)  # [(name, share of χ²)], largest first
+
+    @property
+    def cost(self) -> float:
+        """The minimised cost: χ² of the used measurements + the priors' part."""
+        return self.chi2 + self.prior_cost
+
+    @property
+    def consistency_limit(self) -> float:
+        """The ``consistency_quantile`` of χ² with ``dof`` degrees of freedom (NaN for dof <= 0)."""
+        from spctool.stages.pose_consistency import chi2_quantile
+
+        return chi2_quantile(self.dof, self.consistency_quantile)
+
+    @property
+    def verdict(self) -> str:
+        """``implausible`` (cost/dof above ``max_reduced_chi2``), ``inconsistent`` (cost above its
+        ``consistency_quantile``) or ``ok`` — the χ² gate of ``solve-pose``
+        (:mod:`spctool.stages.pose_consistency`) applied to the whole solve."""
+        if not self.dof > 0 or not math.isfinite(self.cost):
+            return "ok"
+        if self.cost / self.dof > self.max_reduced_chi2:
+            return "implausible"
+        if self.cost > self.consistency_limit:
+            return "inconsistent"
+        return "ok"
+
+    @property
+    def verdict_reason(self) -> str:
+        """One line: the figures behind :attr:`verdict`, the likely cause and the remedy ("" for ok)."""
+        v = self.verdict
+        if v == "ok":
+            return ""
+        red = self.cost / self.dof
+        if v == "implausible":
+            head = (
+                f"implausible fit: cost/dof {red:.3g} > {self.max_reduced_chi2:g} (chi2 {self.chi2:.4g} + "
+                f"priors {self.prior_cost:.4g}, {self.dof} dof)"
+            )
+        else:
+            head = (
+                f"inconsistent fit: cost {self.cost:.4g} (chi2 {self.chi2:.4g} + priors "
+                f"{self.prior_cost:.4g}) > {self.consistency_limit:.4g}, the "
+                f"{100 * self.consistency_quantile:g} % quantile of chi2 with {self.dof} dof "
+                f"(cost/dof {red:.3g})"
+            )
+        if self.prior_cost > self.chi2:
+            cause = (
+                "most of it is the priors': the solution moved further than SIGMA_VSO, SIGMA_PTG or "
+                "SIGMA_LMK allow (give larger a-priori sigmas, or check the SUM poses and LMK VLMs)"
+            )
+        else:
+            worst = ", ".join(f"{n} ({100 * s:.0f} %)" for n, s in self.worst_landmarks)
+            cause = (
+                f"the residuals are ~{math.sqrt(max(self.reduced_chi2, 0.0)):.2g}x their sigmas: the "
+                "measurement sigmas are too small (--sigma-px, --sigma-floor-px, the register tables' "
+                f"sigma_sample/sigma_line) or measurements are wrong (largest shares of chi2: {worst})"
+            )
+        scale = self.covariance_scale
+        said = (
+            f"; the covariances are scaled by chi2/dof = {scale:.3g} (sigmas x {math.sqrt(scale):.3g})"
+            if scale > 1.0
+            else ""
+        )
+        return f"{head}: {cause}{said}"
 
     @property
     def landmark_sigmas(self) -> np.ndarray:
@@ -271,6 +362,14 @@ class BundleResult:
     @property
     def reduced_chi2(self) -> float:
         return self.chi2 / self.dof if self.dof > 0 else math.nan
+
+    @property
+    def covariance_scale(self) -> float:
+        """The factor on every covariance written and reported (SIGMA_LMK, SIGMA_VSO/SIGMA_PTG, the
+        tables' sigmas, the formal uncertainty): chi2/dof when it exceeds 1 (the residuals say the
+        measurements are noisier than their weights), else 1; the ``*_covariance`` arrays stay formal."""
+        red = self.reduced_chi2
+        return max(1.0, red) if math.isfinite(red) else 1.0
 
     def landmark_rms_px(self) -> np.ndarray:
         """Post-fit rms residual (px, per axis) over each landmark's used measurements (NaN if none)."""
@@ -333,10 +432,11 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             f"{und} landmark(s) undetermined (fewer than {opts.min_pictures} usable pictures or parallax "
             f"below {opts.min_parallax_deg:g}°): their VLM keeps its prior"
         )
-    # a kept landmark stays in the solve with its prior (its measurements inform the poses, its
-    # uncertainty with them); one without a prior on every axis is held fixed
-    has_prior = np.all(bundle.info_lmk > 0, axis=1)
-    hold = keep & ~has_prior
+    # a kept landmark is held fixed at its prior VLM, which is what is written for it: its measurements
+    # inform the poses, fitted to that VLM (were it free in the solve, the poses would be fitted to a
+    # moved VLM that is then put back, and the residuals reported would not be those of the files)
+    hold = keep.copy()
+    bundle.hold_landmarks(s, hold)
     gauge = _gauge_check(bundle, s, hold)
     stats: dict = {}
     fit = _fit_joint if opts.mode == "joint" else _fit_alternate
@@ -351,7 +451,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
         rho0, c0 = _normalised(bundle, s, k0)
         bad0 = k0[rho0 > opts.reject_sigma * (c0 if opts.robust_scale else 1.0)]
         status[bad0] = "outlier"
-        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
+        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, lstatus, opts)
         # the pre-pass's first fit, with the measurements' own weights and nothing flagged, is already
         # the plain fit: not done twice
         skip_first = plain is not None and bad0.size == 0
@@ -371,7 +471,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             break
         status[new] = "outlier"
         rounds += 1
-        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, has_prior, lstatus, opts)
+        keep, hold = _recheck_determinacy(bundle, s, status, in_vlm, keep, lstatus, opts)
     used_idx = np.flatnonzero((status == "ok") & joint_pics[prob.obs_picture])
     if opts.mode == "alternate":  # how far the alternation stopped from the minimum of the same cost
         gap = _alternation_gap(bundle, s, used_idx, hold, opts, stats)
@@ -389,21 +489,25 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
             f"{bundle.n_red} reduced unknowns: landmark covariances are conditional on the solved poses "
             "(covariance='full' for the joint ones)"
         )
+    s["v"][keep] = bundle.v0[keep]  # held there (exactly: the hold is a large weight, not a constraint)
     pose_cov, lcov, cam_cov = _covariance(bundle, s, used_idx, hold, kind)
     # pictures ignored in Vlm, and pictures with no landmark in the joint solve: poses against fixed V
     s = _solve_ignored(bundle, s, status, joint_pics, hold, pose_cov, warnings)
-    # residuals at the solution the poses were fitted with (a kept landmark at its solved V)
+    # residuals of the solution as returned (and written): the poses, and every VLM, kept ones at their prior
     res_before = prob.obs_pixel - bundle.project(bundle.start(), np.arange(k_all), False)[0]
     res_after = prob.obs_pixel - bundle.project(s, np.arange(k_all), False)[0]
-    if keep.any():  # kept landmarks: V and σ as they were (nothing written for them is learnt)
-        s["v"][keep] = bundle.v0[keep]
+    if keep.any():  # kept landmarks: σ as it was (nothing written for them is learnt)
         info_k = bundle.info_lmk[keep]
         var = np.where(info_k > 0, 1.0 / np.where(info_k > 0, info_k, 1.0), np.nan)
         lcov[keep] = var[:, :, None] * np.eye(3)
-    rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res_after, prob.obs_weight, res_after), 0.0))
+    rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res_after, bundle.eff_weight, res_after), 0.0))
     chi2_idx = used_idx
     chi2 = float(np.sum(rho[chi2_idx] ** 2))
     dof = _degrees_of_freedom(bundle, chi2_idx.size, joint_pics, hold)
+    prior_cost = _prior_cost(bundle, s, joint_pics, hold)
+    share = np.bincount(prob.obs_landmark[chi2_idx], weights=rho[chi2_idx] ** 2, minlength=bundle.n_lmk)
+    order = np.argsort(-share, kind="stable")[:3]
+    worst = [(prob.landmark_names[i], float(share[i] / chi2)) for i in order if chi2 > 0 and share[i] > 0]
     cam_terms = _camera_terms(bundle, s, cam_cov)
     cams = bundle.group_cameras(s)
     out_cams = [
@@ -412,7 +516,7 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
     ]
     if not converged and opts.mode == "joint":
         warnings.append(f"did not converge in {opts.max_iter} iterations")
-    return BundleResult(
+    result = BundleResult(
         picture_names=prob.picture_names,
         landmark_names=prob.landmark_names,
         cameras=out_cams,
@@ -445,7 +549,14 @@ def solve_bundle(problem: BundleProblem, options: BundleOptions | None = None) -
         timing={"total_s": time.perf_counter() - t_start},
         _obs_picture=prob.obs_picture,
         _obs_landmark=prob.obs_landmark,
+        prior_cost=prior_cost,
+        consistency_quantile=opts.consistency_quantile,
+        max_reduced_chi2=opts.max_reduced_chi2,
+        worst_landmarks=worst,
     )
+    if result.verdict != "ok":  # said as solve-pose says it (the caller decides what is written)
+        warnings.append(result.verdict_reason)
+    return result
 
 
 def _alternation_gap(bundle: _Bundle, s, k_idx, hold, opts, stats) -> tuple[float, float, float]:
@@ -466,7 +577,22 @@ def _degrees_of_freedom(bundle: _Bundle, n_used: int, joint_pics, hold) -> int:
     dof += int(np.count_nonzero(bundle.info_pos[joint_pics])) + int(
         np.count_nonzero(bundle.info_att[joint_pics])
     )
-    return dof + int(np.count_nonzero(bundle.info_lmk[~hold]))
+    return dof + int(np.count_nonzero(bundle.info_lmk[~hold])) + int(np.count_nonzero(bundle.info_cam))
+
+
+def _prior_cost(bundle: _Bundle, s, joint_pics, hold) -> float:
+    """The priors' part of the minimised cost over what the joint solve estimated (the pictures in it, the
+    landmarks not held, the camera terms): the prior equations :func:`_degrees_of_freedom` counts."""
+    dp = (s["pos"] - bundle.p0)[joint_pics]
+    th = bundle.theta(s)[joint_pics]
+    dv = (s["v"] - bundle.v0)[~hold]
+    c = float(np.sum(bundle.info_pos[joint_pics] * dp * dp) + np.sum(bundle.info_att[joint_pics] * th * th))
+    c += float(np.sum(bundle.info_lmk[~hold] * dv * dv))
+    if bundle.nc:
+        slots = bundle.slots
+        dq = np.array([[s["q"][g, i] - bundle.q0[g][i] for _, i in slots[g]] for g in range(len(slots))])
+        c += float(np.sum(bundle.info_cam * dq * dq))
+    return c
 
 
 def _camera_terms(bundle: _Bundle, s, cam_cov) -> dict:
@@ -482,21 +608,23 @@ def _camera_terms(bundle: _Bundle, s, cam_cov) -> dict:
     return out
 
 
-def _recheck_determinacy(bundle: _Bundle, s, status, in_vlm, keep, has_prior, lstatus, opts):
-    """(keep, hold) after flags: a landmark that lost too many measurements keeps its prior (one without a
-    prior is held at it)."""
+def _recheck_determinacy(bundle: _Bundle, s, status, in_vlm, keep, lstatus, opts):
+    """(keep, hold) after flags: a landmark that lost too many measurements keeps its prior VLM and is
+    held at it from now on."""
     cnt, par = _parallax(bundle, s, np.flatnonzero((status == "ok") & in_vlm))
     newly = ~keep & ((cnt < opts.min_pictures) | (par < opts.min_parallax_deg))
     keep = keep | newly
     lstatus[newly] = "undetermined"
-    s["v"][newly & ~has_prior] = bundle.v0[newly & ~has_prior]
-    return keep, keep & ~has_prior
+    s["v"][newly] = bundle.v0[newly]
+    if newly.any():
+        bundle.hold_landmarks(s, keep)
+    return keep, keep.copy()
 
 
 def _normalised(bundle: _Bundle, s, k_idx) -> tuple[np.ndarray, float]:
     """ρ_k = ‖W^(1/2) r_k‖ of measurements ``k_idx`` and the robust scale c = max(1, median ρ/√(2 ln 2))."""
     r = bundle.residuals(s, k_idx)
-    w = bundle.prob.obs_weight[k_idx]
+    w = bundle.eff_weight[k_idx]
     rho = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", r, w, r), 0.0))
     c = max(1.0, float(np.median(rho)) / _RAYLEIGH_MEDIAN) if rho.size else 1.0
     return rho, c
@@ -567,7 +695,7 @@ def _solve_ignored(bundle: _Bundle, s, status, joint_pics, hold, pose_cov, warni
                 PoseOptions(reject_outliers=False),
                 prior_sigma_position=prob.sigma_position[j],
                 prior_sigma_attitude=prob.sigma_attitude[j],
-                pixel_covariances=np.linalg.inv(prob.obs_weight[k]),
+                pixel_covariances=np.linalg.inv(bundle.eff_weight[k]),
                 names=[prob.landmark_names[i] for i in prob.obs_landmark[k]],
             )
         except PoseError as exc:
