@@ -347,6 +347,22 @@ def test_geometry_checks_its_output_before_writing_and_writes_strict_json(pristi
     assert doc["n_landmarks_refined"] == 0 and doc["vlm_correction_rms_m"] is None
 
 
+def test_batch_rounds_warns_of_a_refinement_not_to_be_trusted(pristine, run_cli, tmp_path, monkeypatch):
+    """A refined map whose solve fails the chi-square gate is said on stderr (geometry's line), and
+    GEOMETRY.json records the verdict; the verdict forced here, the gate itself is geometry's test."""
+    from spctool.stages.bundle import BundleResult
+
+    monkeypatch.setattr(BundleResult, "verdict", property(lambda self: "inconsistent"))
+    monkeypatch.setattr(BundleResult, "verdict_reason", property(lambda self: "inconsistent fit: forced"))
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    res = run_cli("-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "c")
+    assert res.exit_code == 0, res.output
+    assert "warning: map 2 (refined from round 1): inconsistent fit: forced" in res.stderr
+    doc = json.loads((tmp_path / "c" / "MAP2" / "GEOMETRY.json").read_text())
+    assert doc["verdict"] == "inconsistent"
+
+
 def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
     from spctool.formats.sumfile import read_sum, write_sum
 

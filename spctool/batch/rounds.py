@@ -150,6 +150,8 @@ def refined_workdir(
         "landmarks_refined": sum(s == "ok" for s in result.landmark_status),
         "measurements": result.counts(),
         "reduced_chi2": result.reduced_chi2,
+        "verdict": result.verdict,
+        "verdict_reason": result.verdict_reason,
         "converged": result.converged,
         "warnings": list(result.warnings) + list(inputs.notes),
     }

@@ -268,6 +268,9 @@ def batch_cmd(
         emit(result.to_json() if as_json else result.to_text(), output)
     else:
         emit(_rounds_text(cycle, as_json), output)
+        for i, r in enumerate(cycle.refinements):  # a refinement not to be trusted is said (as geometry)
+            if r.get("verdict", "ok") != "ok":
+                ctx.warn(f"map {i + 2} (refined from round {i + 1}): {r.get('verdict_reason', r['verdict'])}")
     if not no_figure or plots:
         from spctool.cli import figures
 
