@@ -13,12 +13,12 @@ solve_bundle`.  This module is the I/O around it, shared by ``spctool geometry``
   measurements; ``LMKWTS= WB, WO, WL, WR`` — WB scales the landmark-position prior (WO, WL: overlaps
   and limbs, which spctool does not use yet).
 * :func:`write_back` — atomically, each replaced file keeping a ``.bak``: LMK VLM, SIGMA_LMK (posterior
-  1σ, km, scaled by chi2/dof when above 1 as every sigma written and reported), RMSLMK (rms post-fit
-  residual of the landmark's used measurements, **pixels** — spctool's documented choice; SPC's unit is
-  not public) and the PICTURES section (one row per picture that
-  measured it: the measured sample/line, ``*`` when not used); the MAP header's V set to the new VLM
-  (real*4; every other byte kept); the SUM's SCOBJ, CX/CY/CZ, SIGMA_VSO/SIGMA_PTG and its LANDMARKS
-  rows' flags (``*`` on an outlier).
+  1σ, km, scaled by cost/dof (chi2 + priors) when above 1 as every sigma written and reported), RMSLMK
+  (rms post-fit residual of the landmark's used measurements, **pixels** — spctool's documented choice;
+  SPC's unit is not public) and the PICTURES section (one row per picture that measured it: the measured
+  sample/line, ``*`` when not used); the MAP header's V set to the new VLM (real*4; every other byte
+  kept); the SUM's SCOBJ, CX/CY/CZ, SIGMA_VSO/SIGMA_PTG and its LANDMARKS rows' flags (``*`` on an
+  outlier).
 * :func:`residuals_table`, :func:`lmkvecs_text`, :func:`formal_summary` — the reports in the spirit of
   SPC's RESIDUALS.TXT, LMKVECS.TXT and get80's formal uncertainty (the best 80 % of landmarks).
 """
@@ -164,7 +164,12 @@ def gather(
         if not batch_sums.is_dir():
             raise SpcUsageError(f"{from_batch}: not a batch output (no SUMFILES folder)")
         done = {p.stem for p in batch_sums.glob("*.SUM")}
-        names = [n for n in names if n in done] if not pictures else names
+        if not pictures:
+            missing = [n for n in names if n not in done]
+            if missing:  # pictures the batch wrote no SUM for (failed, not yet run): said, not silent
+                shown = ", ".join(missing[:8]) + (f", ... ({len(missing)})" if len(missing) > 8 else "")
+                notes.append(f"{from_batch}: no SUM for {shown}: left out of the refinement")
+            names = [n for n in names if n in done]
         tables = from_batch if tables is None else tables
     if not names:
         raise SpcUsageError(f"{wd.root}: no pictures to refine (no active PICTLIST picture, no SUMFILES/)")
@@ -196,6 +201,10 @@ def gather(
                 )
             row_sources.append((src, pic))
             lm_names = [lm.name.strip() for lm in pic.landmarks]
+            twice = sorted(n for n, c in Counter(lm_names).items() if c > 1)
+            if twice:  # one landmark on two rows would be counted twice (solve-pose refuses it too)
+                shown = ", ".join(twice[:5])
+                raise SpcFormatError(src, None, f"one LANDMARKS row per landmark, found {shown} twice")
             pix = np.array([[lm.sample, lm.line] for lm in pic.landmarks], dtype=np.float64).reshape(-1, 2)
             usable = np.array([lm.flag.strip() != "*" for lm in pic.landmarks], dtype=bool)
             cov = None
@@ -300,7 +309,7 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
     status = result.obs_status
     rms = result.landmark_rms_px()
     sig = result.landmark_sigmas
-    scale = result.covariance_scale  # chi2/dof when above 1, as the reports say
+    scale = result.covariance_scale  # cost/dof when above 1, as the reports say
     # landmarks
     # each landmark's measurements, in measurement order (one stable sort, no loop over measurements)
     order = np.argsort(prob.obs_landmark, kind="stable")
@@ -406,7 +415,7 @@ def residuals_table(result: BundleResult, problem: BundleProblem):
 
 def summary_table(result: BundleResult, problem: BundleProblem):
     """One row per landmark: VLM before/after, correction (m), 1σ (m), pictures used, rms (px), status.
-    The 1σ of a refined landmark is its SIGMA_LMK as written (scaled by chi2/dof when above 1,
+    The 1σ of a refined landmark is its SIGMA_LMK as written (scaled by cost/dof when above 1,
     :attr:`BundleResult.covariance_scale`); an undetermined one's is its prior's."""
     from spctool.formats.table import LandmarkTable
 
@@ -449,7 +458,7 @@ def lmkvecs_text(result: BundleResult, landmarks: dict) -> str:
 def formal_summary(result: BundleResult) -> dict:
     """Formal uncertainty in the spirit of get80: the 1σ position error (m, root of the covariance's trace)
     of the best 80 % of the determined landmarks, with its median and maximum; the covariance scaled as
-    SIGMA_LMK is written (``covariance_scale``: chi2/dof when above 1)."""
+    SIGMA_LMK is written (``covariance_scale``: cost/dof when above 1)."""
     ok = np.array([s == "ok" for s in result.landmark_status])
     scale = result.covariance_scale
     tr = (
