@@ -427,7 +427,8 @@ def test_a_fit_whose_chi2_exceeds_its_quantile_is_inconsistent_and_far_above_imp
     assert bad.cost > bad.consistency_limit
     said = [x for x in bad.warnings if x.startswith("inconsistent fit")]
     assert len(said) == 1 and f"{bad.consistency_limit:.4g}" in said[0] and "--sigma-px" in said[0]
-    assert bad.covariance_scale == pytest.approx(bad.reduced_chi2)
+    assert bad.covariance_scale == pytest.approx(bad.cost / bad.dof)  # with the priors' part, as solve-pose
+    assert ok.reduced_chi2 < 0.8 < ok.cost / ok.dof < 1.2  # honest weights: chi2/dof alone reads low
     worse = solve_bundle(dataclasses.replace(p, obs_weight=p.obs_weight * 1e4))
     assert worse.verdict == "implausible" and worse.reduced_chi2 > 100
     assert any(x.startswith("implausible fit") for x in worse.warnings)

@@ -217,7 +217,7 @@ def test_geometry_reports_the_residuals_of_what_it_writes_when_no_landmark_is_re
 
 
 def test_geometry_reports_the_sigmas_it_writes_when_chi2_per_dof_exceeds_one(pristine, run_cli, tmp_path):
-    """chi2/dof above 1 (SUM rows weighed at 0.002 px): SIGMA_LMK is written scaled by sqrt(chi2/dof), and
+    """chi2/dof above 1 (SUM rows weighed at 0.002 px): SIGMA_LMK is written scaled by sqrt(cost/dof), and
     the table's sigmas and the formal best-80 % figure are those written (they were the unscaled ones:
     0.144 m reported for B01536 on the demo with --sigma-floor-px 0, sqrt(1.755) times that written)."""
     root, truth = pristine
@@ -241,7 +241,9 @@ def test_geometry_reports_the_sigmas_it_writes_when_chi2_per_dof_exceeds_one(pri
     f = doc["formal_uncertainty"]
     assert f["best80_rms_m"] == pytest.approx(float(np.sqrt(np.mean(best**2))), rel=1e-8)
     assert f["best80_max_m"] == pytest.approx(float(best.max()), rel=1e-8)
-    assert doc["covariance_scale"] == doc["reduced_chi2"]
+    c = doc["consistency"]  # the cost per dof (chi2 + priors), as solve-pose scales: not chi2/dof alone
+    assert doc["covariance_scale"] == pytest.approx(c["cost"] / c["dof"], rel=1e-12)
+    assert doc["covariance_scale"] > doc["reduced_chi2"]
 
 
 def test_geometry_says_an_inconsistent_fit_and_refuses_an_implausible_one(pristine, run_cli, tmp_path):
@@ -361,6 +363,28 @@ def test_batch_rounds_warns_of_a_refinement_not_to_be_trusted(pristine, run_cli,
     assert "warning: map 2 (refined from round 1): inconsistent fit: forced" in res.stderr
     doc = json.loads((tmp_path / "c" / "MAP2" / "GEOMETRY.json").read_text())
     assert doc["verdict"] == "inconsistent"
+
+
+def test_geometry_says_a_picture_the_batch_left_out_and_refuses_a_doubled_row(pristine, run_cli, tmp_path):
+    """--from-batch: a picture without a batch SUM (failed, not run) was dropped silently, now a note
+    names it; SUM LANDMARKS rows naming one landmark twice are refused (counted twice before), as
+    solve-pose refuses them."""
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    out = tmp_path / "out"
+    run_cli("-q", "-C", wd, "batch", "--out-dir", out)
+    gone, path = sorted((out / "SUMFILES").glob("*.SUM"))[:2]
+    gone.unlink()
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--dry-run")
+    assert res.exit_code == 0, res.output
+    assert f"no SUM for {gone.stem}: left out of the refinement" in res.stderr
+    lines = path.read_text().split("\n")
+    k = lines.index("LANDMARKS")
+    lines.insert(k + 1, lines[k + 1])  # the first measured landmark twice
+    path.write_text("\n".join(lines))
+    (wd / "no-tables").mkdir()
+    res = run_cli("-C", wd, "geometry", "--from-batch", out, "--tables", "no-tables", "--dry-run")
+    assert res.exit_code == 2 and path.name in res.stderr and "one LANDMARKS row per landmark" in res.stderr
 
 
 def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
