@@ -216,16 +216,23 @@ def test_geometry_reports_the_residuals_of_what_it_writes_when_no_landmark_is_re
     assert solved["rms_after_px"] <= solved["rms_before_px"]
 
 
+def _measured(pristine, run_cli, tmp_path):
+    """(working directory, batch output) of a copy of the pristine world measured by one batch, with an
+    empty folder ``no-tables`` in it (``--tables no-tables``: the SUM rows weighed by --sigma-px)."""
+    wd = tmp_path / "wd"
+    shutil.copytree(pristine[0], wd)
+    out = tmp_path / "out"
+    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
+    (wd / "no-tables").mkdir()
+    return wd, out
+
+
 def test_geometry_reports_the_sigmas_it_writes_when_chi2_per_dof_exceeds_one(pristine, run_cli, tmp_path):
     """chi2/dof above 1 (SUM rows weighed at 0.002 px): SIGMA_LMK is written scaled by sqrt(cost/dof), and
     the table's sigmas and the formal best-80 % figure are those written (they were the unscaled ones:
     0.144 m reported for B01536 on the demo with --sigma-floor-px 0, sqrt(1.755) times that written)."""
-    root, truth = pristine
-    wd = tmp_path / "wd"
-    shutil.copytree(root, wd)
-    out = tmp_path / "out"
-    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
-    (wd / "no-tables").mkdir()
+    _, truth = pristine
+    wd, out = _measured(pristine, run_cli, tmp_path)
     args = ["--from-batch", out, "--tables", "no-tables", "--sigma-px", "0.002", "--json"]
     res = run_cli("-q", "-C", wd, "geometry", *args)
     assert res.exit_code == 0, res.stderr
@@ -251,12 +258,7 @@ def test_geometry_says_an_inconsistent_fit_and_refuses_an_implausible_one(pristi
     ~4.5) are an inconsistent fit: one warning with the figures and the remedy, the JSON says so, the
     files are written; at 0.0002 px (cost/dof ~450) implausible: exit 1 with one line, nothing written,
     unless --force (the demo at --sigma-px 0.001 once gave chi2/dof 1320 with no word and exit 0)."""
-    root, _ = pristine
-    wd = tmp_path / "wd"
-    shutil.copytree(root, wd)
-    out = tmp_path / "out"
-    assert run_cli("-q", "-C", wd, "batch", "--out-dir", out).exit_code == 0
-    (wd / "no-tables").mkdir()
+    wd, out = _measured(pristine, run_cli, tmp_path)
 
     def files():
         return {p: p.read_bytes() for d in ("LMKFILES", "MAPFILES", "SUMFILES") for p in (wd / d).iterdir()}
