@@ -389,6 +389,24 @@ def test_geometry_says_a_picture_the_batch_left_out_and_refuses_a_doubled_row(pr
     assert res.exit_code == 2 and path.name in res.stderr and "one LANDMARKS row per landmark" in res.stderr
 
 
+def test_batch_rounds_stop_at_an_implausible_refinement(pristine, run_cli, tmp_path, monkeypatch):
+    """An implausible refinement (geometry's rule: exit 1, nothing written) is not written and no round
+    measures on it: it once was, and round 2 measured on the map; the verdict forced here."""
+    from spctool.stages.bundle import BundleResult
+
+    monkeypatch.setattr(BundleResult, "verdict", property(lambda self: "implausible"))
+    monkeypatch.setattr(BundleResult, "verdict_reason", property(lambda self: "implausible fit: forced"))
+    wd = tmp_path / "wd"
+    _biased(pristine, wd)
+    res = run_cli("-C", wd, "batch", "--rounds", "2", "--out-dir", tmp_path / "c")
+    assert res.exit_code == 1
+    err = [ln for ln in res.stderr.splitlines() if "error:" in ln]
+    said = "MAP2 (refined from ROUND1): implausible fit: forced; not written, the cycle stops here"
+    assert err == [f"spctool: error: {said}"]
+    assert (tmp_path / "c" / "ROUND1" / "BATCH_SUMMARY.json").exists()
+    assert not any((tmp_path / "c" / d).exists() for d in ("MAP2", "MAP2.partial", "ROUND2"))
+
+
 def test_geometry_refuses_a_free_gauge_with_one_line(pristine, run_cli, tmp_path):
     from spctool.formats.sumfile import read_sum, write_sum
 

@@ -24,7 +24,9 @@ folder renamed into place when complete (a half-built one is removed and built a
 lost or done twice.  A refined map records what it was built from (``GEOMETRY.json``'s ``inputs``: a
 digest of the working directory's SUM, LMK and MAP files, of the round's SUMs and tables, and of the
 refinement's options) and is reused only while those are unchanged (``force``: never); a map built
-from other inputs — a landmark moved, a round measured again, ``--lithos`` added — is built again.
+from other inputs — a landmark moved, a round measured again, ``--lithos`` added — is built again.  A
+refinement whose solve is implausible (``geometry``'s χ² gate) is not written and ends the cycle
+(:class:`~spctool.errors.SpcResultError`); an inconsistent one is written and said.
 The last round's outputs are the batch's result.
 """
 
@@ -37,7 +39,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from spctool.errors import SpcUsageError
+from spctool.errors import SpcResultError, SpcUsageError
 from spctool.formats import atomic
 
 __all__ = ["RoundsResult", "inputs_digest", "run_rounds", "refined_workdir"]
@@ -134,6 +136,10 @@ def refined_workdir(
     wd = WorkDir(tmp)
     inputs = refine.gather(wd, settings, tables=round_dir, **refine_kw.get("gather", {}))
     result = solve_bundle(inputs.problem, BundleOptions(**refine_kw.get("options", {})))
+    if result.verdict == "implausible":  # geometry's rule: nothing written, and no round measures on it
+        shutil.rmtree(tmp)
+        raise SpcResultError(f"{target.name} (refined from {Path(round_dir).name}): {result.verdict_reason}; "
+                             "not written, the cycle stops here")
     # new files: the hard links to the working directory's are replaced, the originals untouched
     refine.write_back(refine.updated_files(inputs, result, wd), backup=False)
     heights = None
