@@ -200,11 +200,8 @@ def gather(
                     f"picture {name}: no register table in {tables_dir}: its SUM LANDMARKS rows used"
                 )
             row_sources.append((src, pic))
+            guard.check_landmark_rows(pic, src)  # one landmark on two rows would be counted twice
             lm_names = [lm.name.strip() for lm in pic.landmarks]
-            twice = sorted(n for n, c in Counter(lm_names).items() if c > 1)
-            if twice:  # one landmark on two rows would be counted twice (solve-pose refuses it too)
-                shown = ", ".join(twice[:5])
-                raise SpcFormatError(src, None, f"one LANDMARKS row per landmark, found {shown} twice")
             pix = np.array([[lm.sample, lm.line] for lm in pic.landmarks], dtype=np.float64).reshape(-1, 2)
             usable = np.array([lm.flag.strip() != "*" for lm in pic.landmarks], dtype=bool)
             cov = None

@@ -79,7 +79,7 @@ def emit(text: str, output: str | None = None, *, overwrite: bool = True) -> Non
         sys.stdout.write(text)
         sys.stdout.flush()
     else:
-        guard.refuse_read_input(output)
+        check_output(output)
         atomic.write_bytes(output, text.encode("utf-8"), overwrite=overwrite, backup=True)
 
 

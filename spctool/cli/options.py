@@ -33,9 +33,10 @@ from spctool.errors import SpcUsageError
 IMAGE_FORMATS = ("pgm", "png", "fits")
 
 
-class FiniteFloatRange(click.FloatRange):
-    """click's FloatRange that also refuses NaN and ±inf (exit 2, naming the option): a NaN passes every
-    comparison of a range check and ended a solve in an internal error, or in a silent wrong answer."""
+class _Finite:
+    """Refuses NaN and ±inf after the float type it is mixed into has converted the value (exit 2,
+    naming the option): a NaN passes every comparison of a range check and ended a solve in an
+    internal error, or in a silent wrong answer."""
 
     def convert(self, value, param, ctx):
         v = super().convert(value, param, ctx)
@@ -44,14 +45,12 @@ class FiniteFloatRange(click.FloatRange):
         return v
 
 
-class FiniteFloat(click.types.FloatParamType):
-    """click's float that refuses NaN and ±inf (exit 2, naming the option)."""
+class FiniteFloatRange(_Finite, click.FloatRange):
+    """click's FloatRange, finite."""
 
-    def convert(self, value, param, ctx):
-        v = super().convert(value, param, ctx)
-        if not math.isfinite(v):
-            self.fail(f"{value!r} is not a finite number", param, ctx)
-        return v
+
+class FiniteFloat(_Finite, click.types.FloatParamType):
+    """click's float, finite."""
 
 
 #: a float option that must be finite (``type=FINITE_FLOAT`` where ``type=float`` would take NaN)

@@ -97,13 +97,10 @@ _COVARIANCE_COLUMNS = ("sigma_sample", "sigma_line", "rho_sl")
 def measurements_from_sum(pic, path=None) -> Measurements:
     """The SUM's LANDMARKS rows (a row flagged ``*`` is passed through, not used); a landmark on two
     rows is refused (SpcFormatError naming ``path``), as a table's is: it would be counted twice."""
-    from collections import Counter
+    from spctool.formats.guard import check_landmark_rows
 
+    check_landmark_rows(pic, path)
     rows = pic.landmarks
-    twice = sorted(n for n, c in Counter(lm.name.strip() for lm in rows).items() if c > 1)
-    if twice:
-        shown = ", ".join(twice[:5]) + (f", ... ({len(twice)} landmarks)" if len(twice) > 5 else "")
-        raise SpcFormatError(path, None, f"one LANDMARKS row per landmark, found {shown} on more than one")
     status = ["flagged" if lm.flag.strip() == "*" else "ok" for lm in rows]
     return Measurements(
         [lm.name for lm in rows],
