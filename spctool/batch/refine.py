@@ -13,7 +13,7 @@ solve_bundle`.  This module is the I/O around it, shared by ``spctool geometry``
   measurements; ``LMKWTS= WB, WO, WL, WR`` — WB scales the landmark-position prior (WO, WL: overlaps
   and limbs, which spctool does not use yet).
 * :func:`write_back` — atomically, each replaced file keeping a ``.bak``: LMK VLM, SIGMA_LMK (posterior
-  1σ, km, scaled by cost/dof (chi2 + priors) when above 1 as every sigma written and reported), RMSLMK
+  1σ, km, scaled by chi2/dof when above 1 as every sigma written and reported), RMSLMK
   (rms post-fit residual of the landmark's used measurements, **pixels** — spctool's documented choice;
   SPC's unit is not public) and the PICTURES section (one row per picture that measured it: the measured
   sample/line, ``*`` when not used); the MAP header's V set to the new VLM (real*4; every other byte
@@ -306,7 +306,7 @@ def updated_files(inputs: RefineInputs, result: BundleResult, wd: WorkDir) -> di
     status = result.obs_status
     rms = result.landmark_rms_px()
     sig = result.landmark_sigmas
-    scale = result.covariance_scale  # cost/dof when above 1, as the reports say
+    scale = result.covariance_scale  # chi2/dof when above 1, as the reports say
     # landmarks
     # each landmark's measurements, in measurement order (one stable sort, no loop over measurements)
     order = np.argsort(prob.obs_landmark, kind="stable")
@@ -412,7 +412,7 @@ def residuals_table(result: BundleResult, problem: BundleProblem):
 
 def summary_table(result: BundleResult, problem: BundleProblem):
     """One row per landmark: VLM before/after, correction (m), 1σ (m), pictures used, rms (px), status.
-    The 1σ of a refined landmark is its SIGMA_LMK as written (scaled by cost/dof when above 1,
+    The 1σ of a refined landmark is its SIGMA_LMK as written (scaled by chi2/dof when above 1,
     :attr:`BundleResult.covariance_scale`); an undetermined one's is its prior's."""
     from spctool.formats.table import LandmarkTable
 
@@ -455,7 +455,7 @@ def lmkvecs_text(result: BundleResult, landmarks: dict) -> str:
 def formal_summary(result: BundleResult) -> dict:
     """Formal uncertainty in the spirit of get80: the 1σ position error (m, root of the covariance's trace)
     of the best 80 % of the determined landmarks, with its median and maximum; the covariance scaled as
-    SIGMA_LMK is written (``covariance_scale``: cost/dof when above 1)."""
+    SIGMA_LMK is written (``covariance_scale``: chi2/dof when above 1)."""
     ok = np.array([s == "ok" for s in result.landmark_status])
     scale = result.covariance_scale
     tr = (

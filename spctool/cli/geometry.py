@@ -178,14 +178,14 @@ def geometry_cmd(
     pictures or less parallax than --min-parallax keeps its VLM (status undetermined).
 
     Writes (unless --dry-run; atomic, each replaced file kept as FILE.bak): LMK VLM, SIGMA_LMK
-    (posterior 1-sigma, km, scaled by cost/dof (chi2 + priors) when above 1), RMSLMK (rms post-fit
+    (posterior 1-sigma, km, scaled by chi2/dof when above 1), RMSLMK (rms post-fit
     residual in pixels) and the PICTURES rows (measured sample/line, '*' = not used); the MAP header V =
     VLM; the SUM's SCOBJ, CX/CY/CZ, SIGMA_VSO/SIGMA_PTG and a '*' on outlier LANDMARKS rows.
 
     Output: one row per landmark (vlm_x/y/z km, dx/dy/dz_m correction, sigma_x/y/z_m, pictures used,
     parallax_deg, rms_px, status) and a summary in the header; --json adds pictures, formal
     uncertainty (best 80 % of landmarks, as SPC's get80), gauge and counts.  Every sigma reported is
-    the one written: the formal one scaled by cost/dof (chi2 + priors) when above 1 (covariance_scale).
+    the one written: the formal one scaled by chi2/dof when above 1 (covariance_scale).
 
     --mode alternate runs SPC's alternation for up to 30 rounds and reports where it stopped beside the
     joint minimum of the same cost (a warning with both costs); it is not an error for it to stop short.
